@@ -1,0 +1,7 @@
+"""``python -m motcomp``."""
+
+import sys
+
+from motcomp.cli import main
+
+sys.exit(main())

@@ -1,0 +1,56 @@
+"""Argument helpers shared by the commands."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any
+
+from motcomp.core.models import ProcessModel, parse_model
+from motcomp.errors import ConfigError
+from motcomp.presets import Preset, load_preset
+
+
+def add_plant_args(p: argparse.ArgumentParser, required: bool = True) -> None:
+    """``--plant NAME | --model SPEC`` (and ``--platform SPEC`` for a mismatched truth)."""
+    group = p.add_mutually_exclusive_group(required=required)
+    group.add_argument("--plant", metavar="NAME",
+                       help="plant preset (config/plants/NAME.toml): rails, hexapod, or a path")
+    group.add_argument("--model", metavar="SPEC",
+                       help="model spec, e.g. p1d:K=1,Td=0.0175,Tp1=0.1858")
+
+
+def rate_arg(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"rate must be a number of Hz, got {text!r}") from None
+    if not value > 0 or value != value or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"rate must be a positive finite number, got {text!r}")
+    return value
+
+
+def resolve_plant(args: argparse.Namespace) -> tuple[ProcessModel, Preset | None]:
+    """The plant model from ``--plant`` or ``--model``, and the preset if one was named."""
+    if getattr(args, "plant", None):
+        preset = load_preset(args.plant)
+        return preset.model, preset
+    if getattr(args, "model", None):
+        return parse_model(args.model), None
+    raise ConfigError("give --plant NAME or --model SPEC")
+
+
+def print_json(obj: Any) -> None:
+    json.dump(obj, sys.stdout, indent=2, allow_nan=False, default=_json_default)
+    sys.stdout.write("\n")
+
+
+def _json_default(obj: Any) -> Any:
+    import numpy as np
+
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")

@@ -1,0 +1,245 @@
+"""Frequency-domain evaluation of the pseudo open-loop compensator.
+
+For a PID ``C`` (split into the reference path ``Cr`` and the model path ``Cy`` when setpoint
+weights are used), the internal model ``M`` and the real platform ``P``::
+
+    F = u/r = Cr / (1 + Cy M)             command transfer (the compensator as a prefilter)
+    T = y/r = P F                         delivered response
+    S = 1 / (1 + Cy M)                    sensitivity of the internal loop, Ms = max |S|
+
+Both a continuous-time evaluation (``s = j w``, exact delays) and one at the loop rate
+(``z = e^{j w h}``: exact ZOH models with sub-sample delays, and the *implemented* discrete PID of
+:mod:`motcomp.core.compensator`) are provided; below a few Hz they agree to a fraction of a ms.
+
+Phases are unwrapped without ambiguity: ``arg T = arg P + arg Cr - arg(1 + Cy M)``, where the
+first two are exact from poles and zeros and the last is unwrapped along a dense grid that starts
+where ``1 + Cy M ~ K ki / (j w)`` (phase -90 deg) or, without integral action, ~ ``1 + kp K``.
+
+Stability of the discrete internal loop is decided from the roots of its characteristic
+polynomial (:func:`motcomp.core.loop.stability`), never from a frequency grid alone.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from motcomp.core.loop import Poly, model_tf, pid_tf, stability
+from motcomp.core.lti import (
+    ComplexArray,
+    FloatArray,
+    rational_phase_continuous,
+    rational_phase_discrete,
+)
+from motcomp.core.models import P1D, ProcessModel
+from motcomp.core.pid import PIDGains
+from motcomp.errors import ConfigError
+
+__all__ = [
+    "BAND_HZ",
+    "REPORT_FREQS_HZ",
+    "Evaluation",
+    "LoopResponse",
+    "evaluate",
+    "loop_response",
+    "pid_continuous",
+]
+
+REPORT_FREQS_HZ: tuple[float, ...] = (0.2, 0.5, 1.0, 2.0)
+"""Frequencies at which phase delays are reported (the paper's driver band)."""
+BAND_HZ: tuple[float, float] = (0.1, 2.0)
+"""The driver band: steering inputs live in 0-2 Hz (paper)."""
+
+
+def pid_continuous(g: PIDGains) -> tuple[Poly, Poly]:
+    """``((num_r, den), (num_y, den))`` of ``Cr(s)`` and ``Cy(s)`` in s.
+
+    ``Cy(s) = kp + ki/s + kd s/(1 + tf s)`` and ``Cr`` the same with ``kp b`` and ``kd c``;
+    common denominator ``s (1 + tf s)``.
+    """
+    den = np.polymul([1.0, 0.0], [g.tf, 1.0])
+
+    def num(kp: float, kd: float) -> FloatArray:
+        # kp s (1 + tf s) + ki (1 + tf s) + kd s^2
+        return np.polyadd(np.polyadd(np.polymul([kp, 0.0], [g.tf, 1.0]),
+                                     np.polymul([g.ki], [g.tf, 1.0])), [kd, 0.0, 0.0])
+
+    return (num(g.kp * g.b, g.kd * g.c), den), (num(g.kp, g.kd), den)
+
+
+@dataclass(frozen=True)
+class LoopResponse:
+    """Responses on a frequency grid ``f`` (Hz)."""
+
+    f: FloatArray
+    plant: ComplexArray  # P
+    command: ComplexArray  # F = Cr / (1 + Cy M)
+    delivered: ComplexArray  # T = P F
+    sensitivity: ComplexArray  # S = 1 / (1 + Cy M)
+    plant_phase: FloatArray  # unwrapped arg P
+    delivered_phase: FloatArray  # unwrapped arg T
+
+    def phase_delay(self, which: str = "delivered") -> FloatArray:
+        ph = self.delivered_phase if which == "delivered" else self.plant_phase
+        return np.asarray(-ph / (2.0 * np.pi * self.f))
+
+
+def default_grid(rate_hz: float | None, extra: ArrayLike = ()) -> FloatArray:
+    """Log grid from 1 mHz to the Nyquist frequency (or 500 Hz), with ``extra`` points merged."""
+    top = 0.5 * rate_hz * 0.999 if rate_hz else 500.0
+    base = np.geomspace(1e-3, top, 6000)
+    return np.unique(np.concatenate([base, np.asarray(extra, dtype=float)]))
+
+
+def loop_response(gains: PIDGains, model: P1D, plant: ProcessModel, f_hz: ArrayLike,
+                  rate_hz: float | None = None) -> LoopResponse:
+    """Responses of the compensated loop on the ascending grid ``f_hz`` (must start low,
+    below ~0.01 Hz, for the unwrapping).
+
+    ``rate_hz=None`` evaluates in continuous time; otherwise at the discrete rate.
+    """
+    f = np.asarray(f_hz, dtype=float)
+    if f.ndim != 1 or f.size < 2 or np.any(np.diff(f) <= 0) or f[0] <= 0:
+        raise ConfigError("frequency grid must be positive and strictly ascending")
+    w = 2.0 * np.pi * f
+    if rate_hz is None:
+        (nr, dr), (ny, dy) = pid_continuous(gains)
+        s = 1j * w
+        cr = np.polyval(nr, s) / np.polyval(dr, s)
+        cy = np.polyval(ny, s) / np.polyval(dy, s)
+        m = model.freqresp(f)
+        p = plant.freqresp(f)
+        arg_p = plant.phase(f)
+        arg_cr = rational_phase_continuous(nr, dr, w)
+    else:
+        dt = 1.0 / rate_hz
+        theta = w * dt
+        if np.any(theta >= np.pi):
+            raise ConfigError(f"frequency grid reaches the Nyquist frequency {rate_hz / 2} Hz")
+        z = np.exp(1j * theta)
+        (nr, dr), (ny, dy) = pid_tf(gains, dt)
+        cr = np.polyval(nr, z) / np.polyval(dr, z)
+        cy = np.polyval(ny, z) / np.polyval(dy, z)
+        nm, dm = model_tf(model, dt)
+        m = np.asarray(np.polyval(nm, z) / np.polyval(dm, z), dtype=complex)
+        pd = plant.discretize(rate_hz)
+        pn, pden = pd.tf()
+        p = np.asarray(np.polyval(pn, z) / np.polyval(pden, z), dtype=complex)
+        arg_p = rational_phase_discrete(pn, pden, theta)
+        arg_cr = rational_phase_discrete(nr, dr, theta)
+    one_plus = 1.0 + cy * m
+    arg_loop = np.unwrap(np.angle(one_plus))
+    # anchor at the low-frequency asymptote (-pi/2 with integral action, 0 without)
+    expected0 = -np.pi / 2 if gains.ki > 0 else float(np.angle(1.0 + gains.kp * model.K))
+    arg_loop = arg_loop + 2.0 * np.pi * round((expected0 - arg_loop[0]) / (2.0 * np.pi))
+    f_cmd = cr / one_plus
+    t = p * f_cmd
+    return LoopResponse(
+        f=f, plant=p, command=f_cmd, delivered=t, sensitivity=1.0 / one_plus,
+        plant_phase=np.asarray(arg_p), delivered_phase=np.asarray(arg_p + arg_cr - arg_loop),
+    )
+
+
+@dataclass
+class Evaluation:
+    """Metrics of one design (SI units unless the name says ms, Hz or dB)."""
+
+    rate_hz: float | None
+    uncorrected_phase_delay_ms: dict[str, float]
+    uncorrected_max_delay_ms: float
+    uncorrected_gain_error_db: float
+    phase_delay_ms: dict[str, float]
+    max_residual_delay_ms: float
+    max_residual_delay_hz: float
+    gain_error_db: float
+    peak_gain_db: float
+    peak_gain_hz: float
+    peak_command_gain: float
+    peak_command_gain_hz: float
+    ms: float
+    stable: bool
+    max_pole_modulus: float
+    notes: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _key(f: float) -> str:
+    return f"{f:g}"
+
+
+def evaluate(gains: PIDGains, model: P1D, plant: ProcessModel | None = None,
+             rate_hz: float | None = 1000.0, band_hz: tuple[float, float] = BAND_HZ,
+             report_hz: tuple[float, ...] = REPORT_FREQS_HZ) -> Evaluation:
+    """All frequency-domain metrics of a design.
+
+    Parameters
+    ----------
+    gains, model
+        The compensator (PID gains and its internal P1D model).
+    plant
+        The real platform; defaults to ``model`` (exact model).
+    rate_hz
+        Loop rate for the discrete evaluation, or None for continuous time (stability is then
+        still judged on the discrete loop at 1 kHz, the service's default rate).
+    band_hz
+        Band of the residual-delay and gain-error metrics.
+
+    Notes
+    -----
+    The residual delay is the largest ``|tau_phi|`` over the band: a phase *lead* (negative
+    delay) is an error too.
+    """
+    plant = plant or model
+    lo, hi = band_hz
+    if not 0 < lo < hi:
+        raise ConfigError(f"band must satisfy 0 < low < high, got {band_hz}")
+    band = np.geomspace(lo, hi, 400)
+    grid = default_grid(rate_hz, np.concatenate([band, report_hz]))
+    resp = loop_response(gains, model, plant, grid, rate_hz)
+    tau = resp.phase_delay("delivered")
+    tau_p = resp.phase_delay("plant")
+    idx = {f: int(np.searchsorted(grid, f)) for f in report_hz}
+    in_band = (grid >= lo * (1 - 1e-12)) & (grid <= hi * (1 + 1e-12))
+    mag_db = 20.0 * np.log10(np.abs(resp.delivered))
+    plant_db = 20.0 * np.log10(np.abs(resp.plant))
+    resid = np.abs(tau[in_band])
+    i_res = int(np.argmax(resid))
+    i_peak = int(np.argmax(mag_db))
+    cmd = np.abs(resp.command)
+    i_cmd = int(np.argmax(cmd))
+    stable, rho = stability(gains, model, rate_hz or 1000.0)
+    notes = []
+    if not stable:
+        notes.append(f"internal loop UNSTABLE at {rate_hz or 1000.0:g} Hz "
+                     f"(pole modulus {rho:.4f})")
+    return Evaluation(
+        rate_hz=rate_hz,
+        uncorrected_phase_delay_ms={_key(f): float(tau_p[i]) * 1e3 for f, i in idx.items()},
+        uncorrected_max_delay_ms=float(np.max(np.abs(tau_p[in_band]))) * 1e3,
+        uncorrected_gain_error_db=float(np.max(np.abs(plant_db[in_band]))),
+        phase_delay_ms={_key(f): float(tau[i]) * 1e3 for f, i in idx.items()},
+        max_residual_delay_ms=float(resid[i_res]) * 1e3,
+        max_residual_delay_hz=float(grid[in_band][i_res]),
+        gain_error_db=float(np.max(np.abs(mag_db[in_band]))),
+        peak_gain_db=float(mag_db[i_peak]),
+        peak_gain_hz=float(grid[i_peak]),
+        peak_command_gain=float(cmd[i_cmd]),
+        peak_command_gain_hz=float(grid[i_cmd]),
+        ms=float(np.max(np.abs(resp.sensitivity))),
+        stable=stable,
+        max_pole_modulus=rho,
+        notes=notes,
+    )
+
+
+def residual_lag_s(gains: PIDGains, model: P1D) -> float:
+    """Low-frequency residual lag ``1/(K ki)`` of the corrected response (exact model)."""
+    if gains.ki <= 0:
+        return math.inf
+    return 1.0 / (model.K * gains.ki)

@@ -1,0 +1,290 @@
+"""Design and evaluation reports: the JSON object, a markdown summary, and the figures.
+
+:func:`design_report` is what ``motcomp design`` prints; :func:`evaluation_report` adds the
+time-domain runs (swept sine, slalom) that ``motcomp evaluate`` writes with its figures.
+matplotlib is imported only inside the plotting functions.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from motcomp.core.models import P1D, ProcessModel
+from motcomp.core.pid import PIDGains
+from motcomp.core.saturation import AxisLimits
+from motcomp.core.tuning import RULE_NAMES, tune
+from motcomp.design.frequency import (
+    Evaluation,
+    default_grid,
+    evaluate,
+    loop_response,
+)
+from motcomp.design.timedomain import (
+    SimulationResult,
+    simulate_compensated,
+    slalom,
+    swept_sine,
+)
+
+__all__ = ["design_report", "evaluation_report", "markdown", "write_figures"]
+
+
+def _model_json(model: ProcessModel) -> dict[str, Any]:
+    return {"kind": model.kind, **model.params()}
+
+
+def _corrected_json(ev: Evaluation) -> dict[str, Any]:
+    return {
+        "phase_delay_ms": ev.phase_delay_ms,
+        "max_residual_delay_ms": ev.max_residual_delay_ms,
+        "max_residual_delay_hz": ev.max_residual_delay_hz,
+        "gain_error_db": ev.gain_error_db,
+        "peak_gain_db": ev.peak_gain_db,
+        "peak_gain_hz": ev.peak_gain_hz,
+        "peak_command_gain": ev.peak_command_gain,
+        "peak_command_gain_hz": ev.peak_command_gain_hz,
+        "ms": ev.ms,
+        "stable": ev.stable,
+        "max_pole_modulus": ev.max_pole_modulus,
+    }
+
+
+def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
+                  filter_n: float = 10.0, gains: PIDGains | None = None,
+                  model: P1D | None = None) -> dict[str, Any]:
+    """The ``motcomp design --json`` object.
+
+    ``plant`` is the platform; the compensator's internal model is ``model`` or the plant's P1D
+    approximation.  ``gains`` overrides the rule's gains (``rule`` is then only a label).
+    """
+    internal = model or plant.to_p1d()
+    warnings: list[str] = []
+    std: dict[str, float] = {}
+    if gains is None:
+        tuning = tune(rule, internal, filter_n=filter_n)
+        gains = tuning.gains
+        warnings = list(tuning.warnings)
+        std = tuning.standard
+    ev = evaluate(gains, internal, plant, rate_hz=rate_hz)
+    ev_c = evaluate(gains, internal, plant, rate_hz=None)
+    warnings += ev.notes
+    worse = ev.max_residual_delay_ms > ev.uncorrected_max_delay_ms
+    if worse:
+        warnings.append(
+            f"WARNING: the corrected response lags MORE than the uncorrected one over the band "
+            f"({ev.max_residual_delay_ms:.1f} ms vs {ev.uncorrected_max_delay_ms:.1f} ms): "
+            "use bypass on this axis."
+        )
+    out: dict[str, Any] = {
+        "model": _model_json(internal),
+        "rate_hz": rate_hz,
+        "rule": rule,
+        "rule_name": RULE_NAMES.get(rule, rule),
+        "gains": {"kp": gains.kp, "ki": gains.ki, "kd": gains.kd, "tf": gains.tf},
+        "standard_form": {k: (v if math.isfinite(v) else None) for k, v in std.items()},
+        "uncorrected": {
+            "phase_delay_ms": ev.uncorrected_phase_delay_ms,
+            "max_delay_ms": ev.uncorrected_max_delay_ms,
+            "gain_error_db": ev.uncorrected_gain_error_db,
+        },
+        "corrected": _corrected_json(ev),
+        "continuous": _corrected_json(ev_c),
+        "warnings": warnings,
+    }
+    if gains.b != 1.0 or gains.c != 1.0:
+        out["gains"].update(b=gains.b, c=gains.c)
+    if not isinstance(plant, P1D) or plant != internal:
+        out["plant"] = _model_json(plant)
+        out["plant_spec"] = plant.spec()
+    out["model_spec"] = internal.spec()
+    return out
+
+
+def _sweep_amplitude(limits: AxisLimits, f1_hz: float, requested: float | None) -> float:
+    """Largest amplitude whose plain sweep stays within 80 % of every limit at ``f1_hz``."""
+    w = 2 * math.pi * f1_hz
+    bound = 0.8 * min(float(limits.p_max[0]), -float(limits.p_min[0]),
+                      float(limits.v_max[0]) / w, float(limits.a_max[0]) / w**2)
+    return bound if requested is None else min(requested, bound)
+
+
+def evaluation_report(plant: ProcessModel, rule: str, limits: AxisLimits, rate_hz: float = 1000.0,
+                      filter_n: float = 10.0, gains: PIDGains | None = None,
+                      model: P1D | None = None, sweep_amplitude: float | None = None,
+                      ) -> tuple[dict[str, Any], dict[str, SimulationResult]]:
+    """Design report plus time-domain runs on a 0.1-3 Hz swept sine and on the slalom."""
+    internal = model or plant.to_p1d()
+    report = design_report(plant, rule, rate_hz, filter_n, gains, internal)
+    g = PIDGains(**{k: report["gains"][k] for k in ("kp", "ki", "kd", "tf")},
+                 b=report["gains"].get("b", 1.0), c=report["gains"].get("c", 1.0))
+    amp = _sweep_amplitude(limits, 3.0, sweep_amplitude)
+    _, r_sweep = swept_sine(rate_hz, 0.1, 3.0, 60.0, amp)
+    _, r_slalom = slalom(rate_hz)
+    scale = min(1.0, 0.8 * float(limits.p_max[0]) / 0.5)
+    runs = {
+        "sweep": simulate_compensated(r_sweep, g, internal, plant, limits, rate_hz),
+        "slalom": simulate_compensated(r_slalom * scale, g, internal, plant, limits, rate_hz),
+    }
+    report["time_domain"] = {
+        name: {
+            "delay_uncorrected_ms": res.delay_off_s * 1e3,
+            "delay_corrected_ms": res.delay_on_s * 1e3,
+            "delay_reduction_ms": res.reduction_s * 1e3,
+            "saturated_samples_corrected": res.saturated_samples_on,
+            "saturated_samples_uncorrected": res.saturated_samples_off,
+            "peak_command": float(np.max(np.abs(res.command_on))),
+        }
+        for name, res in runs.items()
+    }
+    report["time_domain"]["sweep"]["amplitude"] = amp
+    report["limits"] = {"p_min": float(limits.p_min[0]), "p_max": float(limits.p_max[0]),
+                        "v_max": float(limits.v_max[0]), "a_max": float(limits.a_max[0])}
+    return report, runs
+
+
+def markdown(report: dict[str, Any]) -> str:
+    """A human-readable summary of a design/evaluation report."""
+    lines = [f"# motcomp design: {report['rule_name']} at {report['rate_hz']:g} Hz", ""]
+    lines.append(f"Internal model: `{report['model_spec']}`")
+    if "plant_spec" in report:
+        lines.append(f"Platform: `{report['plant_spec']}`")
+    g = report["gains"]
+    lines += ["", f"Gains (parallel): kp = {g['kp']:.6g}, ki = {g['ki']:.6g} 1/s, "
+              f"kd = {g['kd']:.6g} s, tf = {g['tf']:.6g} s", ""]
+    lines += ["| phase delay (ms) | " + " | ".join(f"{k} Hz" for k in
+                                                  report["uncorrected"]["phase_delay_ms"]) + " |",
+              "|---|" + "---|" * len(report["uncorrected"]["phase_delay_ms"])]
+    for label in ("uncorrected", "corrected"):
+        block = report[label]
+        lines.append(f"| {label} | " + " | ".join(f"{v:.1f}" for v in
+                                                  block["phase_delay_ms"].values()) + " |")
+    c = report["corrected"]
+    lines += [
+        "",
+        "| metric | value |",
+        "|---|---|",
+        f"| max residual phase delay 0.1-2 Hz | {c['max_residual_delay_ms']:.2f} ms "
+        f"(at {c['max_residual_delay_hz']:.2f} Hz) |",
+        f"| in-band gain error | {c['gain_error_db']:.2f} dB |",
+        f"| peak gain | {c['peak_gain_db']:+.2f} dB at {c['peak_gain_hz']:.1f} Hz |",
+        f"| peak command amplification |C/(1+CM)| | {c['peak_command_gain']:.1f} at "
+        f"{c['peak_command_gain_hz']:.1f} Hz |",
+        f"| Ms | {c['ms']:.2f} |",
+        f"| discrete internal loop | {'stable' if c['stable'] else 'UNSTABLE'} "
+        f"(max pole modulus {c['max_pole_modulus']:.4f}) |",
+    ]
+    if "time_domain" in report:
+        lines += ["", "| run | delay uncorrected | delay corrected | reduction | "
+                      "saturated samples (corr./uncorr.) |", "|---|---|---|---|---|"]
+        for name, td in report["time_domain"].items():
+            lines.append(f"| {name} | {td['delay_uncorrected_ms']:.1f} ms | "
+                         f"{td['delay_corrected_ms']:.1f} ms | {td['delay_reduction_ms']:.1f} ms |"
+                         f" {td['saturated_samples_corrected']} / "
+                         f"{td['saturated_samples_uncorrected']} |")
+    if report["warnings"]:
+        lines += ["", "## Warnings", ""] + [f"- {w}" for w in report["warnings"]]
+    return "\n".join(lines) + "\n"
+
+
+def write_figures(report: dict[str, Any], runs: dict[str, SimulationResult], plant: ProcessModel,
+                  out_dir: Path) -> list[Path]:
+    """Bode (uncorrected vs corrected), swept-sine traces and slalom traces as PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rate = float(report["rate_hz"])
+    g = report["gains"]
+    gains = PIDGains(g["kp"], g["ki"], g["kd"], g["tf"], g.get("b", 1.0), g.get("c", 1.0))
+    model = P1D(**{k: report["model"][k] for k in ("K", "Td", "Tp1")})
+    f = default_grid(rate)
+    f = f[(f >= 0.05) & (f <= min(100.0, rate / 2 * 0.99))]
+    resp = loop_response(gains, model, plant, np.concatenate([np.geomspace(1e-3, f[0], 200)[:-1],
+                                                               f]), rate)
+    sel = resp.f >= 0.05
+    paths = []
+
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 7), sharex=True)
+    ax1.semilogx(resp.f[sel], 20 * np.log10(np.abs(resp.plant[sel])), label="uncorrected P")
+    ax1.semilogx(resp.f[sel], 20 * np.log10(np.abs(resp.delivered[sel])), label="corrected P F")
+    ax1.semilogx(resp.f[sel], 20 * np.log10(np.abs(resp.command[sel])), ":",
+                 label="command |F| = |C/(1+CM)|")
+    ax1.axvspan(0.1, 2.0, color="0.9", zorder=0)
+    ax1.set_ylabel("gain (dB)")
+    ax1.legend(loc="lower left")
+    ax1.grid(True, which="both", alpha=0.3)
+    ax1.set_title(f"{report['rule_name']} at {rate:g} Hz: delivered response")
+    ax2.semilogx(resp.f[sel], resp.phase_delay("plant")[sel] * 1e3, label="uncorrected")
+    ax2.semilogx(resp.f[sel], resp.phase_delay("delivered")[sel] * 1e3, label="corrected")
+    ax2.axvspan(0.1, 2.0, color="0.9", zorder=0)
+    ax2.set_ylim(-100, 300)
+    ax2.set_xlabel("frequency (Hz)")
+    ax2.set_ylabel("phase delay (ms)")
+    ax2.legend()
+    ax2.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    paths.append(out_dir / "bode.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    if "sweep" in runs:
+        res = runs["sweep"]
+        fig = plt.figure(figsize=(10, 8))
+        top = fig.add_subplot(3, 1, 1)
+        top.plot(res.t, res.reference, "k", lw=0.8, label="setpoint")
+        top.plot(res.t, res.response_on, "C1", lw=0.8, label="platform, corrected")
+        top.set_title("0.1-3 Hz swept sine")
+        top.legend(loc="upper right")
+        n = res.t.size
+        for col, (a, b, title) in enumerate(((int(0.08 * n), int(0.2 * n), "low frequencies"),
+                                             (int(0.85 * n), int(0.9 * n), "high frequencies"))):
+            ax = fig.add_subplot(3, 2, 3 + col)
+            ax.plot(res.t[a:b], res.reference[a:b], "k", lw=1, label="setpoint")
+            ax.plot(res.t[a:b], res.response_on[a:b], "C1", lw=1, label="corrected")
+            ax.set_title(title)
+        bottom = fig.add_subplot(3, 1, 3)
+        bottom.plot(res.t, res.reference, "k", lw=0.8, label="setpoint")
+        bottom.plot(res.t, res.response_off, "C0", lw=0.8, label="platform, uncorrected")
+        bottom.set_xlabel("time (s)")
+        bottom.legend(loc="upper right")
+        fig.tight_layout()
+        paths.append(out_dir / "sweep.png")
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
+
+    if "slalom" in runs:
+        res = runs["slalom"]
+        fig, ax = plt.subplots(figsize=(10, 4.5))
+        ax.plot(res.t, res.reference, "k", lw=1.2, label="setpoint (motion cueing)")
+        ax.plot(res.t, res.response_off, "C0", lw=1,
+                label=f"platform, uncorrected ({res.delay_off_s * 1e3:.0f} ms)")
+        ax.plot(res.t, res.response_on, "C1", lw=1,
+                label=f"platform, corrected ({res.delay_on_s * 1e3:.0f} ms)")
+        ax.plot(res.t, res.command_on, "C2:", lw=0.8, label="command to the platform")
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("lateral position (m)")
+        ax.set_title(f"Slalom: delay reduced by {res.reduction_s * 1e3:.0f} ms")
+        ax.legend(loc="upper right", fontsize=8)
+        ax.grid(True, alpha=0.3)
+        fig.tight_layout()
+        paths.append(out_dir / "slalom.png")
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
+    return paths
+
+
+def write_report(report: dict[str, Any], out_dir: Path) -> list[Path]:
+    """``report.json`` and ``report.md`` in ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    jp = out_dir / "report.json"
+    jp.write_text(json.dumps(report, indent=2) + "\n")
+    mp = out_dir / "report.md"
+    mp.write_text(markdown(report))
+    return [jp, mp]

@@ -1,0 +1,31 @@
+"""Shared fixtures and helpers."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+from motcomp.core.models import P1D
+
+ROOT = Path(__file__).resolve().parent.parent
+
+RAILS = P1D(K=1.0, Td=0.0175, Tp1=0.1857683128)
+
+
+@pytest.fixture
+def rails() -> P1D:
+    return RAILS
+
+
+def motcomp_cmd(*args: str) -> list[str]:
+    """Command line running this checkout's motcomp (works without installing)."""
+    return [sys.executable, "-m", "motcomp", *args]
+
+
+def subprocess_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    return env

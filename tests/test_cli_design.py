@@ -1,0 +1,67 @@
+"""``motcomp design`` / ``motcomp evaluate`` as a user runs them."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import motcomp_cmd, subprocess_env
+
+
+def run(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(motcomp_cmd(*args), capture_output=True, text=True, env=subprocess_env(),
+                          timeout=300)
+
+
+def test_design_json_schema() -> None:
+    p = run("design", "--plant", "rails", "--rule", "zn", "--rate", "1000", "--json")
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    assert out["model"]["kind"] == "p1d"
+    assert set(out["model"]) >= {"K", "Td", "Tp1"}
+    assert out["rate_hz"] == 1000.0 and out["rule"] == "zn"
+    assert set(out["gains"]) == {"kp", "ki", "kd", "tf"}
+    for block in ("uncorrected", "corrected"):
+        assert set(out[block]["phase_delay_ms"]) == {"0.2", "0.5", "1", "2"}
+    c = out["corrected"]
+    for key in ("max_residual_delay_ms", "peak_gain_db", "peak_gain_hz", "ms"):
+        assert isinstance(c[key], float)
+    assert c["stable"] is True and out["warnings"] == []
+    assert c["phase_delay_ms"]["0.2"] < 10
+
+
+def test_design_with_model_spec_and_hexapod_warning() -> None:
+    p = run("design", "--model", "p1d:K=1,Td=0.0325,Tp1=0.0025", "--rule", "cc", "--json")
+    assert p.returncode == 0
+    out = json.loads(p.stdout)
+    assert any("lag-dominated" in w for w in out["warnings"])
+    assert "WARNING" in p.stderr
+    p = run("design", "--plant", "hexapod", "--rule", "zn")
+    assert p.returncode == 0 and "WARNING" in p.stderr and "bypass" in p.stderr
+
+
+@pytest.mark.parametrize(("args", "msg"), [
+    (("--model", "p1d:K=1,Td=0.01"), "missing parameter"),
+    (("--plant", "nonesuch"), "unknown plant preset 'nonesuch'"),
+    (("--model", "p1d:K=1,Td=0.01,Tp1=0.1", "--rate", "-5"), "positive"),
+])
+def test_bad_input_exit_2(args: tuple[str, ...], msg: str) -> None:
+    p = run("design", *args)
+    assert p.returncode == 2
+    assert msg in p.stderr
+    assert "Traceback" not in p.stderr
+
+
+def test_evaluate_writes_report_and_figures(tmp_path: Path) -> None:
+    out = tmp_path / "ev"
+    p = run("evaluate", "--plant", "rails", "--rule", "zn", "--out", str(out), "--json")
+    assert p.returncode == 0, p.stderr
+    report = json.loads(p.stdout)
+    for name in ("report.json", "report.md", "bode.png", "sweep.png", "slalom.png"):
+        assert (out / name).stat().st_size > 1000 or name.endswith(".md")
+    assert report["time_domain"]["slalom"]["delay_reduction_ms"] > 150
+    assert json.loads((out / "report.json").read_text())["rule"] == "zn"
+    assert not list(out.glob(".tmp-*"))
