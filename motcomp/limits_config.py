@@ -37,7 +37,7 @@ class LimitsConfig(BaseModel):
     vel_max_rad_s: float | None = None
     acc_max_rad_s2: float | None = None
 
-    @field_validator("*")
+    @field_validator(*_LIN, *_ROT)
     @classmethod
     def _finite(cls, v: float | None) -> float | None:
         if v is not None and not math.isfinite(v):

@@ -64,7 +64,7 @@ def test_step_is_met_without_overshoot_and_holds() -> None:
         flags.append(sat.flags[0])
     out_a = np.array(out)
     check_sequence(out_a, 0.0, lim, H)
-    assert out_a.max() <= 0.5 + 1e-12
+    assert out_a.max() <= 0.5 + 1e-5  # no overshoot beyond 10 um on 0.5 m
     assert out_a[-1] == pytest.approx(0.5, abs=1e-12)
     assert np.all(np.abs(out_a[-500:] - 0.5) < 1e-12)  # settled, no oscillation
     assert flags[0] & ACC and any(f & RECOVER for f in flags)

@@ -147,7 +147,7 @@ class CompensatorState:
     history_m: FloatArray
     u: FloatArray
     v: FloatArray
-    target: FloatArray
+    smoothed: FloatArray
     raw: FloatArray
     bypass: np.ndarray
     fade_offset: FloatArray
@@ -196,8 +196,6 @@ class Compensator:
         if not (isinstance(rate_hz, int | float) and math.isfinite(rate_hz) and rate_hz > 0):
             raise ConfigError(f"compensator rate must be a positive finite number of Hz, "
                               f"got {rate_hz!r}")
-        if not (math.isfinite(fade_s) and fade_s >= 0):
-            raise ConfigError(f"bypass fade time must be finite and >= 0 s, got {fade_s!r}")
         n = limits.size
         if len(models) != n or len(gains) != n:
             raise ConfigError(f"{len(models)} models and {len(gains)} gain sets for {n} axes")
@@ -205,8 +203,7 @@ class Compensator:
         self.names = limits.names
         self.rate_hz = float(rate_hz)
         self.dt_s = 1.0 / self.rate_hz
-        self.fade_s = float(fade_s)
-        self._fade_step = self.dt_s / fade_s if fade_s > 0 else 1.0
+        self.set_fade(fade_s)
         max_td = max(m.Td for m in models)
         hist_s = history_s if history_s is not None else max(max_td + 0.1, 0.25)
         if hist_s < max_td:
@@ -338,6 +335,13 @@ class Compensator:
         self._lim = axis_constants(limits, self.dt_s)
         self._limits = limits
 
+    def set_fade(self, fade_s: float) -> None:
+        """Duration of the fade when an axis enters bypass (s, >= 0)."""
+        if not (math.isfinite(fade_s) and fade_s >= 0):
+            raise ConfigError(f"bypass fade time must be finite and >= 0 s, got {fade_s!r}")
+        self.fade_s = float(fade_s)
+        self._fade_step = self.dt_s / fade_s if fade_s > 0 else 1.0
+
     def set_bypass(self, bypass: ArrayLike) -> None:
         """Turn compensation off (True) or on (False) per axis, bumplessly."""
         new = np.array(bypass, dtype=bool).reshape(self.n).tolist()
@@ -363,7 +367,9 @@ class Compensator:
         self._r = p[:]
         self._u = p[:]
         self._v = [0.0] * n
-        self._target = p[:]
+        self._target = p[:]  # the limiter's previous target
+        self._ts = p[:]  # the limiter's target smoother
+        self._vs = [0.0] * n
         self._xc = [m.K * pi for m, pi in zip(self._models, p, strict=True)]
         self._xm = self._xc[:]
         self._y_last = self._xc[:]
@@ -397,7 +403,7 @@ class Compensator:
             integral=np.array(self._integral), deriv=np.array(self._deriv),
             w_prev=np.array(self._w_prev), history_c=np.array(self._hist_c),
             history_m=np.array(self._hist_m), u=np.array(self._u), v=np.array(self._v),
-            target=np.array(self._target), raw=np.array(self._raw),
+            smoothed=np.array(self._ts), raw=np.array(self._raw),
             bypass=np.array(self._bypass), fade_offset=np.array(self._fade_offset),
             fade_progress=np.array(self._fade_progress),
         )
@@ -432,8 +438,9 @@ class Compensator:
         mask = self._mask
         rr, xcs, xms, ys, ints, ds, wps = (self._r, self._xc, self._xm, self._y_last,
                                            self._integral, self._deriv, self._w_prev)
-        us, vs, tps, raws, hcs, hms = (self._u, self._v, self._target, self._raw, self._hist_c,
-                                       self._hist_m)
+        us, vs, tps, tss, vss, raws = (self._u, self._v, self._target, self._ts, self._vs,
+                                       self._raw)
+        hcs, hms = self._hist_c, self._hist_m
         bypass = self._bypass
         out = [0.0] * self.n
         flags = [0] * self.n
@@ -462,7 +469,8 @@ class Compensator:
                     target = r
             else:
                 target = v
-            u, vs[i], sat = limit_axis(target, tps[i], us[i], vs[i], lim)
+            u, vs[i], tss[i], vss[i], sat = limit_axis(target, tps[i], us[i], vs[i], tss[i],
+                                                       vss[i], lim)
             tps[i] = target
             us[i] = u
             if bypass[i]:

@@ -127,6 +127,47 @@ def simulate_axis(model: ProcessModel, commands: ArrayLike, rate_hz: float,
     return np.asarray(y)
 
 
+class _SensorStream:
+    """Per-sample accelerometer imperfections of all axes at once, the streaming twin of
+    :meth:`Accelerometer.apply` (same noise, bias, tremor line with a slow random-walk
+    modulation of amplitude and phase, quantisation); random numbers are drawn in blocks."""
+
+    def __init__(self, accs: Sequence[Accelerometer], rate_hz: float, rng: np.random.Generator,
+                 block: int = 1024) -> None:
+        self.n = len(accs)
+        self.rate_hz = rate_hz
+        self.rng = rng
+        self.block = block
+        self.bias = np.array([a.bias for a in accs])
+        self.noise_std = np.array([a.noise_std for a in accs])
+        self.tremor_amp = np.array([a.tremor_amp for a in accs])
+        self.tremor_w = np.array([2 * math.pi * a.tremor_hz for a in accs])
+        self.lsb = np.array([a.lsb for a in accs])
+        self.quantise = bool(np.any(self.lsb > 0))
+        self.lsb_safe = np.where(self.lsb > 0, self.lsb, 1.0)
+        self.phase0 = rng.uniform(0, 2 * math.pi, self.n)
+        self.walk = np.zeros((2, self.n))
+        self._i = block
+        self._noise = np.zeros((block, self.n))
+        self._steps = np.zeros((block, 2, self.n))
+
+    def sample(self, acc_true: np.ndarray, t_s: float) -> np.ndarray:
+        if self._i == self.block:
+            self._noise = self.rng.normal(0.0, 1.0, (self.block, self.n)) * self.noise_std
+            self._steps = self.rng.normal(0.0, 1.0, (self.block, 2, self.n)) / math.sqrt(
+                self.rate_hz)
+            self._i = 0
+        i = self._i
+        self._i += 1
+        self.walk += self._steps[i]
+        amp = self.tremor_amp * (1.0 + 0.2 * np.tanh(0.3 * self.walk[0]))
+        out = acc_true + self.bias + self._noise[i] + amp * np.sin(
+            self.tremor_w * t_s + self.phase0 + 0.5 * self.walk[1])
+        if self.quantise:
+            out = np.where(self.lsb > 0, np.round(out / self.lsb_safe) * self.lsb_safe, out)
+        return np.asarray(out)
+
+
 class PlatformSimulator:
     """Sample-by-sample platform for ``motcomp hil`` and tests.
 
@@ -146,6 +187,11 @@ class PlatformSimulator:
         Initial position (default 0), at rest.
     seed
         Seed of the noise generator.
+
+    Notes
+    -----
+    All axes are advanced together: their exact ZOH discretisations are stacked into one
+    block-diagonal system, and each axis reads its own delayed inputs from a ring buffer.
     """
 
     def __init__(self, models: Sequence[ProcessModel], rate_hz: float, p_min: ArrayLike,
@@ -169,66 +215,78 @@ class PlatformSimulator:
             self.accelerometers = tuple(accelerometer)
         self._disc: list[DiscreteLTI] = [m.discretize(rate_hz) for m in models]
         self._rng = np.random.default_rng(seed)
+        self._sensor = _SensorStream(self.accelerometers, self.rate_hz, self._rng)
+        self._build()
         self.violations = np.zeros(self.n, dtype=np.int64)
         self.reset(np.zeros(self.n) if position is None else position)
+
+    def _build(self) -> None:
+        """Stack the axes into ``x' = Phi x + G0 u[k-d+1] + G1 u[k-d]``, ``y = C x + D u``."""
+        orders = [d.order for d in self._disc]
+        total = sum(orders)
+        self._phi = np.zeros((total, total))
+        self._g0 = np.zeros((total, self.n))
+        self._g1 = np.zeros((total, self.n))
+        self._c = np.zeros((self.n, total))
+        self._dfeed = np.array([d.d_feed for d in self._disc])
+        o = 0
+        for i, (d, k) in enumerate(zip(self._disc, orders, strict=True)):
+            self._phi[o:o + k, o:o + k] = d.phi
+            self._g0[o:o + k, i] = d.gamma0[:, 0]
+            self._g1[o:o + k, i] = d.gamma1[:, 0]
+            self._c[i, o:o + k] = d.c[0]
+            o += k
+        delays = np.array([d.delay_samples for d in self._disc])
+        length = 1
+        while length < int(delays.max()) + 3:
+            length *= 2
+        self._mask = length - 1
+        self._hist = np.zeros((self.n, length))
+        self._rows = np.arange(self.n)
+        self._d = delays
 
     def reset(self, position: ArrayLike) -> None:
         """At rest at ``position`` (the command and the output, for unit-gain axes)."""
         p = np.array(position, dtype=float).reshape(self.n)
         self._k = 0
-        self._x = [d.steady_state(float(pi)) for d, pi in zip(self._disc, p, strict=True)]
-        # per axis [u[k-d], ..., u[k]] once u[k] is applied
-        self._hist = [[float(pi)] * (d.delay_samples + 1) for d, pi in zip(self._disc, p,
-                                                                          strict=True)]
-        y = np.array([self._output(i) for i in range(self.n)])
+        self._hist[:] = p[:, None]
+        self._x = np.concatenate([d.steady_state(float(pi)) for d, pi in
+                                  zip(self._disc, p, strict=True)]) if self._phi.size else \
+            np.zeros(0)
+        y = self._c @ self._x + self._dfeed * p
         self._y1 = y.copy()
         self._y2 = y.copy()
         self._u_last = p.copy()
         self.position = y
 
-    def _output(self, i: int) -> float:
-        """Position at the end of the current period, ``C x[k+1] + D u[k+1-d]`` (``u[k]`` for
-        ``d = 0``: the held value just before the next setpoint)."""
-        d = self._disc[i]
-        hist = self._hist[i]
-        out = d.d_feed * hist[1 if len(hist) > 1 else 0]
-        if d.order:
-            out += float(d.c[0] @ self._x[i])
-        return out
-
     def step(self, setpoint: ArrayLike) -> tuple[FloatArray, FloatArray, np.ndarray]:
         """Apply one setpoint for one period.
 
         Returns ``(position, measured_acceleration, violated)`` at the end of the period, where
-        ``violated`` flags the axes whose setpoint broke a hard limit (and was clamped).
+        ``violated`` flags the axes whose setpoint broke a hard limit (and was clamped) or was
+        not finite (and was held).
         """
         u = np.array(setpoint, dtype=float).reshape(self.n)
-        violated = (u < self.p_min) | (u > self.p_max) | ~np.isfinite(u)
-        u = np.where(np.isfinite(u), u, self._u_last)
-        u = np.clip(u, self.p_min, self.p_max)
+        finite = np.isfinite(u)
+        violated = (u < self.p_min) | (u > self.p_max) | ~finite
+        u = np.clip(np.where(finite, u, self._u_last), self.p_min, self.p_max)
         if self.v_max is not None:
-            too_fast = np.abs(u - self._u_last) > self.v_max * self.dt_s * (1 + 1e-9)
-            violated |= too_fast
+            violated |= np.abs(u - self._u_last) > self.v_max * self.dt_s * (1 + 1e-9)
         self.violations += violated
         self._u_last = u
-        y = np.empty(self.n)
-        for i, d in enumerate(self._disc):
-            hist = self._hist[i]
-            hist.append(float(u[i]))
-            hist.pop(0)
-            # x[k+1] = phi x[k] + g0 u[k-d+1] + g1 u[k-d]   (g0 = 0 when d = 0)
-            if d.order:
-                u_next = hist[1] if len(hist) > 1 else 0.0
-                self._x[i] = (d.phi @ self._x[i] + d.gamma0[:, 0] * u_next
-                              + d.gamma1[:, 0] * hist[0])
-            y[i] = self._output(i)
+        k = self._k
+        mask = self._mask
+        self._hist[:, k & mask] = u
+        # u[k-d] and u[k-d+1] (= u[k+1-d], the value held at the end of this period)
+        u_d = self._hist[self._rows, (k - self._d) & mask]
+        u_d1 = np.where(self._d > 0, self._hist[self._rows, (k - self._d + 1) & mask], u)
+        self._x = self._phi @ self._x + self._g0 @ u_d1 + self._g1 @ u_d
+        y = self._c @ self._x + self._dfeed * u_d1
         acc_true = (y - 2.0 * self._y1 + self._y2) * self.rate_hz**2
         self._y2 = self._y1
         self._y1 = y
-        acc = np.array([a.apply(np.array([acc_true[i]]), self.rate_hz, self._rng,
-                                self._k * self.dt_s)[0]
-                        for i, a in enumerate(self.accelerometers)])
-        self._k += 1
+        self._k = k + 1
+        acc = self._sensor.sample(acc_true, self._k * self.dt_s)
         self.position = y
         return y, acc, violated
 

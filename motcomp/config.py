@@ -1,0 +1,345 @@
+"""The service configuration: TOML, validated by pydantic, frozen.
+
+Every key carries its unit in its name; unknown keys are rejected; errors name the file, the key
+path and the offending value.  ``config/motcomp.toml`` documents every key.  Keys are either
+*live* (a reload applies them between two ticks) or *restart* (transport endpoints, the loop
+rate...): :data:`RESTART_KEYS` lists the latter, and a reload that changes one is refused.
+
+Per axis (``[axes.<name>]``, names from :data:`motcomp.core.axes.AXES`): the internal model
+(``model``, a compact spec; non-P1D models are reduced with ``to_p1d()``), the tuning (``rule``,
+or explicit ``gains``), ``bypass``, and the limits (``pos_min_m``... or ``pos_min_rad``...).
+A ``[defaults]`` table supplies any of these for every axis.  Axes not listed are not driven:
+they stay at neutral and are sent as such.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from motcomp.core.axes import AXES
+from motcomp.core.models import P1D, ProcessModel, parse_model
+from motcomp.core.pid import PIDGains
+from motcomp.core.saturation import AxisLimits
+from motcomp.core.tuning import RULES, tune
+from motcomp.errors import ConfigError
+from motcomp.limits_config import LimitsConfig
+
+__all__ = [
+    "RESTART_KEYS",
+    "AxisConfig",
+    "ResolvedAxes",
+    "ServiceConfig",
+    "load_config",
+    "parse_config",
+]
+
+_STRICT = ConfigDict(extra="forbid", frozen=True)
+
+
+def _finite(v: float) -> float:
+    if not math.isfinite(v):
+        raise ValueError(f"must be a finite number, got {v!r}")
+    return v
+
+
+class GainsConfig(BaseModel):
+    """Explicit PID gains, parallel form (see :mod:`motcomp.core.pid`)."""
+
+    model_config = _STRICT
+    kp: float = Field(ge=0)
+    ki_per_s: float = Field(0.0, ge=0)
+    kd_s: float = Field(0.0, ge=0)
+    tf_s: float = Field(0.0, ge=0)
+    b: float = 1.0
+    c: float = 1.0
+
+    @field_validator("*")
+    @classmethod
+    def _finite_values(cls, v: float) -> float:
+        return _finite(v)
+
+    def to_gains(self) -> PIDGains:
+        return PIDGains(kp=self.kp, ki=self.ki_per_s, kd=self.kd_s, tf=self.tf_s, b=self.b,
+                        c=self.c)
+
+
+class AxisConfig(LimitsConfig):
+    """One axis: model, tuning, bypass and limits (limits keys from :class:`LimitsConfig`)."""
+
+    model_config = _STRICT
+    model: str | None = None
+    rule: str | None = None
+    filter_n: float | None = Field(None, gt=0)
+    gains: GainsConfig | None = None
+    bypass: bool | None = None
+
+    @field_validator("model")
+    @classmethod
+    def _model(cls, v: str | None) -> str | None:
+        if v is not None:
+            parse_model(v)  # raises ConfigError (a ValueError) with the reason
+        return v
+
+    @field_validator("rule")
+    @classmethod
+    def _rule(cls, v: str | None) -> str | None:
+        if v is not None and v not in RULES:
+            raise ValueError(f"unknown rule {v!r}; rules: {', '.join(RULES)}")
+        return v
+
+
+class LoopConfig(BaseModel):
+    """The fixed-rate loop and the behaviour on missing input and at stop."""
+
+    model_config = _STRICT
+    rate_hz: float = Field(1000.0, ge=50.0, le=2000.0)
+    sync_to_input: bool = False
+    poll_us: float = Field(50.0, ge=10.0, le=1000.0)
+    spin_us: float = Field(200.0, ge=0.0, le=2000.0)
+    stale_after_s: float = Field(0.05, gt=0.0, le=10.0)
+    hold_s: float = Field(0.5, ge=0.0, le=60.0)
+    ramp_speed_fraction: float = Field(0.25, gt=0.0, le=1.0)
+    rejoin_s: float = Field(0.5, ge=0.0, le=10.0)
+    startup_s: float = Field(1.0, ge=0.0, le=30.0)
+    park_timeout_s: float = Field(15.0, gt=0.0, le=120.0)
+    bypass_fade_s: float = Field(0.5, ge=0.0, le=10.0)
+    realtime_priority: int = Field(0, ge=0, le=99)
+    cpu: int = Field(-1, ge=-1)
+
+
+class InputConfig(BaseModel):
+    """Where setpoints come from and how strictly they are checked."""
+
+    model_config = _STRICT
+    key: str = "sim/motion/setpoint"
+    reject_beyond_fraction: float = Field(0.25, ge=0.0, le=10.0)
+
+
+class CanConfig(BaseModel):
+    """CAN output (frames defined by a DBC file)."""
+
+    model_config = _STRICT
+    interface: str = "socketcan"
+    channel: str = "can0"
+    bitrate_bps: int = Field(1_000_000, gt=0)
+    dbc: str = "motcomp.dbc"
+    send_every: int = Field(4, ge=1, le=100)
+
+
+class OutputConfig(BaseModel):
+    """Where corrected setpoints go."""
+
+    model_config = _STRICT
+    transport: Literal["zenoh", "can", "both"] = "zenoh"
+    key: str = "platform/setpoint"
+    can: CanConfig = CanConfig()
+
+
+class StatusConfig(BaseModel):
+    model_config = _STRICT
+    key: str = "motcomp/status"
+    period_s: float = Field(1.0, gt=0.0, le=60.0)
+    window_s: float = Field(10.0, gt=0.0, le=600.0)
+
+
+class AdminConfig(BaseModel):
+    """Admin endpoints (bypass, reload): off unless enabled."""
+
+    model_config = _STRICT
+    enabled: bool = False
+    key: str = "motcomp/admin"
+
+
+class ZenohConfig(BaseModel):
+    """Session settings; command-line -c/-e/-l flags override them."""
+
+    model_config = _STRICT
+    config_file: str = ""
+    connect: list[str] = []
+    listen: list[str] = []
+    multicast_scouting: bool = False
+
+
+class FeedbackConfig(BaseModel):
+    model_config = _STRICT
+    key: str = "platform/feedback"
+
+
+class ServiceConfig(BaseModel):
+    """The whole file."""
+
+    model_config = _STRICT
+    loop: LoopConfig = LoopConfig()
+    input: InputConfig = InputConfig()
+    output: OutputConfig = OutputConfig()
+    feedback: FeedbackConfig = FeedbackConfig()
+    status: StatusConfig = StatusConfig()
+    admin: AdminConfig = AdminConfig()
+    zenoh: ZenohConfig = ZenohConfig()
+    defaults: AxisConfig = AxisConfig()
+    axes: dict[str, AxisConfig] = {}
+
+    @model_validator(mode="after")
+    def _axes(self) -> ServiceConfig:
+        for name in self.axes:
+            if name not in AXES:
+                raise ValueError(f"unknown axis {name!r}; axes: {', '.join(AXES)}")
+        if not self.axes:
+            raise ValueError("no axis configured: add at least one [axes.<name>] table")
+        return self
+
+
+RESTART_KEYS: tuple[str, ...] = (
+    "loop.rate_hz", "loop.sync_to_input", "loop.poll_us", "loop.spin_us",
+    "loop.realtime_priority", "loop.cpu", "input", "output", "feedback", "status", "admin",
+    "zenoh",
+)
+"""Top-level keys (or sub-keys) that a live reload may not change: they need a restart."""
+
+
+@dataclass(frozen=True)
+class ResolvedAxes:
+    """Per-axis objects for the compensator, in :data:`AXES` order (all eight axes)."""
+
+    names: tuple[str, ...]
+    driven: tuple[bool, ...]
+    models: tuple[P1D, ...]
+    plants: tuple[ProcessModel, ...]
+    gains: tuple[PIDGains, ...]
+    limits: AxisLimits
+    bypass: tuple[bool, ...]
+    warnings: tuple[str, ...]
+
+
+_UNDRIVEN_LIMITS = (-1.0, 1.0, 1.0, 1.0)  # an undriven axis is held at neutral
+
+
+def _merged(defaults: AxisConfig, axis: AxisConfig) -> dict[str, Any]:
+    out = defaults.model_dump(exclude_none=True)
+    out.update(axis.model_dump(exclude_none=True))
+    return out
+
+
+def resolve_axes(cfg: ServiceConfig) -> ResolvedAxes:
+    """Models, gains, limits and bypass of all eight axes.
+
+    An axis not listed under ``[axes]`` is *undriven*: bypassed, unit model, and held at
+    neutral by the service.
+
+    Raises
+    ------
+    ConfigError
+        Naming the axis and the key.
+    """
+    models: list[P1D] = []
+    plants: list[ProcessModel] = []
+    gains: list[PIDGains] = []
+    bypass: list[bool] = []
+    driven: list[bool] = []
+    rows: list[tuple[float, float, float, float]] = []
+    warnings: list[str] = []
+    for name in AXES:
+        if name not in cfg.axes:
+            models.append(P1D(K=1.0, Td=0.0, Tp1=0.01))
+            plants.append(models[-1])
+            gains.append(PIDGains(kp=1.0))
+            bypass.append(True)
+            driven.append(False)
+            rows.append(_UNDRIVEN_LIMITS)
+            continue
+        merged = _merged(cfg.defaults, cfg.axes[name])
+        where = f"axes.{name}"
+        spec = merged.get("model")
+        if spec is None:
+            raise ConfigError(f"{where}.model: missing (no model given for this axis nor in "
+                              "[defaults])")
+        plant = parse_model(spec)
+        try:
+            model = plant.to_p1d()
+        except ConfigError as exc:
+            raise ConfigError(f"{where}.model: {exc}") from None
+        own = cfg.axes[name]
+        if own.gains is not None and own.rule is not None:
+            raise ConfigError(f"{where}: give either rule or gains, not both")
+        # precedence: the axis' own gains or rule, then [defaults] gains or rule, then ZN
+        use_gains = own.gains is not None or (own.rule is None and cfg.defaults.gains is not None)
+        if use_gains:
+            g = GainsConfig(**merged["gains"]).to_gains()
+        else:
+            rule = merged.get("rule", "zn")
+            tuning = tune(rule, model, filter_n=merged.get("filter_n", 10.0))
+            g = tuning.gains
+            warnings += [f"{name}: {w}" for w in tuning.warnings]
+        limits_cfg = LimitsConfig(**{k: v for k, v in merged.items()
+                                     if k in LimitsConfig.model_fields})
+        try:
+            rows.append(limits_cfg.resolve(name))
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+        models.append(model)
+        plants.append(plant)
+        gains.append(g)
+        bypass.append(bool(merged.get("bypass", False)))
+        driven.append(True)
+    arr = np.array(rows, dtype=float)
+    limits = AxisLimits(arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3], AXES)
+    return ResolvedAxes(AXES, tuple(driven), tuple(models), tuple(plants), tuple(gains), limits,
+                        tuple(bypass), tuple(warnings))
+
+
+def _format_error(source: str, exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    loc = ".".join(str(p) for p in err["loc"])
+    msg = err["msg"].removeprefix("Value error, ")
+    value = err.get("input")
+    shown = "" if isinstance(value, dict) else f" (got {value!r})"
+    more = f" [and {exc.error_count() - 1} more]" if exc.error_count() > 1 else ""
+    return f"{source}: {loc or '<top>'}: {msg}{shown}{more}"
+
+
+def parse_config(data: dict[str, Any], source: str = "<config>") -> ServiceConfig:
+    """Validate a parsed TOML document.
+
+    Raises
+    ------
+    ConfigError
+        ``"<source>: <key.path>: <reason> (got <value>)"``.
+    """
+    try:
+        cfg = ServiceConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_format_error(source, exc)) from None
+    try:
+        resolve_axes(cfg)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+    return cfg
+
+
+def load_config(path: str | Path) -> ServiceConfig:
+    """Read and validate a TOML config file (see module docstring)."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read: {exc.strerror}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    return parse_config(data, str(p))
+
+
+def config_hash(cfg: ServiceConfig) -> str:
+    """Short stable hash of the effective config (shown in the status and the logs)."""
+    text = json.dumps(cfg.model_dump(mode="json"), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]

@@ -1,0 +1,192 @@
+"""zenoh adapters: session opening from the usual flags, latest-value source, sink, queryables.
+
+Library facts this module relies on (zenoh-python 1.x): a ``RingChannel(1)`` subscriber keeps
+only the newest sample and ``try_recv()`` never blocks (a full ``FifoChannel`` would block zenoh's
+network thread); publishers for the data path are ``express`` with ``CongestionControl.DROP``
+and real-time priority; queryables are served with a channel handler polled from a Python
+thread, so no Python callback ever runs on a zenoh thread (a process whose callback subscriber
+is still declared at exit can hang).  Sessions are closed in ``finally``/``with``.  Never fork
+after ``zenoh.open()``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+from motcomp.errors import ConfigError, TransportError
+
+__all__ = [
+    "ZenohEndpoints",
+    "ZenohSink",
+    "ZenohSource",
+    "add_zenoh_args",
+    "endpoints_from_args",
+    "open_session",
+]
+
+
+@dataclass(frozen=True)
+class ZenohEndpoints:
+    """Where a session listens and connects; ``config_file`` is a zenoh JSON5 file applied
+    first, the other fields override it."""
+
+    config_file: str = ""
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    multicast_scouting: bool | None = False
+    mode: str = "peer"
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def add_zenoh_args(p: argparse.ArgumentParser) -> None:
+    """zenoh's usual flags: ``-c/--zenoh-config``, ``-e/--connect``, ``-l/--listen``."""
+    g = p.add_argument_group("zenoh")
+    g.add_argument("-c", "--zenoh-config", metavar="FILE", help="zenoh config file (JSON5)")
+    g.add_argument("-e", "--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    g.add_argument("-l", "--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to listen on (repeatable)")
+    g.add_argument("--scouting", action="store_true",
+                   help="enable multicast scouting (off by default: explicit endpoints)")
+
+
+def endpoints_from_args(args: argparse.Namespace, base: ZenohEndpoints | None = None
+                        ) -> ZenohEndpoints:
+    """Flags override ``base`` (typically from the service config)."""
+    base = base or ZenohEndpoints()
+    return ZenohEndpoints(
+        config_file=args.zenoh_config or base.config_file,
+        connect=tuple(args.connect) or base.connect,
+        listen=tuple(args.listen) or base.listen,
+        multicast_scouting=True if args.scouting else base.multicast_scouting,
+        mode=base.mode,
+    )
+
+
+def _config(ep: ZenohEndpoints) -> Any:
+    import zenoh
+
+    try:
+        cfg = zenoh.Config.from_file(ep.config_file) if ep.config_file else zenoh.Config()
+    except Exception as exc:  # zenoh raises its own ZError
+        raise ConfigError(f"zenoh config {ep.config_file}: {exc}") from None
+    try:
+        cfg.insert_json5("mode", json.dumps(ep.mode))
+        if ep.connect:
+            cfg.insert_json5("connect/endpoints", json.dumps(list(ep.connect)))
+        if ep.listen:
+            cfg.insert_json5("listen/endpoints", json.dumps(list(ep.listen)))
+        if ep.multicast_scouting is not None:
+            cfg.insert_json5("scouting/multicast/enabled", json.dumps(ep.multicast_scouting))
+        for key, value in ep.extra.items():
+            cfg.insert_json5(key, json.dumps(value))
+    except Exception as exc:
+        raise ConfigError(f"zenoh endpoints {ep}: {exc}") from None
+    return cfg
+
+
+@contextmanager
+def open_session(ep: ZenohEndpoints) -> Iterator[Any]:
+    """A zenoh session, closed on exit; library errors become :class:`TransportError`."""
+    import zenoh
+
+    cfg = _config(ep)
+    try:
+        session = zenoh.open(cfg)
+    except Exception as exc:
+        raise TransportError(f"cannot open zenoh session (listen {list(ep.listen)}, connect "
+                             f"{list(ep.connect)}): {exc}") from exc
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+class ZenohSource:
+    """Newest payload on a key, never blocking (a ``RingChannel(1)`` subscriber)."""
+
+    def __init__(self, session: Any, key: str) -> None:
+        import zenoh
+
+        self.key = key
+        self._sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
+
+    def latest(self) -> bytes | None:
+        sample = self._sub.try_recv()
+        if sample is None:
+            return None
+        payload: bytes = sample.payload.to_bytes()
+        return payload
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+class ZenohSink:
+    """Non-blocking publisher for the data path (express, drop on congestion, real time)."""
+
+    def __init__(self, session: Any, key: str, realtime: bool = True) -> None:
+        import zenoh
+
+        self.key = key
+        self._pub = session.declare_publisher(
+            key, express=True, congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.REAL_TIME if realtime else zenoh.Priority.DATA)
+        self.sent = 0
+        self.errors = 0
+
+    def put(self, payload: bytes) -> None:
+        try:
+            self._pub.put(payload)
+            self.sent += 1
+        except Exception:  # a closed session or a transport error must not stop the loop
+            self.errors += 1
+
+    def close(self) -> None:
+        self._pub.undeclare()
+
+
+def query(session: Any, key: str, payload: bytes | None = None, timeout_s: float = 2.0
+          ) -> list[bytes]:
+    """Payloads of the replies to a query (errors from the queryable raise TransportError)."""
+    out: list[bytes] = []
+    kwargs: dict[str, Any] = {"timeout": timeout_s}
+    if payload is not None:
+        kwargs["payload"] = payload
+    for reply in session.get(key, **kwargs):
+        if reply.ok is not None:
+            out.append(reply.ok.payload.to_bytes())
+        else:
+            raise TransportError(f"query {key}: {reply.err.payload.to_string()}")
+    return out
+
+
+def first_reply(session: Any, key: str, payload: bytes | None = None, timeout_s: float = 2.0
+                ) -> bytes:
+    """The first reply to a query, or :class:`TransportError` if none came in time."""
+    replies = query(session, key, payload, timeout_s)
+    if not replies:
+        raise TransportError(f"no reply to query {key} within {timeout_s} s")
+    return replies[0]
+
+
+def free_tcp_port() -> int:
+    """A free TCP port on the loopback (for tests and the demo)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def loopback(port: int) -> str:
+    return f"tcp/127.0.0.1:{port}"
+
+
+def peers(ports: Sequence[int]) -> tuple[str, ...]:
+    return tuple(loopback(p) for p in ports)

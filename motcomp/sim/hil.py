@@ -1,0 +1,157 @@
+"""``motcomp hil``: the simulated platform on the wire (hardware-in-the-loop stub).
+
+Consumes corrected setpoints (zenoh ``platform/setpoint`` or the CAN frames of the DBC), holds
+the latest one per axis, advances :class:`~motcomp.sim.platform.PlatformSimulator` (true
+dynamics per axis, which may differ from the compensator's model) at its own fixed rate, enforces
+its own hard limits (violations are counted, logged and published), and publishes feedback
+``{"t", "pos", "acc"}`` with accelerometer imperfections on ``platform/feedback``.  Its counters
+go to ``platform/status`` at 1 Hz.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import signal
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from motcomp.core.axes import AXES
+from motcomp.core.models import ProcessModel
+from motcomp.errors import FrameError
+from motcomp.io.wire import decode_output, encode_feedback
+from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, ZenohSource, open_session
+from motcomp.presets import load_preset
+from motcomp.runtime.clock import DeadlineClock
+from motcomp.sim.platform import Accelerometer, PlatformSimulator
+
+__all__ = ["HilConfig", "default_truth", "run_hil"]
+
+log = logging.getLogger("motcomp.hil")
+
+
+def default_truth() -> tuple[list[ProcessModel], np.ndarray, np.ndarray, np.ndarray]:
+    """Truth models and soft limits of the 8 axes from the ``rails`` and ``hexapod`` presets."""
+    rails, hexapod = load_preset("rails"), load_preset("hexapod")
+    models: list[ProcessModel] = []
+    rows = []
+    for axis in AXES:
+        preset = rails if axis in rails.axes else hexapod
+        models.append(preset.model)
+        lim = preset.axis_limits(axis)
+        rows.append((lim.p_min[0], lim.p_max[0], lim.v_max[0]))
+    arr = np.array(rows)
+    return models, arr[:, 0], arr[:, 1], arr[:, 2]
+
+
+@dataclass
+class HilConfig:
+    """Settings of the simulated platform."""
+
+    models: Sequence[ProcessModel]
+    p_min: np.ndarray
+    p_max: np.ndarray
+    v_max: np.ndarray | None
+    rate_hz: float = 1000.0
+    transport: str = "zenoh"
+    setpoint_key: str = "platform/setpoint"
+    feedback_key: str = "platform/feedback"
+    status_key: str = "platform/status"
+    feedback_every: int = 1
+    accelerometer: Accelerometer = field(default_factory=Accelerometer)
+    seed: int = 0
+    can_interface: str = "udp_multicast"
+    can_channel: str = "239.74.163.2"
+    dbc: str = ""
+    spin_us: float = 100.0
+    duration_s: float = math.inf
+
+
+def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
+            stop: threading.Event | None = None) -> int:
+    """Run until SIGTERM/SIGINT (or ``stop``, or ``duration_s``); returns the exit code."""
+    stop = stop or threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: stop.set())
+    sim = PlatformSimulator(cfg.models, cfg.rate_hz, cfg.p_min, cfg.p_max, cfg.v_max,
+                            cfg.accelerometer, seed=cfg.seed)
+    setpoint = [0.0] * len(AXES)
+    frames = bad = 0
+    receiver: Any = None
+    if cfg.transport == "can":
+        from motcomp.io.can_io import CanSetpointReceiver, open_bus
+        from motcomp.resources import config_file
+
+        receiver = CanSetpointReceiver(open_bus(cfg.can_interface, cfg.can_channel),
+                                       cfg.dbc or config_file("motcomp.dbc"))
+    with open_session(endpoints) as session:
+        source = ZenohSource(session, cfg.setpoint_key) if cfg.transport == "zenoh" else None
+        feedback = ZenohSink(session, cfg.feedback_key)
+        status_pub = session.declare_publisher(cfg.status_key)
+        clock = DeadlineClock(cfg.rate_hz, cfg.spin_us)
+        t_wall0, t_mono0 = time.time(), time.perf_counter_ns()
+        t_end = time.monotonic() + cfg.duration_s
+        next_status = time.monotonic() + 1.0
+        reported = np.zeros(len(AXES), dtype=np.int64)
+        try:
+            while not stop.is_set() and time.monotonic() < t_end:
+                _, now = clock.wait()
+                if source is not None:
+                    payload = source.latest()
+                    if payload is not None:
+                        frames += 1
+                        try:
+                            pos = decode_output(payload)["pos"]
+                            for i, axis in enumerate(AXES):
+                                value = pos.get(axis)
+                                if isinstance(value, int | float):
+                                    setpoint[i] = float(value)
+                        except (FrameError, AttributeError):
+                            bad += 1
+                else:
+                    got = receiver.poll()
+                    for i, axis in enumerate(AXES):
+                        if axis in got:
+                            setpoint[i] = got[axis]
+                y, acc, _ = sim.step(setpoint)
+                if clock.ticks % cfg.feedback_every == 0:
+                    t = t_wall0 + (now - t_mono0) / 1e9
+                    feedback.put(encode_feedback(t, dict(zip(AXES, y.tolist(), strict=True)),
+                                                 dict(zip(AXES, acc.tolist(), strict=True))))
+                if time.monotonic() >= next_status:
+                    next_status += 1.0
+                    new = sim.violations - reported
+                    for j in np.nonzero(new)[0]:
+                        log.warning("hard-limit violations on %s: %d", AXES[j], int(new[j]))
+                    reported = sim.violations.copy()
+                    status_pub.put(msgpack.packb(_status(sim, clock, frames, bad, receiver)))
+        finally:
+            status_pub.put(msgpack.packb(_status(sim, clock, frames, bad, receiver)))
+            status_pub.undeclare()
+            feedback.close()
+            if source is not None:
+                source.close()
+            if receiver is not None:
+                receiver.close()
+    return 0
+
+
+def _status(sim: PlatformSimulator, clock: DeadlineClock, frames: int, bad: int,
+            receiver: Any) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "t": time.time(), "ticks": clock.ticks, "missed_ticks": clock.missed,
+        "frames": frames, "bad_frames": bad,
+        "violations": dict(zip(AXES, sim.violations.tolist(), strict=True)),
+        "position": dict(zip(AXES, sim.position.tolist(), strict=True)),
+    }
+    if receiver is not None:
+        out["can"] = {"received": receiver.received, "crc_errors": receiver.crc_errors,
+                      "alive_errors": receiver.alive_errors, "unknown": receiver.unknown}
+    return out
