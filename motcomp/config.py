@@ -122,6 +122,8 @@ class InputConfig(BaseModel):
     model_config = _STRICT
     key: str = "sim/motion/setpoint"
     reject_beyond_fraction: float = Field(0.25, ge=0.0, le=10.0)
+    reconstruction: Literal["linear", "hold"] = "linear"
+    max_extrapolation_s: float = Field(0.01, ge=0.0, le=1.0)
 
 
 class CanConfig(BaseModel):
@@ -278,7 +280,8 @@ def resolve_axes(cfg: ServiceConfig) -> ResolvedAxes:
             rule = merged.get("rule", "zn")
             tuning = tune(rule, model, filter_n=merged.get("filter_n", 10.0))
             g = tuning.gains
-            warnings += [f"{name}: {w}" for w in tuning.warnings]
+            if not merged.get("bypass", False):  # a bypassed axis is not compensated
+                warnings += [f"{name}: {w}" for w in tuning.warnings]
         limits_cfg = LimitsConfig(**{k: v for k, v in merged.items()
                                      if k in LimitsConfig.model_fields})
         try:
@@ -325,9 +328,34 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> ServiceConfi
     return cfg
 
 
-def load_config(path: str | Path) -> ServiceConfig:
-    """Read and validate a TOML config file (see module docstring)."""
-    p = Path(path)
+def merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """Deep merge: tables merge key by key, anything else in ``over`` replaces ``base``."""
+    out = dict(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def read_toml(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """A TOML file with its ``include`` files merged underneath it.
+
+    ``include = ["a.toml", ...]`` (paths relative to the including file) are read first, in
+    order, each merged over the previous; the including file is merged last, so its keys win.
+    This is how an identification result (a fragment with ``[axes.<name>] model = ...``) is
+    combined with a site config.
+
+    Raises
+    ------
+    ConfigError
+        Naming the file: unreadable, not TOML, an include cycle or a bad ``include`` value.
+    """
+    p = Path(path).resolve()
+    if p in _seen:
+        chain = " -> ".join(str(s) for s in (*_seen, p))
+        raise ConfigError(f"{p}: include cycle ({chain})")
     try:
         text = p.read_text()
     except OSError as exc:
@@ -336,7 +364,20 @@ def load_config(path: str | Path) -> ServiceConfig:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from None
-    return parse_config(data, str(p))
+    inc = data.pop("include", [])
+    if isinstance(inc, str):
+        inc = [inc]
+    if not isinstance(inc, list) or not all(isinstance(i, str) for i in inc):
+        raise ConfigError(f"{p}: include: must be a file name or a list of them, got {inc!r}")
+    merged: dict[str, Any] = {}
+    for name in inc:
+        merged = merge(merged, read_toml(p.parent / name, (*_seen, p)))
+    return merge(merged, data)
+
+
+def load_config(path: str | Path) -> ServiceConfig:
+    """Read (with includes) and validate a TOML config file (see module docstring)."""
+    return parse_config(read_toml(path), str(path))
 
 
 def config_hash(cfg: ServiceConfig) -> str:

@@ -161,15 +161,15 @@ class InputValidator:
         self.p_min, self.p_max = p_min, p_max
 
     def accept(self, payload: bytes, after_stale: bool = False
-               ) -> tuple[int, dict[str, float]] | None:
-        """``(seq, pos)`` of a valid frame, or None (counted under its reason).
+               ) -> tuple[int, float | None, dict[str, float]] | None:
+        """``(seq, t, pos)`` of a valid frame, or None (counted under its reason).
 
         ``after_stale``: the input has been stale, so a ``seq`` that is not newer is accepted
         (the sender restarted).
         """
         self.received += 1
         try:
-            seq, _, pos = decode_input(payload)
+            seq, t, pos = decode_input(payload)
             for axis, value in pos.items():
                 if not self._lo[axis] <= value <= self._hi[axis]:
                     raise FrameError("range", f"pos.{axis} = {value!r} is outside "
@@ -184,7 +184,7 @@ class InputValidator:
             return None
         self.last_seq = seq
         self.accepted += 1
-        return seq, pos
+        return seq, t, pos
 
     @property
     def rejected(self) -> int:

@@ -19,7 +19,8 @@ class DeadlineClock:
     """Paces a loop at ``rate_hz``.
 
     ``wait()`` blocks until the next deadline and returns ``(deadline_ns, now_ns)``;
-    :attr:`missed` counts the periods skipped because a tick overran.  With ``poll`` (input-
+    :attr:`missed` counts the periods skipped because a tick overran, and :attr:`skipped` the
+    deadlines skipped just before the one returned (so the caller can account for them).  With ``poll`` (input-
     synchronous mode) the wait also ends early, at least half a period after the last tick,
     when ``poll()`` returns True; it is called every ``poll_us``.
     """
@@ -32,6 +33,8 @@ class DeadlineClock:
         self.start_ns = clock()
         self.next_ns = self.start_ns + self.period_ns
         self.missed = 0
+        self.skipped = 0
+        self._skip_next = 0
         self.ticks = 0
         self._last_tick_ns = self.start_ns
 
@@ -71,10 +74,13 @@ class DeadlineClock:
         now = self._clock()
         self.ticks += 1
         self._last_tick_ns = now
+        self.skipped = self._skip_next
+        self._skip_next = 0
         nxt = deadline + self.period_ns
         if now >= nxt:  # overran one or more whole periods: skip them, do not burst
-            skipped = (now - deadline) // self.period_ns
-            self.missed += int(skipped)
+            skipped = int((now - deadline) // self.period_ns)
+            self.missed += skipped
+            self._skip_next = skipped
             nxt = deadline + (skipped + 1) * self.period_ns
         self.next_ns = nxt
         return deadline, now

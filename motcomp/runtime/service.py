@@ -54,6 +54,8 @@ __all__ = ["Service", "build_compensator"]
 
 log = logging.getLogger("motcomp.service")
 
+MAX_CATCH_UP = 20
+"""Longest stall (in periods) whose samples are computed afterwards (see Service._catch_up)."""
 _SAT_FLAGS = tuple(f"sat:{a}" for a in AXES)
 _BYPASS_FLAGS = tuple(f"bypass:{a}" for a in AXES)
 
@@ -93,7 +95,8 @@ class Service:
                                         cfg.input.reject_beyond_fraction)
         self.shaper = ReferenceShaper(self.axes.driven, self._ramp_speeds(cfg, self.axes),
                                       cfg.loop.stale_after_s, cfg.loop.hold_s, cfg.loop.rejoin_s,
-                                      cfg.loop.startup_s)
+                                      cfg.loop.startup_s, cfg.input.reconstruction == "linear",
+                                      cfg.input.max_extrapolation_s)
         self.stats = LoopStats(round(cfg.status.window_s * cfg.loop.rate_hz))
         self.counters = _Counters()
         self.notifier = Notifier()
@@ -122,6 +125,13 @@ class Service:
         return [cfg.loop.ramp_speed_fraction * float(v) for v in axes.limits.v_max]
 
     # --- the loop thread ------------------------------------------------------------------
+    def attach(self, source: Any, sinks: list[Any]) -> None:
+        """Use these adapters (e.g. the in-memory twins of :mod:`motcomp.io.memory`) instead of
+        opening transports: then :meth:`tick` can be driven directly with a given time."""
+        self._source = source
+        self._sinks = list(sinks)
+        self._set_bypass_flags()
+
     def _poll_input(self) -> bool:
         assert self._source is not None
         payload = self._source.latest()
@@ -130,7 +140,10 @@ class Service:
         self._pending = payload
         return True
 
-    def _tick(self, now_ns: int) -> None:
+    def tick(self, now_ns: int) -> None:
+        """One tick at the sample instant ``now_ns`` (the deadline: the reference is evaluated
+        on the ideal, uniform time grid the compensator assumes, not at the jittered moment the
+        thread woke up)."""
         commands = self.commands
         while commands:
             commands.popleft()()
@@ -144,7 +157,7 @@ class Service:
             res = self.validator.accept(payload, after_stale=shaper.is_stale(now))
             if res is not None:
                 self.counters.src_seq = res[0]
-                shaper.on_input(res[1], now)
+                shaper.on_input(res[2], now, res[1])
         ref, mode = shaper.reference(now)
         comp = self.comp
         u = comp.step(ref)
@@ -166,6 +179,16 @@ class Service:
         self._seq += 1
         self.counters.mode = mode or "running"
         self.counters.ticks += 1
+
+    def _catch_up(self, deadline_ns: int, skipped: int) -> None:
+        """Step the compensator (no input, no output) at the ``skipped`` deadlines before this
+        one: its discrete dynamics stay on the real time grid, instead of seeing the reference
+        jump by several samples at once (which a high-gain tuning amplifies).  At most
+        :data:`MAX_CATCH_UP` periods; a longer stall is left to the stale-input logic."""
+        period = round(1e9 / self.cfg.loop.rate_hz)
+        for j in range(min(skipped, MAX_CATCH_UP), 0, -1):
+            ref, _ = self.shaper.reference((deadline_ns - j * period) / 1e9)
+            self.comp.step(ref)
 
     def _parked(self) -> bool:
         if not self.shaper.parked:
@@ -192,7 +215,9 @@ class Service:
                     deadline, now, _ = clock.wait_or_poll(self._poll_input, loop.poll_us)
                 else:
                     deadline, now = clock.wait()
-                self._tick(now)
+                if clock.skipped:
+                    self._catch_up(deadline, clock.skipped)
+                self.tick(deadline)
                 record((perf() - now) / 1e3, (now - deadline) / 1e3)
                 self.counters.last_tick_mono = time.monotonic()
                 if self.stop_event.is_set():
@@ -258,6 +283,7 @@ class Service:
             "ticks": c.ticks,
             "missed_ticks": clock.missed if clock else 0,
             "loop": self.stats.snapshot(),
+            "loop_window_s": self.cfg.status.window_s,
             "frames": {"received": v.received, "accepted": v.accepted, "rejected": v.rejected,
                        "rejected_by_reason": dict(v.counts), "last_reject": v.last_error},
             "stale_s": self.shaper.stale_time(now),

@@ -80,10 +80,16 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: stop.set())
-    sim = PlatformSimulator(cfg.models, cfg.rate_hz, cfg.p_min, cfg.p_max, cfg.v_max,
+    # position limits are enforced by the simulator at every tick; the velocity limit is judged
+    # between consecutive frames with their own timestamps (the two clocks are not in step, so
+    # one tick may see two frames' worth of motion)
+    sim = PlatformSimulator(cfg.models, cfg.rate_hz, cfg.p_min, cfg.p_max, None,
                             cfg.accelerometer, seed=cfg.seed)
+    v_hard = None if cfg.v_max is None else np.asarray(cfg.v_max, dtype=float)
     setpoint = [0.0] * len(AXES)
     frames = bad = 0
+    prev_t: float | None = None
+    prev = np.zeros(len(AXES))
     receiver: Any = None
     if cfg.transport == "can":
         from motcomp.io.can_io import CanSetpointReceiver, open_bus
@@ -108,13 +114,22 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
                     if payload is not None:
                         frames += 1
                         try:
-                            pos = decode_output(payload)["pos"]
+                            frame = decode_output(payload)
+                            pos = frame["pos"]
                             for i, axis in enumerate(AXES):
                                 value = pos.get(axis)
                                 if isinstance(value, int | float):
                                     setpoint[i] = float(value)
-                        except (FrameError, AttributeError):
+                            t_frame = float(frame["t"])
+                        except (FrameError, AttributeError, TypeError, ValueError):
                             bad += 1
+                        else:
+                            now_sp = np.array(setpoint)
+                            if v_hard is not None and prev_t is not None and t_frame > prev_t:
+                                fast = np.abs(now_sp - prev) > v_hard * (t_frame - prev_t) * (
+                                    1 + 1e-6)
+                                sim.violations += fast
+                            prev_t, prev = t_frame, now_sp
                 else:
                     got = receiver.poll()
                     for i, axis in enumerate(AXES):

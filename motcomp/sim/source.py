@@ -80,7 +80,7 @@ def builtin(name: str, rate_hz: float = 1000.0, duration_s: float | None = None)
         env = _fade(n, rate_hz)
         return Trajectory(rate_hz, {
             "rails_y": y,
-            "rails_x": 0.25 * np.sin(phase) * env,
+            "rails_x": 0.08 * np.sin(phase) * env,
             "hex_z": 0.02 * np.sin(2 * math.pi * 0.5 * t) * env,
             "hex_roll": 0.04 * np.sin(2 * math.pi * 0.25 * t) * env,
             "hex_pitch": 0.03 * np.sin(2 * math.pi * 0.35 * t) * env,
@@ -167,8 +167,8 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
                 for k in range(traj.samples):
                     if stop.is_set():
                         return seq
-                    _, now = clock.wait()
-                    t = t_wall0 + (now - t_mono0) / 1e9
+                    deadline, _ = clock.wait()
+                    t = t_wall0 + (deadline - t_mono0) / 1e9  # the sample's nominal time
                     sink.put(encode_input(seq, t, {a: col[k] for a, col in
                                                    zip(axes, columns, strict=True)}))
                     seq += 1

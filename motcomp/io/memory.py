@@ -1,0 +1,48 @@
+"""In-memory twins of the transport adapters, for tests and offline runs.
+
+:class:`MemorySource` hands out queued payloads one per ``latest()`` call (or only the newest, like
+a ring channel, with ``latest_only=True``); :class:`MemorySink` keeps what it was given.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterable
+
+__all__ = ["MemorySink", "MemorySource"]
+
+
+class MemorySource:
+    """A source fed by the test: ``push(payload)``; ``latest()`` never blocks."""
+
+    def __init__(self, payloads: Iterable[bytes] = (), latest_only: bool = False) -> None:
+        self._queue: deque[bytes] = deque(payloads)
+        self.latest_only = latest_only
+
+    def push(self, payload: bytes) -> None:
+        self._queue.append(payload)
+
+    def latest(self) -> bytes | None:
+        if not self._queue:
+            return None
+        if self.latest_only:
+            last = self._queue[-1]
+            self._queue.clear()
+            return last
+        return self._queue.popleft()
+
+    def close(self) -> None:
+        self._queue.clear()
+
+
+class MemorySink:
+    """Keeps every payload put (or only the last ``keep``)."""
+
+    def __init__(self, keep: int | None = None) -> None:
+        self.payloads: deque[bytes] = deque(maxlen=keep)
+
+    def put(self, payload: bytes) -> None:
+        self.payloads.append(payload)
+
+    def close(self) -> None:
+        pass

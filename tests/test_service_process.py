@@ -1,0 +1,198 @@
+"""The service as a user runs it: ``motcomp run`` and ``motcomp hil`` as subprocesses, a client
+in this process on real zenoh sessions over loopback (multicast scouting off, free ports), CAN
+frames on a real ``udp_multicast`` bus, systemd notifications on a real datagram socket."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import signal
+import socket
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import msgpack
+import numpy as np
+import pytest
+
+from motcomp.io.can_io import CanSetpointReceiver
+from motcomp.io.wire import decode_output, encode_input
+from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loopback, open_session
+from motcomp.resources import config_file
+from tests.conftest import motcomp_cmd, subprocess_env
+
+pytestmark = pytest.mark.slow
+
+
+def write_config(tmp: Path, extra: str = "") -> Path:
+    path = tmp / "service.toml"
+    path.write_text(f'include = ["{config_file("motcomp.toml")}"]\n{extra}\n')
+    return path
+
+
+@contextlib.contextmanager
+def process(args: list[str], log: Path, env: dict[str, str] | None = None
+            ) -> Iterator[subprocess.Popen[bytes]]:
+    with log.open("wb") as fh:
+        p = subprocess.Popen(motcomp_cmd(*args), stdout=fh, stderr=subprocess.STDOUT,
+                             env=env or subprocess_env())
+        try:
+            yield p
+        finally:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+
+
+def wait_status(session: Any, timeout: float = 20.0) -> dict[str, Any]:
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        with contextlib.suppress(Exception):
+            st: dict[str, Any] = msgpack.unpackb(first_reply(session, "motcomp/status", None, 1.0))
+            if st["ticks"] > 0:
+                return st
+        time.sleep(0.2)
+    raise AssertionError("service did not answer its status query")
+
+
+def test_run_hil_client_bad_frames_fade_can_and_sigterm(tmp_path: Path) -> None:
+    import zenoh
+
+    p_svc, p_hil, p_me = free_tcp_port(), free_tcp_port(), free_tcp_port()
+    group = f"239.74.{os.getpid() % 250}.{int(time.time()) % 250 + 1}"
+    cfg = write_config(tmp_path, f"""
+[admin]
+enabled = true
+[output]
+transport = "both"
+[output.can]
+interface = "udp_multicast"
+channel = "{group}"
+send_every = 4
+""")
+    notify = tmp_path / "notify.sock"
+    nsock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    nsock.bind(str(notify))
+    nsock.settimeout(0.05)
+    env = subprocess_env()
+    env.update(NOTIFY_SOCKET=str(notify), WATCHDOG_USEC="2000000")
+    rx = can.Bus(interface="udp_multicast", channel=group)
+    recv = CanSetpointReceiver(rx, config_file("motcomp.dbc"))
+    with process(["hil", "-l", loopback(p_hil), "--log-level", "warning"], tmp_path / "hil.log"), \
+            process(["run", "--config", str(cfg), "-l", loopback(p_svc), "-e", loopback(p_hil)],
+                    tmp_path / "svc.log", env) as svc:
+        ep = ZenohEndpoints(connect=(loopback(p_svc), loopback(p_hil)), listen=(loopback(p_me),))
+        with open_session(ep) as session:
+            out_sub = session.declare_subscriber("platform/setpoint",
+                                                 zenoh.handlers.FifoChannel(100_000))
+            fb_sub = session.declare_subscriber("platform/feedback",
+                                                zenoh.handlers.RingChannel(1))
+            pub = session.declare_publisher("sim/motion/setpoint")
+            wait_status(session)
+            # 3 s of a smooth motion at 500 Hz, with every kind of bad frame mixed in
+            bad = [b"\xc1junk", msgpack.packb({"seq": 10**9, "pos": {"rails_y": float("nan")}}),
+                   msgpack.packb({"seq": 10**9, "pos": {"rails_q": 0.1}}),
+                   msgpack.packb({"seq": 10**9, "pos": {"rails_y": 99.0}}),
+                   msgpack.packb({"seq": "x", "pos": {"rails_y": 0.1}}),
+                   msgpack.packb({"seq": 3, "pos": {"rails_y": 0.1}})]  # old by then
+            n = 1500
+            t0 = time.time()
+            for k in range(n):
+                t = k / 500
+                pub.put(encode_input(100 + k, t0 + t,  # feasible: 2.2 m/s^2 at most
+                                     {"rails_y": 0.25 * math.sin(2 * math.pi * 0.3 * t) ** 3}))
+                if k % 100 == 50:
+                    pub.put(bad[(k // 100) % len(bad)])
+                time.sleep(0.002)
+            st = msgpack.unpackb(first_reply(session, "motcomp/status", None, 2.0))
+            rej = st["frames"]["rejected_by_reason"]
+            for reason in ("decode", "nonfinite", "axis", "range", "type", "old"):
+                assert rej[reason] >= 1, rej
+            assert st["frames"]["accepted"] > 0.8 * n
+            assert st["mode"] == "running"
+            # outputs: every axis, finite, within the limits; the input reached them
+            frames = []
+            while (s := out_sub.try_recv()) is not None:
+                frames.append(decode_output(s.payload.to_bytes()))
+            assert len(frames) > 2000
+            y = np.array([f["pos"]["rails_y"] for f in frames])
+            # the compensated command leads and exceeds the 0.25 m reference a little (ideal: 0.30)
+            assert np.all(np.isfinite(y)) and np.max(np.abs(y)) < 0.35 and np.ptp(y) > 0.2
+            assert max(f["src_seq"] for f in frames) >= 100 + n - 50
+            # the platform feedback follows
+            fb = fb_sub.try_recv()
+            assert fb is not None
+            # CAN frames carried the same setpoints (checked CRC and alive counter)
+            got = recv.poll()
+            assert recv.received > 100 and recv.crc_errors == 0
+            assert abs(got["rails_y"] - frames[-1]["pos"]["rails_y"]) < 0.05
+            # input stops: stale after 50 ms, hold 0.5 s, then ramp to neutral
+            time.sleep(2.5)
+            st = msgpack.unpackb(first_reply(session, "motcomp/status", None, 2.0))
+            assert st["mode"] == "stale" and st["stale_s"] > 2.0
+            frames = []
+            while (s := out_sub.try_recv()) is not None:
+                frames.append(decode_output(s.payload.to_bytes()))
+            assert "stale" in frames[-1]["flags"]
+            assert abs(frames[-1]["pos"]["rails_y"]) < 1e-6  # back at neutral
+            # SIGTERM: park and exit 0, in bounded time
+            t_stop = time.monotonic()
+            svc.send_signal(signal.SIGTERM)
+            assert svc.wait(timeout=20) == 0
+            assert time.monotonic() - t_stop < 10
+            out_sub.undeclare()
+            fb_sub.undeclare()
+    recv.close()
+    msgs = []
+    with contextlib.suppress(TimeoutError, OSError):
+        while True:
+            msgs.append(nsock.recv(4096).decode())
+    nsock.close()
+    text = "\n".join(msgs)
+    assert "READY=1" in text and "WATCHDOG=1" in text and "STOPPING=1" in text
+    log = (tmp_path / "svc.log").read_text()
+    assert "stopped after" in log and "Traceback" not in log
+
+
+def test_sigint_parks_from_motion_and_exits_zero(tmp_path: Path) -> None:
+    p_svc = free_tcp_port()
+    cfg = write_config(tmp_path)
+    with process(["run", "--config", str(cfg), "-l", loopback(p_svc)], tmp_path / "svc.log") as svc:
+        ep = ZenohEndpoints(connect=(loopback(p_svc),))
+        with open_session(ep) as session:
+            import zenoh
+
+            out_sub = session.declare_subscriber("platform/setpoint",
+                                                 zenoh.handlers.RingChannel(1))
+            wait_status(session)
+            pub = session.declare_publisher("sim/motion/setpoint")
+            for k in range(1500):  # hold rails_x at 0.5 m
+                pub.put(encode_input(k, time.time(), {"rails_x": 0.5}))
+                time.sleep(0.001)
+            s = out_sub.try_recv()
+            assert s is not None and decode_output(s.payload.to_bytes())["pos"]["rails_x"] > 0.4
+            svc.send_signal(signal.SIGINT)
+            last = None
+            t_end = time.monotonic() + 15
+            while svc.poll() is None and time.monotonic() < t_end:
+                s = out_sub.try_recv()
+                if s is not None:
+                    last = decode_output(s.payload.to_bytes())
+                time.sleep(0.01)
+            assert svc.wait(timeout=5) == 0
+            assert last is not None and abs(last["pos"]["rails_x"]) < 1e-3
+            assert "parking" in last["flags"]
+            out_sub.undeclare()
+
+
+def test_bad_config_exits_2_with_the_key(tmp_path: Path) -> None:
+    cfg = write_config(tmp_path, "[loop]\nrate_hz = 5000\n")
+    p = subprocess.run(motcomp_cmd("run", "--config", str(cfg)), capture_output=True, text=True,
+                       env=subprocess_env(), timeout=60)
+    assert p.returncode == 2
+    assert "loop.rate_hz" in p.stderr and "5000" in p.stderr
