@@ -151,6 +151,7 @@ class StatusConfig(BaseModel):
     key: str = "motcomp/status"
     period_s: float = Field(1.0, gt=0.0, le=60.0)
     window_s: float = Field(10.0, gt=0.0, le=600.0)
+    saturation_tolerance: float = Field(1e-4, ge=0.0, le=1.0)
 
 
 class AdminConfig(BaseModel):
@@ -202,8 +203,8 @@ class ServiceConfig(BaseModel):
 
 RESTART_KEYS: tuple[str, ...] = (
     "loop.rate_hz", "loop.sync_to_input", "loop.poll_us", "loop.spin_us",
-    "loop.realtime_priority", "loop.cpu", "input", "output", "feedback", "status", "admin",
-    "zenoh",
+    "loop.realtime_priority", "loop.cpu", "input", "output", "feedback", "status.key",
+    "status.period_s", "status.window_s", "admin", "zenoh",
 )
 """Top-level keys (or sub-keys) that a live reload may not change: they need a restart."""
 

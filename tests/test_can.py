@@ -63,7 +63,7 @@ def test_bad_dbc_rejected(tmp_path) -> None:  # type: ignore[no-untyped-def]
         load_layouts(bad)
     overlap = tmp_path / "overlap.dbc"
     overlap.write_text(DBC.read_text().replace("SG_ CRC : 56|8@1+", "SG_ CRC : 48|8@1+", 1))
-    with pytest.raises(ConfigError, match="cannot load DBC.*overlapping"):
+    with pytest.raises(ConfigError, match=r"cannot load DBC.*overlapping"):
         load_layouts(overlap)
     missing = tmp_path / "missing.dbc"
     missing.write_text(DBC.read_text().replace("HEX_YAW", "HEX_YAWN"))

@@ -223,6 +223,8 @@ class Compensator:
         self._set_models(models)
         self._set_gains(gains)
         self.flags: list[int] = [0] * n
+        self.deviation: list[float] = [0.0] * n
+        """Per axis, emitted command minus its target at the last step (0 when feasible)."""
         self.reset(np.zeros(n) if position is None else position)
 
     # --- configuration ------------------------------------------------------------------------
@@ -444,6 +446,7 @@ class Compensator:
         bypass = self._bypass
         out = [0.0] * self.n
         flags = [0] * self.n
+        dev = self.deviation
         for i, ((kp, kih, ad, bd, b, c), (phi, g0, g1, off0, off1), lim) in enumerate(zip(
                 self._gain_p, self._model_p, self._lim, strict=True)):
             r = ref[i]
@@ -473,6 +476,7 @@ class Compensator:
                                                        vss[i], lim)
             tps[i] = target
             us[i] = u
+            dev[i] = u - target
             if bypass[i]:
                 # tracking: the PID's raw output follows the command being sent
                 ints[i] += u - v

@@ -20,9 +20,9 @@ class DeadlineClock:
 
     ``wait()`` blocks until the next deadline and returns ``(deadline_ns, now_ns)``;
     :attr:`missed` counts the periods skipped because a tick overran, and :attr:`skipped` the
-    deadlines skipped just before the one returned (so the caller can account for them).  With ``poll`` (input-
-    synchronous mode) the wait also ends early, at least half a period after the last tick,
-    when ``poll()`` returns True; it is called every ``poll_us``.
+    deadlines skipped just before the one returned (so the caller can account for them).  With
+    ``poll`` (input-synchronous mode) the wait also ends early, at least half a period after the
+    last tick, when ``poll()`` returns True; it is called every ``poll_us``.
     """
 
     def __init__(self, rate_hz: float, spin_us: float = 200.0,

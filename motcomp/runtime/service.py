@@ -39,7 +39,7 @@ from motcomp import __version__
 from motcomp.config import ResolvedAxes, ServiceConfig, config_hash, resolve_axes
 from motcomp.core.axes import AXES
 from motcomp.core.compensator import Compensator
-from motcomp.core.saturation import LIMIT_BITS
+from motcomp.core.saturation import POS, VEL
 from motcomp.errors import ConfigError, MotcompError, ServiceError
 from motcomp.io.wire import InputValidator, encode_output
 from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, ZenohSource, open_session
@@ -54,6 +54,7 @@ __all__ = ["Service", "build_compensator"]
 
 log = logging.getLogger("motcomp.service")
 
+_HARD_BITS = POS | VEL
 MAX_CATCH_UP = 20
 """Longest stall (in periods) whose samples are computed afterwards (see Service._catch_up)."""
 _SAT_FLAGS = tuple(f"sat:{a}" for a in AXES)
@@ -164,8 +165,12 @@ class Service:
         flags = [mode] if mode else []
         sat = self.counters.sat
         limited = [False] * len(u)
+        tol = self.cfg.status.saturation_tolerance
+        dev = comp.deviation
         for i, f in enumerate(comp.flags):
-            if f & LIMIT_BITS:
+            # a position or velocity bound, or a real departure from the target; the limiter
+            # smoothing micrometre discontinuities (input jitter) is not a saturation
+            if f & _HARD_BITS or (f and abs(dev[i]) > tol):
                 sat[i] += 1
                 limited[i] = True
                 flags.append(_SAT_FLAGS[i])
