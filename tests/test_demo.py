@@ -1,0 +1,30 @@
+"""The README's main command: ``motcomp demo``, end to end (about 35 s)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import motcomp_cmd, subprocess_env
+
+pytestmark = pytest.mark.slow
+
+
+def test_demo_reports_the_delay_gained(tmp_path: Path) -> None:
+    p = subprocess.run(motcomp_cmd("demo", "--out", str(tmp_path), "--quiet"), capture_output=True,
+                       text=True, env=subprocess_env(), timeout=240)
+    assert p.returncode == 0, p.stdout + p.stderr
+    rows = {m.group(1): (float(m.group(2)), float(m.group(3)))
+            for m in re.finditer(r"^(\w+)\s.*?\s(-?[\d.]+)ms\s+(-?[\d.]+)ms", p.stdout, re.M)}
+    off, on = rows["rails_y"]  # the slalom, as in the paper's Fig. 4
+    assert off == pytest.approx(196, abs=8)
+    assert off - on > 150
+    off_x, on_x = rows["rails_x"]
+    assert off_x - on_x > 100
+    for axis in ("hex_z", "hex_roll", "hex_pitch"):  # bypassed: unchanged
+        assert abs(rows[axis][0] - rows[axis][1]) < 5
+    assert "Platform hard-limit violations: 0" in p.stdout
+    assert (tmp_path / "demo.png").stat().st_size > 10_000
