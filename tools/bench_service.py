@@ -1,0 +1,175 @@
+"""Benchmark: the service with 8 axes at 1 kHz, three processes on loopback.
+
+A publisher process sends setpoints for all 8 axes at 1 kHz (absolute deadlines, ``t`` stamped
+just before ``put``); ``motcomp run`` compensates them; this process receives the outputs and,
+matching each output's ``src_seq`` with the input's publish time, measures the in->out latency.
+The service's own status gives tick compute time and lateness (over the whole run), missed
+ticks; /proc gives its CPU time and RSS.  Run once on the service's clock and once with
+``loop.sync_to_input`` (ticking on input arrival).  Writes the "service" section of
+docs/BENCHMARKS.md.
+
+Usage: ``python tools/bench_service.py [--seconds 60]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+from _bench import machine, write_section
+
+from motcomp.core.axes import AXES
+from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loopback, open_session
+from motcomp.resources import config_file
+
+
+def publisher(port: int, seconds: float) -> None:
+    """Child process: 8 axes at 1 kHz on absolute deadlines."""
+    from motcomp.runtime.clock import DeadlineClock
+
+    with open_session(ZenohEndpoints(connect=(loopback(port),))) as session:
+        pub = session.declare_publisher("sim/motion/setpoint", express=True)
+        time.sleep(1.0)
+        clock = DeadlineClock(1000.0, 200.0)
+        pack = msgpack.Packer().pack
+        for k in range(int(seconds * 1000)):
+            clock.wait()
+            t = k / 1000.0
+            pos = {a: (0.3 if a.startswith("rails") else 0.05) * math.sin(
+                2 * math.pi * 0.3 * t + i) for i, a in enumerate(AXES)}
+            pub.put(pack({"seq": k, "t": time.time(), "pos": pos}))
+        pub.undeclare()
+
+
+def proc_cpu_rss(pid: int) -> tuple[float, float]:
+    """(user+system CPU seconds, RSS MB) of a process."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    ticks = os.sysconf("SC_CLK_TCK")
+    cpu = (int(fields[11]) + int(fields[12])) / ticks
+    rss = 0.0
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            rss = int(line.split()[1]) / 1024
+    return cpu, rss
+
+
+def run_once(seconds: float, sync: bool, tmp: Path) -> dict[str, Any]:
+    import zenoh
+
+    p_svc, p_me = free_tcp_port(), free_tcp_port()
+    cfg = tmp / f"bench-{sync}.toml"
+    cfg.write_text(f'include = ["{config_file("motcomp.toml")}"]\n[loop]\nsync_to_input = '
+                   f'{"true" if sync else "false"}\n[status]\nwindow_s = {seconds + 5:g}\n')
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parent.parent)
+    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+    svc = subprocess.Popen([sys.executable, "-m", "motcomp", "run", "--config", str(cfg), "-l",
+                            loopback(p_svc), "--log-level", "warning"], env=env)
+    try:
+        ep = ZenohEndpoints(connect=(loopback(p_svc),), listen=(loopback(p_me),))
+        with open_session(ep) as session:
+            sub_in = session.declare_subscriber("sim/motion/setpoint",
+                                                zenoh.handlers.FifoChannel(500_000))
+            sub_out = session.declare_subscriber("platform/setpoint",
+                                                 zenoh.handlers.FifoChannel(500_000))
+            t_end = time.monotonic() + 30
+            while time.monotonic() < t_end:
+                try:
+                    first_reply(session, "motcomp/status", None, 1.0)
+                    break
+                except Exception:
+                    time.sleep(0.2)
+            cpu0, _ = proc_cpu_rss(svc.pid)
+            w0 = time.monotonic()
+            pub = subprocess.Popen([sys.executable, __file__, "--publisher", str(p_svc),
+                                    "--seconds", str(seconds)], env=env)
+            sent: dict[int, float] = {}
+            lat: list[float] = []
+            seen: set[int] = set()
+            drain_until = math.inf
+            while time.monotonic() < drain_until:
+                if drain_until == math.inf and pub.poll() is not None:
+                    drain_until = time.monotonic() + 0.5  # the last outputs are in flight
+                while (s := sub_in.try_recv()) is not None:
+                    f = msgpack.unpackb(s.payload.to_bytes())
+                    sent[f["seq"]] = f["t"]
+                while (s := sub_out.try_recv()) is not None:
+                    now = time.time()
+                    f = msgpack.unpackb(s.payload.to_bytes())
+                    src = f["src_seq"]
+                    if src >= 0 and src not in seen and src in sent:
+                        seen.add(src)
+                        lat.append(now - sent[src])
+                time.sleep(0.0002)
+            wall = time.monotonic() - w0
+            cpu1, rss = proc_cpu_rss(svc.pid)
+            st = msgpack.unpackb(first_reply(session, "motcomp/status", None, 3.0))
+            sub_in.undeclare()
+            sub_out.undeclare()
+    finally:
+        svc.send_signal(signal.SIGTERM)
+        svc.wait(timeout=30)
+    lat_ms = np.array(lat) * 1e3
+    loop = st["loop"]
+    return {
+        "sync": sync, "ticks": st["ticks"], "missed": st["missed_ticks"],
+        "compute_p50": loop["compute_p50_us"], "compute_p99": loop["compute_p99_us"],
+        "late_p50": loop["late_p50_us"], "late_p99": loop["late_p99_us"],
+        "late_p999": loop["late_p999_us"], "late_max": loop["late_max_us"],
+        "lat_p50": float(np.percentile(lat_ms, 50)), "lat_p99": float(np.percentile(lat_ms, 99)),
+        "lat_n": lat_ms.size, "cpu": 100 * (cpu1 - cpu0) / wall, "rss": rss,
+        "accepted": st["frames"]["accepted"],
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--publisher", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--no-write", action="store_true")
+    args = ap.parse_args()
+    if args.publisher:
+        publisher(args.publisher, args.seconds)
+        return
+    with tempfile.TemporaryDirectory() as tmp:
+        rows = [run_once(args.seconds, sync, Path(tmp)) for sync in (False, True)]
+    lines = [
+        f"Machine: {machine()}.",
+        "",
+        f"`python tools/bench_service.py --seconds {args.seconds:g}`: `motcomp run` with the "
+        "example config (8 axes, 1 kHz, no real-time privileges), a publisher process sending "
+        "all 8 axes at 1 kHz, this process receiving the outputs; tick times are the service's "
+        "own (whole run), latency = output received - input published (same clock).",
+        "",
+        "| mode | ticks | missed | compute p50 / p99 (us) | lateness p50 / p99 / p99.9 / max (us) "
+        "| in->out p50 / p99 (ms) | CPU % | RSS (MB) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        mode = "sync to input" if r["sync"] else "own clock"
+        lines.append(
+            f"| {mode} | {r['ticks']} | {r['missed']} | {r['compute_p50']:.0f} / "
+            f"{r['compute_p99']:.0f} | {r['late_p50']:.0f} / {r['late_p99']:.0f} / "
+            f"{r['late_p999']:.0f} / {r['late_max']:.0f} | {r['lat_p50']:.2f} / "
+            f"{r['lat_p99']:.2f} | {r['cpu']:.0f} | {r['rss']:.0f} |")
+    lines += ["", "Targets (2-core machine, no real-time privileges): compute p99 <= 50 us, "
+              "lateness p99.9 <= 500 us, 0 missed ticks, in->out p99 <= period + 0.5 ms "
+              "(1.5 ms), RSS <= 150 MB."]
+    text = "\n".join(lines)
+    print(text)
+    if not args.no_write:
+        write_section("service", text)
+
+
+if __name__ == "__main__":
+    main()
