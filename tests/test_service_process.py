@@ -8,7 +8,6 @@ import contextlib
 import math
 import os
 import signal
-import socket
 import subprocess
 import time
 from collections.abc import Iterator
@@ -24,6 +23,7 @@ from motcomp.io.can_io import CanSetpointReceiver
 from motcomp.io.wire import decode_output, encode_input
 from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loopback, open_session
 from motcomp.resources import config_file
+from tests._notify import NotifyListener
 from tests.conftest import motcomp_cmd, subprocess_env
 
 pytestmark = pytest.mark.slow
@@ -76,9 +76,7 @@ channel = "{group}"
 send_every = 4
 """)
     notify = tmp_path / "notify.sock"
-    nsock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    nsock.bind(str(notify))
-    nsock.settimeout(0.05)
+    listener = NotifyListener(notify)
     env = subprocess_env()
     env.update(NOTIFY_SOCKET=str(notify), WATCHDOG_USEC="2000000")
     rx = can.Bus(interface="udp_multicast", channel=group)
@@ -148,12 +146,7 @@ send_every = 4
             out_sub.undeclare()
             fb_sub.undeclare()
     recv.close()
-    msgs = []
-    with contextlib.suppress(TimeoutError, OSError):
-        while True:
-            msgs.append(nsock.recv(4096).decode())
-    nsock.close()
-    text = "\n".join(msgs)
+    text = listener.close()
     assert "READY=1" in text and "WATCHDOG=1" in text and "STOPPING=1" in text
     log = (tmp_path / "svc.log").read_text()
     assert "stopped after" in log and "Traceback" not in log

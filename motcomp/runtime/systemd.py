@@ -1,7 +1,9 @@
 """systemd readiness and watchdog notifications, without a dependency.
 
 Writes ``KEY=VALUE`` lines to the datagram socket named by ``$NOTIFY_SOCKET`` (an abstract
-socket when it starts with ``@``); does nothing when the variable is absent.  systemd 252 (these
+socket when it starts with ``@``); does nothing when the variable is absent.  Sends never
+block: a Unix datagram queue holds ~10 messages, and a reader that stops reading must not
+freeze the service.  systemd 252 (these
 machines) does not accept ``Type=notify-reload``: the unit uses ``Type=notify`` with
 ``ExecReload=/bin/kill -HUP $MAINPID`` and the service sends ``RELOADING=1`` +
 ``MONOTONIC_USEC`` then ``READY=1`` around a reload.
@@ -25,6 +27,10 @@ class Notifier:
         self._sock: socket.socket | None = None
         if addr:
             self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+            # never block the service: a full queue (a reader that does not read) drops the
+            # notification instead
+            self._sock.setblocking(False)
+        self.dropped = 0
         self.watchdog_usec = int(os.environ.get("WATCHDOG_USEC", "0") or 0)
 
     @property
@@ -37,7 +43,8 @@ class Notifier:
         target = "\0" + self.address[1:] if self.address.startswith("@") else self.address
         try:
             self._sock.sendto("\n".join(lines).encode(), target)
-        except OSError:
+        except OSError:  # BlockingIOError (queue full) included
+            self.dropped += 1
             return False
         return True
 
