@@ -31,5 +31,8 @@ def run(args: argparse.Namespace) -> int:
     setup_logging(args.log_level)
     cfg = load_config(args.config)
     z = cfg.zenoh
-    base = ZenohEndpoints(z.config_file, tuple(z.connect), tuple(z.listen), z.multicast_scouting)
+    zfile = z.config_file
+    if zfile and not Path(zfile).is_absolute():  # relative to the service's config file
+        zfile = str(args.config.resolve().parent / zfile)
+    base = ZenohEndpoints(zfile, tuple(z.connect), tuple(z.listen), z.multicast_scouting)
     return Service(cfg, endpoints_from_args(args, base), config_path=args.config).run()
