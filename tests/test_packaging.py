@@ -41,3 +41,86 @@ def test_systemd_analyze_verify(tmp_path: Path) -> None:
                        timeout=60)
     assert p.returncode == 0, p.stderr
     assert "motcomp.service" not in p.stderr, p.stderr  # no warning about our unit
+
+
+ROOT = Path(__file__).resolve().parent.parent
+SHIPPED = ["motcomp.toml", "demo.toml", "motcomp.dbc", "motcomp.service", "zenoh-acl.json5",
+           "plants/rails.toml", "plants/hexapod.toml"]
+
+
+def dockerfile() -> list[tuple[str, str]]:
+    out = []
+    text = (ROOT / "Dockerfile").read_text().replace("\\\n", " ")
+    for line in text.splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            instr, _, rest = line.partition(" ")
+            out.append((instr.upper(), rest.strip()))
+    return out
+
+
+def test_dockerfile_lints_clean() -> None:
+    exe = shutil.which("hadolint") or str(Path(sys.executable).parent / "hadolint")
+    if not Path(exe).exists():
+        pytest.skip("hadolint not installed")
+    p = subprocess.run([exe, "--failure-threshold", "info", str(ROOT / "Dockerfile")],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stdout + p.stderr
+
+
+def test_dockerfile_commands() -> None:
+    import json
+
+    from motcomp.cli import build_parser
+
+    steps = dockerfile()
+    instrs = [i for i, _ in steps]
+    base = dict(steps)["FROM"]
+    assert base.startswith("python:3.11") and "slim" in base
+    # every COPY source exists; the package is installed; a non-root numeric user runs it
+    for instr, rest in steps:
+        if instr == "COPY":
+            for src in rest.split()[:-1]:
+                assert (ROOT / src).exists(), src
+    run = " ".join(rest for i, rest in steps if i == "RUN")
+    assert "pip install --no-cache-dir ." in run
+    for name in ("motcomp.toml", "motcomp.dbc"):
+        assert (ROOT / "config" / name).is_file()
+    user = dict(steps)["USER"].split(":")[0]
+    assert user.isdigit() and user != "0"
+    assert instrs.index("USER") > max(i for i, s in enumerate(instrs) if s == "RUN")
+    assert dict(steps)["STOPSIGNAL"] == "SIGTERM"
+    # exec form (the service is PID 1 and gets SIGTERM itself), and it parses as our CLI
+    entry = json.loads(dict(steps)["ENTRYPOINT"])
+    cmd = json.loads(dict(steps)["CMD"])
+    assert entry == ["motcomp"]
+    args = build_parser().parse_args(cmd)
+    assert args.command == "run" and str(args.config) == "/config/motcomp.toml"
+
+
+@pytest.mark.slow
+def test_wheel_ships_the_config_and_finds_it_installed(tmp_path: Path) -> None:
+    """The wheel carries config/ as motcomp/_config, and an installed copy finds its presets
+    from any directory (what the container and a /opt/motcomp venv run)."""
+    import zipfile
+
+    p = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w",
+                        str(tmp_path), str(ROOT)], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    wheel = next(tmp_path.glob("motcomp-*.whl"))
+    names = zipfile.ZipFile(wheel).namelist()
+    for f in SHIPPED:
+        assert f"motcomp/_config/{f}" in names, f
+    site = tmp_path / "site"
+    zipfile.ZipFile(wheel).extractall(site)
+    env = {"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin"}
+    code = ("import motcomp.resources as r, motcomp.presets as p; print(r.config_dir()); "
+            "print(p.load_preset('rails').model)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=env, cwd=tmp_path, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert str(site / "motcomp" / "_config") in out.stdout and "p1d:K=1" in out.stdout
+    chk = subprocess.run([sys.executable, "-m", "motcomp", "config", "check",
+                          str(site / "motcomp" / "_config" / "motcomp.toml")],
+                         capture_output=True, text=True, env=env, cwd=tmp_path, timeout=60)
+    assert chk.returncode == 0, chk.stderr
