@@ -189,3 +189,43 @@ def test_bad_config_exits_2_with_the_key(tmp_path: Path) -> None:
                        env=subprocess_env(), timeout=60)
     assert p.returncode == 2
     assert "loop.rate_hz" in p.stderr and "5000" in p.stderr
+
+
+def test_hil_consumes_can_frames_from_the_service(tmp_path: Path) -> None:
+    """Service -> CAN (udp_multicast, DBC frames) -> ``motcomp hil --transport can`` ->
+    feedback on zenoh: the simulated platform follows the setpoints it decoded."""
+    import zenoh
+
+    p_svc, p_hil = free_tcp_port(), free_tcp_port()
+    group = f"239.75.{os.getpid() % 250}.{int(time.time()) % 250 + 1}"
+    cfg = write_config(tmp_path, f"""
+[output]
+transport = "can"
+[output.can]
+interface = "udp_multicast"
+channel = "{group}"
+send_every = 1
+""")
+    with process(["hil", "-l", loopback(p_hil), "--transport", "can", "--can-channel", group,
+                  "--quiet-sensor", "--log-level", "warning"], tmp_path / "hil.log"), \
+            process(["run", "--config", str(cfg), "-l", loopback(p_svc)], tmp_path / "svc.log"):
+        ep = ZenohEndpoints(connect=(loopback(p_svc), loopback(p_hil)))
+        with open_session(ep) as session:
+            fb = session.declare_subscriber("platform/feedback", zenoh.handlers.RingChannel(1))
+            hs = session.declare_subscriber("platform/status", zenoh.handlers.RingChannel(1))
+            wait_status(session)
+            pub = session.declare_publisher("sim/motion/setpoint")
+            for k in range(2500):  # 2.5 s at 0.3 m on rails_y
+                pub.put(encode_input(k, time.time(), {"rails_y": 0.3}))
+                time.sleep(0.001)
+            time.sleep(0.5)
+            s = fb.try_recv()
+            assert s is not None
+            y = msgpack.unpackb(s.payload.to_bytes())["pos"]["rails_y"]
+            assert y == pytest.approx(0.3, abs=0.01)
+            time.sleep(1.2)
+            st = msgpack.unpackb(hs.try_recv().payload.to_bytes())
+            assert st["can"]["received"] > 1000 and st["can"]["crc_errors"] == 0
+            assert sum(st["violations"].values()) == 0
+            fb.undeclare()
+            hs.undeclare()

@@ -1,0 +1,65 @@
+"""The deadline clock, on a fake clock: absolute deadlines, missed periods counted and skipped
+(no burst), input-synchronous ticks.  Real-time-only behaviour is measured by the benchmark."""
+
+from __future__ import annotations
+
+import pytest
+
+import motcomp.runtime.clock as clock_mod
+from motcomp.runtime.clock import DeadlineClock
+
+
+class FakeTime:
+    def __init__(self) -> None:
+        self.ns = 1_000_000_000
+
+    def clock(self) -> int:
+        return self.ns
+
+    def sleep(self, s: float) -> None:
+        self.ns += max(int(s * 1e9), 1)
+
+
+@pytest.fixture
+def fake(monkeypatch: pytest.MonkeyPatch) -> FakeTime:
+    ft = FakeTime()
+    monkeypatch.setattr(clock_mod.time, "sleep", ft.sleep)
+    return ft
+
+
+def test_absolute_deadlines_and_skip_without_burst(fake: FakeTime) -> None:
+    c = DeadlineClock(1000.0, spin_us=0.0, clock=fake.clock)
+    t0 = c.start_ns
+    d1, _ = c.wait()
+    assert d1 == t0 + 1_000_000
+    fake.ns += 300_000  # work inside a period: no drift, the next deadline stays on the grid
+    d2, _ = c.wait()
+    assert d2 == t0 + 2_000_000 and c.missed == 0
+    fake.ns += 3_500_000  # a 3.5 ms stall right after the tick at 2 ms
+    d3, _ = c.wait()
+    assert d3 == t0 + 3_000_000 and c.skipped == 0  # the 3 ms tick was due: it runs, late
+    assert c.missed == 2  # the deadlines at 4 and 5 ms are missed
+    d4, _ = c.wait()
+    assert d4 == t0 + 6_000_000  # ... and skipped, not replayed in a burst
+    assert c.skipped == 2  # reported once, to the tick after the stall
+    d5, _ = c.wait()
+    assert d5 == t0 + 7_000_000 and c.skipped == 0
+
+
+def test_input_synchronous_ticks_early_but_not_faster_than_half_a_period(fake: FakeTime) -> None:
+    c = DeadlineClock(1000.0, spin_us=0.0, clock=fake.clock)
+    t0 = c.start_ns
+    d, now, polled = c.wait_or_poll(lambda: False, poll_us=50)
+    assert not polled and d == t0 + 1_000_000  # no input: the own clock
+    calls: list[int] = []
+
+    def arrived() -> bool:
+        calls.append(fake.ns)
+        return True
+
+    d, now, polled = c.wait_or_poll(arrived, poll_us=50)
+    assert polled and now < t0 + 2_000_000  # ticked on arrival, before its deadline ...
+    assert calls[0] >= t0 + 1_500_000  # ... but not before half a period after the last tick
+    assert c.next_ns == now + 1_000_000  # re-phased to the input
+    d2, _, polled = c.wait_or_poll(lambda: False, poll_us=50)
+    assert not polled and d2 == now + 1_000_000  # no input: back on the own clock
