@@ -36,10 +36,15 @@ from motcomp.limits_config import LimitsConfig
 __all__ = [
     "RESTART_KEYS",
     "AxisConfig",
+    "ProfileConfig",
     "ResolvedAxes",
     "ServiceConfig",
+    "config_hash",
     "load_config",
+    "merge",
     "parse_config",
+    "read_toml",
+    "resolve_axes",
 ]
 
 _STRICT = ConfigDict(extra="forbid", frozen=True)
@@ -95,6 +100,37 @@ class AxisConfig(LimitsConfig):
         if v is not None and v not in RULES:
             raise ValueError(f"unknown rule {v!r}; rules: {', '.join(RULES)}")
         return v
+
+
+class TuningConfig(BaseModel):
+    """What a scenario profile may set, for every axis or for one: the tuning and bypass."""
+
+    model_config = _STRICT
+    rule: str | None = None
+    filter_n: float | None = Field(None, gt=0)
+    gains: GainsConfig | None = None
+    bypass: bool | None = None
+
+    @field_validator("rule")
+    @classmethod
+    def _rule(cls, v: str | None) -> str | None:
+        if v is not None and v not in RULES:
+            raise ValueError(f"unknown rule {v!r}; rules: {', '.join(RULES)}")
+        return v
+
+    @model_validator(mode="after")
+    def _one_tuning(self) -> TuningConfig:
+        if self.rule is not None and self.gains is not None:
+            raise ValueError("give either rule or gains, not both")
+        return self
+
+
+class ProfileConfig(TuningConfig):
+    """A named scenario (e.g. normal driving, fast manoeuvres): tuning for all axes, and per
+    axis under ``axes``."""
+
+    description: str = ""
+    axes: dict[str, TuningConfig] = {}
 
 
 class LoopConfig(BaseModel):
@@ -190,6 +226,8 @@ class ServiceConfig(BaseModel):
     zenoh: ZenohConfig = ZenohConfig()
     defaults: AxisConfig = AxisConfig()
     axes: dict[str, AxisConfig] = {}
+    profile: str | None = None
+    profiles: dict[str, ProfileConfig] = {}
 
     @model_validator(mode="after")
     def _axes(self) -> ServiceConfig:
@@ -198,6 +236,14 @@ class ServiceConfig(BaseModel):
                 raise ValueError(f"unknown axis {name!r}; axes: {', '.join(AXES)}")
         if not self.axes:
             raise ValueError("no axis configured: add at least one [axes.<name>] table")
+        for pname, prof in self.profiles.items():
+            for name in prof.axes:
+                if name not in self.axes:
+                    raise ValueError(f"profiles.{pname}.axes.{name}: not a configured axis; "
+                                     f"axes: {', '.join(self.axes)}")
+        if self.profile is not None and self.profile not in self.profiles:
+            raise ValueError(f"profile {self.profile!r} is not defined; profiles: "
+                             f"{', '.join(self.profiles) or 'none'}")
         return self
 
 
@@ -232,17 +278,40 @@ def _merged(defaults: AxisConfig, axis: AxisConfig) -> dict[str, Any]:
     return out
 
 
-def resolve_axes(cfg: ServiceConfig) -> ResolvedAxes:
+_TUNING_KEYS = ("rule", "filter_n", "gains", "bypass")
+
+
+def _tuning_layers(cfg: ServiceConfig, name: str, profile: str | None) -> list[dict[str, Any]]:
+    """The tuning keys of an axis from the lowest to the highest precedence: ``[defaults]``,
+    ``[axes.<name>]``, the active profile, the profile's ``axes.<name>``."""
+    layers = [cfg.defaults.model_dump(exclude_none=True),
+              cfg.axes[name].model_dump(exclude_none=True)]
+    if profile is not None:
+        prof = cfg.profiles[profile]
+        layers.append(prof.model_dump(include=set(_TUNING_KEYS), exclude_none=True))
+        if name in prof.axes:
+            layers.append(prof.axes[name].model_dump(exclude_none=True))
+    return [{k: v for k, v in layer.items() if k in _TUNING_KEYS} for layer in layers]
+
+
+def resolve_axes(cfg: ServiceConfig, profile: str | None = "") -> ResolvedAxes:
     """Models, gains, limits and bypass of all eight axes.
 
     An axis not listed under ``[axes]`` is *undriven*: bypassed, unit model, and held at
-    neutral by the service.
+    neutral by the service.  ``profile`` selects a scenario profile (default: the config's
+    active ``profile``; None: none); its tuning keys override those of ``[defaults]`` and of the
+    axis, the highest layer that sets ``rule`` or ``gains`` deciding the tuning.
 
     Raises
     ------
     ConfigError
         Naming the axis and the key.
     """
+    if profile == "":
+        profile = cfg.profile
+    if profile is not None and profile not in cfg.profiles:
+        raise ConfigError(f"profile {profile!r} is not defined; profiles: "
+                          f"{', '.join(cfg.profiles) or 'none'}")
     models: list[P1D] = []
     plants: list[ProcessModel] = []
     gains: list[PIDGains] = []
@@ -270,18 +339,20 @@ def resolve_axes(cfg: ServiceConfig) -> ResolvedAxes:
             model = plant.to_p1d()
         except ConfigError as exc:
             raise ConfigError(f"{where}.model: {exc}") from None
-        own = cfg.axes[name]
-        if own.gains is not None and own.rule is not None:
-            raise ConfigError(f"{where}: give either rule or gains, not both")
-        # precedence: the axis' own gains or rule, then [defaults] gains or rule, then ZN
-        use_gains = own.gains is not None or (own.rule is None and cfg.defaults.gains is not None)
-        if use_gains:
-            g = GainsConfig(**merged["gains"]).to_gains()
+        layers = _tuning_layers(cfg, name, profile)
+        for layer in layers:
+            if "gains" in layer and "rule" in layer:
+                raise ConfigError(f"{where}: give either rule or gains, not both")
+        tuning_layer: dict[str, Any] = next(
+            (ly for ly in reversed(layers) if "gains" in ly or "rule" in ly), {})
+        bypass_on = next((ly["bypass"] for ly in reversed(layers) if "bypass" in ly), False)
+        filter_n = next((ly["filter_n"] for ly in reversed(layers) if "filter_n" in ly), 10.0)
+        if "gains" in tuning_layer:
+            g = GainsConfig(**tuning_layer["gains"]).to_gains()
         else:
-            rule = merged.get("rule", "zn")
-            tuning = tune(rule, model, filter_n=merged.get("filter_n", 10.0))
+            tuning = tune(tuning_layer.get("rule", "zn"), model, filter_n=filter_n)
             g = tuning.gains
-            if not merged.get("bypass", False):  # a bypassed axis is not compensated
+            if not bypass_on:  # a bypassed axis is not compensated
                 warnings += [f"{name}: {w}" for w in tuning.warnings]
         limits_cfg = LimitsConfig(**{k: v for k, v in merged.items()
                                      if k in LimitsConfig.model_fields})
@@ -292,7 +363,7 @@ def resolve_axes(cfg: ServiceConfig) -> ResolvedAxes:
         models.append(model)
         plants.append(plant)
         gains.append(g)
-        bypass.append(bool(merged.get("bypass", False)))
+        bypass.append(bool(bypass_on))
         driven.append(True)
     arr = np.array(rows, dtype=float)
     limits = AxisLimits(arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3], AXES)

@@ -11,12 +11,12 @@ from pathlib import Path
 from typing import Any
 
 import msgpack
-import numpy as np
 import pytest
 
 from motcomp.io.wire import decode_output, encode_input
 from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loopback, open_session
 from motcomp.resources import config_file
+from tests._frames import assert_frames_within_limits
 from tests._notify import NotifyListener
 from tests.conftest import motcomp_cmd, subprocess_env
 from tests.test_service_process import process, wait_status
@@ -115,23 +115,11 @@ def test_reload_valid_and_invalid_and_sighup(tmp_path: Path) -> None:
         finally:
             stop.set()
             feeder.join()
-        # the output never stepped beyond the limits through the reloads: velocities over the
-        # frames' own sample times (a frame after a stall covers the periods caught up); the
-        # acceleration over consecutive 1 ms samples
+        # the output never stepped beyond the limits through the reloads
         frames = []
         while (s := out_sub.try_recv()) is not None:
             frames.append(decode_output(s.payload.to_bytes()))
-        seq = np.array([f["seq"] for f in frames])
-        t = np.array([f["t"] for f in frames])
-        y = np.array([f["pos"]["rails_y"] for f in frames])
-        dt = np.diff(t)  # wall-clock floats: ~0.2 us resolution, fine for velocities over gaps
-        assert np.max(np.abs(np.diff(y) / dt)) <= 2.0 * (1 + 1e-3)
-        regular = (np.diff(seq) == 1) & (np.abs(dt - 1e-3) < 1e-5)
-        ok_a = regular[1:] & regular[:-1]
-        v = np.diff(y) / 1e-3  # exact on regular samples
-        a = np.diff(v) / 1e-3
-        assert ok_a.sum() > 3000
-        assert np.max(np.abs(a[ok_a])) <= 6.0 * (1 + 1e-6) + 1e-6
+        assert_frames_within_limits(frames, "rails_y", 2.0, 6.0, min_checked=3000)
         out_sub.undeclare()
         svc.send_signal(signal.SIGTERM)
         assert svc.wait(timeout=20) == 0

@@ -34,6 +34,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_zenoh_args(b)
     b.set_defaults(func=run_bypass)
 
+    pr = sub.add_parser("profile", help="switch the running service's scenario profile",
+                        description="Make a profile of the service's config active (its gains "
+                                    "replace the current ones, bumplessly). Needs [admin] "
+                                    "enabled = true.")
+    pr.add_argument("name", help="profile name, or 'none' for the config's base tuning")
+    pr.add_argument("--key", default="motcomp/admin")
+    pr.add_argument("--timeout", type=float, default=5.0)
+    add_zenoh_args(pr)
+    pr.set_defaults(func=run_profile)
+
     r = sub.add_parser("reload", help="reload a running service's config",
                        description="Ask the running service to re-read its config file (or "
                                    "FILE); prints the outcome, exits 1 if it was rejected. "
@@ -90,4 +100,15 @@ def run_reload(args: argparse.Namespace) -> int:
         print(f"motcomp reload: rejected: {out.get('error')}", file=sys.stderr)
         return 1
     print(f"reloaded: {out.get('path')} (hash {out.get('hash')}, version {out.get('version')})")
+    return 0
+
+
+def run_profile(args: argparse.Namespace) -> int:
+    name = None if args.name == "none" else args.name
+    out = _request(args, f"{args.key}/profile", {"name": name})
+    if not out.get("ok"):
+        print(f"motcomp profile: rejected: {out.get('error')}", file=sys.stderr)
+        return 1
+    print(f"profile {out.get('profile')} active (config hash {out.get('hash')}, version "
+          f"{out.get('version')})")
     return 0

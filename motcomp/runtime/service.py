@@ -296,6 +296,8 @@ class Service:
             "stale_episodes": self.shaper.stale_episodes,
             "saturation": dict(zip(AXES, c.sat, strict=True)),
             "bypass": [a for a, b in zip(AXES, self.comp.bypass, strict=True) if b],
+            "profile": self.cfg.profile,
+            "profiles": sorted(self.cfg.profiles),
             "driven": [a for a, d in zip(AXES, self.axes.driven, strict=True) if d],
             "src_seq": c.src_seq,
             "can": ({"sent": self._can.sent, "errors": self._can.errors}
@@ -323,8 +325,16 @@ class Service:
                 result: dict[str, Any] = {"ok": True, "bypass": self.request_bypass(on, axes)}
             elif name == "reload":
                 result = self.reload(req.get("path"))
+            elif name == "profile":
+                from motcomp.runtime.reload import switch_profile
+
+                pname = req.get("name")
+                if pname is not None and not isinstance(pname, str):
+                    raise ConfigError("profile request needs {'name': str | None}")
+                result = switch_profile(self, pname)
             else:
-                raise ConfigError(f"unknown admin command {name!r}; commands: bypass, reload")
+                raise ConfigError(f"unknown admin command {name!r}; commands: bypass, reload, "
+                                  "profile")
         except MotcompError as exc:
             result = {"ok": False, "error": str(exc)}
         query.reply(str(query.key_expr), msgpack.packb(result))

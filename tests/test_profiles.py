@@ -1,0 +1,125 @@
+"""Scenario profiles: named gain sets in the config, switched live and bumplessly."""
+
+from __future__ import annotations
+
+import math
+import signal
+import subprocess
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import pytest
+
+from motcomp.config import parse_config, read_toml, resolve_axes
+from motcomp.core.tuning import tune
+from motcomp.errors import ConfigError
+from motcomp.io.wire import decode_output, encode_input
+from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loopback, open_session
+from motcomp.resources import config_file
+from tests._frames import assert_frames_within_limits
+from tests.conftest import RAILS, motcomp_cmd, subprocess_env
+from tests.test_service_process import process, wait_status
+
+PROFILES = """
+[profiles.normal]
+description = "normal driving: the paper's tuning"
+rule = "zn"
+
+[profiles.fast]
+description = "fast manoeuvres: less over-amplification"
+rule = "amigo"
+
+[profiles.fast.axes.rails_y]
+gains = { kp = 3.0, ki_per_s = 40.0 }
+"""
+
+
+def config(extra: str = "") -> dict[str, Any]:
+    """The example config with the profiles; ``extra`` top-level keys go first, tables after."""
+    import tomllib
+
+    top = "".join(ln + "\n" for ln in extra.splitlines() if not ln.startswith("[")
+                  and "=" in ln and not extra.lstrip().startswith("["))
+    tables = extra if extra.lstrip().startswith("[") else ""
+    data = read_toml(config_file("motcomp.toml"))
+    data.update(tomllib.loads(top + PROFILES + tables))
+    return data
+
+
+def test_profile_precedence() -> None:
+    cfg = parse_config(config())
+    base = resolve_axes(cfg)  # no active profile: the axes' own tuning (ZN from [defaults])
+    assert base.gains[0] == tune("zn", RAILS).gains
+    fast = resolve_axes(cfg, "fast")
+    assert fast.gains[0] == tune("amigo", RAILS).gains  # the profile's rule for every axis
+    assert (fast.gains[1].kp, fast.gains[1].ki) == (3.0, 40.0)  # its axis entry wins
+    assert fast.bypass == base.bypass  # bypass comes from the axes unless the profile sets it
+    active = parse_config(config('profile = "fast"\n'))
+    assert resolve_axes(active).gains == fast.gains
+
+
+@pytest.mark.parametrize(("extra", "msg"), [
+    ('profile = "sport"\n', "profile 'sport' is not defined"),
+    ("[profiles.x]\nrule = \"zn\"\ngains = { kp = 1.0 }\n", "either rule or gains"),
+    ("[profiles.x.axes.rails_q]\nrule = \"zn\"\n", "not a configured axis"),
+    ("[profiles.x]\nrule = \"pid\"\n", "unknown rule 'pid'"),
+])
+def test_bad_profiles_rejected(extra: str, msg: str) -> None:
+    with pytest.raises(ConfigError, match=msg):
+        parse_config(config(extra))
+
+
+@pytest.mark.slow
+def test_live_profile_switch_is_bumpless(tmp_path: Path) -> None:
+    import zenoh
+
+    cfg = tmp_path / "motcomp.toml"
+    cfg.write_text(f'include = ["{config_file("motcomp.toml")}"]\n[admin]\nenabled = true\n'
+                   + PROFILES)
+    port = free_tcp_port()
+    stop = threading.Event()
+    with process(["run", "--config", str(cfg), "-l", loopback(port)], tmp_path / "svc.log") \
+            as svc, open_session(ZenohEndpoints(connect=(loopback(port),))) as session:
+        out = session.declare_subscriber("platform/setpoint", zenoh.handlers.FifoChannel(100_000))
+        wait_status(session)
+        pub = session.declare_publisher("sim/motion/setpoint")
+
+        def feed() -> None:
+            k, t0 = 0, time.time()
+            while not stop.is_set():
+                pub.put(encode_input(k, t0 + k / 1000, {
+                    "rails_y": 0.3 * math.sin(2 * math.pi * 0.3 * k / 1000)}))
+                k += 1
+                time.sleep(max(0.0, t0 + k / 1000 - time.time()))
+
+        th = threading.Thread(target=feed, daemon=True)
+        th.start()
+        try:
+            time.sleep(2.0)
+            for name in ("fast", "normal", "none"):
+                p = subprocess.run(motcomp_cmd("profile", name, "-e", loopback(port)),
+                                   capture_output=True, text=True, env=subprocess_env(),
+                                   timeout=60)
+                assert p.returncode == 0, p.stderr
+                st = msgpack.unpackb(first_reply(session, "motcomp/status", None, 2.0))
+                assert st["profile"] == (None if name == "none" else name)
+                assert st["profiles"] == ["fast", "normal"]
+                time.sleep(1.0)
+            p = subprocess.run(motcomp_cmd("profile", "sport", "-e", loopback(port)),
+                               capture_output=True, text=True, env=subprocess_env(), timeout=60)
+            assert p.returncode == 1 and "not defined" in p.stderr
+        finally:
+            stop.set()
+            th.join()
+        frames = []
+        while (s := out.try_recv()) is not None:
+            frames.append(decode_output(s.payload.to_bytes()))
+        assert_frames_within_limits(frames, "rails_y", 2.0, 6.0)
+        out.undeclare()
+        svc.send_signal(signal.SIGTERM)
+        assert svc.wait(timeout=20) == 0
+    log = (tmp_path / "svc.log").read_text()
+    assert "switch to profile fast ok" in log and "switch to profile sport rejected" in log
