@@ -74,7 +74,9 @@ __all__ = [
     "Constraints",
     "MemberResult",
     "OptimalDesign",
+    "OptimalOptions",
     "Uncertainty",
+    "member_table",
     "optimise",
     "perturb",
 ]
@@ -201,6 +203,16 @@ class Uncertainty:
     def as_dict(self) -> dict[str, float]:
         return {"gain_rel": self.gain_rel, "dead_time_s": self.dead_time_s,
                 "time_constant_rel": self.time_constant_rel}
+
+
+@dataclass(frozen=True)
+class OptimalOptions:
+    """Everything :func:`optimise` takes besides the plant, model and rate."""
+
+    constraints: Constraints = field(default_factory=Constraints)
+    uncertainty: Uncertainty | None = None
+    setpoint_weights: bool = True
+    min_gain_ms: float = 5.0
 
 
 def _label(name: str, sign: int, size: str) -> str:
@@ -605,6 +617,8 @@ def optimise(plant: ProcessModel, model: P1D | None = None, rate_hz: float = 100
     dense = LoopGrid(internal, plants, rate_hz, c.band_hz, n_band=400, n_high=4000)
     screen_problem = _Problem(LoopGrid(internal, plants[:1], rate_hz, c.band_hz),
                               c, setpoint_weights, c.peak_db, np.zeros(1), gain_limit)
+    if progress is not None:
+        progress(0, 1, "screening")
     screened = _screen(screen_problem)
     starts = screened[:1] + _rule_starts(internal) + screened[1:]
     total = len(starts)
