@@ -148,7 +148,7 @@ def pareto_markdown(result: ParetoResult) -> str:
 
 
 def pareto_figure(result: ParetoResult, path: Path) -> Path:
-    """Residual delay (log scale) against peak gain, frontiers and rules, as a PNG."""
+    """Residual delay against peak gain, frontiers and rules, as a PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -165,11 +165,17 @@ def pareto_figure(result: ParetoResult, path: Path) -> Path:
             for p in pts:
                 ax.annotate(f"<= {p.peak_bound_db:g} dB", (p.peak_gain_db, p.max_residual_delay_ms),
                             textcoords="offset points", xytext=(4, 4), fontsize=7, color=color)
-    for p in (p for p in result.points if p.kind == "rule"):
+    rules = [p for p in result.points if p.kind == "rule"]
+    for i, p in enumerate(rules):
         ax.plot(p.peak_gain_db, p.max_residual_delay_ms, "kx" if p.feasible else "rx", ms=8)
-        ax.annotate(p.label, (p.peak_gain_db, p.max_residual_delay_ms), textcoords="offset points",
-                    xytext=(5, -10), fontsize=8)
-    ax.set_yscale("log")
+        ax.annotate(p.label, (p.peak_gain_db, p.max_residual_delay_ms),
+                    textcoords="offset points", xytext=(5, -12 if i % 2 == 0 else 6), fontsize=8)
+    for feasible, mark, text in ((True, "kx", "rule, meets the other bounds"),
+                                 (False, "rx", "rule, violates a bound")):
+        if any(p.feasible == feasible for p in rules):
+            ax.plot([], [], mark, ms=8, label=text)
+    top = max(p.max_residual_delay_ms for p in result.points)
+    ax.set_ylim(0.0, 1.1 * top)
     lo, hi = result.constraints.band_hz
     ax.set_xlabel("peak gain of the delivered response (dB)")
     ax.set_ylabel(f"max residual phase delay {lo:g}-{hi:g} Hz (ms)")
