@@ -674,14 +674,14 @@ def optimise(plant: ProcessModel, model: P1D | None = None, rate_hz: float = 100
             "Recommendation: bypass this axis.")
     elif delay_dominated:
         warnings.append(
-            f"WARNING: delay-dominated plant (Tp1/Td = {internal.Tp1 / internal.Td:.3g}): at "
-            f"best the residual delay falls from {uncomp_ms:.1f} to "
-            f"{nominal.max_residual_delay_ms:.1f} ms within the bounds, but only "
-            f"Tp1 = {internal.Tp1 * 1e3:.1f} ms of that is lag; the rest predicts the pure delay "
-            f"Td = {internal.Td * 1e3:.1f} ms, which holds only if Td is exact (an error in Td "
-            "shifts the residual one for one) and is paid for by a "
-            f"{nominal.peak_gain_db:+.1f} dB peak at {nominal.peak_gain_hz:.1f} Hz. "
-            "Recommendation: bypass this axis.")
+            f"WARNING: delay-dominated plant (internal model Tp1/Td = "
+            f"{internal.Tp1 / internal.Td:.3g}): its lag Tp1 = {internal.Tp1 * 1e3:.1f} ms is "
+            f"small beside its pure delay Td = {internal.Td * 1e3:.1f} ms. Within the bounds the "
+            f"residual delay falls at best from {uncomp_ms:.1f} to "
+            f"{nominal.max_residual_delay_ms:.1f} ms, but that gain is prediction: it holds only "
+            "as well as Td and the platform model are known (an error in Td shifts the residual "
+            f"one for one) and is paid for by a {nominal.peak_gain_db:+.1f} dB peak at "
+            f"{nominal.peak_gain_hz:.1f} Hz. Recommendation: bypass this axis.")
     elif gain_ms < min_gain_ms:
         warnings.append(
             f"WARNING: compensation gains little on this plant: at best "
