@@ -36,19 +36,22 @@ Solution method
 ---------------
 The frequency responses of all members are computed on a fixed grid by
 :class:`~motcomp.design.fastloop.LoopGrid` (vectorised; finite-difference Jacobians are one
-batched call).  The minimax is solved in epigraph form (minimise ``t`` subject to
-``-t <= tau(f_i) <= t``) with SLSQP, in log coordinates for kp, ki, kd, tf, from a fixed set of
-starts (the ZN, CC, AMIGO and SIMC gains), so that the same inputs always give the same gains.
-Every candidate is then re-checked with :func:`motcomp.design.frequency.evaluate` (dense grid,
-poles); a bound that the fixed grid missed by more than ``tolerance`` is tightened and the
-design re-solved.
+batched call; the poles are batched eigenvalues of companion matrices).  The minimax is solved
+in epigraph form (minimise ``t`` subject to ``-t <= tau(f_i) <= t``, grouped in small frequency
+blocks) with SLSQP, in log coordinates for kp, ki, kd, tf, from a fixed sequence of starts: the
+best point of a fixed-seed Sobol sample of the gain space, the ZN, CC, AMIGO and SIMC gains,
+then the second-best sample; the search stops once two starts agree.  The same inputs always
+give the same gains.  Every candidate is re-checked on dense grids
+(:func:`motcomp.design.frequency.evaluate` for the nominal plant, poles included); a peak or
+command bound that the fixed grid missed by a little is tightened and the design re-solved.
 
 No harm
 -------
-For a delay-dominated plant (the hexapod) little can be gained.  The uncompensated platform is
-always the reference point: the result records what the best design gains over it and
-recommends bypass when that is less than ``min_gain_ms`` (or if the design makes the delivered
-response worse).
+The uncompensated platform is always the reference point: the in-band gain error may not exceed
+the platform's own (or the bound, whichever is larger), the result records what the design gains
+over the platform, and bypass is recommended when the design is worse, gains less than
+``min_gain_ms``, or the internal model is delay-dominated (``Tp1/Td < 1``, the hexapod): there
+what is gained is prediction of a pure delay, not inversion of a lag.
 """
 
 from __future__ import annotations
@@ -194,7 +197,9 @@ class Uncertainty:
                         _label("K", sk, f"{self.gain_rel * 100:g}%"),
                         _label("Td", sd, f"{self.dead_time_s * 1e3:g}ms"),
                         _label("T", st, f"{self.time_constant_rel * 100:g}%")) if part)
-                    model = perturb(plant, 1 + sk * self.gain_rel, sd * self.dead_time_s,
+                    # a delay shorter than the error is clipped at zero delay
+                    shift = max(sd * self.dead_time_s, -plant.pure_delay_s)
+                    model = perturb(plant, 1 + sk * self.gain_rel, shift,
                                     1 + st * self.time_constant_rel)
                     out.append((label or "nominal", model))
         return out
