@@ -1,4 +1,5 @@
-"""``motcomp design`` and ``motcomp evaluate``: tune the compensator and measure the result."""
+"""``motcomp design``, ``motcomp evaluate`` and ``motcomp pareto``: tune the compensator, measure
+the result, and map the delay / over-amplification trade-off."""
 
 from __future__ import annotations
 
@@ -6,35 +7,78 @@ import argparse
 import shutil
 import sys
 import tempfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from motcomp.cli._common import add_plant_args, print_json, rate_arg, resolve_plant
 from motcomp.core.models import P1D, parse_model
-from motcomp.core.tuning import RULES
+from motcomp.design.optimal import Constraints, OptimalOptions, Uncertainty
+from motcomp.design.report import DESIGN_RULES, OPTIMAL
 from motcomp.design.timedomain import limits_for
 from motcomp.errors import ConfigError
+from motcomp.progress import Progress
 
 ORDER = 10
+
+_DEFAULTS = Constraints()
+_UNCERTAINTY = Uncertainty()
+
+
+def _add_optimal(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("optimal tuning (--rule optimal, pareto)")
+    g.add_argument("--peak-db", type=float, default=_DEFAULTS.peak_db, metavar="DB",
+                   help=f"bound on the peak gain of the delivered response "
+                        f"(default {_DEFAULTS.peak_db:g} dB)")
+    g.add_argument("--gain-db", type=float, default=_DEFAULTS.gain_error_db, metavar="DB",
+                   help=f"bound on the in-band gain error (default {_DEFAULTS.gain_error_db:g} dB)")
+    g.add_argument("--band", type=float, nargs=2, default=list(_DEFAULTS.band_hz),
+                   metavar=("LO", "HI"),
+                   help="driver band of the delay and gain-error metrics (default 0.1 2 Hz)")
+    g.add_argument("--max-command", type=float, default=_DEFAULTS.max_command_gain,
+                   metavar="GAIN",
+                   help=f"bound on the command amplification max|u/r| at any frequency "
+                        f"(default {_DEFAULTS.max_command_gain:g})")
+    g.add_argument("--command-excess-db", type=float, default=_DEFAULTS.command_excess_db,
+                   metavar="DB",
+                   help=f"in-band bound on the command relative to the exact inverse of the "
+                        f"model (default {_DEFAULTS.command_excess_db:g} dB)")
+    g.add_argument("--max-ms", type=float, default=_DEFAULTS.max_sensitivity, metavar="MS",
+                   help=f"bound on the internal loop's maximum sensitivity "
+                        f"(default {_DEFAULTS.max_sensitivity:g})")
+    g.add_argument("--plain-pid", action="store_true",
+                   help="keep the setpoint weights at b = c = 1 (a plain PID)")
+    g.add_argument("--robust", action="store_true",
+                   help="optimise the worst case over the model-uncertainty set")
+    g.add_argument("--uncertainty", type=float, nargs=3, metavar=("K_REL", "TD_S", "T_REL"),
+                   default=[_UNCERTAINTY.gain_rel, _UNCERTAINTY.dead_time_s,
+                            _UNCERTAINTY.time_constant_rel],
+                   help="uncertainty set of --robust: relative K error, Td error (s), relative "
+                        "time-constant error (default 0.1 0.005 0.2)")
+    g.add_argument("--quiet", action="store_true", help="no progress bar on stderr")
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
     add_plant_args(p)
-    p.add_argument("--rule", choices=RULES, default="zn",
-                   help="tuning rule (default: zn, the paper's Ziegler-Nichols)")
+    p.add_argument("--rule", choices=DESIGN_RULES, default="zn",
+                   help="tuning rule (default: zn, the paper's Ziegler-Nichols; optimal: "
+                        "numerical optimisation, see docs/TUNING.md)")
     p.add_argument("--rate", type=rate_arg, default=1000.0, metavar="HZ",
                    help="loop rate for the discrete evaluation (default: 1000)")
     p.add_argument("--filter-n", type=float, default=10.0, metavar="N",
-                   help="derivative filter tf = Td_pid / N (default: 10)")
+                   help="derivative filter tf = Td_pid / N of the rules (default: 10)")
     p.add_argument("--internal", metavar="SPEC",
                    help="internal P1D model of the compensator if it differs from the plant "
                         "(default: the plant, or its P1D approximation)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    _add_optimal(p)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("design", help="tune the compensator for a plant and print its metrics",
-                       description="Compute PID gains with a tuning rule and print the gains and "
-                                   "the frequency-domain metrics of the corrected response.")
+                       description="Compute PID gains with a tuning rule (or by numerical "
+                                   "optimisation) and print the gains and the frequency-domain "
+                                   "metrics of the corrected response.")
     _add_common(p)
     p.set_defaults(func=run_design)
 
@@ -50,6 +94,21 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="symmetric limits when no preset is given (default 2.6 2.0 6.0)")
     e.set_defaults(func=run_evaluate)
 
+    r = sub.add_parser("pareto", help="residual delay vs peak-gain bound, with the rules",
+                       description="Optimise for each peak-gain bound (with and without "
+                                   "setpoint weights), place ZN, CC, AMIGO and SIMC on the same "
+                                   "axes; write pareto.png, pareto.md and pareto.json to --out.")
+    add_plant_args(r)
+    r.add_argument("--rate", type=rate_arg, default=1000.0, metavar="HZ",
+                   help="loop rate (default: 1000)")
+    r.add_argument("--internal", metavar="SPEC", help="internal P1D model (default: the plant's)")
+    r.add_argument("--bounds", type=float, nargs="+", default=[1.0, 3.0, 6.0, 8.0, 10.0],
+                   metavar="DB", help="peak-gain bounds (default 1 3 6 8 10 dB)")
+    r.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory")
+    r.add_argument("--json", action="store_true", help="print one JSON object")
+    _add_optimal(r)
+    r.set_defaults(func=run_pareto)
+
 
 def _internal(args: argparse.Namespace) -> P1D | None:
     if not args.internal:
@@ -60,11 +119,39 @@ def _internal(args: argparse.Namespace) -> P1D | None:
     return m
 
 
+def _options(args: argparse.Namespace) -> OptimalOptions:
+    constraints = Constraints(
+        peak_db=args.peak_db, gain_error_db=args.gain_db, band_hz=tuple(args.band),
+        max_command_gain=args.max_command, command_excess_db=args.command_excess_db,
+        max_sensitivity=args.max_ms)
+    k_rel, td_s, t_rel = args.uncertainty
+    uncertainty = Uncertainty(k_rel, td_s, t_rel) if args.robust else None
+    return OptimalOptions(constraints=constraints, uncertainty=uncertainty,
+                          setpoint_weights=not args.plain_pid)
+
+
+@contextmanager
+def _progress(args: argparse.Namespace, label: str
+              ) -> Iterator[Callable[[int, int, str], None] | None]:
+    """A progress callback drawing on stderr (nothing with --quiet or when not optimising)."""
+    if args.quiet or getattr(args, "rule", OPTIMAL) != OPTIMAL:
+        yield None
+        return
+    with Progress(label, total=1.0) as bar:
+        def update(done: int, total: int, note: str) -> None:
+            bar.total = max(float(total), 1e-12)
+            bar.update(done, note)
+
+        yield update
+
+
 def run_design(args: argparse.Namespace) -> int:
     from motcomp.design.report import design_report, markdown
 
     plant, _ = resolve_plant(args)
-    report = design_report(plant, args.rule, args.rate, args.filter_n, model=_internal(args))
+    with _progress(args, "optimal tuning") as progress:
+        report = design_report(plant, args.rule, args.rate, args.filter_n, model=_internal(args),
+                               options=_options(args), progress=progress)
     if args.json:
         print_json(report)
     else:
@@ -72,6 +159,16 @@ def run_design(args: argparse.Namespace) -> int:
     for w in report["warnings"]:
         print(w, file=sys.stderr)
     return 0
+
+
+def _write_atomically(out: Path, write: Callable[[Path], list[Path]]) -> list[Path]:
+    """Write everything into a temporary directory first: nothing half-written on failure."""
+    out.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=out, prefix=".tmp-") as tmp:
+        written = write(Path(tmp))
+        for path in written:
+            shutil.move(str(path), out / path.name)
+    return [out / p.name for p in written]
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
@@ -84,20 +181,44 @@ def run_evaluate(args: argparse.Namespace) -> int:
     else:
         pos, vel, acc = args.limits or (2.6, 2.0, 6.0)
         limits = limits_for(pos, vel, acc, (args.axis or "axis",))
-    report, runs = evaluation_report(plant, args.rule, limits, args.rate, args.filter_n,
-                                     model=_internal(args))
-    # write everything into a temporary directory first: nothing half-written on failure
-    args.out.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=args.out, prefix=".tmp-") as tmp:
-        tmp_path = Path(tmp)
-        written = write_report(report, tmp_path) + write_figures(report, runs, plant, tmp_path)
-        for path in written:
-            shutil.move(str(path), args.out / path.name)
+    with _progress(args, "optimal tuning") as progress:
+        report, runs = evaluation_report(plant, args.rule, limits, args.rate, args.filter_n,
+                                         model=_internal(args), options=_options(args),
+                                         progress=progress)
+    written = _write_atomically(
+        args.out, lambda tmp: write_report(report, tmp) + write_figures(report, runs, plant, tmp))
     if args.json:
         print_json(report)
     else:
         sys.stdout.write(markdown(report))
-        print(f"\nwrote {', '.join(str(args.out / p.name) for p in written)}")
+        print(f"\nwrote {', '.join(str(p) for p in written)}")
     for w in report["warnings"]:
         print(w, file=sys.stderr)
+    return 0
+
+
+def run_pareto(args: argparse.Namespace) -> int:
+    from motcomp.design.pareto import pareto, pareto_figure, pareto_json, pareto_markdown
+
+    plant, _ = resolve_plant(args)
+    options = _options(args)
+    with _progress(args, "pareto frontier") as progress:
+        result = pareto(plant, _internal(args), args.rate, tuple(args.bounds),
+                        options.constraints, progress=progress)
+
+    def write(tmp: Path) -> list[Path]:
+        paths = [tmp / "pareto.md", tmp / "pareto.json", tmp / "pareto.png"]
+        paths[0].write_text(pareto_markdown(result))
+        import json
+
+        paths[1].write_text(json.dumps(pareto_json(result), indent=2) + "\n")
+        pareto_figure(result, paths[2])
+        return paths
+
+    written = _write_atomically(args.out, write)
+    if args.json:
+        print_json(pareto_json(result))
+    else:
+        sys.stdout.write(pareto_markdown(result))
+        print(f"\nwrote {', '.join(str(p) for p in written)}")
     return 0

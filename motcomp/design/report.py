@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +18,8 @@ import numpy as np
 from motcomp.core.models import P1D, ProcessModel
 from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import AxisLimits
-from motcomp.core.tuning import RULE_NAMES, tune
+from motcomp.core.tuning import RULE_NAMES, RULES, tune
+from motcomp.design import optimal as opt
 from motcomp.design.frequency import (
     Evaluation,
     default_grid,
@@ -31,7 +33,8 @@ from motcomp.design.timedomain import (
     swept_sine,
 )
 
-__all__ = ["design_report", "evaluation_report", "markdown", "write_figures"]
+__all__ = ["DESIGN_RULES", "OPTIMAL", "design_report", "evaluation_report", "markdown",
+           "write_figures"]
 
 
 def _model_json(model: ProcessModel) -> dict[str, Any]:
@@ -54,24 +57,45 @@ def _corrected_json(ev: Evaluation) -> dict[str, Any]:
     }
 
 
+OPTIMAL = "optimal"
+"""The rule name of the numerically optimised tuning (:mod:`motcomp.design.optimal`)."""
+OPTIMAL_NAME = "numerically optimised"
+DESIGN_RULES: tuple[str, ...] = (*RULES, OPTIMAL)
+"""Every ``--rule`` that :func:`design_report` accepts."""
+
+
 def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
                   filter_n: float = 10.0, gains: PIDGains | None = None,
-                  model: P1D | None = None) -> dict[str, Any]:
+                  model: P1D | None = None, options: opt.OptimalOptions | None = None,
+                  progress: Callable[[int, int, str], None] | None = None) -> dict[str, Any]:
     """The ``motcomp design --json`` object.
 
     ``plant`` is the platform; the compensator's internal model is ``model`` or the plant's P1D
     approximation.  ``gains`` overrides the rule's gains (``rule`` is then only a label).
+    ``rule = "optimal"`` runs :func:`motcomp.design.optimal.optimise` with ``options`` (and
+    ``progress``) and adds its block under ``"optimal"``; ``filter_n`` does not apply to it.
     """
     internal = model or plant.to_p1d()
     warnings: list[str] = []
     std: dict[str, float] = {}
-    if gains is None:
+    design: opt.OptimalDesign | None = None
+    band = opt.Constraints().band_hz
+    if gains is None and rule == OPTIMAL:
+        o = options or opt.OptimalOptions()
+        band = o.constraints.band_hz
+        design = opt.optimise(plant, internal, rate_hz, o.constraints, o.uncertainty,
+                              o.setpoint_weights, o.min_gain_ms, progress)
+        gains = design.gains
+        warnings = list(design.warnings)
+        std = gains.to_standard()
+    elif gains is None:
         tuning = tune(rule, internal, filter_n=filter_n)
         gains = tuning.gains
         warnings = list(tuning.warnings)
         std = tuning.standard
-    ev = evaluate(gains, internal, plant, rate_hz=rate_hz)
-    ev_c = evaluate(gains, internal, plant, rate_hz=None)
+    ev = design.evaluation if design is not None else evaluate(gains, internal, plant,
+                                                                rate_hz=rate_hz)
+    ev_c = evaluate(gains, internal, plant, rate_hz=None, band_hz=band)
     warnings += ev.notes
     worse = ev.max_residual_delay_ms > ev.uncorrected_max_delay_ms
     if worse:
@@ -84,7 +108,7 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
         "model": _model_json(internal),
         "rate_hz": rate_hz,
         "rule": rule,
-        "rule_name": RULE_NAMES.get(rule, rule),
+        "rule_name": RULE_NAMES.get(rule, OPTIMAL_NAME if rule == OPTIMAL else rule),
         "gains": {"kp": gains.kp, "ki": gains.ki, "kd": gains.kd, "tf": gains.tf},
         "standard_form": {k: (v if math.isfinite(v) else None) for k, v in std.items()},
         "uncorrected": {
@@ -98,6 +122,8 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
     }
     if gains.b != 1.0 or gains.c != 1.0:
         out["gains"].update(b=gains.b, c=gains.c)
+    if design is not None:
+        out["optimal"] = design.summary()
     if not isinstance(plant, P1D) or plant != internal:
         out["plant"] = _model_json(plant)
         out["plant_spec"] = plant.spec()
@@ -116,10 +142,12 @@ def _sweep_amplitude(limits: AxisLimits, f1_hz: float, requested: float | None) 
 def evaluation_report(plant: ProcessModel, rule: str, limits: AxisLimits, rate_hz: float = 1000.0,
                       filter_n: float = 10.0, gains: PIDGains | None = None,
                       model: P1D | None = None, sweep_amplitude: float | None = None,
+                      options: opt.OptimalOptions | None = None,
+                      progress: Callable[[int, int, str], None] | None = None,
                       ) -> tuple[dict[str, Any], dict[str, SimulationResult]]:
     """Design report plus time-domain runs on a 0.1-3 Hz swept sine and on the slalom."""
     internal = model or plant.to_p1d()
-    report = design_report(plant, rule, rate_hz, filter_n, gains, internal)
+    report = design_report(plant, rule, rate_hz, filter_n, gains, internal, options, progress)
     g = PIDGains(**{k: report["gains"][k] for k in ("kp", "ki", "kd", "tf")},
                  b=report["gains"].get("b", 1.0), c=report["gains"].get("c", 1.0))
     amp = _sweep_amplitude(limits, 3.0, sweep_amplitude)
@@ -154,8 +182,9 @@ def markdown(report: dict[str, Any]) -> str:
     if "plant_spec" in report:
         lines.append(f"Platform: `{report['plant_spec']}`")
     g = report["gains"]
+    weights = f", b = {g['b']:.6g}, c = {g['c']:.6g}" if "b" in g else ""
     lines += ["", f"Gains (parallel): kp = {g['kp']:.6g}, ki = {g['ki']:.6g} 1/s, "
-              f"kd = {g['kd']:.6g} s, tf = {g['tf']:.6g} s", ""]
+              f"kd = {g['kd']:.6g} s, tf = {g['tf']:.6g} s{weights}", ""]
     lines += ["| phase delay (ms) | " + " | ".join(f"{k} Hz" for k in
                                                   report["uncorrected"]["phase_delay_ms"]) + " |",
               "|---|" + "---|" * len(report["uncorrected"]["phase_delay_ms"])]
@@ -178,6 +207,8 @@ def markdown(report: dict[str, Any]) -> str:
         f"| discrete internal loop | {'stable' if c['stable'] else 'UNSTABLE'} "
         f"(max pole modulus {c['max_pole_modulus']:.4f}) |",
     ]
+    if "optimal" in report:
+        lines += optimal_markdown(report["optimal"])
     if "time_domain" in report:
         lines += ["", "| run | delay uncorrected | delay corrected | reduction | "
                       "saturated samples (corr./uncorr.) |", "|---|---|---|---|---|"]
@@ -189,6 +220,45 @@ def markdown(report: dict[str, Any]) -> str:
     if report["warnings"]:
         lines += ["", "## Warnings", ""] + [f"- {w}" for w in report["warnings"]]
     return "\n".join(lines) + "\n"
+
+
+def optimal_markdown(block: dict[str, Any]) -> list[str]:
+    """Lines describing the ``optimal`` block of a design report: bounds against values, the
+    recommendation and, for a robust design, the member table."""
+    c, v = block["constraints"], block["values"]
+    lo, hi = c["band_hz"]
+    kind = "setpoint weights b, c" if block["setpoint_weights"] else "plain PID"
+    lines = [
+        "", f"## Optimised tuning ({kind}{', robust' if 'robust' in block else ''})", "",
+        "| quantity | bound | value |", "|---|---|---|",
+        f"| max residual phase delay {lo:g}-{hi:g} Hz | minimised | "
+        f"{v['max_residual_delay_ms']:.2f} ms |",
+        f"| peak gain of the delivered response | {c['peak_db']:g} dB | "
+        f"{v['peak_gain_db']:+.2f} dB |",
+        f"| in-band gain error | {c['gain_error_db']:g} dB | {v['gain_error_db']:.2f} dB |",
+        f"| command over the exact inverse, in band | {c['command_excess_db']:+g} dB | "
+        f"{v['command_excess_db']:+.2f} dB |",
+        f"| command amplification max abs(F) | {c['max_command_gain']:g} | "
+        f"{v['peak_command_gain']:.1f} |",
+        f"| max sensitivity Ms | {c['max_sensitivity']:g} | {v['ms']:.2f} |",
+        f"| largest pole modulus (discrete loop) | < 1 | {v['max_pole_modulus']:.5f} |",
+        "",
+        f"Uncompensated: {block['uncompensated_delay_ms']:.1f} ms; gain "
+        f"{block['best_gain_ms']:.1f} ms. Recommendation: **{block['recommendation']}**"
+        + (" (delay-dominated plant)." if block["delay_dominated"] else "."),
+    ]
+    if "robust" in block:
+        rob = block["robust"]
+        lines += ["", "| member | floor (ms) | residual (ms) | excess (ms) | peak (dB) | "
+                      "ZN residual (ms) | ZN peak (dB) |", "|---|---|---|---|---|---|---|"]
+        for m in rob["members"]:
+            zr = "-" if m["zn_residual_ms"] is None else f"{m['zn_residual_ms']:.1f}"
+            zp = "-" if m["zn_peak_gain_db"] is None else f"{m['zn_peak_gain_db']:+.1f}"
+            lines.append(f"| {m['label']} | {m['floor_ms']:.1f} | {m['residual_ms']:.1f} | "
+                         f"{m['excess_ms']:+.2f} | {m['peak_gain_db']:+.2f} | {zr} | {zp} |")
+        lines += ["", f"Worst member: peak {rob['worst_peak_gain_db']:+.2f} dB, residual delay "
+                      f"{rob['worst_excess_ms']:+.2f} ms above its floor."]
+    return lines
 
 
 def write_figures(report: dict[str, Any], runs: dict[str, SimulationResult], plant: ProcessModel,

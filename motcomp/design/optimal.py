@@ -1,0 +1,736 @@
+"""Numerically optimised tuning of the pseudo open-loop PID (``motcomp design --rule optimal``).
+
+The compensator sends ``u = F r`` with ``F = Cr/(1 + Cy M)`` (see
+:mod:`motcomp.core.compensator`); the platform delivers ``T = P F``.  The tuning rules (ZN, CC)
+null the low-frequency lag but over-amplify above the band; this module searches the gains
+instead, as a constrained minimax problem (``tau_T`` = phase delay of T, ``f`` in Hz)::
+
+    minimise    max_{f in band} |tau_T(f)|                       residual phase delay
+    over        kp, ki, kd, tf   (and the setpoint weights b, c of the reference path)
+    subject to  20 log10 |T(f)|       <= peak_db              for every f up to Nyquist
+                |20 log10 |T(f)||     <= gain_error_db        in the band
+                20 log10 |F(f) M(f)|  <= command_excess_db    in the band
+                |F(f)|                <= max_command_gain     for every f
+                |S(f)| = |1/(1 + Cy M)| <= max_sensitivity    for every f
+                every pole of the discrete internal loop inside |z| <= 1 - 1e-4
+
+Command amplification (what the actuator limits see) is bounded twice: in the driver band the
+command may exceed the exact inverse of the model, ``r/M`` -- what *any* lag-free compensation
+must send, and what the motion-cueing headroom has to be sized for -- by at most
+``command_excess_db``; at every frequency it is at most ``max_command_gain`` times the reference
+(reference steps, update staircases and noise reach the actuator multiplied by that).
+docs/TUNING.md explains the choice and the defaults.
+
+Robust version
+--------------
+Given an uncertainty set of platforms ``P_m`` (default: K +-10 %, Td +-5 ms, time constants
++-20 %, 27 members), the same problem is solved for the worst member.  With a model error, a
+feedforward compensator cannot remove the phase error the mismatch itself causes: an exact
+inverse of M delivers ``P_m/M``, whose largest phase delay over the band is the member's *floor*.
+The robust objective is the worst excess over the floor, ``max_m (max_f |tau_m(f)| - floor_m)``;
+the peak-gain bound holds for every member, the gain-error bound for the nominal one (beyond its
+own floor).  Since ``arg(P_m F) = arg(P_m/M) + arg(M F)`` exactly, the excess of every member is
+at most the nominal residual delay.
+
+Solution method
+---------------
+The frequency responses of all members are computed on a fixed grid by
+:class:`~motcomp.design.fastloop.LoopGrid` (vectorised; finite-difference Jacobians are one
+batched call; the poles are batched eigenvalues of companion matrices).  The minimax is solved
+in epigraph form (minimise ``t`` subject to ``-t <= tau(f_i) <= t``, grouped in small frequency
+blocks) with SLSQP, in log coordinates for kp, ki, kd, tf, from a fixed sequence of starts: the
+best point of a fixed-seed Sobol sample of the gain space, the ZN, CC, AMIGO and SIMC gains,
+then the second-best sample; the search stops once two starts agree.  The same inputs always
+give the same gains.  Every candidate is re-checked on dense grids
+(:func:`motcomp.design.frequency.evaluate` for the nominal plant, poles included); a peak or
+command bound that the fixed grid missed by a little is tightened and the design re-solved.
+
+No harm
+-------
+The uncompensated platform is always the reference point: the in-band gain error may not exceed
+the platform's own (or the bound, whichever is larger), the result records what the design gains
+over the platform, and bypass is recommended when the design is worse, gains less than
+``min_gain_ms``, or the internal model is delay-dominated (``Tp1/Td < 1``, the hexapod): there
+what is gained is prediction of a pure delay, not inversion of a lag.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+import numpy as np
+
+from motcomp.core.compensator import p1d_coefficients
+from motcomp.core.models import OE, P1D, ProcessModel
+from motcomp.core.pid import PIDGains
+from motcomp.core.tuning import RULES, tune
+from motcomp.design.fastloop import LoopGrid
+from motcomp.design.frequency import Evaluation, evaluate
+from motcomp.errors import ConfigError
+
+__all__ = [
+    "Constraints",
+    "MemberResult",
+    "OptimalDesign",
+    "OptimalOptions",
+    "Uncertainty",
+    "member_table",
+    "optimise",
+    "perturb",
+]
+
+POLE_MARGIN = 1e-4
+"""Largest admissible pole modulus of the internal loop is ``1 - POLE_MARGIN``."""
+DELAY_DOMINATED_RATIO = 1.0
+"""Below this ``Tp1/Td`` of the internal model the plant is delay-dominated: its lag is too
+small for compensation to be worth the prediction of its pure delay."""
+
+
+@dataclass(frozen=True)
+class Constraints:
+    """Bounds of the optimised design (dB, Hz, dimensionless gains).
+
+    Raises
+    ------
+    ConfigError
+        If a bound is non-finite or out of its meaningful range.
+    """
+
+    peak_db: float = 8.0
+    gain_error_db: float = 1.0
+    command_excess_db: float = 0.5
+    max_command_gain: float = 60.0
+    max_sensitivity: float = 4.0
+    band_hz: tuple[float, float] = (0.1, 2.0)
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            if f.name == "band_hz":
+                continue
+            v = getattr(self, f.name)
+            if not (isinstance(v, int | float) and math.isfinite(v)):
+                raise ConfigError(f"optimal: {f.name} must be a finite number, got {v!r}")
+        if self.peak_db < 0:
+            raise ConfigError(f"optimal: peak_db must be >= 0 dB, got {self.peak_db}")
+        if self.gain_error_db <= 0:
+            raise ConfigError(f"optimal: gain_error_db must be > 0 dB, got {self.gain_error_db}")
+        if self.max_command_gain <= 1:
+            raise ConfigError(f"optimal: max_command_gain must be > 1, got "
+                              f"{self.max_command_gain}")
+        if self.max_sensitivity <= 1:
+            raise ConfigError(f"optimal: max_sensitivity must be > 1, got {self.max_sensitivity}")
+        lo, hi = self.band_hz
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):
+            raise ConfigError(f"optimal: band must satisfy 0 < low < high, got {self.band_hz}")
+
+    def as_dict(self) -> dict[str, Any]:
+        return {f.name: (list(getattr(self, f.name)) if f.name == "band_hz"
+                         else getattr(self, f.name)) for f in fields(self)}
+
+
+def perturb(model: ProcessModel, gain: float = 1.0, dead_time_s: float = 0.0,
+            time_scale: float = 1.0) -> ProcessModel:
+    """``model`` with its gain times ``gain``, its delay plus ``dead_time_s`` and every time
+    constant times ``time_scale`` (the dynamics slowed down by that factor).
+
+    For OE models the time scaling is ``s -> time_scale s`` on the polynomials.
+
+    Raises
+    ------
+    ConfigError
+        If the perturbed delay is negative or a factor is not positive.
+    """
+    if not (gain > 0 and time_scale > 0):
+        raise ConfigError(f"perturbation factors must be > 0, got gain={gain}, "
+                          f"time_scale={time_scale}")
+    if isinstance(model, OE):
+        n = len(model.num)
+        d = len(model.den)
+        num = tuple(gain * v * time_scale ** (n - 1 - i) for i, v in enumerate(model.num))
+        den = tuple(v * time_scale ** (d - 1 - i) for i, v in enumerate(model.den))
+        return replace(model, num=num, den=den, Td=model.Td + dead_time_s)
+    changes: dict[str, Any] = {"K": model.K * gain,  # type: ignore[attr-defined]
+                               "Td": model.Td + dead_time_s}  # type: ignore[attr-defined]
+    for name in ("Tp1", "Tp2", "Tz", "Tw"):
+        value = getattr(model, name, None)
+        if value is not None:
+            changes[name] = value * time_scale
+    if changes["Td"] < 0:
+        raise ConfigError(f"perturbed dead time is negative ({changes['Td']} s)")
+    return replace(model, **changes)  # type: ignore[type-var]
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """A box of platform models around the nominal one: K x (1 +- gain_rel), Td +- dead_time_s,
+    time constants x (1 +- time_constant_rel); its members are the 3^3 combinations of
+    (minus, nominal, plus), nominal first."""
+
+    gain_rel: float = 0.10
+    dead_time_s: float = 0.005
+    time_constant_rel: float = 0.20
+
+    def __post_init__(self) -> None:
+        for name in ("gain_rel", "time_constant_rel"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and 0 <= v < 1):
+                raise ConfigError(f"uncertainty {name} must be in [0, 1), got {v!r}")
+        if not (math.isfinite(self.dead_time_s) and self.dead_time_s >= 0):
+            raise ConfigError(f"uncertainty dead_time_s must be >= 0, got {self.dead_time_s!r}")
+
+    def members(self, plant: ProcessModel) -> list[tuple[str, ProcessModel]]:
+        """``(label, model)`` of every member; labels like ``K+10% Td-5ms T+20%``."""
+        out: list[tuple[str, ProcessModel]] = []
+        levels = (0, -1, 1)
+        for sk in levels:
+            for sd in levels:
+                for st in levels:
+                    if (sk, sd, st) != (0, 0, 0) and (
+                            (sk and not self.gain_rel) or (sd and not self.dead_time_s)
+                            or (st and not self.time_constant_rel)):
+                        continue
+                    label = " ".join(part for part in (
+                        _label("K", sk, f"{self.gain_rel * 100:g}%"),
+                        _label("Td", sd, f"{self.dead_time_s * 1e3:g}ms"),
+                        _label("T", st, f"{self.time_constant_rel * 100:g}%")) if part)
+                    # a delay shorter than the error is clipped at zero delay
+                    shift = max(sd * self.dead_time_s, -plant.pure_delay_s)
+                    model = perturb(plant, 1 + sk * self.gain_rel, shift,
+                                    1 + st * self.time_constant_rel)
+                    out.append((label or "nominal", model))
+        return out
+
+    def as_dict(self) -> dict[str, float]:
+        return {"gain_rel": self.gain_rel, "dead_time_s": self.dead_time_s,
+                "time_constant_rel": self.time_constant_rel}
+
+
+@dataclass(frozen=True)
+class OptimalOptions:
+    """Everything :func:`optimise` takes besides the plant, model and rate."""
+
+    constraints: Constraints = field(default_factory=Constraints)
+    uncertainty: Uncertainty | None = None
+    setpoint_weights: bool = True
+    min_gain_ms: float = 5.0
+
+
+def _label(name: str, sign: int, size: str) -> str:
+    return "" if sign == 0 else f"{name}{'+' if sign > 0 else '-'}{size}"
+
+
+@dataclass
+class MemberResult:
+    """One member of the uncertainty set under a design (ms, dB)."""
+
+    label: str
+    model: str
+    floor_ms: float
+    residual_ms: float
+    excess_ms: float
+    peak_gain_db: float
+    gain_error_db: float
+    zn_residual_ms: float | None = None
+    zn_peak_gain_db: float | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+@dataclass
+class OptimalDesign:
+    """The result of :func:`optimise` (delays in ms, gains in dB)."""
+
+    gains: PIDGains
+    model: P1D  # the internal model the gains are for
+    constraints: Constraints
+    rate_hz: float
+    evaluation: Evaluation  # nominal plant, dense grid, poles
+    command_excess_db: float
+    feasible: bool
+    violations: list[str]
+    uncompensated_delay_ms: float
+    best_gain_ms: float
+    delay_dominated: bool
+    recommend_bypass: bool
+    setpoint_weights: bool
+    members: list[MemberResult] = field(default_factory=list)
+    uncertainty: Uncertainty | None = None
+    starts: list[dict[str, Any]] = field(default_factory=list)
+    elapsed_s: float = 0.0
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def robust(self) -> bool:
+        return self.uncertainty is not None
+
+    def summary(self) -> dict[str, Any]:
+        """The ``optimal`` block of the design JSON."""
+        ev = self.evaluation
+        out: dict[str, Any] = {
+            "constraints": self.constraints.as_dict(),
+            "setpoint_weights": self.setpoint_weights,
+            "feasible": self.feasible,
+            "violations": self.violations,
+            "values": {
+                "max_residual_delay_ms": ev.max_residual_delay_ms,
+                "peak_gain_db": ev.peak_gain_db,
+                "gain_error_db": ev.gain_error_db,
+                "command_excess_db": self.command_excess_db,
+                "peak_command_gain": ev.peak_command_gain,
+                "ms": ev.ms,
+                "max_pole_modulus": ev.max_pole_modulus,
+            },
+            "uncompensated_delay_ms": self.uncompensated_delay_ms,
+            "best_gain_ms": self.best_gain_ms,
+            "lag_ms": self.model.Tp1 * 1e3,
+            "delay_dominated": self.delay_dominated,
+            "recommendation": "bypass" if self.recommend_bypass else "compensate",
+            "elapsed_s": self.elapsed_s,
+            "starts": self.starts,
+        }
+        if self.uncertainty is not None:
+            out["robust"] = {
+                "uncertainty": self.uncertainty.as_dict(),
+                "members": [m.as_dict() for m in self.members],
+                "worst_peak_gain_db": max(m.peak_gain_db for m in self.members),
+                "worst_excess_ms": max(m.excess_ms for m in self.members),
+            }
+        return out
+
+
+def command_excess_db(gains: PIDGains, model: P1D, rate_hz: float,
+                      band_hz: tuple[float, float]) -> float:
+    """Largest ``20 log10 |F M|`` over the band (dense grid): how far the command exceeds the
+    exact inverse ``r/M`` of the internal model."""
+    grid = LoopGrid(model, [model], rate_hz, band_hz, n_band=400, n_high=50)
+    r = grid(gains.kp, gains.ki, gains.kd, gains.tf, gains.b, gains.c)
+    return float(np.max(r.excess_db))
+
+
+# --- the optimisation problem ---------------------------------------------------------------
+
+class _Problem:
+    """Variables ``x = [ln kp, ln ki, ln kd, ln tf, (b, c,) t_ms]`` and the constraint vector."""
+
+    def __init__(self, grid: LoopGrid, c: Constraints, weights: bool,
+                 peak_db: float, floor_ms: np.ndarray, gain_limit_db: float) -> None:
+        self.grid = grid
+        self.c = c
+        self.weights = weights
+        self.peak_db = peak_db
+        self.floor_ms = floor_ms[:, None, None]  # (m, 1, 1)
+        self.gain_limit_db = gain_limit_db
+        self.n_gain = 6 if weights else 4
+        self.hi = slice(grid.band.start, None)  # peak constraints from the band upwards
+        self._value_key: bytes | None = None
+        self._value = np.zeros(0)
+        self._n_delay_rows = grid.p.shape[0] * 2 * _blocks(grid.f_band.size, 3)
+        model = grid.model
+        self._model_coef = p1d_coefficients(model, grid.h)
+        K = abs(model.K)
+        h = grid.h
+        self.bounds = [
+            (math.log(1e-3 / K), math.log(1e3 / K)),
+            (math.log(1e-2 / K), math.log(1e5 / K)),
+            (math.log(1e-7 / K), math.log(10.0 / K)),
+            (math.log(0.1 * h), math.log(1.0)),
+        ] + ([(0.0, 5.0), (0.0, 5.0)] if weights else []) + [(0.0, 1e4)]
+
+    def gains(self, x: np.ndarray) -> PIDGains:
+        g = np.exp(np.asarray(x[:4], dtype=float))
+        b, c = (float(x[4]), float(x[5])) if self.weights else (1.0, 1.0)
+        return PIDGains(float(g[0]), float(g[1]), float(g[2]), float(g[3]), b, c)
+
+    def x_of(self, g: PIDGains, t_ms: float) -> np.ndarray:
+        head = [math.log(g.kp), math.log(g.ki), math.log(g.kd), math.log(g.tf)]
+        if self.weights:
+            head += [g.b, g.c]
+        x = np.array([*head, t_ms])
+        lo = np.array([b[0] for b in self.bounds])
+        hi = np.array([b[1] for b in self.bounds])
+        return np.clip(x, lo, hi)
+
+    def _batch(self, X: np.ndarray) -> np.ndarray:
+        """Constraint vectors (>= 0 when satisfied) of the rows of ``X``."""
+        G = np.exp(X[:, :4])
+        if self.weights:
+            b, c = X[:, 4], X[:, 5]
+        else:
+            b = c = np.ones(X.shape[0])
+        r = self.grid(G[:, 0], G[:, 1], G[:, 2], G[:, 3], b, c)
+        t = X[:, -1][None, :, None]
+        tau = r.delay_s * 1e3  # (m, k, nb)
+        k = X.shape[0]
+        nb = self.grid.f_band.size
+        band = self.grid.band
+        dly = _blockmin(np.concatenate([t + self.floor_ms - tau, t + self.floor_ms + tau],
+                                       axis=-1), 2 * _blocks(nb, 3))
+        parts = [
+            np.moveaxis(dly, 1, 0).reshape(k, -1),
+            np.moveaxis(_blockmin(self.peak_db - r.gain_db[:, :, self.hi], 40), 1, 0
+                        ).reshape(k, -1),
+            _blockmin(np.concatenate([self.gain_limit_db - r.gain_db[0][:, band],
+                                      self.gain_limit_db + r.gain_db[0][:, band]], axis=-1),
+                      2 * _blocks(nb, 3)),
+            _blockmin(self.c.command_excess_db - r.excess_db, _blocks(nb, 3)),
+            _blockmin(1.0 - r.command / self.c.max_command_gain, 40),
+            _blockmin(1.0 - r.sensitivity / self.c.max_sensitivity, 40),
+        ]
+        rho = self.pole_modulus(G[:, 0], G[:, 1], G[:, 2], G[:, 3])[:, None]
+        parts.append(100.0 * (1.0 - POLE_MARGIN - rho))
+        return np.concatenate(parts, axis=1)
+
+    def pole_modulus(self, kp: np.ndarray, ki: np.ndarray, kd: np.ndarray, tf: np.ndarray
+                     ) -> np.ndarray:
+        """Largest pole modulus of the internal loop for each gain set (batched).
+
+        The characteristic polynomial of :func:`motcomp.core.loop.poles` written out:
+        ``Dc(z) (z - phi) z^d + Nc(z) (g0 z + g1)`` with ``Dc = (z - 1)(z - a_d)`` and
+        ``Nc = kp Dc + ki h (z - a_d) + b_d (z - 1)^2``; its roots are the eigenvalues of the
+        companion matrices, computed in one call.
+        """
+        phi, g0, g1, d = self._model_coef
+        h = self.grid.h
+        ad = tf / (tf + h)
+        bd = kd / (tf + h)
+        dc = np.stack([np.ones_like(ad), -(1.0 + ad), ad], axis=1)
+        nc = kp[:, None] * dc + np.stack([np.zeros_like(ad), ki * h, -ki * h * ad], axis=1) \
+            + bd[:, None] * np.array([1.0, -2.0, 1.0])
+        a = np.zeros((kp.size, 4))
+        a[:, :3] += dc
+        a[:, 1:] -= phi * dc
+        bpoly = np.zeros((kp.size, 4))
+        bpoly[:, :3] += g0 * nc
+        bpoly[:, 1:] += g1 * nc
+        char = np.zeros((kp.size, d + 4))
+        char[:, :4] += a
+        char[:, -4:] += bpoly
+        n = char.shape[1] - 1
+        comp = np.zeros((kp.size, n, n))
+        comp[:, 0, :] = -char[:, 1:] / char[:, :1]
+        comp[:, np.arange(1, n), np.arange(n - 1)] = 1.0
+        return np.asarray(np.max(np.abs(np.linalg.eigvals(comp)), axis=1))
+
+    def _values(self, xt: np.ndarray) -> np.ndarray:
+        key = xt.tobytes()
+        if key != self._value_key:
+            self._value = self._batch(xt[None, :])[0]
+            self._value_key = key
+        return self._value
+
+    def cons(self, xt: np.ndarray) -> np.ndarray:
+        return self._values(np.asarray(xt, dtype=float))
+
+    def cons_jac(self, xt: np.ndarray) -> np.ndarray:
+        """Forward differences in the gain coordinates, one batched evaluation; ``t`` enters
+        the delay rows only, with slope +1."""
+        xt = np.asarray(xt, dtype=float)
+        n = self.n_gain
+        eps = 1e-6
+        X = np.repeat(xt[None, :], n, axis=0)
+        X[np.arange(n), np.arange(n)] += eps
+        v0 = self._values(xt)
+        V = self._batch(X)
+        jac = np.zeros((v0.size, xt.size))
+        jac[:, :n] = ((V - v0) / eps).T
+        jac[: self._n_delay_rows, n] = 1.0
+        return jac
+
+    def objective_ms(self, g: PIDGains) -> float:
+        """Worst excess over the floor of ``g`` on the grid (what ``t`` converges to)."""
+        r = self.grid(g.kp, g.ki, g.kd, g.tf, g.b, g.c)
+        return float(np.max(r.max_delay_ms()[:, 0] - self.floor_ms[:, 0, 0]))
+
+    def solve(self, start: PIDGains, maxiter: int = 100) -> tuple[PIDGains, int, int]:
+        from scipy.optimize import minimize  # the offline stack is imported lazily
+
+        t0 = max(self.objective_ms(start), 0.0) + 1.0
+        x0 = self.x_of(start, t0)
+        n = x0.size
+        grad = np.zeros(n)
+        grad[-1] = 1.0
+        res = minimize(lambda x: float(x[-1]), x0, jac=lambda x: grad, method="SLSQP",
+                       bounds=self.bounds,
+                       constraints=[{"type": "ineq", "fun": self.cons, "jac": self.cons_jac}],
+                       options={"maxiter": maxiter, "ftol": 1e-8})
+        return self.gains(res.x), int(res.status), int(res.nit)
+
+
+def _blocks(n: int, size: int) -> int:
+    return max(1, n // size)
+
+
+def _blockmin(a: np.ndarray, nblocks: int) -> np.ndarray:
+    """Minimum over ``nblocks`` contiguous blocks of the last axis (fewer, piecewise-smooth
+    constraints for SLSQP: the fixed grid is dense enough that a block's minimum is where the
+    bound binds)."""
+    n = a.shape[-1]
+    starts = np.linspace(0, n, min(nblocks, n) + 1).astype(int)[:-1]
+    return np.asarray(np.minimum.reduceat(a, starts, axis=-1))
+
+
+def _rule_starts(model: P1D) -> list[tuple[str, PIDGains]]:
+    """The classical rules' gains (those that apply), as starting points."""
+    out: list[tuple[str, PIDGains]] = []
+    for rule in RULES:
+        try:
+            g = tune(rule, model).gains
+        except ConfigError:
+            continue
+        if g.kd <= 0 or g.tf <= 0:  # SIMC is a PI: give it a small derivative to start from
+            g = replace(g, kd=0.1 * g.kp * model.Td, tf=0.01 * model.Td + 1e-4)
+        out.append((rule, g))
+    return out
+
+
+SCREEN_POINTS = 1024
+"""Size of the deterministic (Sobol, fixed seed) screening sample of the gain space."""
+
+
+def _screen(problem: _Problem, n_best: int = 2) -> list[tuple[str, PIDGains]]:
+    """The best points of a fixed Sobol sample of the gain space, scored on the nominal plant
+    as residual delay + 10 ms per unit of constraint violation (unstable points excluded).
+
+    The box is scaled by the model: ``kp (K) in [0.03, 30] (0.5 + Tp1/Td)``, ``Ti = kp/ki`` in
+    ``[0.1 Td, 10 (Td + Tp1)]``, ``Td_pid = kd/kp`` in ``[0.01 Td, 10 Td]``, ``N = Td_pid/tf``
+    in ``[1, 30]`` and, with setpoint weights, ``b, c`` in ``[0, 5]``.
+    """
+    from scipy.stats import qmc
+
+    model = problem.grid.model
+    L = max(model.Td, 5.0 * problem.grid.h)
+    T = model.Tp1
+    dim = 6 if problem.weights else 4
+    u = qmc.Sobol(d=dim, scramble=True, seed=12345).random(SCREEN_POINTS)
+
+    def logu(col: np.ndarray, lo: float, hi: float) -> np.ndarray:
+        return np.asarray(np.exp(math.log(lo) + col * (math.log(hi) - math.log(lo))))
+
+    kp = logu(u[:, 0], 0.03, 30.0) * (0.5 + T / L) / model.K
+    ti = logu(u[:, 1], 0.1 * L, 10.0 * (L + T))
+    td = logu(u[:, 2], 0.01 * L, 10.0 * L)
+    n = logu(u[:, 3], 1.0, 30.0)
+    ki, kd = kp / ti, kp * td
+    tf = np.maximum(td / n, 0.1 * problem.grid.h)
+    b = 5.0 * u[:, 4] if problem.weights else np.ones(kp.size)
+    cw = 5.0 * u[:, 5] if problem.weights else np.ones(kp.size)
+    lo = np.array([bd[0] for bd in problem.bounds[:4]])
+    hi = np.array([bd[1] for bd in problem.bounds[:4]])
+    logs = np.clip(np.log(np.stack([kp, ki, kd, tf], axis=1)), lo, hi)
+    cols = [logs] + ([np.stack([b, cw], axis=1)] if problem.weights else [])
+    X = np.concatenate([*cols, np.zeros((kp.size, 1))], axis=1)
+    scores = np.empty(kp.size)
+    for i in range(0, kp.size, 128):
+        V = problem._batch(X[i:i + 128])
+        t_need = -np.min(V[:, : problem._n_delay_rows], axis=1)  # delay rows are t - |tau|
+        rest = V[:, problem._n_delay_rows:]
+        violation = np.sum(np.clip(-rest, 0.0, None), axis=1)
+        scores[i:i + 128] = t_need + 10.0 * violation
+        unstable = rest[:, -1] < 0
+        scores[i:i + 128][unstable] = np.inf
+    order = np.argsort(scores, kind="stable")
+    out: list[tuple[str, PIDGains]] = []
+    for j in order[:n_best]:
+        if np.isfinite(scores[j]):
+            out.append((f"screen{len(out) + 1}", problem.gains(X[j])))
+    return out
+
+
+def _check(gains: PIDGains, model: P1D, dense: LoopGrid, c: Constraints, rate_hz: float,
+           gain_limit_db: float, peak_db: float
+           ) -> tuple[Evaluation, float, list[str], dict[str, float]]:
+    """Check a candidate on dense grids: the nominal plant with
+    :func:`~motcomp.design.frequency.evaluate` (poles included), the other members with a dense
+    :class:`LoopGrid`.  Returns the nominal evaluation, the worst excess over the floor, the
+    violated bounds and by how much each bound is exceeded."""
+    nominal = evaluate(gains, model, dense.plants[0], rate_hz=rate_hz, band_hz=c.band_hz)
+    r = dense(gains.kp, gains.ki, gains.kd, gains.tf, gains.b, gains.c)
+    floors = np.max(np.abs(dense.floor_delay_s()), axis=1) * 1e3
+    worst = float(np.max(r.max_delay_ms()[:, 0] - floors)) if len(dense.plants) > 1 else \
+        nominal.max_residual_delay_ms
+    over = {
+        "peak_db": max(float(np.max(r.gain_db)), nominal.peak_gain_db) - peak_db,
+        "gain_error_db": nominal.gain_error_db - gain_limit_db,
+        "command_excess_db": float(np.max(r.excess_db)) - c.command_excess_db,
+        "max_command_gain": nominal.peak_command_gain / c.max_command_gain - 1.0,
+        "max_sensitivity": nominal.ms / c.max_sensitivity - 1.0,
+    }
+    violations = []
+    if not nominal.stable:
+        violations.append(f"internal loop unstable (pole modulus {nominal.max_pole_modulus:.5f})")
+    for name, amount in over.items():
+        tol = 0.02 if name.endswith("_db") else 2e-3  # dB, or relative
+        if amount > tol:
+            unit = " dB" if name.endswith("_db") else " (relative)"
+            violations.append(f"{name} exceeded by {amount:.3g}{unit}")
+    return nominal, worst, violations, over
+
+
+def optimise(plant: ProcessModel, model: P1D | None = None, rate_hz: float = 1000.0,
+             constraints: Constraints | None = None, uncertainty: Uncertainty | None = None,
+             setpoint_weights: bool = True, min_gain_ms: float = 5.0,
+             progress: Callable[[int, int, str], None] | None = None) -> OptimalDesign:
+    """Optimised gains for ``plant`` (see the module docstring for the problem solved).
+
+    Parameters
+    ----------
+    plant
+        The platform; the delivered response is computed with it.
+    model
+        The compensator's internal P1D model (default: ``plant.to_p1d()``).
+    rate_hz
+        Loop rate; the discrete loop is what is optimised and checked.
+    constraints
+        Bounds (default :class:`Constraints`).
+    uncertainty
+        If given, the robust design over ``uncertainty.members(plant)``.
+    setpoint_weights
+        Optimise the setpoint weights b, c too (True) or keep a plain PID (b = c = 1).
+    min_gain_ms
+        Recommend bypass if the design gains less than this over the uncompensated platform.
+    progress
+        Called as ``progress(done, total, note)`` after each start.
+
+    Raises
+    ------
+    ConfigError
+        For a model with a non-positive gain or a bad rate, band or bound.
+    """
+    t_start = time.perf_counter()
+    c = constraints or Constraints()
+    internal = model or plant.to_p1d()
+    if not internal.K > 0:
+        raise ConfigError(f"optimal tuning needs a positive model gain K, got {internal.K}")
+    if not (math.isfinite(rate_hz) and rate_hz > 0):
+        raise ConfigError(f"rate must be a positive finite number of Hz, got {rate_hz}")
+    labelled = uncertainty.members(plant) if uncertainty is not None else [("nominal", plant)]
+    plants = [p for _, p in labelled]
+    grid = LoopGrid(internal, plants, rate_hz, c.band_hz)
+    floor_ms = np.max(np.abs(grid.floor_delay_s()), axis=1) * 1e3
+    floor_gain = float(np.max(np.abs(grid.floor_gain_db()[0])))
+    if uncertainty is None:
+        floor_ms = np.zeros(1)  # nominal: the objective is the delivered delay itself
+    uncomp_gain = float(np.max(np.abs(grid.plant_gain_db()[0, grid.band])))
+    # the bound beyond what the model mismatch causes, and never worse than no compensation
+    gain_limit = min(c.gain_error_db + floor_gain, max(c.gain_error_db, uncomp_gain))
+    uncomp_ms = float(np.max(np.abs(grid.plant_delay_s()[0]))) * 1e3
+
+    dense = LoopGrid(internal, plants, rate_hz, c.band_hz, n_band=400, n_high=4000)
+    screen_problem = _Problem(LoopGrid(internal, plants[:1], rate_hz, c.band_hz),
+                              c, setpoint_weights, c.peak_db, np.zeros(1), gain_limit)
+    if progress is not None:
+        progress(0, 1, "screening")
+    screened = _screen(screen_problem)
+    starts = screened[:1] + _rule_starts(internal) + screened[1:]
+    total = len(starts)
+    records: list[dict[str, Any]] = []
+    best: tuple[tuple[int, float, float], PIDGains, Evaluation, list[str]] | None = None
+    for i, (name, g0) in enumerate(starts):
+        g = g0
+        target = c
+        status = nit = 0
+        for _ in range(3):  # re-solve with tightened bounds if the fixed grid missed a peak
+            problem = _Problem(grid, target, setpoint_weights, target.peak_db, floor_ms,
+                               gain_limit)
+            g, status, nit = problem.solve(g)
+            nominal, objective, violations, over = _check(g, internal, dense, c, rate_hz,
+                                                          gain_limit, c.peak_db)
+            # a small excess is the fixed grid missing a sharp peak; a large one is a start
+            # that did not converge, which tightening would not help
+            missed_peak = 0.02 < over["peak_db"] < 0.5
+            missed_cmd = 2e-3 < over["max_command_gain"] < 0.05
+            if not nominal.stable or not (missed_peak or missed_cmd):
+                break
+            target = replace(
+                target,
+                peak_db=max(target.peak_db - missed_peak * (over["peak_db"] + 0.01), 0.0),
+                max_command_gain=target.max_command_gain
+                / (1.0 + missed_cmd * (over["max_command_gain"] + 1e-3)))
+        records.append({"start": name, "status": status, "iterations": nit,
+                        "objective_ms": objective, "feasible": not violations})
+        key = (len(violations), round(objective, 6), round(nominal.peak_gain_db, 6))
+        if best is None or key < best[0]:
+            best = (key, g, nominal, violations)
+        if progress is not None:
+            progress(i + 1, total, f"{name}: {objective:.2f} ms")
+        agree = [r["objective_ms"] for r in records if r["feasible"]]
+        if len(agree) >= 2 and abs(agree[-1] - min(agree)) < 0.01 and not violations:
+            break  # two starts reached the same optimum: stop (the order of starts is fixed)
+    assert best is not None
+    _, gains, nominal, violations = best
+    gain_ms = uncomp_ms - nominal.max_residual_delay_ms
+    worse = (nominal.max_residual_delay_ms > uncomp_ms
+             or nominal.gain_error_db > max(gain_limit, nominal.uncorrected_gain_error_db))
+    delay_dominated = internal.Tp1 < DELAY_DOMINATED_RATIO * internal.Td
+    bypass = worse or gain_ms < min_gain_ms or delay_dominated
+    warnings: list[str] = []
+    if violations:
+        warnings.append("WARNING: no design meets every bound; best compromise violates: "
+                        + "; ".join(violations))
+    if worse:
+        warnings.append(
+            f"WARNING: no design within the bounds improves on the uncompensated platform "
+            f"({nominal.max_residual_delay_ms:.1f} ms vs {uncomp_ms:.1f} ms residual delay). "
+            "Recommendation: bypass this axis.")
+    elif delay_dominated:
+        warnings.append(
+            f"WARNING: delay-dominated plant (internal model Tp1/Td = "
+            f"{internal.Tp1 / internal.Td:.3g}): its lag Tp1 = {internal.Tp1 * 1e3:.1f} ms is "
+            f"small beside its pure delay Td = {internal.Td * 1e3:.1f} ms. Within the bounds the "
+            f"residual delay falls at best from {uncomp_ms:.1f} to "
+            f"{nominal.max_residual_delay_ms:.1f} ms, but that gain is prediction: it holds only "
+            "as well as Td and the platform model are known (an error in Td shifts the residual "
+            f"one for one) and is paid for by a {nominal.peak_gain_db:+.1f} dB peak at "
+            f"{nominal.peak_gain_hz:.1f} Hz. Recommendation: bypass this axis.")
+    elif gain_ms < min_gain_ms:
+        warnings.append(
+            f"WARNING: compensation gains little on this plant: at best "
+            f"{nominal.max_residual_delay_ms:.1f} ms residual delay vs {uncomp_ms:.1f} ms "
+            f"uncompensated (gain {gain_ms:.1f} ms, below {min_gain_ms:g} ms) within the bounds."
+            " Recommendation: bypass this axis.")
+    members: list[MemberResult] = []
+    if uncertainty is not None:
+        members = member_table(gains, internal, labelled, rate_hz, c.band_hz)
+    return OptimalDesign(
+        gains=gains, model=internal, constraints=c, rate_hz=rate_hz, evaluation=nominal,
+        command_excess_db=command_excess_db(gains, internal, rate_hz, c.band_hz),
+        feasible=not violations, violations=violations, uncompensated_delay_ms=uncomp_ms,
+        best_gain_ms=gain_ms, delay_dominated=delay_dominated, recommend_bypass=bypass,
+        setpoint_weights=setpoint_weights, members=members, uncertainty=uncertainty,
+        starts=records, elapsed_s=time.perf_counter() - t_start, warnings=warnings,
+    )
+
+
+def member_table(gains: PIDGains, model: P1D, labelled: Sequence[tuple[str, ProcessModel]],
+                 rate_hz: float, band_hz: tuple[float, float],
+                 evaluations: Sequence[Evaluation] | None = None,
+                 compare: PIDGains | None = None) -> list[MemberResult]:
+    """Residual delay, floor and peak of ``gains`` for every member (and of ``compare``, by
+    default the ZN gains when they exist)."""
+    plants = [p for _, p in labelled]
+    grid = LoopGrid(model, plants, rate_hz, band_hz, n_band=400, n_high=50)
+    floors = np.max(np.abs(grid.floor_delay_s()), axis=1) * 1e3
+    evs = list(evaluations) if evaluations is not None else [
+        evaluate(gains, model, p, rate_hz=rate_hz, band_hz=band_hz) for p in plants]
+    if compare is None:
+        try:
+            compare = tune("zn", model).gains
+        except ConfigError:
+            compare = None
+    out = []
+    for (label, p), ev, fl in zip(labelled, evs, floors, strict=True):
+        row = MemberResult(label=label, model=p.spec(), floor_ms=float(fl),
+                           residual_ms=ev.max_residual_delay_ms,
+                           excess_ms=ev.max_residual_delay_ms - float(fl),
+                           peak_gain_db=ev.peak_gain_db, gain_error_db=ev.gain_error_db)
+        if compare is not None:
+            zev = evaluate(compare, model, p, rate_hz=rate_hz, band_hz=band_hz)
+            row.zn_residual_ms = zev.max_residual_delay_ms
+            row.zn_peak_gain_db = zev.peak_gain_db
+        out.append(row)
+    return out

@@ -1,0 +1,67 @@
+"""``motcomp design --rule optimal`` and ``motcomp pareto`` as a user runs them."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+from tests.conftest import motcomp_cmd, subprocess_env
+
+
+def run(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(motcomp_cmd(*args), capture_output=True, text=True, env=subprocess_env(),
+                          timeout=300)
+
+
+def test_design_optimal_json_keeps_the_schema_and_adds_its_block() -> None:
+    p = run("design", "--plant", "rails", "--rule", "optimal", "--json", "--quiet")
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    # the schema of the other rules
+    assert out["rule"] == "optimal" and out["rate_hz"] == 1000.0
+    assert set(out["model"]) >= {"kind", "K", "Td", "Tp1"}
+    assert set(out["gains"]) >= {"kp", "ki", "kd", "tf"}
+    for block in ("uncorrected", "corrected"):
+        assert set(out[block]["phase_delay_ms"]) == {"0.2", "0.5", "1", "2"}
+    assert out["warnings"] == [] and out["corrected"]["stable"] is True
+    # what optimal adds: the setpoint weights, the bounds and the values reached
+    assert {"b", "c"} <= set(out["gains"])
+    opt = out["optimal"]
+    assert opt["constraints"]["peak_db"] == 8.0 and opt["constraints"]["band_hz"] == [0.1, 2.0]
+    assert opt["values"]["max_residual_delay_ms"] == out["corrected"]["max_residual_delay_ms"]
+    assert out["corrected"]["max_residual_delay_ms"] <= 3.0
+    assert out["corrected"]["peak_gain_db"] <= 8.02
+    assert opt["recommendation"] == "compensate" and opt["feasible"] is True
+    assert "robust" not in opt
+
+
+def test_design_optimal_options_reach_the_optimiser() -> None:
+    p = run("design", "--plant", "rails", "--rule", "optimal", "--peak-db", "6", "--plain-pid",
+            "--band", "0.1", "1.5", "--max-command", "40", "--json", "--quiet")
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    c = out["optimal"]["constraints"]
+    assert (c["peak_db"], c["band_hz"], c["max_command_gain"]) == (6.0, [0.1, 1.5], 40.0)
+    assert out["optimal"]["setpoint_weights"] is False and "b" not in out["gains"]
+    assert out["corrected"]["peak_gain_db"] <= 6.02
+    assert out["corrected"]["peak_command_gain"] <= 40.0 * 1.002
+
+
+def test_design_optimal_rejects_a_bad_bound() -> None:
+    p = run("design", "--plant", "rails", "--rule", "optimal", "--gain-db", "-1")
+    assert p.returncode == 2 and "gain_error_db" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_pareto_writes_figure_and_table(tmp_path: Path) -> None:
+    out = tmp_path / "pareto"
+    p = run("pareto", "--plant", "rails", "--bounds", "8", "--out", str(out), "--quiet")
+    assert p.returncode == 0, p.stderr
+    assert (out / "pareto.png").stat().st_size > 10_000
+    table = (out / "pareto.md").read_text()
+    for name in ("Ziegler-Nichols", "Cohen-Coon", "AMIGO", "SIMC", "optimal, peak <= 8 dB",
+                 "optimal, plain PID, peak <= 8 dB"):
+        assert name in table
+    points = json.loads((out / "pareto.json").read_text())["points"]
+    assert {p["kind"] for p in points} == {"optimal", "optimal-plain", "rule"}
+    assert not list(out.glob(".tmp-*"))
