@@ -51,8 +51,8 @@ def config(extra: str = "") -> dict[str, Any]:
 
 def test_profile_precedence() -> None:
     cfg = parse_config(config())
-    base = resolve_axes(cfg)  # no active profile: the axes' own tuning (ZN from [defaults])
-    assert base.gains[0] == tune("zn", RAILS).gains
+    base = resolve_axes(cfg)  # no active profile: the axes' own (optimised) gains
+    assert base.gains[0].c == pytest.approx(2.2996458) and base.gains[0].kp != tune("zn", RAILS).gains.kp
     fast = resolve_axes(cfg, "fast")
     assert fast.gains[0] == tune("amigo", RAILS).gains  # the profile's rule for every axis
     assert (fast.gains[1].kp, fast.gains[1].ki) == (3.0, 40.0)  # its axis entry wins
@@ -106,7 +106,7 @@ def test_live_profile_switch_is_bumpless(tmp_path: Path) -> None:
                 assert p.returncode == 0, p.stderr
                 st = msgpack.unpackb(first_reply(session, "motcomp/status", None, 2.0))
                 assert st["profile"] == (None if name == "none" else name)
-                assert st["profiles"] == ["fast", "normal"]
+                assert st["profiles"] == ["fast", "normal", "paper"]
                 time.sleep(1.0)
             p = subprocess.run(motcomp_cmd("profile", "sport", "-e", loopback(port)),
                                capture_output=True, text=True, env=subprocess_env(), timeout=60)
