@@ -35,7 +35,7 @@ def back_calculation(r: np.ndarray, model, gains, limits: AxisLimits) -> np.ndar
     kp, kih = gains.kp, gains.ki * h
     ad, bd = gains.tf / (gains.tf + h), gains.kd / (gains.tf + h)
     kt = min(h / gains.tracking_time_s(), 1.0)
-    integ = deriv = w_prev = x = u = vel = t_prev = ts = vs = 0.0
+    integ = deriv = w_prev = x = u = vel = sp = sv = sa = 0.0
     hist = [0.0] * (d + 2)
     out = np.empty(r.size)
     for k, rk in enumerate(r):
@@ -44,8 +44,7 @@ def back_calculation(r: np.ndarray, model, gains, limits: AxisLimits) -> np.ndar
         deriv = ad * deriv + bd * (w - w_prev)
         w_prev = w
         v = kp * w + integ + deriv
-        u, vel, ts, vs, _ = limit_axis(v, t_prev, u, vel, ts, vs, const)
-        t_prev = v
+        u, vel, sp, sv, sa, _ = limit_axis(v, u, vel, sp, sv, sa, const)
         integ += kih * w + kt * (u - v)
         hist.append(u)
         hist.pop(0)

@@ -147,7 +147,7 @@ class CompensatorState:
     history_m: FloatArray
     u: FloatArray
     v: FloatArray
-    smoothed: FloatArray
+    tracker: FloatArray
     raw: FloatArray
     bypass: np.ndarray
     fade_offset: FloatArray
@@ -355,8 +355,6 @@ class Compensator:
                 # with a raised cosine (no velocity step at either end)
                 self._fade_offset[i] = self._u[i] - self._r[i]
                 self._fade_progress[i] = 0.0
-            # the new mode's previous target is the command being sent (no false target jump)
-            self._target[i] = self._u[i]
         self._bypass = new
 
     # --- state --------------------------------------------------------------------------------
@@ -369,9 +367,7 @@ class Compensator:
         self._r = p[:]
         self._u = p[:]
         self._v = [0.0] * n
-        self._target = p[:]  # the limiter's previous target
-        self._ts = p[:]  # the limiter's target smoother
-        self._vs = [0.0] * n
+        self._track = [(pi, 0.0, 0.0) for pi in p]  # the limiter's target tracker
         self._xc = [m.K * pi for m, pi in zip(self._models, p, strict=True)]
         self._xm = self._xc[:]
         self._y_last = self._xc[:]
@@ -405,7 +401,7 @@ class Compensator:
             integral=np.array(self._integral), deriv=np.array(self._deriv),
             w_prev=np.array(self._w_prev), history_c=np.array(self._hist_c),
             history_m=np.array(self._hist_m), u=np.array(self._u), v=np.array(self._v),
-            smoothed=np.array(self._ts), raw=np.array(self._raw),
+            tracker=np.array(self._track), raw=np.array(self._raw),
             bypass=np.array(self._bypass), fade_offset=np.array(self._fade_offset),
             fade_progress=np.array(self._fade_progress),
         )
@@ -440,8 +436,7 @@ class Compensator:
         mask = self._mask
         rr, xcs, xms, ys, ints, ds, wps = (self._r, self._xc, self._xm, self._y_last,
                                            self._integral, self._deriv, self._w_prev)
-        us, vs, tps, tss, vss, raws = (self._u, self._v, self._target, self._ts, self._vs,
-                                       self._raw)
+        us, vs, trk, raws = self._u, self._v, self._track, self._raw
         hcs, hms = self._hist_c, self._hist_m
         bypass = self._bypass
         out = [0.0] * self.n
@@ -472,9 +467,9 @@ class Compensator:
                     target = r
             else:
                 target = v
-            u, vs[i], tss[i], vss[i], sat = limit_axis(target, tps[i], us[i], vs[i], tss[i],
-                                                       vss[i], lim)
-            tps[i] = target
+            sp, sv, sa = trk[i]
+            u, vs[i], sp, sv, sa, sat = limit_axis(target, us[i], vs[i], sp, sv, sa, lim)
+            trk[i] = (sp, sv, sa)
             us[i] = u
             dev[i] = u - target
             if bypass[i]:

@@ -120,6 +120,8 @@ class Service:
         self._t_wall0 = 0.0
         self._t_mono0 = 0
         self._bypass_flags: list[str] = []
+        self._dev_lp = [0.0] * len(AXES)
+        self._dev_alpha = min(1.0, 1.0 / (0.02 * cfg.loop.rate_hz))
 
     @staticmethod
     def _ramp_speeds(cfg: ServiceConfig, axes: ResolvedAxes) -> list[float]:
@@ -167,10 +169,14 @@ class Service:
         limited = [False] * len(u)
         tol = self.cfg.status.saturation_tolerance
         dev = comp.deviation
+        lp = self._dev_lp
+        alpha = self._dev_alpha
         for i, f in enumerate(comp.flags):
-            # a position or velocity bound, or a real departure from the target; the limiter
-            # smoothing micrometre discontinuities (input jitter) is not a saturation
-            if f & _HARD_BITS or (f and abs(dev[i]) > tol):
+            # a position or velocity bound, or a *sustained* departure from the target (its
+            # 20 ms average): the limiter absorbing zero-mean jitter noise that the compensator
+            # amplifies is not a saturation of the motion
+            lp[i] += alpha * (dev[i] - lp[i])
+            if f & _HARD_BITS or (f and abs(lp[i]) > tol):
                 sat[i] += 1
                 limited[i] = True
                 flags.append(_SAT_FLAGS[i])
