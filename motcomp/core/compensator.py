@@ -78,7 +78,7 @@ Rules for edge cases
   integrator is re-seeded so that the raw output at the last sample is unchanged under the new
   parameters (bumpless).
 * Bypass (compensation off) per axis (:meth:`set_bypass`): the output becomes the reference,
-  reached through a raised-cosine fade of the offset over ``fade_s``; while bypassed the PID
+  reached through a minimum-jerk fade of the offset over ``fade_s``; while bypassed the PID
   tracks the output (its integrator is re-seeded every sample so that ``v = u``), so switching
   back on starts from the command being sent: bumpless both ways.
 """
@@ -88,7 +88,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from math import cos, isfinite, pi
+from math import isfinite
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -352,7 +352,7 @@ class Compensator:
                 continue
             if new[i]:
                 # offset between the command now and the plain reference, faded out over fade_s
-                # with a raised cosine (no velocity step at either end)
+                # (minimum-jerk: no velocity or acceleration step at either end)
                 self._fade_offset[i] = self._u[i] - self._r[i]
                 self._fade_progress[i] = 0.0
         self._bypass = new
@@ -460,8 +460,9 @@ class Compensator:
             v = kp * (b * r - y) + ints[i] + d  # error = reference - model_output, in b r - y
             if bypass[i]:
                 progress = self._fade_progress[i]  # fade progress, 0 -> 1
-                if progress < 1.0:
-                    target = r + self._fade_offset[i] * (0.5 + 0.5 * cos(pi * progress))
+                if progress < 1.0:  # minimum-jerk fade: no acceleration step at either end
+                    target = r + self._fade_offset[i] * (
+                        1.0 - progress**3 * (10.0 - 15.0 * progress + 6.0 * progress * progress))
                     self._fade_progress[i] = min(progress + self._fade_step, 1.0)
                 else:
                     target = r

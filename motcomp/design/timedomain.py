@@ -10,8 +10,8 @@ Slalom (the paper's Fig. 4)
     ``f = v / (2 spacing) = 0.31 Hz``, inside the 0.2-0.5 Hz band where steering inputs
     concentrate.  The car's lateral offset swings +-1 m between the cones; the rails receive a
     0.5 scale of it (+-0.5 m, peak lateral acceleration 1.9 m/s^2, well inside the rails'
-    limits), entering and leaving the slalom over one cone pitch with a half-cosine envelope and
-    driving straight before and after.
+    limits), entering and leaving the slalom over one cone pitch with a minimum-jerk envelope
+    and driving straight before and after.
 
 Delay measurement
 -----------------
@@ -41,17 +41,29 @@ from motcomp.sim.platform import simulate_axis
 __all__ = [
     "SimulationResult",
     "estimate_delay",
+    "fade_envelope",
     "limits_for",
+    "minimum_jerk",
     "simulate_compensated",
     "slalom",
     "swept_sine",
 ]
 
 
-def _fade(n: int, n_fade: int) -> FloatArray:
+def minimum_jerk(p: ArrayLike) -> FloatArray:
+    """0 -> 1 over ``p`` in [0, 1] with zero velocity and acceleration at both ends:
+    ``10 p^3 - 15 p^4 + 6 p^5`` (a raised cosine has acceleration steps at its ends, which a
+    high-gain compensator turns into command spikes)."""
+    x = np.clip(np.asarray(p, dtype=float), 0.0, 1.0)
+    return np.asarray(x**3 * (10.0 - 15.0 * x + 6.0 * x * x))
+
+
+def fade_envelope(n: int, n_fade: int) -> FloatArray:
+    """1 with minimum-jerk fades over the first and last ``n_fade`` samples."""
     env = np.ones(n)
+    n_fade = min(n_fade, n // 2)
     if n_fade > 0:
-        ramp = 0.5 - 0.5 * np.cos(np.pi * np.arange(n_fade) / n_fade)
+        ramp = minimum_jerk(np.arange(n_fade) / n_fade)
         env[:n_fade] = ramp
         env[n - n_fade:] = ramp[::-1]
     return env
@@ -61,7 +73,7 @@ def swept_sine(rate_hz: float, f0_hz: float = 0.1, f1_hz: float = 3.0, duration_
                amplitude: float = 0.2, fade_s: float = 2.0) -> tuple[FloatArray, FloatArray]:
     """Logarithmic swept sine ``(t, r)``: phase ``2 pi f0 T (k^(t/T) - 1)/ln k``, ``k = f1/f0``.
 
-    Starts and ends at 0 with raised-cosine fades of ``fade_s``.
+    Starts and ends at 0 with minimum-jerk fades of ``fade_s``.
     """
     if not (0 < f0_hz < f1_hz and duration_s > 0 and rate_hz > 0):
         raise ConfigError(f"swept sine needs 0 < f0 < f1 and positive duration/rate, got "
@@ -70,7 +82,7 @@ def swept_sine(rate_hz: float, f0_hz: float = 0.1, f1_hz: float = 3.0, duration_
     t = np.arange(n) / rate_hz
     k = f1_hz / f0_hz
     phase = 2 * math.pi * f0_hz * duration_s * (k ** (t / duration_s) - 1.0) / math.log(k)
-    r = amplitude * np.sin(phase) * _fade(n, int(fade_s * rate_hz))
+    r = amplitude * np.sin(phase) * fade_envelope(n, int(fade_s * rate_hz))
     return t, r
 
 
@@ -98,9 +110,9 @@ def slalom(rate_hz: float, speed_kmh: float = 40.0, cone_spacing_m: float = 18.0
     env = np.zeros(n)
     env[inside] = 1.0
     ramp_in = inside & (tw < pitch_s)
-    env[ramp_in] = 0.5 - 0.5 * np.cos(np.pi * tw[ramp_in] / pitch_s)
+    env[ramp_in] = minimum_jerk(tw[ramp_in] / pitch_s)
     ramp_out = inside & (tw > weave_s - pitch_s)
-    env[ramp_out] = 0.5 - 0.5 * np.cos(np.pi * (weave_s - tw[ramp_out]) / pitch_s)
+    env[ramp_out] = minimum_jerk((weave_s - tw[ramp_out]) / pitch_s)
     r = scale * lateral_m * env * np.sin(2 * math.pi * f * np.clip(tw, 0, None))
     return t, r
 

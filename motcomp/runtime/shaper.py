@@ -7,14 +7,14 @@ Rules (all times from the loop's clock, passed in)::
     live         reference = last valid value of each axis (a frame may carry a subset)
     no valid frame for stale_after_s
                  hold the reference for ``hold_s``, then move each axis to neutral  "stale"
-                 in a raised-cosine ramp whose peak speed is ``ramp_speed`` (per axis)
+                 in a minimum-jerk ramp whose peak speed is ``ramp_speed`` (per axis)
     frames again blend from the held/ramped reference to the live input over
                  ``rejoin_s``                                                       "rejoin"
     park         (stop requested) ramp every axis to neutral as above, ignoring
                  input; :attr:`parked` once there                                   "parking"
 
-Blends and ramps use raised cosines: continuous position *and* velocity at both ends, so the
-compensator and the limiter see no step.  Undriven axes stay at neutral.
+Blends and ramps are minimum-jerk (quintic): continuous position, velocity *and* acceleration
+at both ends, so the compensator sees no step it would amplify.  Undriven axes stay at neutral.
 
 Input reconstruction (``linear``, the default): the loop and the source run on different clocks,
 so each tick sees zero, one or two new frames; holding the last value turns that into a
@@ -32,7 +32,6 @@ arrival time.  ``hold`` keeps the last value.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 from motcomp.core.axes import AXES, AXIS_INDEX
@@ -44,10 +43,14 @@ OFFSET_LEAK = 0.05
 
 
 def _cos_weight(progress: float) -> float:
-    """1 -> 0 raised cosine over progress 0 -> 1."""
+    """1 -> 0 over progress 0 -> 1, minimum-jerk (quintic): zero velocity *and* acceleration at
+    both ends.  (A raised cosine has an acceleration step at its ends, which a high-gain
+    compensator turns into a command spike.)"""
     if progress >= 1.0:
         return 0.0
-    return 0.5 + 0.5 * math.cos(math.pi * progress)
+    if progress <= 0.0:
+        return 1.0
+    return 1.0 - progress**3 * (10.0 - 15.0 * progress + 6.0 * progress * progress)
 
 
 class _Move:
@@ -58,8 +61,8 @@ class _Move:
         self.t0 = t0
         self.start = list(start)
         self.end = list(end)
-        # peak speed of a raised cosine over T is (pi/2) * distance / T
-        self.duration = [max(math.pi / 2 * abs(e - s) / v, min_s) if v > 0 else min_s
+        # peak speed of the minimum-jerk move over T is 1.875 * distance / T
+        self.duration = [max(1.875 * abs(e - s) / v, min_s) if v > 0 else min_s
                          for s, e, v in zip(start, end, speed, strict=True)]
 
     def at(self, t: float) -> tuple[list[float], bool]:

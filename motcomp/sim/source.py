@@ -20,7 +20,7 @@ import msgpack
 import numpy as np
 
 from motcomp.core.axes import AXES, AXIS_INDEX
-from motcomp.design.timedomain import slalom, swept_sine
+from motcomp.design.timedomain import fade_envelope, slalom, swept_sine
 from motcomp.errors import DataError
 from motcomp.io.wire import encode_input
 from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, open_session
@@ -48,16 +48,6 @@ class Trajectory:
         return self.samples / self.rate_hz
 
 
-def _fade(n: int, rate: float, fade_s: float = 1.0) -> np.ndarray:
-    env = np.ones(n)
-    k = min(int(fade_s * rate), n // 2)
-    if k:
-        ramp = 0.5 - 0.5 * np.cos(np.pi * np.arange(k) / k)
-        env[:k] = ramp
-        env[n - k:] = ramp[::-1]
-    return env
-
-
 def builtin(name: str, rate_hz: float = 1000.0, duration_s: float | None = None) -> Trajectory:
     """``slalom`` (rails_y, 18 m cones at 40 km/h), ``sweep`` (rails_x, 0.1-3 Hz within the
     rails' acceleration limit) or ``demo`` (~12 s: slalom on rails_y, a 0.2-1 Hz sweep on
@@ -77,10 +67,10 @@ def builtin(name: str, rate_hz: float = 1000.0, duration_s: float | None = None)
         f0, f1 = 0.2, 1.0
         k = f1 / f0
         phase = 2 * math.pi * f0 * dur * (k ** (t / dur) - 1.0) / math.log(k)
-        env = _fade(n, rate_hz)
+        env = fade_envelope(n, int(rate_hz))
         return Trajectory(rate_hz, {
             "rails_y": y,
-            "rails_x": 0.08 * np.sin(phase) * env,
+            "rails_x": 0.06 * np.sin(phase) * env,
             "hex_z": 0.02 * np.sin(2 * math.pi * 0.5 * t) * env,
             "hex_roll": 0.04 * np.sin(2 * math.pi * 0.25 * t) * env,
             "hex_pitch": 0.03 * np.sin(2 * math.pi * 0.35 * t) * env,
