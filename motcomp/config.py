@@ -77,31 +77,6 @@ class GainsConfig(BaseModel):
                         c=self.c)
 
 
-class AxisConfig(LimitsConfig):
-    """One axis: model, tuning, bypass and limits (limits keys from :class:`LimitsConfig`)."""
-
-    model_config = _STRICT
-    model: str | None = None
-    rule: str | None = None
-    filter_n: float | None = Field(None, gt=0)
-    gains: GainsConfig | None = None
-    bypass: bool | None = None
-
-    @field_validator("model")
-    @classmethod
-    def _model(cls, v: str | None) -> str | None:
-        if v is not None:
-            parse_model(v)  # raises ConfigError (a ValueError) with the reason
-        return v
-
-    @field_validator("rule")
-    @classmethod
-    def _rule(cls, v: str | None) -> str | None:
-        if v is not None and v not in RULES:
-            raise ValueError(f"unknown rule {v!r}; rules: {', '.join(RULES)}")
-        return v
-
-
 class TuningConfig(BaseModel):
     """What a scenario profile may set, for every axis or for one: the tuning and bypass."""
 
@@ -123,6 +98,21 @@ class TuningConfig(BaseModel):
         if self.rule is not None and self.gains is not None:
             raise ValueError("give either rule or gains, not both")
         return self
+
+
+class AxisConfig(TuningConfig, LimitsConfig):
+    """One axis: model, tuning, bypass and limits (tuning keys from :class:`TuningConfig`, limit
+    keys from :class:`LimitsConfig`)."""
+
+    model_config = _STRICT
+    model: str | None = None
+
+    @field_validator("model")
+    @classmethod
+    def _model(cls, v: str | None) -> str | None:
+        if v is not None:
+            parse_model(v)  # raises ConfigError (a ValueError) with the reason
+        return v
 
 
 class ProfileConfig(TuningConfig):

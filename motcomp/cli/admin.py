@@ -16,22 +16,25 @@ from motcomp.io.zenoh_io import add_zenoh_args, endpoints_from_args, first_reply
 ORDER = 2
 
 
+def _service_args(p: argparse.ArgumentParser, key: str, timeout: float) -> None:
+    """The key of the service endpoint, a timeout and zenoh's flags."""
+    p.add_argument("--key", default=key, help=f"endpoint key (default: {key})")
+    p.add_argument("--timeout", type=float, default=timeout, metavar="S")
+    add_zenoh_args(p)
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser("status", help="query a running service's status",
                        description="Query the service's status endpoint and print it.")
-    s.add_argument("--key", default="motcomp/status")
     s.add_argument("--json", action="store_true")
-    s.add_argument("--timeout", type=float, default=3.0)
-    add_zenoh_args(s)
+    _service_args(s, "motcomp/status", 3.0)
     s.set_defaults(func=run_status)
 
     b = sub.add_parser("bypass", help="turn compensation off (on) or back on (off), bumplessly",
                        description="Admin command (needs [admin] enabled = true).")
     b.add_argument("state", choices=["on", "off"])
     b.add_argument("--axes", nargs="+", metavar="AXIS", help="default: all driven axes")
-    b.add_argument("--key", default="motcomp/admin")
-    b.add_argument("--timeout", type=float, default=3.0)
-    add_zenoh_args(b)
+    _service_args(b, "motcomp/admin", 3.0)
     b.set_defaults(func=run_bypass)
 
     pr = sub.add_parser("profile", help="switch the running service's scenario profile",
@@ -39,9 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                     "replace the current ones, bumplessly). Needs [admin] "
                                     "enabled = true.")
     pr.add_argument("name", help="profile name, or 'none' for the config's base tuning")
-    pr.add_argument("--key", default="motcomp/admin")
-    pr.add_argument("--timeout", type=float, default=5.0)
-    add_zenoh_args(pr)
+    _service_args(pr, "motcomp/admin", 5.0)
     pr.set_defaults(func=run_profile)
 
     r = sub.add_parser("reload", help="reload a running service's config",
@@ -50,9 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "Needs [admin] enabled = true.")
     r.add_argument("--config", type=Path, metavar="FILE",
                    help="file to load instead of the one the service was started with")
-    r.add_argument("--key", default="motcomp/admin")
-    r.add_argument("--timeout", type=float, default=5.0)
-    add_zenoh_args(r)
+    _service_args(r, "motcomp/admin", 5.0)
     r.set_defaults(func=run_reload)
 
 

@@ -258,73 +258,72 @@ class ProcessModel(ABC):
 
 
 @dataclass(frozen=True)
-class P1D(ProcessModel):
+class _GainDelay(ProcessModel):
+    """The common part of the process models: a non-zero gain ``K`` and an exact pure delay
+    ``Td`` >= 0 (s)."""
+
+    K: float
+    Td: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.K) and self.K != 0):
+            raise ConfigError(f"{self.kind} parameter K must be finite and non-zero, "
+                              f"got {self.K!r}")
+        _finite_positive("Td", self.Td, self.kind, allow_zero=True)
+
+    @property
+    def dead_time_s(self) -> float:
+        return self.Td
+
+    @property
+    def pure_delay_s(self) -> float:
+        return self.Td
+
+
+@dataclass(frozen=True)
+class P1D(_GainDelay):
     """First order plus dead time: ``K e^{-Td s} / (1 + Tp1 s)``.
 
     Closed forms (paper, eq. 1): phase delay ``Td + atan(w Tp1)/w``, gain
     ``K (1 + w^2 Tp1^2)^{-1/2}``, -3 dB at ``1/(2 pi Tp1)``, -6 dB at ``sqrt(3)/(2 pi Tp1)``.
     """
 
-    K: float
-    Td: float
     Tp1: float
     kind: ClassVar[str] = "p1d"
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.K) and self.K != 0):
-            raise ConfigError(f"p1d parameter K must be finite and non-zero, got {self.K!r}")
-        _finite_positive("Td", self.Td, "p1d", allow_zero=True)
+        super().__post_init__()
         _finite_positive("Tp1", self.Tp1, "p1d")
 
     def rational(self) -> tuple[FloatArray, FloatArray]:
         return np.array([self.K]), np.array([self.Tp1, 1.0])
-
-    @property
-    def dead_time_s(self) -> float:
-        return self.Td
-
-    @property
-    def pure_delay_s(self) -> float:
-        return self.Td
 
     def params(self) -> dict[str, Any]:
         return {"K": self.K, "Td": self.Td, "Tp1": self.Tp1}
 
 
 @dataclass(frozen=True)
-class P2D(ProcessModel):
+class P2D(_GainDelay):
     """Second order (two real poles) plus dead time: ``K e^{-Td s} / ((1+Tp1 s)(1+Tp2 s))``."""
 
-    K: float
-    Td: float
     Tp1: float
     Tp2: float
     kind: ClassVar[str] = "p2d"
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.K) and self.K != 0):
-            raise ConfigError(f"p2d parameter K must be finite and non-zero, got {self.K!r}")
-        _finite_positive("Td", self.Td, "p2d", allow_zero=True)
+        super().__post_init__()
         _finite_positive("Tp1", self.Tp1, "p2d")
         _finite_positive("Tp2", self.Tp2, "p2d")
 
     def rational(self) -> tuple[FloatArray, FloatArray]:
         return np.array([self.K]), np.polymul([self.Tp1, 1.0], [self.Tp2, 1.0])
 
-    @property
-    def dead_time_s(self) -> float:
-        return self.Td
-
-    @property
-    def pure_delay_s(self) -> float:
-        return self.Td
-
     def params(self) -> dict[str, Any]:
         return {"K": self.K, "Td": self.Td, "Tp1": self.Tp1, "Tp2": self.Tp2}
 
 
 @dataclass(frozen=True)
-class P2UZD(ProcessModel):
+class P2UZD(_GainDelay):
     """Two poles, a zero and dead time.
 
     Real poles: ``K e^{-Td s}(1 + Tz s)/((1 + Tp1 s)(1 + Tp2 s))`` (set ``Tp1``, ``Tp2``).
@@ -332,8 +331,6 @@ class P2UZD(ProcessModel):
     ``Tz`` may be negative (a right-half-plane zero) or zero.
     """
 
-    K: float
-    Td: float
     Tz: float
     Tp1: float | None = None
     Tp2: float | None = None
@@ -342,9 +339,7 @@ class P2UZD(ProcessModel):
     kind: ClassVar[str] = "p2uzd"
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.K) and self.K != 0):
-            raise ConfigError(f"p2uzd parameter K must be finite and non-zero, got {self.K!r}")
-        _finite_positive("Td", self.Td, "p2uzd", allow_zero=True)
+        super().__post_init__()
         if not math.isfinite(self.Tz):
             raise ConfigError(f"p2uzd parameter Tz must be finite, got {self.Tz!r}")
         real = self.Tp1 is not None or self.Tp2 is not None
@@ -377,14 +372,6 @@ class P2UZD(ProcessModel):
             assert self.Tp1 is not None and self.Tp2 is not None
             den = np.polymul([self.Tp1, 1.0], [self.Tp2, 1.0])
         return num, den
-
-    @property
-    def dead_time_s(self) -> float:
-        return self.Td
-
-    @property
-    def pure_delay_s(self) -> float:
-        return self.Td
 
     def params(self) -> dict[str, Any]:
         out: dict[str, Any] = {"K": self.K, "Td": self.Td}
