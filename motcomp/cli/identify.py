@@ -1,0 +1,89 @@
+"""``motcomp identify DATA``: fit P1D, P2D, P2UZD and OE models to a recorded axis."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from motcomp.cli._common import print_json, rate_arg
+from motcomp.core.axes import AXIS_INDEX
+from motcomp.errors import ConfigError
+
+ORDER = 5
+
+
+def _models(text: str) -> tuple[str, ...]:
+    kinds = tuple(k.strip().lower() for k in text.split(",") if k.strip())
+    if not kinds:
+        raise argparse.ArgumentTypeError("give at least one model, e.g. p1d,p2d")
+    return kinds
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "identify", help="identify an axis' delay and dynamics from a recording",
+        description="Fit P1D, P2D, P2UZD and OE models (delay included) to a recording of the "
+                    "command and the measured acceleration; print the paper's Table 1 row and "
+                    "the model comparison; write report.json, report.md, figures and the config "
+                    "fragment <axis>.toml into --out.")
+    p.add_argument("data", type=Path, metavar="DATA",
+                   help="CSV with columns t,cmd,acc (s, m or rad, m/s^2 or rad/s^2) or an MCAP "
+                        "session recording")
+    p.add_argument("--axis", metavar="NAME",
+                   help="axis name (default: from the data, else rails_y)")
+    p.add_argument("--models", type=_models, default=("p1d", "p2d", "p2uzd", "oe"),
+                   metavar="LIST", help="models to fit (default: p1d,p2d,p2uzd,oe)")
+    p.add_argument("--delay-range", nargs=2, type=float, default=(0.0, 250.0),
+                   metavar=("MIN_MS", "MAX_MS"), help="pure delay searched (default: 0 250)")
+    p.add_argument("--oe-order", type=int, default=2, metavar="N",
+                   help="order of the OE model's rational part (default: 2)")
+    p.add_argument("--oe-pade", type=int, default=1, metavar="N",
+                   help="Pade order of the OE model's delay, 0 for an exact delay (default: 1)")
+    p.add_argument("--cutoff", type=rate_arg, default=None, metavar="HZ",
+                   help="prefilter cut-off (default: from the command's spectrum)")
+    p.add_argument("--no-notch", action="store_true",
+                   help="do not notch narrow lines of the measurement (tremor)")
+    p.add_argument("--select-tolerance", type=float, default=1.0, metavar="POINTS",
+                   help="validation fit %% points a simpler model may trail by (default: 1)")
+    p.add_argument("--rate", type=rate_arg, default=None, metavar="HZ",
+                   help="resampling rate for irregular time stamps (default: 1/median period)")
+    p.add_argument("--clock", choices=("log", "frame"), default="log",
+                   help="MCAP time stamps: the recorder's log time or the frames' t")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR",
+                   help="output directory (default: DATA without suffix + '_ident')")
+    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_identify)
+
+
+def run_identify(args: argparse.Namespace) -> int:
+    from motcomp.ident.data import load_recording
+    from motcomp.ident.fit import FitOptions, identify
+    from motcomp.ident.report import markdown, report_json, write_report
+    from motcomp.progress import Progress
+
+    if args.axis is not None and args.axis not in AXIS_INDEX:
+        raise ConfigError(f"--axis: unknown axis {args.axis!r}; axes are {', '.join(AXIS_INDEX)}")
+    lo_ms, hi_ms = args.delay_range
+    options = FitOptions(models=args.models, delay_min_s=lo_ms * 1e-3, delay_max_s=hi_ms * 1e-3,
+                         oe_order=args.oe_order, oe_pade=args.oe_pade, cutoff_hz=args.cutoff,
+                         notch=not args.no_notch, select_tolerance=args.select_tolerance)
+    rec = load_recording(args.data, axis=args.axis, rate_hz=args.rate, clock=args.clock)
+    axis = args.axis or rec.axis or "rails_y"
+    stages = 1 + 4 * len(options.models)
+    with Progress("identify", total=stages, quiet=args.quiet or args.json) as bar:
+        ident = identify(rec, options, progress=lambda msg: bar.advance(note=msg))
+    out = args.out or args.data.with_name(args.data.stem + "_ident")
+    written = write_report(ident, out, axis=axis, figures=not args.no_figures)
+    if args.json:
+        obj = report_json(ident, axis)
+        obj["files"] = [str(p) for p in written]
+        print_json(obj)
+    else:
+        sys.stdout.write(markdown(ident, axis))
+        print(f"wrote {', '.join(str(p) for p in written)}")
+    for kind, msg in ident.errors.items():
+        print(f"warning: {kind} could not be fitted: {msg}", file=sys.stderr)
+    return 0
