@@ -27,10 +27,11 @@ extreme value for several samples in a row (sensor saturated or clipped).
 Resampling
 ----------
 A recording whose periods vary by more than 0.1 % is resampled onto the uniform grid
-``t0 + k / rate`` (``rate`` = the reciprocal of the median period unless given) by linear
-interpolation of both columns.  Linear interpolation suits both: the command's samples are points
-of the setpoint sequence that the platform holds, and holding a sequence of points lags it by
-half a period *whatever the grid*, a lag the fit's zero-order-hold model adds back.
+``t0 + k / rate`` (``rate`` = the mean sample rate, rounded to whole hertz when within 0.1 %,
+unless given) by linear interpolation of both columns.  Linear interpolation suits both: the
+command's samples are points of the setpoint sequence that the platform holds, and holding a
+sequence of points lags it by half a period *whatever the grid*, a lag the fit's
+zero-order-hold model adds back.
 
 The accelerometer's bias is not removed here: the fit estimates it as a free constant (see
 :mod:`motcomp.ident.fit`).
@@ -173,7 +174,8 @@ def _check_finite(x: FloatArray, col: str, place: Callable[[int], str], src: str
     bad = np.nonzero(~np.isfinite(x))[0]
     if bad.size:
         i = int(bad[0])
-        raise DataError(f"{src}: {place(i)}: column {col}: value {x[i]!r} is not a finite number")
+        raise DataError(f"{src}: {place(i)}: column {col}: value {float(x[i])!r} is not a finite "
+                        "number")
 
 
 def _check_clipped(x: FloatArray, col: str, place: Callable[[int], str], src: str) -> None:
@@ -222,13 +224,22 @@ def check_and_resample(raw: RawRecording, rate_hz: float | None = None) -> Recor
     d = np.diff(raw.t_acc)
     med = float(np.median(d))
     jitter = float(np.std(d))
-    rate = 1.0 / med if rate_hz is None else float(rate_hz)
+    if rate_hz is None:
+        rate = (raw.t_acc.size - 1) / float(raw.t_acc[-1] - raw.t_acc[0])  # the mean rate
+        # 1000.07 Hz from jittered stamps is 1 kHz; a regular record keeps its own rate
+        same = raw.t_cmd is raw.t_acc
+        tol = 1e-6 if same and float(np.max(np.abs(d - med))) <= 1e-3 * med else 1e-3
+        if abs(rate - round(rate)) <= tol * rate:
+            rate = float(round(rate))
+    else:
+        rate = float(rate_hz)
     if not (math.isfinite(rate) and rate > 0):
         raise DataError(f"{src}: resampling rate must be a positive number, got {rate!r}")
     same_grid = raw.t_cmd is raw.t_acc or (
         raw.t_cmd.size == raw.t_acc.size and bool(np.all(raw.t_cmd == raw.t_acc)))
     regular = same_grid and float(np.max(np.abs(d - med))) <= 1e-3 * med and (
-        rate_hz is None or abs(rate * med - 1.0) < 1e-9)
+        abs(rate * med - 1.0) < 1e-6)
+    # (a regular record: every period within 0.1 % of the median, and the rate its own)
     if regular:
         t = raw.t_acc - raw.t_acc[0]
         return Recording(t=t, cmd=raw.cmd.copy(), acc=raw.acc.copy(), rate_hz=rate,

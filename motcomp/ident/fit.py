@@ -525,9 +525,9 @@ def delay_bracket(prep: Prepared, lo_s: float, hi_s: float) -> Bracket:
 
 
 def _outside(side: str, value_s: float, lo_s: float, hi_s: float) -> DataError:
-    hint = ("raise --delay-max" if side == "upper" else
+    hint = ("widen the delay range (--delay-range)" if side == "upper" else
             "the measurement may lead the command (clocks or columns misaligned?); "
-            "lower --delay-min if that is expected")
+            "lower the delay range's minimum if that is expected")
     return DataError(f"pure delay outside the searched range: the best delay is at the {side} "
                      f"end ({value_s * 1e3:.1f} ms) of [{lo_s * 1e3:.1f}, {hi_s * 1e3:.1f}] ms; "
                      f"{hint}")
