@@ -212,22 +212,25 @@ def _welch(x: FloatArray, rate_hz: float, seconds: float) -> tuple[FloatArray, F
 
 
 def _lines(y: FloatArray, v: FloatArray, rate_hz: float, f_hi: float) -> list[float]:
-    """Frequencies of narrow lines in ``y`` that ``v`` does not share (up to 3, strongest first).
+    """Frequencies of narrow lines in the part of ``y`` that ``v`` does not explain (up to 3,
+    strongest first).
 
-    A line stands 15 dB above the running median of the spectrum (0.125 Hz bins, +-2 Hz);
-    lines where the command has one too (a multisine) are the response, not a disturbance.
+    That part's spectrum is estimated without any model as ``P_yy (1 - coherence(v, y))``
+    (Welch, 4 s segments); a line stands 15 dB above its running median (+-2 Hz).  Inside the
+    excitation band the response hides a tremor line from a plain spectrum; the coherence does
+    not, and the lines of a multisine, explained by the command, are not taken for tremor.
     """
-    f, py = _welch(y, rate_hz, 8.0)
-    _, pv = _welch(v, rate_hz, 8.0)
+    nper = min(y.size, max(256, int(4.0 * rate_hz)))
+    f, py = signal.welch(y, fs=rate_hz, nperseg=nper)
+    _, coh = signal.coherence(v, y, fs=rate_hz, nperseg=nper)
+    pn = py * np.clip(1.0 - coh, 0.0, 1.0)
     df = f[1] - f[0]
-    width = max(5, round(2.0 / df) | 1)
+    width = max(5, round(4.0 / df) | 1)
     from scipy.ndimage import median_filter
 
-    base_y = median_filter(py, size=width, mode="nearest")
-    base_v = median_filter(pv, size=width, mode="nearest")
-    score = py / np.maximum(base_y, 1e-300)
-    score_v = pv / np.maximum(base_v, 1e-300)
-    ok = (f >= 1.0) & (f <= f_hi) & (score > 10 ** 1.5) & (score_v < 5.0)
+    base = median_filter(pn, size=width, mode="nearest")
+    score = pn / np.maximum(base, 1e-300)
+    ok = (f >= 1.0) & (f <= f_hi) & (score > 10 ** 1.5)
     peaks = [i for i in np.nonzero(ok)[0]
              if score[i] >= score[max(i - 1, 0)] and score[i] >= score[min(i + 1, f.size - 1)]]
     peaks.sort(key=lambda i: -score[i])
@@ -235,7 +238,7 @@ def _lines(y: FloatArray, v: FloatArray, rate_hz: float, f_hi: float) -> list[fl
     for i in peaks:
         # centroid over the bin and its neighbours for a sub-bin frequency
         sl = slice(max(i - 1, 0), min(i + 2, f.size))
-        fc = float(np.sum(f[sl] * py[sl]) / np.sum(py[sl]))
+        fc = float(np.sum(f[sl] * pn[sl]) / np.sum(pn[sl]))
         if all(abs(fc - o) > 1.0 for o in out):
             out.append(fc)
         if len(out) == 3:
