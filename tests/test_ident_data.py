@@ -220,3 +220,48 @@ def test_bad_input_exit_code_in_a_real_process(tmp_path: Path) -> None:
     assert p.stderr.strip() == (f"motcomp identify: error: {tmp_path / 'd.csv'}:1: missing "
                                 "column(s) 't' (found 'time'); the header must name t, cmd and "
                                 "acc; found: time, cmd, acc")
+
+
+def test_mcap_with_two_axes_identified_together(tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+    import tomllib
+
+    from mcap.writer import Writer
+
+    truths = {"rails_x": P1D(K=1.0, Td=0.018, Tp1=0.16), "hex_z": P1D(K=1.0, Td=0.033, Tp1=0.01)}
+    lims = {"rails_x": AxisRange(-2.6, 2.6, 2.0, 6.0), "hex_z": AxisRange(-0.18, 0.18, 0.5, 7.0)}
+    data = {}
+    for i, (axis, truth) in enumerate(truths.items()):
+        exc = excitation("sweep" if axis == "rails_x" else "noise", axis, lims[axis],
+                         duration_s=30.0, seed=i + 1)
+        data[axis] = record_identification(truth, exc.cmd, 1000.0,
+                                           Accelerometer(noise_std=0.01), seed=i + 50)
+    t = data["rails_x"][0]
+    with open(tmp_path / "two.mcap", "wb") as fh:
+        w = Writer(fh)
+        w.start()
+        sp = w.register_channel(SETPOINT_KEY, "msgpack", 0)
+        fb = w.register_channel(FEEDBACK_KEY, "msgpack", 0)
+        for k in range(t.size):
+            ts = int((100.0 + t[k]) * 1e9)
+            w.add_message(sp, log_time=ts, publish_time=ts, data=msgpack.packb(
+                {"seq": k, "t": float(t[k]), "pos": {a: float(d[1][k]) for a, d in data.items()}}))
+            w.add_message(fb, log_time=ts, publish_time=ts, data=msgpack.packb(
+                {"t": float(t[k]), "pos": {}, "acc": {a: float(d[2][k]) for a, d in data.items()}}))
+        w.finish()
+    code = main(["identify", str(tmp_path / "two.mcap"), "--axis", "all", "--models", "p1d",
+                 "--out", str(tmp_path / "out"), "--no-figures", "--json"])
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    rep = json.loads(cap.out)
+    assert [r["axis"] for r in rep["table1"]] == ["rails_x", "hex_z"]
+    for row in rep["table1"]:
+        truth = truths[row["axis"]]
+        assert row["pure_delay_ms"] == pytest.approx(truth.Td * 1e3, abs=0.5)
+        assert row["phase_delay_0p2hz_ms"] == pytest.approx(
+            float(truth.phase_delay(0.2)[0]) * 1e3, abs=3.0)
+    doc = tomllib.loads((tmp_path / "out" / "axes.toml").read_text())
+    assert set(doc["axes"]) == {"rails_x", "hex_z"}
+    assert (tmp_path / "out" / "hex_z" / "report.json").is_file()
+    assert "| hex_z | p1d |" in (tmp_path / "out" / "table1.md").read_text()

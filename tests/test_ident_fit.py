@@ -220,3 +220,14 @@ def test_structures_build_valid_models() -> None:
     den = np.array([0.05**2, 2 * 2.0 * 0.05, 1.0])
     ref = np.polyval([0.01, 1.0], 2j * np.pi * f) / np.polyval(den, 2j * np.pi * f)
     assert np.allclose(over.freqresp(f), ref * np.exp(-2j * np.pi * f * 0.01))
+
+
+def test_reversed_accelerometer_is_reported_and_corrected() -> None:
+    truth = P1D(K=-1.0, Td=0.015, Tp1=0.08)
+    rec = recording(truth, "sweep", "rails_x", 20.0, seed=8, duration_s=30.0)
+    ident = identify(rec, FitOptions(models=("p1d",)))
+    m = ident.best.model
+    assert m.params()["K"] == pytest.approx(-1.0, rel=0.02)
+    assert any("opposite sign" in w for w in ident.warnings)
+    expected = float(P1D(1.0, 0.015, 0.08).phase_delay(0.2)[0]) * 1e3
+    assert ident.best.table1["phase_delay_0p2hz_ms"] == pytest.approx(expected, abs=1.0)

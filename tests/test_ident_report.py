@@ -96,8 +96,9 @@ def test_config_fragment_is_what_the_compensator_reads(rails_report: tuple[dict,
 def test_markdown_and_figures(rails_report: tuple[dict, Path]) -> None:
     _, out = rails_report
     md = (out / "report.md").read_text()
-    assert ("| axis | pure delay | phase delay at 0.2 Hz | bandwidth (-3 dB) | bandwidth (-6 dB) |"
-            in md)
+    assert ("| axis | model | pure delay | phase delay at 0.2 Hz | bandwidth (-3 dB) | "
+            "bandwidth (-6 dB) |") in md
+    assert "| rails_y | p1d | 17." in md
     assert "| p1d (selected) |" in md and "Selected **p1d**" in md
     for name in ("identification.png", "bode.png", "delay_profile.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -31,7 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="CSV with columns t,cmd,acc (s, m or rad, m/s^2 or rad/s^2) or an MCAP "
                         "session recording")
     p.add_argument("--axis", metavar="NAME",
-                   help="axis name (default: from the data, else rails_y)")
+                   help="axis name (default: from the data, else rails_y); for a recording of "
+                        "several axes, a comma-separated list or 'all'")
     p.add_argument("--models", type=_models, default=("p1d", "p2d", "p2uzd", "oe"),
                    metavar="LIST", help="models to fit (default: p1d,p2d,p2uzd,oe)")
     p.add_argument("--delay-range", nargs=2, type=float, default=(0.0, 250.0),
@@ -58,32 +59,77 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_identify)
 
 
+def _axes(args: argparse.Namespace) -> list[str | None]:
+    """``--axis``: one name, a comma-separated list, ``all`` (every axis the recording moves),
+    or nothing (the data's own axis)."""
+    from motcomp.ident.data import list_axes
+
+    if args.axis is None:
+        return [None]
+    if args.axis == "all":
+        found = list_axes(args.data, args.clock)
+        return list(found) if found else [None]
+    names = [a.strip() for a in args.axis.split(",") if a.strip()]
+    for a in names:
+        if a not in AXIS_INDEX:
+            raise ConfigError(f"--axis: unknown axis {a!r}; axes are {', '.join(AXIS_INDEX)}")
+    if len(set(names)) != len(names):
+        raise ConfigError(f"--axis: {args.axis!r} names an axis twice")
+    return list(names)
+
+
 def run_identify(args: argparse.Namespace) -> int:
     from motcomp.ident.data import load_recording
-    from motcomp.ident.fit import FitOptions, identify
-    from motcomp.ident.report import markdown, report_json, write_report
+    from motcomp.ident.fit import FitOptions, Identification, identify
+    from motcomp.ident.report import (
+        markdown,
+        report_json,
+        table1,
+        table1_markdown,
+        write_report,
+        write_reports,
+    )
     from motcomp.progress import Progress
 
-    if args.axis is not None and args.axis not in AXIS_INDEX:
-        raise ConfigError(f"--axis: unknown axis {args.axis!r}; axes are {', '.join(AXIS_INDEX)}")
+    axes = _axes(args)
     lo_ms, hi_ms = args.delay_range
     options = FitOptions(models=args.models, delay_min_s=lo_ms * 1e-3, delay_max_s=hi_ms * 1e-3,
                          oe_order=args.oe_order, oe_pade=args.oe_pade, cutoff_hz=args.cutoff,
                          notch=not args.no_notch, select_tolerance=args.select_tolerance)
-    rec = load_recording(args.data, axis=args.axis, rate_hz=args.rate, clock=args.clock)
-    axis = args.axis or rec.axis or "rails_y"
-    stages = 1 + 4 * len(options.models)
+    idents: dict[str, Identification] = {}
+    stages = len(axes) * (1 + 4 * len(options.models))
+    # every axis is identified before anything is written
     with Progress("identify", total=stages, quiet=args.quiet or args.json) as bar:
-        ident = identify(rec, options, progress=lambda msg: bar.advance(note=msg))
+        for name in axes:
+            rec = load_recording(args.data, axis=name, rate_hz=args.rate, clock=args.clock)
+            axis = name or rec.axis or "rails_y"
+            prefix = f"{axis}: " if len(axes) > 1 else ""
+
+            def note(msg: str, prefix: str = prefix) -> None:
+                bar.advance(note=prefix + msg)
+            idents[axis] = identify(rec, options, progress=note)
     out = args.out or args.data.with_name(args.data.stem + "_ident")
-    written = write_report(ident, out, axis=axis, figures=not args.no_figures)
-    if args.json:
+    if len(idents) == 1:
+        (axis, ident), = idents.items()
+        written = write_report(ident, out, axis=axis, figures=not args.no_figures)
         obj = report_json(ident, axis)
+        text = markdown(ident, axis)
+    else:
+        written = write_reports(idents, out, figures=not args.no_figures)
+        obj = {"axes": {a: report_json(i, a) for a, i in idents.items()},
+               "table1": [table1(i, a) for a, i in idents.items()]}
+        text = "\n".join(["# Table 1", "", table1_markdown(obj["table1"]), "",
+                          *(markdown(i, a) for a, i in idents.items())])
+    if args.json:
         obj["files"] = [str(p) for p in written]
         print_json(obj)
     else:
-        sys.stdout.write(markdown(ident, axis))
+        sys.stdout.write(text)
         print(f"wrote {', '.join(str(p) for p in written)}")
-    for kind, msg in ident.errors.items():
-        print(f"warning: {kind} could not be fitted: {msg}", file=sys.stderr)
+    for axis, ident in idents.items():
+        where = f"{axis}: " if len(idents) > 1 else ""
+        for kind, msg in ident.errors.items():
+            print(f"warning: {where}{kind} could not be fitted: {msg}", file=sys.stderr)
+        for msg in ident.warnings:
+            print(f"warning: {where}{msg}", file=sys.stderr)
     return 0

@@ -61,6 +61,7 @@ __all__ = [
     "RawRecording",
     "Recording",
     "check_and_resample",
+    "list_axes",
     "load_recording",
     "register_loader",
     "write_recording_csv",
@@ -345,8 +346,13 @@ def write_recording_csv(path: str | Path, t: FloatArray, cmd: FloatArray, acc: F
 
 # --- MCAP session recordings --------------------------------------------------------------------
 
-@register_loader(".mcap")
-def _load_mcap(path: Path, axis: str | None, clock: str) -> RawRecording:
+Rows = list[tuple[float, dict[str, Any], int]]
+_MCAP_CACHE: dict[tuple[str, int, str], tuple[Rows, Rows]] = {}
+
+
+def _read_mcap(path: Path, clock: str) -> tuple[Rows, Rows]:
+    """``(setpoints, feedback)`` as ``(time, frame, message index)``; the last file read is
+    kept, so that several axes of one recording are read once."""
     import msgpack
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
@@ -354,8 +360,11 @@ def _load_mcap(path: Path, axis: str | None, clock: str) -> RawRecording:
     src = str(path)
     if clock not in ("log", "frame"):
         raise DataError(f"clock must be 'log' or 'frame', got {clock!r}")
-    sp: list[tuple[float, dict[str, Any], int]] = []
-    fb: list[tuple[float, dict[str, Any], int]] = []
+    key = (str(path.resolve()), path.stat().st_mtime_ns, clock)
+    if key in _MCAP_CACHE:
+        return _MCAP_CACHE[key]
+    sp: Rows = []
+    fb: Rows = []
     try:
         with open(path, "rb") as fh:
             reader = make_reader(fh)
@@ -383,25 +392,62 @@ def _load_mcap(path: Path, axis: str | None, clock: str) -> RawRecording:
                 target.append((float(stamp), obj, index))
     except (McapError, OSError, EOFError) as exc:
         raise DataError(f"{src}: not a readable MCAP file ({exc})") from None
-    for key, got in ((SETPOINT_KEY, sp), (FEEDBACK_KEY, fb)):
+    for name, got in ((SETPOINT_KEY, sp), (FEEDBACK_KEY, fb)):
         if not got:
-            raise DataError(f"{src}: no messages on channel {key}")
+            raise DataError(f"{src}: no messages on channel {name}")
+    _MCAP_CACHE.clear()
+    _MCAP_CACHE[key] = (sp, fb)
+    return sp, fb
+
+
+def _moving_axes(sp: Rows) -> dict[str, float]:
+    """Span of the command of every known axis in the setpoint frames."""
+    spans: dict[str, list[float]] = {}
+    for _, obj, _ in sp:
+        pos = obj.get("pos")
+        if isinstance(pos, dict):
+            for name, value in pos.items():
+                if isinstance(value, int | float) and not isinstance(value, bool):
+                    spans.setdefault(name, []).append(float(value))
+    return {a: float(np.ptp(v)) for a, v in spans.items() if a in AXIS_INDEX}
+
+
+AxisLister = Callable[[Path, str], list[str]]
+AXIS_LISTERS: dict[str, AxisLister] = {}
+"""Per suffix, ``func(path, clock) -> axes that move``, for formats holding several axes."""
+
+
+def list_axes(path: str | Path, clock: str = "log") -> list[str]:
+    """The axes a recording excites (in the order of :data:`motcomp.core.axes.AXES`); a format
+    holding one axis (CSV) gives ``[]``: the caller names it."""
+    p = Path(path)
+    lister = AXIS_LISTERS.get(p.suffix.lower())
+    if lister is None or not p.is_file():
+        return []
+    return lister(p, clock)
+
+
+def _list_mcap(path: Path, clock: str) -> list[str]:
+    sp, _ = _read_mcap(path, clock)
+    moving = _moving_axes(sp)
+    return [a for a in AXIS_INDEX if moving.get(a, 0.0) > 0.0]
+
+
+AXIS_LISTERS[".mcap"] = _list_mcap
+
+
+@register_loader(".mcap")
+def _load_mcap(path: Path, axis: str | None, clock: str) -> RawRecording:
+    src = str(path)
+    sp, fb = _read_mcap(path, clock)
     # the axis: given, or the one whose command moves most
     if axis is None:
-        spans: dict[str, list[float]] = {}
-        for _, obj, _ in sp:
-            pos = obj.get("pos")
-            if isinstance(pos, dict):
-                for name, value in pos.items():
-                    if isinstance(value, int | float):
-                        spans.setdefault(name, []).append(float(value))
-        moving = {a: float(np.ptp(v)) for a, v in spans.items() if a in AXIS_INDEX}
+        moving = _moving_axes(sp)
         if not moving:
             raise DataError(f"{src}: {SETPOINT_KEY}: no frame has a pos map with a known axis")
         axis = max(moving, key=lambda a: moving[a])
 
-    def column(rows: list[tuple[float, dict[str, Any], int]], key: str, topic: str
-               ) -> tuple[FloatArray, FloatArray, list[int]]:
+    def column(rows: Rows, key: str, topic: str) -> tuple[FloatArray, FloatArray, list[int]]:
         ts, vs, idx = [], [], []
         for stamp, obj, index in rows:
             block = obj.get(key)

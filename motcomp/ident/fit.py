@@ -667,9 +667,12 @@ def _long_run_cov(scores: FloatArray, lags: int) -> FloatArray:
 
 
 def _derived(model: ProcessModel) -> dict[str, float]:
+    """Pure delay and phase delay at 0.2 Hz (ms); for a negative gain (an accelerometer
+    mounted the other way round), the phase delay of ``-G``."""
+    flip = 0.5 / 0.2 if model.gain < 0 else 0.0  # pi / w at 0.2 Hz
     return {
         "pure_delay_ms": model.pure_delay_s * 1e3,
-        "phase_delay_0p2hz_ms": float(model.phase_delay(0.2)[0]) * 1e3,
+        "phase_delay_0p2hz_ms": (float(model.phase_delay(0.2)[0]) + flip) * 1e3,
     }
 
 
@@ -931,6 +934,7 @@ class Identification:
     selected: str
     reason: str
     seconds: float
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def axis(self) -> str | None:
@@ -1042,4 +1046,31 @@ def identify(rec: Recording, options: FitOptions = FitOptions(),
             f"{k}: {v}" for k, v in errors.items()))
     selected, reason = select_model(fits, options.select_tolerance)
     return Identification(prep=prep, options=options, bracket=bracket, fits=fits, errors=errors,
-                          selected=selected, reason=reason, seconds=time.perf_counter() - t0)
+                          selected=selected, reason=reason, seconds=time.perf_counter() - t0,
+                          warnings=_warnings(prep, fits[selected]))
+
+
+PHASE_DELAY_SE_WARN_MS = 5.0
+"""Standard error of the phase delay at 0.2 Hz above which the report warns."""
+
+
+def _warnings(prep: Prepared, fit: ModelFit) -> list[str]:
+    """What a user should know before trusting the selected model."""
+    out = []
+    if fit.model.gain < 0:
+        out.append(f"the measured acceleration has the opposite sign of the command (gain "
+                   f"{fit.model.gain:.3g}): the accelerometer's axis looks reversed; the delays "
+                   "are those of the sign-corrected response")
+    se = fit.table1.get("phase_delay_0p2hz_ms_stderr")
+    if se is None or se > PHASE_DELAY_SE_WARN_MS:
+        shown = "undetermined" if se is None else f"+-{se:.1f} ms"
+        out.append(f"the phase delay at 0.2 Hz is uncertain ({shown}): the data hold little "
+                   "motion near 0.2 Hz; excite from 0.1 Hz (motcomp excite --kind sweep or "
+                   "multisine)")
+    if fit.at_bounds:
+        out.append(f"{fit.kind}: {', '.join(fit.at_bounds)}")
+    jitter = prep.recording.period_jitter_s * prep.rate_hz
+    if jitter > 0.2:
+        out.append(f"the time stamps jitter by {jitter * 100:.0f} % of the period; the "
+                   "resampled data lose accuracy at high frequency")
+    return out

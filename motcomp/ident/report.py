@@ -26,8 +26,8 @@ from motcomp.core.models import ProcessModel
 from motcomp.errors import ConfigError
 from motcomp.ident.fit import Identification, ModelFit
 
-__all__ = ["config_fragment", "markdown", "report_json", "table1", "write_figures",
-           "write_report"]
+__all__ = ["config_fragment", "markdown", "report_json", "table1", "table1_markdown",
+           "write_figures", "write_report", "write_reports"]
 
 
 def _axis(ident: Identification, axis: str | None) -> str:
@@ -80,6 +80,7 @@ def report_json(ident: Identification, axis: str | None = None) -> dict[str, Any
         "phase_delay_0p2hz_ms_stderr": t1["phase_delay_0p2hz_ms_stderr"],
         "bandwidth_hz": t1["bandwidth_hz"],
         "table1": t1,
+        "warnings": list(ident.warnings),
         "seconds": ident.seconds,
     }
     return _finite(out)
@@ -145,11 +146,7 @@ def markdown(ident: Identification, axis: str | None = None) -> str:
         "",
         f"## Table 1 ({rep['selected']})",
         "",
-        "| axis | pure delay | phase delay at 0.2 Hz | bandwidth (-3 dB) | bandwidth (-6 dB) |",
-        "|---|---|---|---|---|",
-        f"| {t1['axis']} | {_pm(t1['pure_delay_ms'], t1['pure_delay_ms_stderr'], '.1f')} ms | "
-        f"{_pm(t1['phase_delay_0p2hz_ms'], t1['phase_delay_0p2hz_ms_stderr'], '.1f')} ms | "
-        f"{_bw(t1['bandwidth_hz']['-3dB'])} | {_bw(t1['bandwidth_hz']['-6dB'])} |",
+        table1_markdown([t1]),
         "",
         "## Models",
         "",
@@ -172,12 +169,27 @@ def markdown(ident: Identification, axis: str | None = None) -> str:
         "",
         f"Selected **{rep['selected']}**: {rep['reason']}.",
         "",
+        *[f"**Warning**: {w}." for w in rep["warnings"]],
+        *([""] if rep["warnings"] else []),
         f"Model spec: `{rep['model_spec']}`"
         + (f"; the compensator's P1D (same gain, pure delay and phase delay at 0.2 Hz): "
            f"`{rep['compensator_p1d']}`" if rep["compensator_p1d"] and
            rep["compensator_p1d"] != rep["model_spec"] else "") + ".",
         "",
     ]
+    return "\n".join(lines)
+
+
+def table1_markdown(rows: list[dict[str, Any]]) -> str:
+    """The paper's Table 1, one row per axis (rows from :func:`table1`)."""
+    lines = ["| axis | model | pure delay | phase delay at 0.2 Hz | bandwidth (-3 dB) | "
+             "bandwidth (-6 dB) |", "|---|---|---|---|---|---|"]
+    for t1 in rows:
+        lines.append(
+            f"| {t1['axis']} | {t1['model']} | "
+            f"{_pm(t1['pure_delay_ms'], t1['pure_delay_ms_stderr'], '.1f')} ms | "
+            f"{_pm(t1['phase_delay_0p2hz_ms'], t1['phase_delay_0p2hz_ms_stderr'], '.1f')} ms | "
+            f"{_bw(t1['bandwidth_hz']['-3dB'])} | {_bw(t1['bandwidth_hz']['-6dB'])} |")
     return "\n".join(lines)
 
 
@@ -339,25 +351,58 @@ def write_figures(ident: Identification, out_dir: Path) -> list[Path]:
     return written
 
 
+def _write_one(ident: Identification, directory: Path, axis: str | None, figures: bool
+               ) -> list[Path]:
+    name = _axis(ident, axis)
+    (directory / "report.json").write_text(
+        json.dumps(report_json(ident, axis), indent=2, allow_nan=False) + "\n")
+    (directory / "report.md").write_text(markdown(ident, axis))
+    (directory / f"{name}.toml").write_text(config_fragment(ident, axis))
+    files = [directory / "report.json", directory / "report.md", directory / f"{name}.toml"]
+    if figures:
+        files += write_figures(ident, directory)
+    return files
+
+
+def _commit(tmp_path: Path, out_dir: Path) -> list[Path]:
+    """Move everything from ``tmp_path`` into ``out_dir`` (after it has all been written)."""
+    final = []
+    for p in sorted(tmp_path.rglob("*")):
+        if p.is_file():
+            target = out_dir / p.relative_to(tmp_path)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.move(str(p), target)
+            final.append(target)
+    return final
+
+
 def write_report(ident: Identification, out_dir: Path, axis: str | None = None,
                  figures: bool = True) -> list[Path]:
     """Write ``report.json``, ``report.md``, ``<axis>.toml`` and (optionally) the figures into
     ``out_dir``, through a temporary directory: on any failure nothing is left behind."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    name = _axis(ident, axis)
-    final: list[Path] = []
+    with tempfile.TemporaryDirectory(dir=out_dir, prefix=".tmp-") as tmp:
+        _write_one(ident, Path(tmp), axis, figures)
+        return _commit(Path(tmp), out_dir)
+
+
+def write_reports(idents: dict[str, Identification], out_dir: Path, figures: bool = True
+                  ) -> list[Path]:
+    """Several axes of one recording: a sub-directory per axis with its full report, and at the
+    top ``table1.md`` / ``table1.json`` (one row per axis) and ``axes.toml`` (every axis'
+    fragment), all written before any is moved into place."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows = [table1(ident, axis) for axis, ident in idents.items()]
     with tempfile.TemporaryDirectory(dir=out_dir, prefix=".tmp-") as tmp:
         tmp_path = Path(tmp)
-        (tmp_path / "report.json").write_text(
-            json.dumps(report_json(ident, axis), indent=2, allow_nan=False) + "\n")
-        (tmp_path / "report.md").write_text(markdown(ident, axis))
-        (tmp_path / f"{name}.toml").write_text(config_fragment(ident, axis))
-        files = [tmp_path / "report.json", tmp_path / "report.md", tmp_path / f"{name}.toml"]
-        if figures:
-            files += write_figures(ident, tmp_path)
-        for p in files:
-            target = out_dir / p.name
-            shutil.move(str(p), target)
-            final.append(target)
-    return final
+        for axis, ident in idents.items():
+            (tmp_path / axis).mkdir()
+            _write_one(ident, tmp_path / axis, axis, figures)
+        (tmp_path / "table1.md").write_text(table1_markdown(rows) + "\n")
+        (tmp_path / "table1.json").write_text(
+            json.dumps(_finite(rows), indent=2, allow_nan=False) + "\n")
+        (tmp_path / "axes.toml").write_text(
+            "\n".join(config_fragment(ident, axis) for axis, ident in idents.items()))
+        return _commit(tmp_path, out_dir)
