@@ -119,15 +119,18 @@ def run_excite(args: argparse.Namespace) -> int:
         t, cmd, acc = record_identification(model, exc.cmd, exc.rate_hz, meter,
                                             jitter_s=args.jitter_ms * 1e-3, seed=sensor_seed)
         sim = args.out.with_name(args.out.name + ".sim.csv")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     csv_path = args.out.with_name(args.out.name + ".csv")
     stream_path = args.out.with_name(args.out.name + ".msgpack")
-    write_csv(csv_path, exc)
-    write_setpoint_stream(stream_path, exc)
-    files = [str(csv_path), str(stream_path)]
-    if sim is not None:
-        write_recording_csv(sim, t, cmd, acc, axis=args.axis)
-        files.append(str(sim))
+    try:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        write_csv(csv_path, exc)
+        write_setpoint_stream(stream_path, exc)
+        if sim is not None:
+            write_recording_csv(sim, t, cmd, acc, axis=args.axis)
+    except OSError as exc_os:
+        raise ConfigError(f"--out {args.out}: cannot write: {exc_os.strerror or exc_os}"
+                          ) from None
+    files = [str(csv_path), str(stream_path)] + ([str(sim)] if sim is not None else [])
     summary = exc.summary()
     summary.update(limits_from=preset or "--limits", files=files)
     if args.json:

@@ -109,13 +109,20 @@ def run_identify(args: argparse.Namespace) -> int:
                 bar.advance(note=prefix + msg)
             idents[axis] = identify(rec, options, progress=note)
     out = args.out or args.data.with_name(args.data.stem + "_ident")
+    try:
+        if len(idents) == 1:
+            (axis, ident), = idents.items()
+            written = write_report(ident, out, axis=axis, figures=not args.no_figures)
+        else:
+            written = write_reports(idents, out, figures=not args.no_figures)
+    except OSError as exc:
+        raise ConfigError(f"--out {out}: cannot write the report: {exc.strerror or exc}"
+                          ) from None
     if len(idents) == 1:
         (axis, ident), = idents.items()
-        written = write_report(ident, out, axis=axis, figures=not args.no_figures)
         obj = report_json(ident, axis)
         text = markdown(ident, axis)
     else:
-        written = write_reports(idents, out, figures=not args.no_figures)
         obj = {"axes": {a: report_json(i, a) for a, i in idents.items()},
                "table1": [table1(i, a) for a, i in idents.items()]}
         text = "\n".join(["# Table 1", "", table1_markdown(obj["table1"]), "",

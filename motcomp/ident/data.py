@@ -335,13 +335,17 @@ def _load_csv(path: Path, axis: str | None, clock: str) -> RawRecording:
 
 def write_recording_csv(path: str | Path, t: FloatArray, cmd: FloatArray, acc: FloatArray,
                         axis: str | None = None) -> None:
-    """Write ``t,cmd,acc`` (with ``# axis: NAME`` first if given), full precision."""
-    with open(path, "w") as fh:
+    """Write ``t,cmd,acc`` (with ``# axis: NAME`` first if given), full precision, through a
+    temporary file (never half a file)."""
+    from motcomp.ident.excitation import atomic_write
+
+    def _w(fh: Any) -> None:
         if axis:
             fh.write(f"# axis: {axis}\n")
         fh.write("t,cmd,acc\n")
         for row in zip(t, cmd, acc, strict=True):
             fh.write(f"{row[0]:.9f},{row[1]:.12g},{row[2]:.12g}\n")
+    atomic_write(Path(path), _w, "w")
 
 
 # --- MCAP session recordings --------------------------------------------------------------------

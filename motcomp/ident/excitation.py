@@ -58,6 +58,7 @@ __all__ = [
     "KINDS",
     "AxisRange",
     "Excitation",
+    "atomic_write",
     "check_limits",
     "default_band_hz",
     "excitation",
@@ -340,13 +341,16 @@ def excitation(kind: str, axis: str, limits: AxisRange, duration_s: float = 60.0
                       scale=float(scale), peaks=peaks, usage=ratio, params=params)
 
 
-def _atomic_write(path: Path, write: Callable[[Any], None], mode: str) -> None:
+def atomic_write(path: Path, write: Callable[[Any], None], mode: str) -> None:
     """Write through a temporary file in the same directory, then rename: never half a file."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent or ".", prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, mode) as fh:
             write(fh)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 is for the temporary name only
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -359,7 +363,7 @@ def write_csv(path: Path, exc: Excitation) -> None:
         fh.write("t,cmd\n")
         for ti, ui in zip(exc.t, exc.cmd, strict=True):
             fh.write(f"{ti:.6f},{ui:.12g}\n")
-    _atomic_write(path, _w, "w")
+    atomic_write(path, _w, "w")
 
 
 def write_setpoint_stream(path: Path, exc: Excitation) -> None:
@@ -371,7 +375,7 @@ def write_setpoint_stream(path: Path, exc: Excitation) -> None:
     def _w(fh: Any) -> None:
         for k, (ti, ui) in enumerate(zip(exc.t, exc.cmd, strict=True)):
             fh.write(packer.pack({"seq": k, "t": float(ti), "pos": {exc.axis: float(ui)}}))
-    _atomic_write(path, _w, "wb")
+    atomic_write(path, _w, "wb")
 
 
 def read_setpoint_stream(path: Path) -> list[dict[str, Any]]:
