@@ -536,8 +536,7 @@ def _outside(side: str, value_s: float, lo_s: float, hi_s: float) -> DataError:
                      f"{hint}")
 
 
-def _coarse_profile(prep: Prepared, s: Structure, lo_s: float, hi_s: float,
-                    grid: FloatArray, t_bounds: tuple[float, float]
+def _coarse_profile(prep: Prepared, s: Structure, lo_s: float, hi_s: float, grid: FloatArray
                     ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Profile on the coarse data over ``[lo, hi]``: ``(tau, sse, best theta per tau)``."""
     h_c = 1.0 / prep.rate_c
@@ -746,12 +745,126 @@ def _uncertainty(prep: Prepared, s: Structure, model: ProcessModel, bias: float,
     return se, derived
 
 
+def _coarse_stage(prep: Prepared, s: Structure, bracket: Bracket, options: FitOptions,
+                  grid: FloatArray, bounds: tuple[FloatArray, FloatArray]
+                  ) -> tuple[float, FloatArray, float, tuple[FloatArray, FloatArray], int]:
+    """Coarse profile within the bracket (widened to the whole range if its minimum sits on the
+    bracket's end), then a local profile with continuous ``theta`` on the coarse data.
+
+    Returns ``(delay, theta, coarse step, (delays, errors), evaluations)``.
+    """
+    lo_s, hi_s = options.delay_min_s, options.delay_max_s
+    tau_c, sse_c, th_c = _coarse_profile(prep, s, bracket.lo_s, bracket.hi_s, grid)
+    if not np.any(np.isfinite(sse_c)):
+        raise ModelFitError(f"{s.kind}: no starting point gave a finite error")
+    i = int(np.nanargmin(sse_c))
+    if i == tau_c.size - 1 and bracket.hi_s < hi_s:
+        tau_c, sse_c, th_c = _coarse_profile(prep, s, lo_s, hi_s, grid)
+        i = int(np.nanargmin(sse_c))
+    if i == tau_c.size - 1 and tau_c.size > 1:
+        raise _outside("upper", float(tau_c[i]), lo_s, hi_s)
+    # (a minimum on the lower end is decided at the full rate: it may lie within a sample)
+    step_c = float(np.median(np.diff(tau_c))) if tau_c.size > 1 else 1.0 / prep.rate_c
+    data_c = _Data(prep.v_c, prep.y_c, prep.est_c, 1.0 / prep.rate_c, prep.coarse_extra_s)
+    taus = np.unique(np.clip(tau_c[i] + np.linspace(-1.0, 1.0, 5) * step_c, lo_s, hi_s))
+    vals = np.empty(taus.size)
+    thetas: list[FloatArray] = [th_c[i]] * taus.size
+    centre = int(np.argmin(np.abs(taus - tau_c[i])))
+    for order in (range(centre, taus.size), range(centre - 1, -1, -1)):
+        th = thetas[centre] if order.start < centre else th_c[i]
+        for j in order:  # outwards from the grid's best, each start from its neighbour
+            th, vals[j] = _inner(data_c, s, th, float(taus[j]), bounds, tol=1e-4)
+            thetas[j] = th
+    j = int(np.argmin(vals))
+    tau1 = (_parabola_min(taus[j - 1:j + 2], vals[j - 1:j + 2]) if 0 < j < taus.size - 1
+            else float(taus[j]))
+    return tau1, thetas[j], step_c, (tau_c, sse_c), data_c.evals
+
+
+class _FineProfile:
+    """``P(Td) = min_theta SSE(theta, Td)`` on the full-rate data, cached per 1/64 sample."""
+
+    def __init__(self, data: _Data, s: Structure, bounds: tuple[FloatArray, FloatArray],
+                 theta0: FloatArray, lo_s: float, hi_s: float) -> None:
+        self.data, self.s, self.bounds = data, s, bounds
+        self.theta0 = theta0
+        self.lo, self.hi = lo_s, hi_s
+        self.h = data.h
+        self.cache: dict[float, tuple[float, FloatArray]] = {}
+
+    def _key(self, d: float) -> float:
+        return round(d / self.h * 64.0) / 64.0
+
+    def theta_near(self, d: float) -> FloatArray:
+        """The optimal ``theta`` of the nearest delay already profiled (a warm start)."""
+        if not self.cache:
+            return self.theta0
+        k = min(self.cache, key=lambda c: abs(c * self.h - d))
+        return self.cache[k][1]
+
+    def __call__(self, d: float) -> float:
+        key = self._key(d)
+        if key not in self.cache:
+            th, val = _inner(self.data, self.s, self.theta_near(d), key * self.h, self.bounds,
+                             tol=1e-6)
+            self.cache[key] = (val, th)
+        return self.cache[key][0]
+
+    def theta(self, d: float) -> FloatArray:
+        self(d)
+        return self.cache[self._key(d)][1]
+
+    def inside(self, d: float) -> bool:
+        return self.lo - 1e-12 <= d <= self.hi + 1e-12
+
+    def walk(self, d: float, limit: int) -> float:
+        """Whole-sample steps downhill from ``d`` until a minimum is enclosed (or the range's
+        end is reached, which is an error unless the minimum lies within its first sample)."""
+        h = self.h
+        for _ in range(limit):
+            left, right = max(d - h, self.lo), min(d + h, self.hi)
+            pl = self(left) if left < d else math.inf
+            pr = self(right) if right > d else math.inf
+            if self(d) <= pl and self(d) <= pr:
+                break
+            d = left if pl < pr else right
+        if d >= self.hi - 1e-12 and self(d) <= self(max(d - h, self.lo)):
+            raise _outside("upper", d, self.lo, self.hi)
+        if d <= self.lo + 1e-12 and self.lo + h <= self.hi and self(d) <= self(self.lo + h):
+            quarter = [self(self.lo + q * h / 4) for q in range(5)]
+            if int(np.argmin(quarter)) == 0:
+                raise _outside("lower", self.lo, self.lo, self.hi)
+        return d
+
+    def refine(self, d: float) -> float:
+        """Halve the step twice about the best point, then the vertex of the parabola through
+        the best quarter-sample point and its two neighbours."""
+        h = self.h
+        best = d
+        for step in (h / 2, h / 4):
+            for x in (best - step, best + step):
+                if self.inside(x):
+                    self(x)
+            near = [c * h for c in self.cache if abs(c * h - best) <= step + 1e-12 * h]
+            best = min(near, key=self)
+        trio = [x for x in (best - h / 4, best, best + h / 4) if self.inside(x)]
+        vals = [self(x) for x in trio]
+        if len(trio) == 3 and vals[1] <= min(vals[0], vals[2]):
+            return _parabola_min(np.array(trio), np.array(vals))
+        return best
+
+    def curve(self) -> tuple[FloatArray, FloatArray]:
+        keys = sorted(self.cache)
+        return (np.array([k * self.h for k in keys]),
+                np.array([self.cache[k][0] for k in keys]))
+
+
 def fit_structure(prep: Prepared, s: Structure, bracket: Bracket, options: FitOptions,
                   progress: ProgressFn | None = None, start: ProcessModel | None = None
                   ) -> ModelFit:
     """Fit one structure: coarse profile, fine profile, polish, uncertainty (module notes).
 
-    ``start`` (a fitted model of the same structure family) adds its ``theta`` to the grid.
+    ``start`` (a model already fitted, e.g. P2UZD for OE) adds its ``theta`` to the grid.
 
     Raises
     ------
@@ -762,7 +875,6 @@ def fit_structure(prep: Prepared, s: Structure, bracket: Bracket, options: FitOp
     """
     t0 = time.perf_counter()
     note = progress or (lambda _msg: None)
-    rate = prep.rate_hz
     h = prep.h
     lo_s, hi_s = options.delay_min_s, options.delay_max_s
     t_lo = max(0.5 * h, 1e-3)
@@ -773,151 +885,74 @@ def fit_structure(prep: Prepared, s: Structure, bracket: Bracket, options: FitOp
         with contextlib.suppress(NotImplementedError):
             grid = np.vstack([grid, s.theta_of(start)[None, :]])
 
-    # 1-2. coarse profile within the bracket, widened if its minimum sits on the bracket's end
-    b_lo, b_hi = bracket.lo_s, bracket.hi_s
+    # 1-2. bracket (given) and coarse profile
     note(f"{s.kind}: coarse delay profile")
-    tau_c, sse_c, th_c = _coarse_profile(prep, s, b_lo, b_hi, grid, (t_lo, t_hi))
-    if not np.any(np.isfinite(sse_c)):
-        raise ModelFitError(f"{s.kind}: no starting point gave a finite error")
-    i = int(np.nanargmin(sse_c))
-    if i == tau_c.size - 1 and b_hi < hi_s:
-        tau_c, sse_c, th_c = _coarse_profile(prep, s, lo_s, hi_s, grid, (t_lo, t_hi))
-        i = int(np.nanargmin(sse_c))
-    if i == tau_c.size - 1 and tau_c.size > 1:
-        raise _outside("upper", float(tau_c[i]), lo_s, hi_s)
-    if i == 0 and tau_c.size > 1 and tau_c[0] <= lo_s + 1e-12:
-        # the lowest delay is best: refine at the full rate before deciding (it may be inside)
-        pass
-    step_c = float(np.median(np.diff(tau_c))) if tau_c.size > 1 else h
-    coarse_profile = (tau_c.copy(), sse_c.copy())
+    tau1, theta1, step_c, coarse_profile, evals_c = _coarse_stage(prep, s, bracket, options,
+                                                                  grid, bounds)
 
-    # local refinement on the coarse data with theta optimised continuously
-    data_c = _Data(prep.v_c, prep.y_c, prep.est_c, 1.0 / prep.rate_c, prep.coarse_extra_s)
-    theta = th_c[i]
-    ref_taus = np.unique(np.clip(tau_c[i] + np.linspace(-1.0, 1.0, 5) * step_c, lo_s, hi_s))
-    ref_vals = np.empty(ref_taus.size)
-    ref_th: list[FloatArray] = [theta] * ref_taus.size
-    centre = int(np.argmin(np.abs(ref_taus - tau_c[i])))
-    for order in (range(centre, ref_taus.size), range(centre - 1, -1, -1)):
-        th = ref_th[centre] if order.start < centre else theta
-        for j in order:
-            th, ref_vals[j] = _inner(data_c, s, th, float(ref_taus[j]), bounds, tol=1e-4)
-            ref_th[j] = th
-    j = int(np.argmin(ref_vals))
-    if 0 < j < ref_taus.size - 1:
-        tau1 = _parabola_min(ref_taus[j - 1:j + 2], ref_vals[j - 1:j + 2])
-    else:
-        tau1 = float(ref_taus[j])
-    theta = ref_th[j]
-    evals = data_c.evals
-    stage_evals = {"coarse": evals}
-
-    # 3. fine profile at the full rate: walk by whole samples, then a quarter-sample grid
+    # 3. fine profile at the full rate
     note(f"{s.kind}: fine delay profile")
     data = _Data(prep.v, prep.y, prep.est, h, 0.0, every=prep.coarse_factor)
-    cache: dict[float, tuple[float, FloatArray]] = {}
-
-    def P(d: float, th0: FloatArray) -> float:
-        key = round(d / h * 64.0) / 64.0
-        if key not in cache:
-            th, val = _inner(data, s, th0, float(key * h), bounds, tol=1e-6)
-            cache[key] = (val, th)
-        return cache[key][0]
-
-    def theta_near(d: float) -> FloatArray:
-        if not cache:
-            return theta
-        k = min(cache, key=lambda c: abs(c * h - d))
-        return cache[k][1]
-
-    centre_d = min(max(round(tau1 / h) * h, lo_s), hi_s)
-    walk_limit = math.ceil((2.0 * step_c + 3.0 * (1.0 / prep.rate_c)) / h) + 4
-    d = centre_d
-    P(d, theta)
-    for _ in range(walk_limit):
-        left = max(d - h, lo_s)
-        right = min(d + h, hi_s)
-        pl = P(left, theta_near(left)) if left < d else math.inf
-        pr = P(right, theta_near(right)) if right > d else math.inf
-        pc = P(d, theta_near(d))
-        if pc <= pl and pc <= pr:
-            break
-        d = left if pl < pr else right
-    if d >= hi_s - 1e-12 and P(d, theta_near(d)) <= P(max(d - h, lo_s), theta_near(d - h)):
-        raise _outside("upper", d, lo_s, hi_s)
-    if d <= lo_s + 1e-12 and lo_s + h <= hi_s and P(d, theta_near(d)) <= P(lo_s + h,
-                                                                           theta_near(lo_s + h)):
-        # allow a real minimum within the first sample above the range's lower end
-        sub = [P(lo_s + q * h / 4, theta_near(lo_s)) for q in range(5)]
-        if int(np.argmin(sub)) == 0:
-            raise _outside("lower", lo_s, lo_s, hi_s)
-    # the minimum lies within one sample of d: halve the step twice, keeping the best point
-    best_d = d
-    for step in (h / 2, h / 4):
-        for x in (best_d - step, best_d + step):
-            if lo_s - 1e-12 <= x <= hi_s + 1e-12:
-                P(x, theta_near(x))
-        best_d = min((c * h for c in cache if abs(c * h - best_d) <= step + 1e-12 * h),
-                     key=lambda x: P(x, theta_near(x)))
-    trio = [x for x in (best_d - h / 4, best_d, best_d + h / 4)
-            if lo_s - 1e-12 <= x <= hi_s + 1e-12]
-    vals = [P(x, theta_near(x)) for x in trio]
-    if len(trio) == 3 and vals[1] <= min(vals[0], vals[2]):
-        tau_f = _parabola_min(np.array(trio), np.array(vals))
-    else:
-        tau_f = best_d
-    theta_f = theta_near(tau_f)
-    sse_f = P(tau_f, theta_f)
-    theta_f = cache[round(tau_f / h * 64.0) / 64.0][1]
-    fine_keys = sorted(cache)
-    fine_profile = (np.array([c * h for c in fine_keys]), np.array([cache[c][0]
-                                                                    for c in fine_keys]))
+    prof = _FineProfile(data, s, bounds, theta1, lo_s, hi_s)
+    walk_limit = math.ceil((2.0 * step_c + 3.0 / prep.rate_c) / h) + 4
+    d = prof.walk(min(max(round(tau1 / h) * h, lo_s), hi_s), walk_limit)
+    tau_f = prof.refine(d)
+    theta_f = prof.theta(tau_f)
+    sse_f = prof(tau_f)
+    evals_fine = data.evals
 
     # 4. polish jointly, the delay bounded to one sample about the profile's minimum
-    stage_evals["fine"] = data.evals
     note(f"{s.kind}: joint polish")
-    d_lo, d_hi = max(tau_f - h, lo_s), min(tau_f + h, hi_s)
-    lo_b = np.concatenate([bounds[0], [d_lo]])
-    hi_b = np.concatenate([bounds[1], [d_hi]])
-    x0 = np.concatenate([theta_f, [tau_f]])
+    lo_b = np.concatenate([bounds[0], [max(tau_f - h, lo_s)]])
+    hi_b = np.concatenate([bounds[1], [min(tau_f + h, hi_s)]])
     steps = np.concatenate([np.full(theta_f.size, 1e-7), [1e-4 * h]])
     try:
-        x_pol, cost = _lm(lambda xv: data.residual(s, xv[:-1], float(xv[-1])), x0, lo_b, hi_b,
-                          steps, 1e-12, max_iter=30)
+        x_pol, cost = _lm(lambda xv: data.residual(s, xv[:-1], float(xv[-1])),
+                          np.concatenate([theta_f, [tau_f]]), lo_b, hi_b, steps, 1e-12,
+                          max_iter=30)
         if cost <= sse_f:
             theta_f, tau_f = np.asarray(x_pol[:-1]), float(x_pol[-1])
     except (np.linalg.LinAlgError, ValueError, ModelFitError):
         pass
-    evals += data.evals
-    stage_evals["polish"] = data.evals - stage_evals["fine"]
+    stage_evals = {"coarse": evals_c, "fine": evals_fine, "polish": data.evals - evals_fine}
 
-    # final model, metrics, uncertainty
     note(f"{s.kind}: uncertainty")
-    R = data.regressors(s, theta_f, tau_f)
+    fit = _finish(prep, s, data, theta_f, tau_f, bounds)
+    fit.profile_coarse, fit.profile_fine = coarse_profile, prof.curve()
+    fit.evaluations = evals_c + data.evals
+    fit.stage_evals = stage_evals
+    fit.seconds = time.perf_counter() - t0
+    return fit
+
+
+def _finish(prep: Prepared, s: Structure, data: _Data, theta: FloatArray, tau: float,
+            bounds: tuple[FloatArray, FloatArray]) -> ModelFit:
+    """The model at ``(theta, tau)`` with its scores and uncertainties."""
+    R = data.regressors(s, theta, tau)
     coef, resid = data.solve(R)
-    model = s.build(theta_f, tau_f, coef)
+    model = s.build(theta, tau, coef)
     bias = float(coef[-1])
     yhat = prep.y - resid
     fit, vaf = _fit_metrics(prep.y, yhat, prep.val)
-    yhat_raw = predict_acceleration(model, prep.v_raw, rate) + bias
+    yhat_raw = predict_acceleration(model, prep.v_raw, prep.rate_hz) + bias
     fit_raw, vaf_raw = _fit_metrics(prep.y_raw, yhat_raw, prep.val)
     e = resid[prep.est]
     n_est = e.size
     sse = float(e @ e)
-    n_eff = n_est * min(1.0, 2.0 * prep.cutoff_hz / rate)
+    n_eff = n_est * min(1.0, 2.0 * prep.cutoff_hz / prep.rate_hz)
     aic = n_eff * math.log(max(sse, 1e-300) / n_est) + 2 * s.n_params
     se, se_derived = _uncertainty(prep, s, model, bias, resid)
     lo_th, hi_th = bounds
     at_bounds = []
-    if np.any(np.abs(theta_f - lo_th) < 1e-6) or np.any(np.abs(theta_f - hi_th) < 1e-6):
+    if np.any(np.abs(theta - lo_th) < 1e-6) or np.any(np.abs(theta - hi_th) < 1e-6):
         at_bounds.append("time constant or damping at its search bound")
+    empty = (np.zeros(0), np.zeros(0))
     return ModelFit(
         kind=s.kind, model=model, params=model.params(), stderr=se, fit_percent=fit,
         vaf_percent=vaf, fit_percent_raw=fit_raw, vaf_percent_raw=vaf_raw, aic=aic,
         n_params=s.n_params, rmse=math.sqrt(sse / n_est), bias=bias + prep.acc_mean,
-        seconds=time.perf_counter() - t0, table1=_table1(model, se_derived),
-        at_bounds=at_bounds, profile_coarse=coarse_profile, profile_fine=fine_profile,
-        prediction=yhat, prediction_raw=yhat_raw, evaluations=evals, stage_evals=stage_evals)
+        seconds=0.0, table1=_table1(model, se_derived), at_bounds=at_bounds,
+        profile_coarse=empty, profile_fine=empty, prediction=yhat, prediction_raw=yhat_raw)
 
 
 # --- the whole identification -------------------------------------------------------------------
