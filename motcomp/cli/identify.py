@@ -48,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--select-tolerance", type=float, default=1.0, metavar="POINTS",
                    help="validation fit %% points a simpler model may trail by (default: 1)")
     p.add_argument("--rate", type=rate_arg, default=None, metavar="HZ",
-                   help="resampling rate for irregular time stamps (default: 1/median period)")
+                   help="resampling rate for irregular time stamps (default: the mean rate)")
     p.add_argument("--clock", choices=("log", "frame"), default="log",
                    help="MCAP time stamps: the recorder's log time or the frames' t")
     p.add_argument("--out", type=Path, default=None, metavar="DIR",

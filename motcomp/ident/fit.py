@@ -23,9 +23,10 @@ Prefilter
 ---------
 The same zero-phase filter ``L`` is applied to ``v`` and to the measured ``a``: a 4th-order
 Butterworth low-pass (forwards and backwards) above the command's band, and a notch on each
-narrow line of the measurement that the command does not have (the controllers' holding
-tremor, 10-20 Hz).  Since ``L a = G_d (L v) + L e`` exactly, the model is untouched: the filter
-only weights the error towards the excited band.  That is why it can remove the tremor without
+narrow line of the part of the measurement that the command does not explain (the controllers'
+holding tremor, 10-20 Hz, found by coherence even inside the excitation band).  Since
+``L a = G_d (L v) + L e`` exactly, the model is untouched: the filter only weights the error
+towards the excited band.  That is why it can remove the tremor without
 the "artificial phase lag" that filtering the measurement alone would add.  Samples within a few
 filter time constants of either end are left out of every sum.
 
@@ -52,9 +53,11 @@ Never trusted to a gradient alone:
    lies on the bracket's upper end the bracket is widened to the whole searched range; on the
    searched range's own ends, the data are rejected (the delay is outside the range).
 3. *Fine profile* at the full rate with the exact model: ``P(Td) = min_theta SSE`` by
-   separable least squares (``theta`` by Gauss-Newton, warm-started; the linear parameters and
-   the bias solved exactly), walked in steps of one sample until a minimum is enclosed, then on
-   a quarter-sample grid around it and interpolated by a parabola.
+   separable least squares (``theta`` by Levenberg-Marquardt, warm-started; the linear
+   parameters and the bias solved exactly), walked in steps of one sample until a minimum is
+   enclosed, then in half and quarter samples around it and interpolated by a parabola.  The
+   error is summed over every ``M``-th sample (``M`` the decimation factor): the prefiltered
+   signals carry no more information than that, and the simulation stays at the full rate.
 4. *Polish*: all nonlinear parameters and the delay together (bounded to one sample about the
    profile's minimum), kept only if it lowers the error.
 
@@ -140,6 +143,10 @@ class FitOptions:
         if self.cutoff_hz is not None and not (math.isfinite(self.cutoff_hz)
                                                and self.cutoff_hz > 0):
             raise ConfigError(f"prefilter cut-off must be > 0 Hz, got {self.cutoff_hz}")
+        if not 1 <= self.oe_order <= 4:
+            raise ConfigError(f"OE order must be 1..4, got {self.oe_order}")
+        if not 0 <= self.oe_pade <= 4:
+            raise ConfigError(f"OE Pade order must be 0..4, got {self.oe_pade}")
         if not (math.isfinite(self.select_tolerance) and self.select_tolerance >= 0):
             raise ConfigError(f"selection tolerance must be >= 0, got {self.select_tolerance}")
 
