@@ -181,7 +181,8 @@ def _case(name: str, t: np.ndarray, cmd: np.ndarray, acc: np.ndarray, tmp: Path
             "(12.0 ms) of [0.0, 12.0] ms; widen the delay range (--delay-range)"
     if name == "delay below range":
         return write_csv(tmp / "d.csv", rows), ("--delay-range", "30", "100", "--models", "p1d"), \
-            "the best delay is at the lower end (30.0 ms) of [30.0, 100.0] ms"
+            "the best delay is at the lower end (30.0 ms) of [30.0, 100.0] ms; lower the delay " \
+            "range's minimum, or the measurement may lead the command"
     if name == "empty file":
         (tmp / "d.csv").write_text("# axis: rails_y\n")
         return tmp / "d.csv", (), "empty file: expected a header line 't,cmd,acc'"

@@ -535,9 +535,14 @@ def delay_bracket(prep: Prepared, lo_s: float, hi_s: float) -> Bracket:
 
 
 def _outside(side: str, value_s: float, lo_s: float, hi_s: float) -> DataError:
-    hint = ("widen the delay range (--delay-range)" if side == "upper" else
-            "the measurement may lead the command (clocks or columns misaligned?); "
-            "lower the delay range's minimum if that is expected")
+    if side == "upper":
+        hint = "widen the delay range (--delay-range)"
+    elif lo_s > 0:
+        hint = ("lower the delay range's minimum, or the measurement may lead the command "
+                "(clocks or columns misaligned?)")
+    else:
+        hint = ("a delay of zero or less: the measurement may lead the command (clocks or "
+                "columns misaligned?)")
     return DataError(f"pure delay outside the searched range: the best delay is at the {side} "
                      f"end ({value_s * 1e3:.1f} ms) of [{lo_s * 1e3:.1f}, {hi_s * 1e3:.1f}] ms; "
                      f"{hint}")
