@@ -158,7 +158,7 @@ def main() -> None:
         f"`python tools/bench_ident.py --seeds {args.seeds} --timing-runs {args.timing_runs}"
         f"{' --quick' if args.quick else ''}` ({spent / 60:.0f} min).  Time to identify 60 s at "
         "1 kHz (`motcomp.ident.fit.identify`, data in memory; loading a 60 000-line CSV adds "
-        "~0.3 s), targets P1D <= 2 s and all four models <= 15 s:",
+        "~0.2 s), targets P1D <= 2 s and all four models <= 15 s:",
         "",
         times,
         "",
