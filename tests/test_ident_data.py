@@ -223,6 +223,7 @@ def test_bad_input_exit_code_in_a_real_process(tmp_path: Path) -> None:
                                 "acc; found: time, cmd, acc")
 
 
+@pytest.mark.slow
 def test_mcap_with_two_axes_identified_together(tmp_path: Path,
                                                 capsys: pytest.CaptureFixture[str]) -> None:
     import json

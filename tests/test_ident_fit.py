@@ -7,6 +7,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from motcomp.core.lti import discretize_zoh
 from motcomp.core.models import OE, P1D, P2D, P2UZD, ProcessModel, parse_model
@@ -190,6 +192,7 @@ def test_measure_irregular_keeps_its_contract() -> None:
     assert np.all(np.diff(tj) > 0) and np.allclose(s, np.sin(tj), atol=1e-6)
 
 
+@pytest.mark.slow
 def test_hexapod_preset_table1_row_and_selection() -> None:
     truth = load_preset("hexapod").model
     rec = recording(truth, "sweep", "hex_y", 10.0, seed=4)
@@ -231,3 +234,19 @@ def test_reversed_accelerometer_is_reported_and_corrected() -> None:
     assert any("opposite sign" in w for w in ident.warnings)
     expected = float(P1D(1.0, 0.015, 0.08).phase_delay(0.2)[0]) * 1e3
     assert ident.best.table1["phase_delay_0p2hz_ms"] == pytest.approx(expected, abs=1.0)
+
+
+@settings(max_examples=8, deadline=None)
+@given(K=st.floats(0.3, 3.0), Td=st.floats(0.002, 0.08), Tp1=st.floats(0.008, 0.4),
+       seed=st.integers(0, 10_000))
+def test_any_p1d_is_recovered_from_noise_free_data(K: float, Td: float, Tp1: float,
+                                                   seed: int) -> None:
+    truth = P1D(K=K, Td=Td, Tp1=Tp1)
+    kind, axis = ("noise", "hex_x") if Tp1 < 0.05 else ("sweep", "rails_x")
+    lim = RAILS_LIM if axis.startswith("rails") else HEX_LIM
+    exc = excitation(kind, axis, lim, duration_s=15.0, rate_hz=500.0, seed=seed)
+    t, cmd, acc = record_identification(truth, exc.cmd, 500.0, seed=seed)
+    rec = Recording(t=t, cmd=cmd, acc=acc, rate_hz=500.0, axis=axis, source="mem")
+    got = identify(rec, FitOptions(models=("p1d",))).fits["p1d"].model.params()
+    for name, value in truth.params().items():
+        assert got[name] == pytest.approx(value, rel=1e-3), name

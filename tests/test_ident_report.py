@@ -14,6 +14,9 @@ import pytest
 from motcomp.core.models import P1D, parse_model
 from tests.conftest import motcomp_cmd, subprocess_env
 
+# one excite + identify of 60 s at 1 kHz with the four models, shared by every test here
+pytestmark = pytest.mark.slow
+
 
 def run(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(motcomp_cmd(*args), capture_output=True, text=True,
