@@ -24,6 +24,16 @@ Accelerometer
 Sample-time jitter
     :func:`measure_irregular` samples a recorded run at jittered instants (what a logger with an
     imperfect clock delivers), for the identification's resampling.
+
+Identification data sets
+    :func:`true_acceleration` is the cabin acceleration at the sample instants: the central
+    second difference ``(y[k+1] - 2 y[k] + y[k-1]) / h^2`` of the exact position, i.e. the true
+    acceleration averaged with a triangular window of +-h centred on ``t_k`` (zero phase; what
+    an accelerometer band-limited to the sample rate reads at its time stamp).  The positions
+    come from a simulation on a finer grid, independent of the identification's own
+    discretisation.
+    :func:`record_identification` adds the accelerometer's imperfections and the time-stamp
+    jitter: a ``t, cmd, acc`` recording with known truth.
 """
 
 from __future__ import annotations
@@ -39,7 +49,14 @@ from motcomp.core.lti import DiscreteLTI, FloatArray
 from motcomp.core.models import ProcessModel
 from motcomp.errors import ConfigError
 
-__all__ = ["Accelerometer", "PlatformSimulator", "measure_irregular", "simulate_axis"]
+__all__ = [
+    "Accelerometer",
+    "PlatformSimulator",
+    "measure_irregular",
+    "record_identification",
+    "simulate_axis",
+    "true_acceleration",
+]
 
 
 @dataclass(frozen=True)
@@ -300,14 +317,66 @@ def measure_irregular(t: ArrayLike, signal: ArrayLike, jitter_s: float,
     """
     t_a = np.asarray(t, dtype=float)
     s = np.asarray(signal, dtype=float)
+    if jitter_s == 0:
+        _jittered_instants(t_a, jitter_s, rng)  # validates
+        return t_a.copy(), s.copy()
+    tj = _jittered_instants(t_a, jitter_s, rng)
+    return tj, np.interp(tj, t_a, s)
+
+
+def _jittered_instants(t_a: FloatArray, jitter_s: float, rng: np.random.Generator) -> FloatArray:
     if jitter_s < 0 or not math.isfinite(jitter_s):
         raise ConfigError(f"jitter must be finite and >= 0 s, got {jitter_s!r}")
     if jitter_s == 0:
-        return t_a.copy(), s.copy()
+        return t_a.copy()
     dt = float(np.median(np.diff(t_a)))
     tj = t_a + np.clip(rng.normal(0.0, jitter_s, t_a.shape), -0.45 * dt, 0.45 * dt)
     tj = np.clip(tj, t_a[0], t_a[-1])
     tj = np.maximum.accumulate(tj)
     keep = np.concatenate([[True], np.diff(tj) > 0])
-    tj = tj[keep]
-    return tj, np.interp(tj, t_a, s)
+    return np.asarray(tj[keep])
+
+
+def true_acceleration(model: ProcessModel, commands: ArrayLike, rate_hz: float,
+                      oversample: int = 8) -> FloatArray:
+    """Acceleration of the axis at the command's sample instants ``t_k = k / rate_hz``.
+
+    The command is held over each period (as the platform does); the positions ``y(t_k)`` come
+    from the model's exact ZOH response computed on a grid ``oversample`` times finer; the
+    acceleration at ``t_k`` is ``(y(t_k + h) - 2 y(t_k) + y(t_k - h)) / h^2``, the true
+    acceleration averaged with the triangular window ``(1 - |s|/h) / h`` over ``+-h``.  That window
+    sums to one over any set of instants ``h`` apart, so the velocity steps that a first-order
+    response makes at every command step (acceleration impulses) are all counted once, wherever
+    the delay puts them.  The axis is at rest at ``commands[0]`` before the first sample.
+    """
+    u = np.asarray(commands, dtype=float)
+    if u.ndim != 1 or u.size < 2:
+        raise ConfigError("true_acceleration needs a 1-D command sequence of 2 samples or more")
+    if not (isinstance(oversample, int) and oversample >= 1):
+        raise ConfigError(f"oversample must be an integer >= 1, got {oversample!r}")
+    m = oversample
+    fine = np.repeat(np.concatenate([u, u[-1:]]), m)
+    y = simulate_axis(model, fine, rate_hz * m, initial=float(u[0]))[::m]  # y(t_0..t_N)
+    y = np.concatenate([[y[0]], y])  # y(t_-1): at rest
+    return np.asarray((y[2:] - 2.0 * y[1:-1] + y[:-2]) * rate_hz**2)
+
+
+def record_identification(model: ProcessModel, commands: ArrayLike, rate_hz: float,
+                          accelerometer: Accelerometer = Accelerometer(), jitter_s: float = 0.0,
+                          seed: int = 0, oversample: int = 8
+                          ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """A recording ``(t, cmd, acc)`` of one axis driven by ``commands`` at ``rate_hz``.
+
+    ``acc`` is :func:`true_acceleration` plus the accelerometer's bias, noise, tremor and
+    quantisation; with ``jitter_s > 0`` both columns are sampled at jittered instants (the logger
+    of :func:`measure_irregular`), so the time column is irregular.
+    """
+    u = np.asarray(commands, dtype=float)
+    rng = np.random.default_rng(seed)
+    acc = accelerometer.apply(true_acceleration(model, u, rate_hz, oversample), rate_hz, rng)
+    t = np.arange(u.size) / rate_hz
+    if jitter_s == 0:
+        _jittered_instants(t, jitter_s, rng)
+        return t, u.copy(), acc
+    tj = _jittered_instants(t, jitter_s, rng)
+    return tj, np.interp(tj, t, u), np.interp(tj, t, acc)

@@ -1,0 +1,142 @@
+"""``motcomp identify DATA``: fit P1D, P2D, P2UZD and OE models to a recorded axis."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from motcomp.cli._common import print_json, rate_arg
+from motcomp.core.axes import AXIS_INDEX
+from motcomp.errors import ConfigError
+
+ORDER = 5
+
+
+def _models(text: str) -> tuple[str, ...]:
+    kinds = tuple(k.strip().lower() for k in text.split(",") if k.strip())
+    if not kinds:
+        raise argparse.ArgumentTypeError("give at least one model, e.g. p1d,p2d")
+    return kinds
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "identify", help="identify an axis' delay and dynamics from a recording",
+        description="Fit P1D, P2D, P2UZD and OE models (delay included) to a recording of the "
+                    "command and the measured acceleration; print the paper's Table 1 row and "
+                    "the model comparison; write report.json, report.md, figures and the config "
+                    "fragment <axis>.toml into --out.")
+    p.add_argument("data", type=Path, metavar="DATA",
+                   help="CSV with columns t,cmd,acc (s, m or rad, m/s^2 or rad/s^2) or an MCAP "
+                        "session recording")
+    p.add_argument("--axis", metavar="NAME",
+                   help="axis name (default: from the data, else rails_y); for a recording of "
+                        "several axes, a comma-separated list or 'all'")
+    p.add_argument("--models", type=_models, default=("p1d", "p2d", "p2uzd", "oe"),
+                   metavar="LIST", help="models to fit (default: p1d,p2d,p2uzd,oe)")
+    p.add_argument("--delay-range", nargs=2, type=float, default=(0.0, 250.0),
+                   metavar=("MIN_MS", "MAX_MS"), help="pure delay searched (default: 0 250)")
+    p.add_argument("--oe-order", type=int, default=2, metavar="N",
+                   help="order of the OE model's rational part (default: 2)")
+    p.add_argument("--oe-pade", type=int, default=1, metavar="N",
+                   help="Pade order of the OE model's delay, 0 for an exact delay (default: 1)")
+    p.add_argument("--cutoff", type=rate_arg, default=None, metavar="HZ",
+                   help="prefilter cut-off (default: from the command's spectrum)")
+    p.add_argument("--no-notch", action="store_true",
+                   help="do not notch narrow lines of the measurement (tremor)")
+    p.add_argument("--select-tolerance", type=float, default=1.0, metavar="POINTS",
+                   help="validation fit %% points a simpler model may trail by (default: 1)")
+    p.add_argument("--rate", type=rate_arg, default=None, metavar="HZ",
+                   help="resampling rate for irregular time stamps (default: the mean rate)")
+    p.add_argument("--clock", choices=("log", "frame"), default="log",
+                   help="MCAP time stamps: the recorder's log time or the frames' t")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR",
+                   help="output directory (default: DATA without suffix + '_ident')")
+    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_identify)
+
+
+def _axes(args: argparse.Namespace) -> list[str | None]:
+    """``--axis``: one name, a comma-separated list, ``all`` (every axis the recording moves),
+    or nothing (the data's own axis)."""
+    from motcomp.ident.data import list_axes
+
+    if args.axis is None:
+        return [None]
+    if args.axis == "all":
+        found = list_axes(args.data, args.clock)
+        return list(found) if found else [None]
+    names = [a.strip() for a in args.axis.split(",") if a.strip()]
+    for a in names:
+        if a not in AXIS_INDEX:
+            raise ConfigError(f"--axis: unknown axis {a!r}; axes are {', '.join(AXIS_INDEX)}")
+    if len(set(names)) != len(names):
+        raise ConfigError(f"--axis: {args.axis!r} names an axis twice")
+    return list(names)
+
+
+def run_identify(args: argparse.Namespace) -> int:
+    from motcomp.ident.data import load_recording
+    from motcomp.ident.fit import FitOptions, Identification, identify
+    from motcomp.ident.report import (
+        markdown,
+        report_json,
+        table1,
+        table1_markdown,
+        write_report,
+        write_reports,
+    )
+    from motcomp.progress import Progress
+
+    axes = _axes(args)
+    lo_ms, hi_ms = args.delay_range
+    options = FitOptions(models=args.models, delay_min_s=lo_ms * 1e-3, delay_max_s=hi_ms * 1e-3,
+                         oe_order=args.oe_order, oe_pade=args.oe_pade, cutoff_hz=args.cutoff,
+                         notch=not args.no_notch, select_tolerance=args.select_tolerance)
+    idents: dict[str, Identification] = {}
+    stages = len(axes) * (1 + 4 * len(options.models))
+    # every axis is identified before anything is written
+    with Progress("identify", total=stages, quiet=args.quiet or args.json) as bar:
+        for name in axes:
+            rec = load_recording(args.data, axis=name, rate_hz=args.rate, clock=args.clock)
+            axis = name or rec.axis or "rails_y"
+            prefix = f"{axis}: " if len(axes) > 1 else ""
+
+            def note(msg: str, prefix: str = prefix) -> None:
+                bar.advance(note=prefix + msg)
+            idents[axis] = identify(rec, options, progress=note)
+    out = args.out or args.data.with_name(args.data.stem + "_ident")
+    try:
+        if len(idents) == 1:
+            (axis, ident), = idents.items()
+            written = write_report(ident, out, axis=axis, figures=not args.no_figures)
+        else:
+            written = write_reports(idents, out, figures=not args.no_figures)
+    except OSError as exc:
+        raise ConfigError(f"--out {out}: cannot write the report: {exc.strerror or exc}"
+                          ) from None
+    if len(idents) == 1:
+        (axis, ident), = idents.items()
+        obj = report_json(ident, axis)
+        text = markdown(ident, axis)
+    else:
+        obj = {"axes": {a: report_json(i, a) for a, i in idents.items()},
+               "table1": [table1(i, a) for a, i in idents.items()]}
+        text = "\n".join(["# Table 1", "", table1_markdown(obj["table1"]), "",
+                          *(markdown(i, a) for a, i in idents.items())])
+    if args.json:
+        obj["files"] = [str(p) for p in written]
+        print_json(obj)
+    else:
+        sys.stdout.write(text)
+        print(f"wrote {', '.join(str(p) for p in written)}")
+    for axis, ident in idents.items():
+        where = f"{axis}: " if len(idents) > 1 else ""
+        for kind, msg in ident.errors.items():
+            print(f"warning: {where}{kind} could not be fitted: {msg}", file=sys.stderr)
+        for msg in ident.warnings:
+            print(f"warning: {where}{msg}", file=sys.stderr)
+    return 0
