@@ -135,9 +135,12 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
                     for i, axis in enumerate(AXES):
                         if axis in got:
                             setpoint[i] = got[axis]
-                y, acc, _ = sim.step(setpoint)
+                _, acc, _ = sim.step(setpoint)
                 if clock.ticks % cfg.feedback_every == 0:
+                    # position and acceleration at the instant of this setpoint (the start of
+                    # the period), stamped with it
                     t = t_wall0 + (now - t_mono0) / 1e9
+                    y = sim.position_at_start
                     feedback.put(encode_feedback(t, dict(zip(AXES, y.tolist(), strict=True)),
                                                  dict(zip(AXES, acc.tolist(), strict=True))))
                 if time.monotonic() >= next_status:

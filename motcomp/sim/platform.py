@@ -273,15 +273,17 @@ class PlatformSimulator:
         y = self._c @ self._x + self._dfeed * p
         self._y1 = y.copy()
         self._y2 = y.copy()
+        self.position_at_start = y.copy()
         self._u_last = p.copy()
         self.position = y
 
     def step(self, setpoint: ArrayLike) -> tuple[FloatArray, FloatArray, np.ndarray]:
         """Apply one setpoint for one period.
 
-        Returns ``(position, measured_acceleration, violated)`` at the end of the period, where
-        ``violated`` flags the axes whose setpoint broke a hard limit (and was clamped) or was
-        not finite (and was held).
+        Returns ``(position, measured_acceleration, violated)``: the position at the *end* of
+        the period, the acceleration measured at its *start* (the centre of the second
+        difference; :attr:`position_at_start` is the position at that instant), and the axes
+        whose setpoint broke a hard limit (and was clamped) or was not finite (and was held).
         """
         u = np.array(setpoint, dtype=float).reshape(self.n)
         finite = np.isfinite(u)
@@ -300,6 +302,9 @@ class PlatformSimulator:
         self._x = self._phi @ self._x + self._g0 @ u_d1 + self._g1 @ u_d
         y = self._c @ self._x + self._dfeed * u_d1
         acc_true = (y - 2.0 * self._y1 + self._y2) * self.rate_hz**2
+        # the stencil is centred on the start of this period: that is the instant at which
+        # the acceleration is measured, and the position reported with it
+        self.position_at_start = self._y1
         self._y2 = self._y1
         self._y1 = y
         self._k = k + 1
