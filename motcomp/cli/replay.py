@@ -14,6 +14,9 @@ from motcomp.errors import ConfigError
 from motcomp.io.zenoh_io import add_zenoh_args, endpoints_from_args
 
 ORDER = 7
+FEEDBACK_WINDOWS = (12, 40.0)
+"""Feedback is read in this many windows of this length (s) on long recordings: the recorded
+delays are estimated on windows anyway (motcomp.replay.analysis)."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -94,7 +97,8 @@ def _offline(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     with Progress("reading", 1.0, quiet=args.quiet) as bar:
-        session = read_session(args.file, other_keys=False, acc=False)
+        session = read_session(args.file, other_keys=False, acc=False, publish=False,
+                               feedback_windows=FEEDBACK_WINDOWS)
         bar.update(1.0)
     t_read = time.perf_counter() - t0
     configs = [config_for(session, args.config)]

@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import msgpack
@@ -53,7 +53,7 @@ INTEGER = frozenset({UINT, INT, FIXPOS, FIXNEG})
 MAX_TEMPLATE_BYTES = 2048
 """Longer frames (status maps) are decoded one by one: they are rare."""
 _TEMPLATES_PER_LENGTH = 6
-_BLOCK_ROWS = 1 << 17
+_BLOCK_ROWS = 1 << 13
 
 
 @dataclass(frozen=True)
@@ -79,6 +79,7 @@ class Layout:
     """Keys of every map, by path (``()`` is the top level)."""
     lists: dict[tuple[Any, ...], int]
     """Length of every array, by path."""
+    cache: dict[Any, Any] = field(default_factory=dict)
 
 
 class _UnsupportedError(Exception):
@@ -209,6 +210,16 @@ def _int_column(g: np.ndarray, leaf: Leaf) -> np.ndarray:
     return _leaf_view(g, leaf, leaf.dtype).astype(np.int64)
 
 
+def _map_block(g: np.ndarray, leaves: dict[tuple[Any, ...], Leaf], name: str,
+               keys: list[str]) -> np.ndarray:
+    """The axis values of the map ``name`` in each row, as an ``(n, 8)`` block (NaN where a
+    row's map lacks the axis)."""
+    block = np.full((g.shape[0], len(AXES)), np.nan)
+    for a in keys:
+        block[:, AXIS_INDEX[a]] = _column(g, leaves[(name, a)])
+    return block
+
+
 def _str_column(g: np.ndarray, leaf: Leaf) -> tuple[np.ndarray, list[str]]:
     """``(inverse, uniques)``: row ``i`` holds ``uniques[inverse[i]]``."""
     raw = np.ascontiguousarray(g[:, leaf.off:leaf.off + leaf.size])
@@ -224,8 +235,15 @@ class Extractor:
     def __init__(self, n: int) -> None:
         self.n = n
 
-    def from_layout(self, layout: Layout, g: np.ndarray, rows: np.ndarray) -> None:
+    def from_layout(self, layout: Layout, g: np.ndarray, rows: np.ndarray,
+                    same: dict[str, np.ndarray]) -> None:
+        """Rows ``rows`` (of the extractor) are ``g`` (their bytes); ``same[name]`` tells which
+        rows equal the template in the bytes of :meth:`value_masks` ``[name]``."""
         raise NotImplementedError
+
+    def value_masks(self, layout: Layout) -> dict[str, np.ndarray]:
+        """Value bytes worth comparing with the template in bulk (see :meth:`from_layout`)."""
+        return {}
 
     def from_object(self, obj: Any, row: int) -> None:
         raise NotImplementedError
@@ -234,24 +252,57 @@ class Extractor:
         raise NotImplementedError
 
 
-def _matches(g: np.ndarray, layout: Layout) -> np.ndarray:
-    w = g.shape[1]
-    t = np.zeros(w, dtype=np.uint8)
-    t[:layout.length] = layout.template
-    m = np.zeros(w, dtype=np.uint8)
-    m[:layout.length] = layout.mask
-    x = np.bitwise_xor(g.view("<u8"), t.view("<u8"))
-    np.bitwise_and(x, m.view("<u8"), out=x)
-    ok = ~x.any(axis=1)
+def _words(layout: Layout, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """The template and its structural mask as 64-bit words over ``width`` bytes (cached)."""
+    key = ("words", width)
+    cached = layout.cache.get(key)
+    if cached is None:
+        t = np.zeros(width, dtype=np.uint8)
+        t[:layout.length] = layout.template
+        m = np.zeros(width, dtype=np.uint8)
+        m[:layout.length] = layout.mask
+        cached = (t.view("<u8"), m.view("<u8"))
+        layout.cache[key] = cached
+    return cached
+
+
+def _matches(g: np.ndarray, layout: Layout) -> tuple[np.ndarray, np.ndarray]:
+    """``(ok, x)``: rows whose structure is the layout's, and each row XOR the template (as
+    64-bit words, for value comparisons)."""
+    t, m = _words(layout, g.shape[1])
+    x = np.bitwise_xor(g.view("<u8"), t)
+    ok = np.bitwise_or.reduce(x & m, axis=1) == 0
     for leaf in layout.leaves:
-        col = g[:, leaf.off]
-        if leaf.kind == FIXPOS:
-            ok &= col <= 0x7F
-        elif leaf.kind == FIXNEG:
-            ok &= col >= 0xE0
-        elif leaf.kind == BOOL:
-            ok &= (col | 1) == 0xC3
-    return np.asarray(ok)
+        if leaf.kind in (FIXPOS, FIXNEG, BOOL):
+            col = g[:, leaf.off]
+            if leaf.kind == FIXPOS:
+                ok &= col <= 0x7F
+            elif leaf.kind == FIXNEG:
+                ok &= col >= 0xE0
+            else:
+                ok &= (col | 1) == 0xC3
+    return ok, x
+
+
+def _same(x: np.ndarray, layout: Layout, ex: Extractor) -> dict[str, np.ndarray]:
+    """Per value mask the extractor asks for: rows whose bytes there equal the template's."""
+    out = {}
+    for name, mask in ex.value_masks(layout).items():
+        key = ("vmask", name, x.shape[1])
+        words = layout.cache.get(key)
+        if words is None:
+            m = np.zeros(x.shape[1] * 8, dtype=np.uint8)
+            m[:mask.size] = mask
+            mw = m.view("<u8")
+            cols = np.flatnonzero(mw)
+            words = (cols, mw[cols])
+            layout.cache[key] = words
+        cols, mw = words
+        if cols.size:
+            out[name] = np.bitwise_or.reduce(x[:, cols] & mw, axis=1) == 0
+        else:
+            out[name] = np.ones(x.shape[0], dtype=bool)
+    return out
 
 
 def decode_rows(buf: np.ndarray, offset: np.ndarray, length: np.ndarray, ex: Extractor,
@@ -280,11 +331,12 @@ def decode_rows(buf: np.ndarray, offset: np.ndarray, length: np.ndarray, ex: Ext
                     for start in range(0, remaining.size, _BLOCK_ROWS):
                         block = remaining[start:start + _BLOCK_ROWS]
                         g = view[offset[block]]
-                        ok = _matches(g, layout)
+                        ok, x = _matches(g, layout)
                         if ok.all():
-                            ex.from_layout(layout, g, block + row0)
+                            ex.from_layout(layout, g, block + row0, _same(x, layout, ex))
                         else:
-                            ex.from_layout(layout, g[ok], block[ok] + row0)
+                            ex.from_layout(layout, g[ok], block[ok] + row0,
+                                           _same(x[ok], layout, ex))
                             rest.append(block[~ok])
                     remaining = np.concatenate(rest) if rest else remaining[:0]
                 if remaining.size < 4:
@@ -359,7 +411,8 @@ class InputColumns(Extractor):
                 return "type"
         return None
 
-    def from_layout(self, layout: Layout, g: np.ndarray, rows: np.ndarray) -> None:
+    def from_layout(self, layout: Layout, g: np.ndarray, rows: np.ndarray,
+                    same: dict[str, np.ndarray]) -> None:
         if rows.size == 0:
             return
         top = layout.maps.get(())
@@ -389,11 +442,9 @@ class InputColumns(Extractor):
         if t_leaf is not None and t_leaf.kind != NIL:
             self.t[rows] = _column(g, t_leaf)
         assert pos_keys is not None
-        finite = np.ones(rows.size, dtype=bool)
-        for a in pos_keys:
-            col = _column(g, leaves[("pos", a)])
-            finite &= np.isfinite(col)
-            self.pos[rows, AXIS_INDEX[a]] = col
+        block = _map_block(g, leaves, "pos", pos_keys)
+        finite = np.isfinite(block).sum(axis=1) == len(pos_keys)
+        self.pos[rows] = block
         if not finite.all():
             self._reject(rows[~finite], "nonfinite", "non-finite position")
 
@@ -440,13 +491,14 @@ class _FramesBase(Extractor):
         self.bad += 1
 
     def _extra(self, layout: Layout, g: np.ndarray, rows: np.ndarray,
-               leaves: dict[tuple[Any, ...], Leaf]) -> None:
+               leaves: dict[tuple[Any, ...], Leaf], same: dict[str, np.ndarray]) -> None:
         pass
 
     def _extra_obj(self, obj: dict[str, Any], row: int) -> None:
         pass
 
-    def from_layout(self, layout: Layout, g: np.ndarray, rows: np.ndarray) -> None:
+    def from_layout(self, layout: Layout, g: np.ndarray, rows: np.ndarray,
+                    same: dict[str, np.ndarray]) -> None:
         if rows.size == 0:
             return
         leaves = {leaf.path: leaf for leaf in layout.leaves}
@@ -458,11 +510,11 @@ class _FramesBase(Extractor):
         for f in self.fields:
             getattr(self, f)[rows] = _column(g, leaves[(f,)])
         for m in self.maps:
-            for a in layout.maps.get((m,), []):
-                leaf = leaves.get((m, a))
-                if a in AXIS_INDEX and leaf is not None and leaf.kind in NUMERIC:
-                    getattr(self, m)[rows, AXIS_INDEX[a]] = _column(g, leaf)
-        self._extra(layout, g, rows, leaves)
+            keys = [a for a in layout.maps.get((m,), []) if a in AXIS_INDEX and
+                    leaves.get((m, a)) is not None and leaves[(m, a)].kind in NUMERIC]
+            if keys:
+                getattr(self, m)[rows] = _map_block(g, leaves, m, keys)
+        self._extra(layout, g, rows, leaves, same)
         self.valid[rows] = True
 
     def from_object(self, obj: Any, row: int) -> None:
@@ -496,21 +548,33 @@ class OutputColumns(_FramesBase):
         super().__init__(n)
         self.flags = np.zeros(n, dtype=np.int64)
 
+    def value_masks(self, layout: Layout) -> dict[str, np.ndarray]:
+        mask = np.zeros(layout.length, dtype=np.uint8)
+        for leaf in layout.leaves:
+            if leaf.path[:1] == ("flags",) and leaf.kind == STR:
+                mask[leaf.off:leaf.off + leaf.size] = 0xFF
+        return {"flags": mask}
+
     def _extra(self, layout: Layout, g: np.ndarray, rows: np.ndarray,
-               leaves: dict[tuple[Any, ...], Leaf]) -> None:
-        bits = np.zeros(rows.size, dtype=np.int64)
-        for i in range(layout.lists.get(("flags",), 0)):
-            leaf = leaves.get(("flags", i))
-            if leaf is None or leaf.kind != STR:
-                continue
-            # most rows carry the template's flag at this place: compare, decode the others
-            mine = layout.template[leaf.off:leaf.off + leaf.size]
-            same = np.all(g[:, leaf.off:leaf.off + leaf.size] == mine, axis=1)
-            bits[same] |= FLAG_BITS.get(bytes(mine).decode("utf-8", "replace"), 0)
-            if not same.all():
-                other = np.flatnonzero(~same)
-                inv, uniq = _str_column(g[other], leaf)
-                table = np.array([FLAG_BITS.get(s, 0) for s in uniq], dtype=np.int64)
+               leaves: dict[tuple[Any, ...], Leaf], same: dict[str, np.ndarray]) -> None:
+        strs = [leaves[("flags", i)] for i in range(layout.lists.get(("flags",), 0))
+                if leaves.get(("flags", i)) is not None and leaves[("flags", i)].kind == STR]
+        if not strs:
+            return
+        # rows carrying the template's flags (nearly all): its bits; the others flag by flag
+        mine = 0
+        for leaf in strs:
+            text = bytes(layout.template[leaf.off:leaf.off + leaf.size]).decode("utf-8",
+                                                                             "replace")
+            mine |= FLAG_BITS.get(text, 0)
+        eq = same["flags"]
+        bits = np.where(eq, mine, 0).astype(np.int64)
+        other = np.flatnonzero(~eq)
+        if other.size:
+            sub = g[other]
+            for leaf in strs:
+                inv, uniq = _str_column(sub, leaf)
+                table = np.array([FLAG_BITS.get(u, 0) for u in uniq], dtype=np.int64)
                 bits[other] |= table[inv]
         self.flags[rows] |= bits
 

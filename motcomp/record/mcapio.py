@@ -378,6 +378,58 @@ def scan(path: str | Path, topics: set[str] | None = None, batch_bytes: int = 48
     yield batcher.flush()
 
 
+OP_STATISTICS = 0x0B
+
+
+def message_counts(path: str | Path) -> dict[str, Any] | None:
+    """Messages per topic from the summary section (None if the file has no usable summary,
+    e.g. an unfinished recording); key ``""`` holds ``(first, last)`` log time."""
+    p = Path(path)
+    try:
+        with p.open("rb") as f:
+            f.seek(0, 2)
+            size = f.tell()
+            if size < 8 + 29 + 8:
+                return None
+            f.seek(size - 8 - 29)
+            tail = f.read(29 + 8)
+            if tail[-8:] != MAGIC or tail[0] != OP_FOOTER:
+                return None
+            start = _u64(tail, 9)
+            if not 8 <= start < size:
+                return None
+            f.seek(start)
+            summary = f.read(size - 8 - 29 - start)
+    except OSError:
+        return None
+    topics: dict[int, str] = {}
+    counts: dict[int, int] = {}
+    t_first = t_last = 0
+    o = 0
+    while o + 9 <= len(summary):
+        op, length = summary[o], _u64(summary, o + 1)
+        body = memoryview(summary)[o + 9:o + 9 + length]
+        if op == OP_CHANNEL:
+            ch = _channel(body)
+            topics[ch.id] = ch.topic
+        elif op == OP_STATISTICS:
+            t_first, t_last = _u64(body, 8 + 2 + 4 * 4), _u64(body, 8 + 2 + 4 * 4 + 8)
+            q = 8 + 2 + 4 * 4 + 8 + 8
+            n = _u32(body, q)
+            q += 4
+            for _ in range(n // 10):
+                counts[_u16(body, q)] = _u64(body, q + 2)
+                q += 10
+        o += 9 + length
+    if not counts or not topics:
+        return None
+    out: dict[str, Any] = {"": (t_first, t_last)}
+    for cid, n in counts.items():
+        if cid in topics:
+            out[topics[cid]] = out.get(topics[cid], 0) + n
+    return out
+
+
 def iter_messages(path: str | Path, topics: set[str] | None = None,
                   result: ScanResult | None = None) -> Iterator[tuple[str, int, int, bytes]]:
     """``(topic, log_ns, publish_ns, payload)`` of each message, in file order, batch by batch

@@ -38,7 +38,7 @@ import numpy as np
 from motcomp.core.axes import AXIS_INDEX
 from motcomp.errors import DataError
 from motcomp.record.frames import FeedbackColumns, InputColumns, OutputColumns, decode_rows
-from motcomp.record.mcapio import MessageBatch, ScanResult, metadata_dict, scan
+from motcomp.record.mcapio import MessageBatch, ScanResult, message_counts, metadata_dict, scan
 
 __all__ = [
     "DEFAULT_KEYS",
@@ -230,16 +230,100 @@ def _prefetch(it: Iterator[Any], depth: int = 2) -> Iterator[Any]:
         th.join(timeout=5)
 
 
+class _Collector:
+    """Decodes the batches of one key into its stream's columns: straight into arrays of the
+    final size when the file's summary gives the message count, else batch by batch (joined at
+    the end)."""
+
+    def __init__(self, key: str, role: str | None, total: int | None, acc: bool,
+                 windows: np.ndarray | None = None) -> None:
+        self.key, self.role, self.total, self.acc = key, role, total, acc
+        self.windows = windows  # [start, end, start, end...] log ns: decode only these
+        self.segments: list[tuple[Any, np.ndarray, np.ndarray, int]] = []
+        self.n = 0  # rows used in the last segment
+
+    def _new(self, n: int) -> Any:
+        if self.role == "input":
+            return InputColumns(n)
+        if self.role == "output":
+            return OutputColumns(n)
+        if self.role == "feedback":
+            return FeedbackColumns(n, self.acc)
+        return []
+
+    def add(self, mb: MessageBatch) -> None:
+        if self.windows is not None:
+            sel = np.searchsorted(self.windows, mb.log_ns, side="right") % 2 == 1
+            if not sel.all():
+                mb = MessageBatch(mb.channel, mb.buf, mb.offset[sel], mb.length[sel],
+                                  mb.log_ns[sel], mb.publish_ns[sel] if mb.publish_ns.size
+                                  else mb.publish_ns)
+        m = len(mb)
+        if not m:
+            return
+        if not self.segments or self.n + m > self.segments[-1][1].size:
+            size = self.total if (self.total and not self.segments and m <= self.total) else m
+            self.segments.append((self._new(size), np.zeros(size, np.int64),
+                                  np.zeros(size, np.int64), 0))
+            self.n = 0
+        ex, log_ns, pub_ns, _ = self.segments[-1]
+        log_ns[self.n:self.n + m] = mb.log_ns
+        if mb.publish_ns.size:
+            pub_ns[self.n:self.n + m] = mb.publish_ns
+        if isinstance(ex, list):
+            ex += [mb.payload(i) for i in range(m)]
+        else:
+            decode_rows(mb.buf, mb.offset, mb.length, ex, row0=self.n)
+        self.n += m
+        self.segments[-1] = (ex, log_ns, pub_ns, self.n)
+
+    def finish(self, warnings: list[str]) -> RawStream:
+        segs = self.segments
+
+        def cat(get: Any, empty: np.ndarray) -> np.ndarray:
+            parts = [get(seg)[:seg[3]] for seg in segs]
+            return parts[0] if len(parts) == 1 else _concat(parts, empty)
+
+        base: dict[str, Any] = dict(key=self.key, log_ns=cat(lambda x: x[1], np.zeros(0, np.int64)),
+                                    publish_ns=cat(lambda x: x[2], np.zeros(0, np.int64)))
+        if self.role == "input":
+            return InputStream(**base, seq=cat(lambda x: x[0].seq, np.zeros(0, np.int64)),
+                               t=cat(lambda x: x[0].t, np.zeros(0)),
+                               pos=cat(lambda x: x[0].pos, np.zeros((0, 8))),
+                               reason=cat(lambda x: x[0].reason, np.zeros(0, np.int8)))
+        if self.role == "output":
+            bad = sum(seg[0].bad for seg in segs)
+            if bad:
+                warnings.append(f"{self.key}: {bad} output frames could not be decoded")
+            return OutputStream(
+                **base, seq=cat(lambda x: x[0].seq, np.zeros(0)).astype(np.int64),
+                t=cat(lambda x: x[0].t, np.zeros(0)),
+                src_seq=cat(lambda x: x[0].src_seq, np.zeros(0)).astype(np.int64),
+                pos=cat(lambda x: x[0].pos, np.zeros((0, 8))),
+                flags=cat(lambda x: x[0].flags, np.zeros(0, np.int64)),
+                valid=cat(lambda x: x[0].valid, np.zeros(0, bool)))
+        if self.role == "feedback":
+            return FeedbackStream(**base, t=cat(lambda x: x[0].t, np.zeros(0)),
+                                  pos=cat(lambda x: x[0].pos, np.zeros((0, 8))),
+                                  acc=cat(lambda x: x[0].acc, np.zeros((0, 8))),
+                                  valid=cat(lambda x: x[0].valid, np.zeros(0, bool)))
+        return RawStream(**base, payloads=[p for seg in segs for p in seg[0]])
+
+
 def read_session(path: str | Path | Sequence[str | Path], keys: dict[str, str] | None = None,
-                 other_keys: bool = True, acc: bool = True) -> Session:
+                 other_keys: bool = True, acc: bool = True, publish: bool = True,
+                 feedback_windows: tuple[int, float] | None = None) -> Session:
     """Read a recording written by ``motcomp record`` (or any MCAP file of msgpack frames on
     motcomp's keys).
 
     ``keys`` maps roles (``input``, ``output``, ``feedback``, ``status``) to keys; the default
     takes them from the recorded config, else :data:`DEFAULT_KEYS`.  ``acc=False`` skips the
-    feedback accelerations (left NaN), ``other_keys=False`` the keys of no role.  A truncated
-    file is read up
-    to its last complete chunk, with a warning (logged and kept in :attr:`Session.warnings`)
+    feedback accelerations (left NaN), ``other_keys=False`` the keys of no role,
+    ``publish=False`` the messages' publish times (left empty); ``feedback_windows=(n, s)``
+    keeps only the feedback inside ``n`` windows of ``s`` seconds spread evenly over the
+    session (enough for delay estimates, and much faster on long recordings; all of it if the
+    file has no summary).  A truncated file is read up to
+    its last complete chunk, with a warning (logged and kept in :attr:`Session.warnings`)
     naming the file and the number of messages recovered.
 
     Raises
@@ -253,16 +337,34 @@ def read_session(path: str | Path | Sequence[str | Path], keys: dict[str, str] |
     metadata: dict[str, Any] = {}
     config_json: dict[str, Any] | None = None
     results: list[ScanResult] = []
-    cols: dict[str, list[tuple[MessageBatch, Any]]] = {}
     status: list[tuple[int, dict[str, Any]]] = []
     roles = dict(DEFAULT_KEYS)
     explicit = dict(keys or {})
     roles.update(explicit)
-    role_of: dict[str, str] = {}
+    counts: dict[str, Any] | None = {}
+    span = [None, None]
+    for p in paths:
+        c = message_counts(p)
+        if c is None or counts is None:
+            counts = None
+            continue
+        first, last = c.pop("")
+        span = [first if span[0] is None else span[0], last]
+        for k, n in c.items():
+            counts[k] = counts.get(k, 0) + n
+    fb_windows = None
+    if feedback_windows is not None and counts is not None and span[0] is not None:
+        n_w, len_s = feedback_windows
+        t0, t1 = int(span[0]), int(span[1])
+        if (t1 - t0) / 1e9 > 2 * n_w * len_s:
+            centres = t0 + (np.arange(n_w) + 0.5) / n_w * (t1 - t0)
+            half = len_s * 1e9 / 2
+            fb_windows = np.column_stack([centres - half, centres + half]).ravel()
+    collectors: dict[str, _Collector] = {}
     for p in paths:
         res = ScanResult(p)
         results.append(res)
-        for batch in _prefetch(scan(p, None, result=res)):
+        for batch in _prefetch(scan(p, None, result=res, publish=publish)):
             if not metadata:
                 metadata = metadata_dict(res)
             if config_json is None:
@@ -271,14 +373,9 @@ def read_session(path: str | Path | Sequence[str | Path], keys: dict[str, str] |
                     roles.update(_keys_of(config_json))
             role_of = {v: k for k, v in roles.items()}
             for mb in batch:
-                role = role_of.get(mb.channel.topic)
-                if role == "input":
-                    ex: Any = InputColumns(len(mb))
-                elif role == "output":
-                    ex = OutputColumns(len(mb))
-                elif role == "feedback":
-                    ex = FeedbackColumns(len(mb), acc)
-                elif role == "status":
+                topic = mb.channel.topic
+                role = role_of.get(topic)
+                if role == "status":
                     for i in range(len(mb)):
                         try:
                             obj = msgpack.unpackb(mb.payload(i), raw=False, strict_map_key=False)
@@ -287,13 +384,15 @@ def read_session(path: str | Path | Sequence[str | Path], keys: dict[str, str] |
                         if isinstance(obj, dict):
                             status.append((int(mb.log_ns[i]), obj))
                     continue
-                elif other_keys:
-                    ex = [mb.payload(i) for i in range(len(mb))]
-                else:
+                if role is None and not other_keys:
                     continue
-                if not isinstance(ex, list):
-                    decode_rows(mb.buf, mb.offset, mb.length, ex)
-                cols.setdefault(mb.channel.topic, []).append((_light(mb), ex))
+                col = collectors.get(topic)
+                if col is None:
+                    windowed = role == "feedback" and fb_windows is not None
+                    col = _Collector(topic, role, None if windowed or not counts else
+                                     counts.get(topic), acc, fb_windows if windowed else None)
+                    collectors[topic] = col
+                col.add(mb)
         if not metadata:
             metadata = metadata_dict(res)
         if config_json is None:
@@ -303,55 +402,20 @@ def read_session(path: str | Path | Sequence[str | Path], keys: dict[str, str] |
                    f"messages from {res.chunks} complete chunks")
             warnings.append(msg)
             log.warning("%s", msg)
-    role_of = {v: k for k, v in roles.items()}
     streams: dict[str, Any] = {}
     other: dict[str, RawStream] = {}
-    for key, parts in cols.items():
-        base: dict[str, Any] = dict(
-            key=key,
-            log_ns=_concat([mb.log_ns for mb, _ in parts], np.zeros(0, np.int64)),
-            publish_ns=_concat([mb.publish_ns for mb, _ in parts], np.zeros(0, np.int64)))
-        role = role_of.get(key)
-        exs = [ex for _, ex in parts]
-        if role == "input":
-            streams[role] = InputStream(
-                **base, seq=_concat([e.seq for e in exs], np.zeros(0, np.int64)),
-                t=_concat([e.t for e in exs], np.zeros(0)),
-                pos=_concat([e.pos for e in exs], np.zeros((0, 8))),
-                reason=_concat([e.reason for e in exs], np.zeros(0, np.int8)))
-        elif role == "output":
-            s = OutputStream(
-                **base, seq=_concat([e.seq for e in exs], np.zeros(0)).astype(np.int64),
-                t=_concat([e.t for e in exs], np.zeros(0)),
-                src_seq=_concat([e.src_seq for e in exs], np.zeros(0)).astype(np.int64),
-                pos=_concat([e.pos for e in exs], np.zeros((0, 8))),
-                flags=_concat([e.flags for e in exs], np.zeros(0, np.int64)),
-                valid=_concat([e.valid for e in exs], np.zeros(0, bool)))
-            bad = sum(e.bad for e in exs)
-            if bad:
-                warnings.append(f"{key}: {bad} output frames could not be decoded")
-            streams[role] = s
-        elif role == "feedback":
-            f = FeedbackStream(
-                **base, t=_concat([e.t for e in exs], np.zeros(0)),
-                pos=_concat([e.pos for e in exs], np.zeros((0, 8))),
-                acc=_concat([e.acc for e in exs], np.zeros((0, 8))),
-                valid=_concat([e.valid for e in exs], np.zeros(0, bool)))
-            streams[role] = f
+    for key, col in collectors.items():
+        stream = col.finish(warnings)
+        if col.role in ("input", "output", "feedback"):
+            streams[col.role] = stream
         else:
-            other[key] = RawStream(**base, payloads=[p for e in exs for p in e])
+            other[key] = stream
     return Session(paths=paths, keys=roles, metadata=metadata, config_json=config_json,
                    inputs=streams.get("input"), outputs=streams.get("output"),
                    feedback=streams.get("feedback"), status=status, other=other,
                    warnings=warnings, truncated=any(r.truncated and not r.complete
                                                     for r in results),
                    messages=sum(r.messages for r in results))
-
-
-def _light(mb: MessageBatch) -> MessageBatch:
-    """The batch without its byte buffer (so the buffer can be freed)."""
-    return MessageBatch(mb.channel, np.zeros(0, np.uint8), mb.offset[:0], mb.length[:0],
-                        mb.log_ns, mb.publish_ns)
 
 
 def _config_attachment(res: ScanResult, warnings: list[str]) -> dict[str, Any] | None:

@@ -72,8 +72,11 @@ class EngineResult:
 def saturated(res: EngineResult, tol: float) -> np.ndarray:
     """Rows x axes: the service's "sat:<axis>" rule -- a position or velocity limit acted, or
     the command departs from its target by more than ``tol``."""
-    dev = np.abs(res.u - res.target)
-    return ((res.flags & _HARD) != 0) | ((res.flags != 0) & (dev > tol))
+    out = np.zeros(res.flags.shape, dtype=bool)
+    r, c = np.nonzero(res.flags)  # the limiter acted (rare): judge those samples only
+    f = res.flags[r, c]
+    out[r, c] = ((f & _HARD) != 0) | (np.abs(res.u[r, c] - res.target[r, c]) > tol)
+    return out
 
 
 def initial_position(plan: TickPlan, inp: InputStream, axes: ResolvedAxes) -> np.ndarray:
@@ -350,37 +353,49 @@ def _smoother(x: np.ndarray, ts: float, vs: float, lim: tuple[float, ...]
     return ts_out, vs_out
 
 
-def _limit(target: np.ndarray, st: _State, lim: tuple[float, ...]
+def _limit(target: np.ndarray, st: _State, lim: tuple[float, ...], need_state: bool = True
            ) -> tuple[np.ndarray, np.ndarray]:
-    """``limit_axis`` over a stretch (see the module docstring): ``(u, flags)``."""
+    """``limit_axis`` over a stretch (see the module docstring): ``(u, flags)``.
+
+    Feasibility is evaluated with the same comparisons as ``limit_axis``; the braking test
+    only where the axis is within twice the worst braking distance of an end stop (elsewhere it
+    holds with a wide margin), and the position test only at the first sample (later ones
+    follow clamped targets).  The target smoother is run only if the limiter acts, or if the
+    state is needed after the stretch."""
     (h, inv_h, p_min, p_max, v_max, ah, _ah2, _two_a, inv_two_a, *_rest) = lim
     n = target.size
     tc = np.clip(target, p_min, p_max)
-    u_prev = np.empty(n)
-    u_prev[0] = st.u
-    u_prev[1:] = tc[:-1]
-    vel = (tc - u_prev) * inv_h
+    vel = np.empty(n)
+    vel[0] = (tc[0] - st.u) * inv_h
+    np.subtract(tc[1:], tc[:-1], out=vel[1:])
+    vel[1:] *= inv_h
     v_prev = np.empty(n)
     v_prev[0] = st.vel
     v_prev[1:] = vel[:-1]
-    ok = ((v_prev - ah <= vel) & (vel <= v_prev + ah) & (-v_max <= vel) & (vel <= v_max)
-          & (p_min <= u_prev) & (u_prev <= p_max))
-    up = vel * (h + vel * inv_two_a) <= p_max - u_prev
-    down = -vel * (h - vel * inv_two_a) <= u_prev - p_min
-    ok &= np.where(vel > 0.0, up, down)
-    u = tc.copy()
+    ok = v_prev - ah <= vel
+    ok &= vel <= v_prev + ah
+    del v_prev
+    ok &= np.abs(vel) <= v_max
+    ok[0] &= p_min <= st.u <= p_max
+    margin = 2.0 * v_max * (h + v_max * inv_two_a)
+    near = np.flatnonzero((tc > p_max - margin) | (tc < p_min + margin)) + 1
+    near = np.concatenate([[0], near[near < n]])
+    up_ = np.concatenate([[st.u], tc[near[1:] - 1]])
+    vn = vel[near]
+    up = vn * (h + vn * inv_two_a) <= p_max - up_
+    down = -vn * (h - vn * inv_two_a) <= up_ - p_min
+    ok[near] &= np.where(vn > 0.0, up, down)
     flags = np.zeros(n, dtype=np.int8)
     bad = np.flatnonzero(~ok)
-    ts_all, vs_all = _smoother(tc, st.ts, st.vs, lim)
+    u = tc
+    if bad.size or need_state:
+        ts_all, vs_all = _smoother(tc, st.ts, st.vs, lim)
     u0, v0 = st.u, st.vel
     pos = 0
     nb = bad.size
     b = 0
     while b < nb:
         k = int(bad[b])
-        if k < pos:
-            b += 1
-            continue
         if k > pos:
             u0, v0 = float(tc[k - 1]), float(vel[k - 1])
         ts, vs = (float(ts_all[k - 1]), float(vs_all[k - 1])) if k > 0 else (st.ts, st.vs)
@@ -399,12 +414,13 @@ def _limit(target: np.ndarray, st: _State, lim: tuple[float, ...]
             if run >= 2:
                 break
         pos = i
-        b += 1
+        b = int(np.searchsorted(bad, pos))
     if pos < n or nb == 0:  # ended in a passthrough stretch
         st.u, st.vel = float(tc[-1]), float(vel[-1])
     else:
         st.u, st.vel = u0, v0
-    st.ts, st.vs = float(ts_all[-1]), float(vs_all[-1])
+    if bad.size or need_state:
+        st.ts, st.vs = float(ts_all[-1]), float(vs_all[-1])
     st.tprev = float(target[-1])
     return u, flags
 
@@ -470,12 +486,12 @@ def run_fast(plan: TickPlan, inp: InputStream, cfg: ServiceConfig, axes: Resolve
             more = s + 2 < len(bounds)  # the PID state is needed after this stretch
             if st.bypass:
                 tgt = _bypass_targets(rr, st, prm.fade_step)
-                u[lo:hi, a], flags[lo:hi, a] = _limit(tgt, st, prm.lim)
+                u[lo:hi, a], flags[lo:hi, a] = _limit(tgt, st, prm.lim, more)
                 if more:
                     _advance(st, prm, rr, u[lo:hi, a])
             else:
                 tgt = _raw_output(rr, st, prm, more)
-                u[lo:hi, a], flags[lo:hi, a] = _limit(tgt, st, prm.lim)
+                u[lo:hi, a], flags[lo:hi, a] = _limit(tgt, st, prm.lim, more)
             target[lo:hi, a] = tgt
         if progress is not None:
             progress(0.4 + 0.6 * (a + 1) / len(AXES))

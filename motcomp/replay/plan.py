@@ -229,17 +229,24 @@ def _from_outputs(session: Session, cfg: ServiceConfig, reason: np.ndarray, run:
     emit = np.concatenate(rows_emit)
     row_src = np.concatenate(rows_src)
     # frames: a change of src_seq between recorded ticks marks the frame consumed there
-    order, sseq, slog = _frame_lookup(session)
     frame = np.full(now_ns.size, -1, dtype=np.int64)
     rec = np.flatnonzero(row_src >= -1)
     prev = np.concatenate([[-1 if not warm else -5], row_src[rec][:-1]])
     changed = rec[(row_src[rec] != prev) & (row_src[rec] >= 0)]
     want = row_src[changed]
-    lo = np.searchsorted(sseq, want, "left")
-    hi = np.searchsorted(sseq, want, "right")
-    found = hi > lo
-    pick = np.where(found, hi - 1, 0)
-    dup = np.flatnonzero(found & (hi - lo > 1))
+    if np.all(inp.seq[1:] > inp.seq[:-1]):  # the usual case: one sender, no restart
+        order, sseq = np.arange(len(inp)), inp.seq
+        lo = np.minimum(np.searchsorted(sseq, want, "left"), sseq.size - 1)
+        found = sseq[lo] == want
+        hi, pick = lo + 1, lo
+        dup = np.zeros(0, dtype=np.int64)
+    else:
+        order, sseq, slog = _frame_lookup(session)
+        lo = np.searchsorted(sseq, want, "left")
+        hi = np.searchsorted(sseq, want, "right")
+        found = hi > lo
+        pick = np.where(found, hi - 1, 0)
+        dup = np.flatnonzero(found & (hi - lo > 1))
     out_log = np.where(output[changed] >= 0, out.log_ns[np.maximum(output[changed], 0)], 0)
     for k in dup:  # several frames with that seq (a restarted sender): the latest before
         cand = np.arange(lo[k], hi[k])
@@ -264,12 +271,15 @@ def _from_outputs(session: Session, cfg: ServiceConfig, reason: np.ndarray, run:
         _assign_by_arrival(frame, now_ns, lost, inp.log_ns + delta, inp.seq, before, after)
     # bypass changes and parking, from the flags of the recorded ticks
     rec_rows = np.flatnonzero(output >= 0)
-    bits = (flags_rows := out.flags[output[rec_rows]]) >> 8 & 0xFF
-    masks = ((bits[:, None] >> np.arange(len(AXES))) & 1).astype(bool)
-    bypass0 = masks[0]
-    events = []
-    for k in np.flatnonzero(np.any(masks[1:] != masks[:-1], axis=1)) + 1:
-        events.append((int(rec_rows[k]), masks[k]))
+    flags_rows = out.flags[output[rec_rows]]
+    bits = flags_rows >> 8 & 0xFF
+
+    def mask_of(k: int) -> np.ndarray:
+        return ((int(bits[k]) >> np.arange(len(AXES))) & 1).astype(bool)
+
+    bypass0 = mask_of(0)
+    events = [(int(rec_rows[k]), mask_of(int(k)))
+              for k in np.flatnonzero(bits[1:] != bits[:-1]) + 1]
     park = None
     parked = np.flatnonzero(flags_rows & _PARK)
     if parked.size and parked[0] > 0:
@@ -288,7 +298,7 @@ def _from_outputs(session: Session, cfg: ServiceConfig, reason: np.ndarray, run:
         shift = int(first[0])
         now_ns, frame, output, emit = now_ns[keep], frame[keep], output[keep], emit[keep]
         events = [(r - shift, m) for r, m in events if r > shift]
-        bypass0 = masks[np.searchsorted(rec_rows, shift)] if rec_rows.size else bypass0
+        bypass0 = mask_of(int(np.searchsorted(rec_rows, shift))) if rec_rows.size else bypass0
         park = (park[0] - shift, park[1]) if park and park[0] > shift else None
         notes.append(f"the recording starts mid-run (first tick seq {int(out.seq[idx[0]])}): "
                      "warm start at rest at the first input")

@@ -225,7 +225,9 @@ def _periods(p0: float, dt: np.ndarray, fresh: np.ndarray) -> np.ndarray:
             p[1:], _ = lfilter([0.05], [1.0, -0.95], d[1:], zi=[0.95 * d[0]])
     else:
         p[:], _ = lfilter([0.05], [1.0, -0.95], d, zi=[0.95 * p0])
-    k = np.searchsorted(idx, np.arange(dt.size), side="right") - 1
+    if idx.size == dt.size:
+        return p
+    k = np.cumsum(fresh) - 1  # the last fresh frame at or before each frame
     out[:] = np.where(k >= 0, p[np.maximum(k, 0)], p0)
     return out
 
@@ -235,18 +237,18 @@ def _live_stretch(st: _Live, j0: int, j1: int, now: np.ndarray, frame: np.ndarra
                   cap_max: float, ref: np.ndarray) -> _Live:
     """Fill ``ref[j0:j1]`` (live, settled rows) and return the shaper state after them.
 
-    Frame arrays get the state in front as a "frame -1" (index 0), so that every row reads
-    its values by index; axes carried by the same frames share their timing arrays."""
-    nrow = j1 - j0
-    fr = j0 + np.flatnonzero(frame[j0:j1] >= 0)
+    Per-frame arrays get the state in front as a "frame -1" (index 0), so that every row reads
+    its values by index; axes carried by the same frames share their timing arrays, and each
+    axis is computed on its own (1-D, contiguous) to keep temporaries small."""
+    has_frame = frame[j0:j1] >= 0
+    fr = j0 + np.flatnonzero(has_frame)
     F = frame[fr]
     now_f = now[fr]
     t_in = inp.t[F]
     t_eff = np.where(np.isnan(t_in), now_f, t_in)  # t = now if t_sender is None else t_sender
-    P = inp.pos[F]
     out = _Live(st.live[:], st.t_frame[:], st.slope[:], st.period[:], st.offset, st.offset_at,
                 st.last_input_s)
-    kf = np.searchsorted(fr, np.arange(j0, j1), side="right")  # 0: no frame yet in stretch
+    kf = np.cumsum(has_frame)  # frames up to each row: 0 = none yet in the stretch
     if F.size:
         offs = _offsets(st.offset, st.offset_at, now_f, now_f - t_eff)
         out.offset, out.offset_at, out.last_input_s = float(offs[-1]), float(now_f[-1]), \
@@ -254,38 +256,45 @@ def _live_stretch(st: _Live, j0: int, j1: int, now: np.ndarray, frame: np.ndarra
         t_now = now[j0:j1] - np.concatenate([[st.offset], offs])[kf]
     else:
         t_now = now[j0:j1] - st.offset
+    cols = {a: inp.pos[:, a][F] for a in driven}
     groups: dict[tuple[bytes, float, float], list[int]] = {}
     for a in driven:
-        carried = ~np.isnan(P[:, a])
-        groups.setdefault((carried.tobytes(), st.t_frame[a], st.period[a]), []).append(a)
-    for (_, tf0, p0), cols in groups.items():
-        carried = ~np.isnan(P[:, cols[0]])
-        idx = np.flatnonzero(carried)
-        k = kf if idx.size == F.size else \
-            np.searchsorted(fr[idx], np.arange(j0, j1), side="right")
-        V = np.empty((idx.size + 1, len(cols)))
-        V[0] = [st.live[a] for a in cols]
-        V[1:] = P[idx][:, cols]
-        t = np.concatenate([[tf0], t_eff[idx]])
+        nan = np.isnan(cols[a])
+        key = (nan.tobytes() if nan.any() else b"", st.t_frame[a], st.period[a])
+        groups.setdefault(key, []).append(a)
+    for (_, tf0, p0), members in groups.items():
+        carried = ~np.isnan(cols[members[0]])
+        idx = None if carried.all() else np.flatnonzero(carried)
+        if idx is None:
+            k = kf
+            t = np.concatenate([[tf0], t_eff])
+        else:  # frames carrying these axes, up to each row
+            rows_of = np.zeros(j1 - j0, dtype=np.int64)
+            rows_of[fr[idx] - j0] = 1
+            k = np.cumsum(rows_of)
+            t = np.concatenate([[tf0], t_eff[idx]])
         dt = t[1:] - t[:-1]
         fresh = ((dt > 0.0) & (dt <= stale_after_s)) if linear else np.zeros(dt.size, bool)
-        S = np.empty_like(V)
-        S[0] = [st.slope[a] for a in cols]
-        S[1:] = 0.0
-        np.divide(V[1:] - V[:-1], dt[:, None], out=S[1:], where=fresh[:, None])
         per = np.concatenate([[p0], _periods(p0, dt, fresh)])
-        for c, a in enumerate(cols):
-            out.live[a], out.slope[a] = float(V[-1, c]), float(S[-1, c])
+        if linear:
+            tau = t_now - t[k]
+            cap = np.minimum(1.5 * per[k], cap_max)
+            # tau if 0 < tau < cap else cap if tau >= cap else 0  (cap >= 0): a clip
+            ext = np.minimum(np.maximum(tau, 0.0), cap)
+        for a in members:
+            v = np.empty(t.size)
+            v[0] = st.live[a]
+            v[1:] = cols[a] if idx is None else cols[a][idx]
+            slope = np.empty(t.size)
+            slope[0] = st.slope[a]
+            slope[1:] = 0.0
+            np.divide(v[1:] - v[:-1], dt, out=slope[1:], where=fresh)
+            out.live[a], out.slope[a] = float(v[-1]), float(slope[-1])
             out.t_frame[a], out.period[a] = float(t[-1]), float(per[-1])
-        if not linear:
-            ref[j0:j1, cols] = V[k]
-            continue
-        tau = t_now - t[k]
-        cap = np.minimum(1.5 * per[k], cap_max)
-        ext = np.where((tau > 0.0) & (tau < cap), tau, np.where(tau >= cap, cap, 0.0))
-        if len(cols) == 1:
-            ref[j0:j1, cols[0]] = V[k, 0] + S[k, 0] * ext
-        else:
-            ref[j0:j1, cols] = V[k] + S[k] * ext[:, None]
-    del nrow
+            col = ref[j0:j1, a]
+            if not linear:
+                col[:] = v[k]
+                continue
+            np.multiply(slope[k], ext, out=col)
+            col += v[k]
     return out
