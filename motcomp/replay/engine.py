@@ -97,8 +97,8 @@ def initial_position(plan: TickPlan, inp: InputStream, axes: ResolvedAxes) -> np
 # --- the reference: the service, tick by tick -------------------------------------------------
 def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig, progress: Any = None
               ) -> EngineResult:
-    """Run the plan through the service's own ``tick`` (see the module docstring).  Catch-up
-    rows get no command in the result (NaN): the service emits nothing for them."""
+    """Run the plan through the service's own ``tick`` (see the module docstring); catch-up
+    rows are stepped as ``Service._catch_up`` steps them."""
     from motcomp.io.memory import MemorySink, MemorySource
     from motcomp.io.wire import decode_output, encode_input
     from motcomp.io.zenoh_io import ZenohEndpoints
@@ -136,9 +136,13 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig, progress: An
             break
         if plan.park is not None and j <= plan.park[0] <= k:
             svc.shaper.park(plan.park[1])
-        if k > j:
+        if k > j:  # Service._catch_up, step by step (to keep each step's numbers)
             assert int(plan.now_ns[k] - plan.now_ns[j]) == (k - j) * period
-            svc._catch_up(int(plan.now_ns[k]), k - j)
+            for c in range(j, k):
+                r_c, _ = svc.shaper.reference(int(plan.now_ns[c]) / 1e9)
+                u[c] = svc.comp.step(r_c)
+                ref[c], target[c], flags[c] = r_c, svc.comp.raw_output, svc.comp.flags
+                bypass[c] = svc.comp.bypass
         if k in events:
             svc.commands.append(_bypass_command(svc, events[k], axes.driven))
         f = int(plan.frame[k])

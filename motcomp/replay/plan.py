@@ -42,7 +42,8 @@ from motcomp.runtime.service import MAX_CATCH_UP
 __all__ = ["TickPlan", "build_plan", "validate_frames"]
 
 WARM_AFTER_TICKS = 5000
-"""A recording whose first output is a later tick than this starts *warm* (mid-run)."""
+"""A recording whose first output is a later tick than this, and already used an input,
+starts *warm* (mid-run)."""
 _PARK = FLAG_BITS["parking"]
 
 
@@ -182,13 +183,15 @@ def _from_outputs(session: Session, cfg: ServiceConfig, reason: np.ndarray, run:
         method = "outputs"
         notes.append("no loop clock in the recorded status: tick instants rebuilt from output "
                      "t (relative grid only)")
-    # leading ticks not recorded: cold start rebuilt on the grid, or warm start
-    warm = bool(seq[0] > WARM_AFTER_TICKS)
-    if not warm and seq[0] > 0:
+    # ticks before the first recorded one: if the service had used no input yet (src_seq -1)
+    # it was at rest at neutral, exactly the state the replay starts from; otherwise a few
+    # seconds of ticks are rebuilt on the grid (frames by arrival), or the replay starts warm
+    warm = bool(seq[0] > WARM_AFTER_TICKS and src[0] >= 0)
+    if not warm and seq[0] > 0 and src[0] >= 0:
         lead = np.arange(int(seq[0]), 0, -1)
         tick = np.concatenate([tick[0] - lead * period, tick])
         seq = np.concatenate([seq[0] - lead, seq])
-        src = np.concatenate([np.full(lead.size, -1 if src[0] == -1 else -2), src])
+        src = np.concatenate([np.full(lead.size, -2), src])
         flags = np.concatenate([np.full(lead.size, flags[0]), flags])
         log_ns = np.concatenate([np.full(lead.size, -1), log_ns])
         idx = np.concatenate([np.full(lead.size, -1), idx])
