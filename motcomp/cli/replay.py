@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import logging
 import math
 import sys
 import time
@@ -115,9 +114,6 @@ def _offline(args: argparse.Namespace) -> int:
         from motcomp.replay.plots import write_plots
 
         figures = [str(p) for p in write_plots(args.out, session, runs)]
-    log = logging.getLogger("motcomp.replay")
-    for note in base.plan.notes:
-        log.info("%s", note)
     summary = {
         "file": session.name,
         "session_s": sim_s,
