@@ -74,10 +74,14 @@ def _realtime(args: argparse.Namespace) -> int:
 
     if not (args.speed > 0 and math.isfinite(args.speed)):
         raise ConfigError(f"--speed must be a positive number, got {args.speed}")
-    from motcomp.record.session import read_session
+    from motcomp.record.mcapio import message_counts
+    from motcomp.record.session import session_parts
 
-    duration = read_session(args.file, other_keys=False, acc=False).duration_s()
-    with Progress("republishing", duration / args.speed, quiet=args.quiet, unit="s") as bar:
+    parts = session_parts(args.file)
+    spans = [c[""] for c in map(message_counts, parts) if c is not None]
+    duration = (spans[-1][1] - spans[0][0]) / 1e9 if len(spans) == len(parts) else 0.0
+    with Progress("republishing", duration / args.speed, quiet=args.quiet or not duration,
+                  unit="s") as bar:
         stats = republish(args.file, endpoints_from_args(args), args.key, args.timing,
                           args.speed, args.restamp, args.lead_in,
                           progress=lambda s: bar.update(s / args.speed))
