@@ -113,7 +113,8 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig, progress: An
         svc.comp.reset(initial_position(plan, inp, axes))
         svc.shaper.configure(svc.shaper.ramp_speed, loop.stale_after_s, loop.hold_s,
                              loop.rejoin_s, 0.0)
-    _apply_bypass(svc, plan.bypass0, axes.driven)
+    known = _recorded_bypass_axes(plan, axes)
+    _apply_bypass(svc, plan.bypass0, known)
     events = dict(plan.bypass_events)
     n = plan.rows
     u = np.full((n, len(AXES)), np.nan)
@@ -144,7 +145,7 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig, progress: An
                 ref[c], target[c], flags[c] = r_c, svc.comp.raw_output, svc.comp.flags
                 bypass[c] = svc.comp.bypass
         if k in events:
-            svc.commands.append(_bypass_command(svc, events[k], axes.driven))
+            svc.commands.append(_bypass_command(svc, events[k], known))
         f = int(plan.frame[k])
         if f >= 0:
             row = inp.pos[f]
@@ -172,6 +173,12 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig, progress: An
                         if m and m in fl), 0)
         j = k + 1
     return EngineResult(ref, u, flags, target, mode, bypass)
+
+
+def _recorded_bypass_axes(plan: TickPlan, axes: ResolvedAxes) -> tuple[bool, ...]:
+    """Axes the recorded bypass applies to: driven here, and driven by the recorded service."""
+    known = plan.bypass_axes if plan.bypass_axes is not None else [True] * len(AXES)
+    return tuple(bool(d and k) for d, k in zip(axes.driven, known, strict=True))
 
 
 def _bypass_command(svc: Any, mask: np.ndarray, driven: tuple[bool, ...]
@@ -464,6 +471,7 @@ def run_fast(plan: TickPlan, inp: InputStream, cfg: ServiceConfig, axes: Resolve
     n = plan.rows
     prms = _params(cfg, axes)
     p0 = initial_position(plan, inp, axes)
+    known = _recorded_bypass_axes(plan, axes)
     u = np.empty((n, len(AXES)), order="F")
     flags = np.zeros((n, len(AXES)), dtype=np.int8, order="F")
     target = np.empty((n, len(AXES)), order="F")
@@ -475,9 +483,9 @@ def run_fast(plan: TickPlan, inp: InputStream, cfg: ServiceConfig, axes: Resolve
         st.set_bypass(on0)
         if plan.warm:  # reset after the config's bypass: no fade
             st.fade_offset, st.fade_progress = 0.0, 1.0
-        if plan.bypass0 is not None and axes.driven[a]:
+        if plan.bypass0 is not None and known[a]:
             st.set_bypass(bool(plan.bypass0[a]))
-        changes = [(r_, bool(m[a])) for r_, m in plan.bypass_events if axes.driven[a]]
+        changes = [(r_, bool(m[a])) for r_, m in plan.bypass_events if known[a]]
         bounds = [0] + [r_ for r_, on in changes] + [n]
         states = [st.bypass] + [on for _, on in changes]
         for s in range(len(bounds) - 1):

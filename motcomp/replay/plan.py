@@ -70,6 +70,9 @@ class TickPlan:
     rejected: dict[str, int] = field(default_factory=dict)
     missing_frames: int = 0
     notes: list[str] = field(default_factory=list)
+    bypass_axes: np.ndarray | None = None
+    """Axes whose recorded bypass state is known (driven by the recorded service; the output
+    flags say nothing of the others).  None: all."""
 
     @property
     def rows(self) -> int:
@@ -305,8 +308,10 @@ def _from_outputs(session: Session, cfg: ServiceConfig, reason: np.ndarray, run:
         park = (park[0] - shift, park[1]) if park and park[0] > shift else None
         notes.append(f"the recording starts mid-run (first tick seq {int(out.seq[idx[0]])}): "
                      "warm start at rest at the first input")
+    rec_driven = [st["driven"] for _, st in session.status if isinstance(st.get("driven"), list)]
+    by_axes = np.array([a in rec_driven[-1] for a in AXES]) if rec_driven else None
     return TickPlan(now_ns, frame, output, emit, bypass0, events, park, warm, method, period,
-                    rejected, missing_frames, notes)
+                    rejected, missing_frames, notes, by_axes)
 
 
 def _assign_by_arrival(frame: np.ndarray, now_ns: np.ndarray, rows: np.ndarray,
