@@ -146,25 +146,32 @@ def test_offset_scan_equals_the_shaper_loop(seed: int, base: float) -> None:
     assert np.array_equal(_offsets(off0, 999.9, now, transit), expect)
 
 
-def test_limiter_stretches_equal_limit_axis() -> None:
-    lim = axis_constants(AXES_CFG.limits, 1e-3)[1]
+@pytest.mark.parametrize("case", ["sine_bursts_step", "end_stops"])
+def test_limiter_stretches_equal_limit_axis(case: str) -> None:
+    lim = axis_constants(AXES_CFG.limits, 1e-3)[1]  # rails_y: +-2.6 m, 2 m/s, 6 m/s^2
     rng = np.random.default_rng(2)
     t = np.arange(20000) * 1e-3
-    target = 0.4 * np.sin(2 * math.pi * 0.4 * t) + np.where(rng.random(t.size) < 0.01,
-                                                            rng.normal(0, 0.02, t.size), 0)
-    target[5000:] += 0.3  # a step
+    if case == "sine_bursts_step":
+        target = 0.4 * np.sin(2 * math.pi * 0.4 * t) + np.where(
+            rng.random(t.size) < 0.01, rng.normal(0, 0.02, t.size), 0)
+        target[5000:] += 0.3
+    else:  # driven into the end stops and beyond: the braking bound acts
+        target = 3.0 * np.sin(2 * math.pi * 0.1 * t + 1.0) + np.where(
+            rng.random(t.size) < 0.005, rng.normal(0, 0.05, t.size), 0)
     prm = _params(CFG, AXES_CFG)[1]
-    st_ = _State(0.0, prm)
-    u, flags = _limit(target, st_, lim)
+    u, flags = _limit(target, _State(0.0, prm), lim)
     ref = np.empty_like(u)
-    s = (0.0, 0.0, 0.0, 0.0, 0.0)  # u, v, ts, vs, target_prev
-    u0, v0, ts, vs, tp = s
+    ref_flags = np.empty(u.size, dtype=np.int64)
+    u0 = v0 = ts = vs = tp = 0.0
     for i, x in enumerate(target.tolist()):
-        u0, v0, ts, vs, _ = limit_axis(x, tp, u0, v0, ts, vs, lim)
+        u0, v0, ts, vs, ref_flags[i] = limit_axis(x, tp, u0, v0, ts, vs, lim)
         tp = x
         ref[i] = u0
     assert (flags != 0).sum() > 100
+    if case == "end_stops":
+        assert 2.55 < u.max() <= 2.6 and -2.6 <= u.min() < -2.55  # at the stops
     assert np.abs(u - ref).max() < 1e-12
+    assert np.array_equal(flags != 0, ref_flags != 0)
 
 
 def test_cli_json_compare_and_figures(rich: Path, tmp_path: Path) -> None:
