@@ -39,6 +39,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import msgpack
 import numpy as np
 
 from motcomp.config import ResolvedAxes, ServiceConfig
@@ -152,8 +153,6 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig, progress: An
             pos = {AXES[a]: float(row[a]) for a in np.flatnonzero(~np.isnan(row))}
             t = float(inp.t[f])
             if math.isnan(t):
-                import msgpack
-
                 src.push(msgpack.packb({"seq": int(inp.seq[f]), "pos": pos}))
             else:
                 src.push(encode_input(int(inp.seq[f]), t, pos))
