@@ -310,7 +310,20 @@ class Service:
                     if self._can is not None else None),
             "reloads": self.reloads[-10:],
             "realtime": self.rt_report,
+            "clock": self.tick_clock(),
         }
+
+    def tick_clock(self) -> dict[str, Any] | None:
+        """How output ``t`` maps back to the loop's own tick instants (None before the loop
+        starts): ``t = wall0 + (tick_ns - mono0_ns) / 1e9``, and without ``sync_to_input`` every
+        tick instant lies on the grid ``grid0_ns + m * period_ns``.  A replay uses this to
+        rebuild the exact ``tick_ns`` the loop computed with (see docs/REPLAY.md)."""
+        clock = self._clock
+        if clock is None or not self._t_mono0 or not self._t_wall0:
+            return None
+        return {"wall0": self._t_wall0, "mono0_ns": self._t_mono0,
+                "grid0_ns": None if self.cfg.loop.sync_to_input else clock.start_ns,
+                "period_ns": clock.period_ns}
 
     def _t_mono_s(self) -> float:
         return time.perf_counter_ns() / 1e9

@@ -1,0 +1,440 @@
+"""A recorded session as numpy arrays: :func:`read_session`.
+
+Every stream keeps, per message, the recorder's ``log_ns`` (receive time, ns since the epoch),
+the ``publish_ns`` and ``sequence`` of the MCAP message, and its decoded fields:
+
+=================  =========================================================================
+stream             fields
+=================  =========================================================================
+``inputs``         ``seq`` (int64), ``t`` (s, NaN without ``t``), ``pos`` (n x 8, NaN where
+                   the frame does not carry the axis), ``reason`` (0, or the code of the wire
+                   check it fails: :data:`motcomp.record.frames.REASON_CODE`)
+``outputs``        ``seq``, ``t`` (the tick's time), ``src_seq``, ``pos`` (n x 8), ``flags``
+                   (bit field, :data:`motcomp.record.frames.FLAG_BITS`), ``valid``
+``feedback``       ``t``, ``pos``, ``acc`` (n x 8), ``valid``
+``status``         list of ``(log_ns, dict)``
+=================  =========================================================================
+
+Axis columns are in :data:`motcomp.core.axes.AXES` order.  For identification,
+:meth:`Session.identification_data` gives ``(t, cmd, acc)`` of one axis: the feedback times,
+the command in force at each (the last output sent before it) and the measured acceleration.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import re
+import threading
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from motcomp.core.axes import AXIS_INDEX
+from motcomp.errors import DataError
+from motcomp.record.frames import FeedbackColumns, InputColumns, OutputColumns, decode_rows
+from motcomp.record.mcapio import MessageBatch, ScanResult, message_counts, metadata_dict, scan
+
+__all__ = [
+    "DEFAULT_KEYS",
+    "FeedbackStream",
+    "InputStream",
+    "OutputStream",
+    "RawStream",
+    "Session",
+    "read_session",
+    "session_parts",
+]
+
+log = logging.getLogger("motcomp.record")
+
+DEFAULT_KEYS = {"input": "sim/motion/setpoint", "output": "platform/setpoint",
+                "feedback": "platform/feedback", "status": "motcomp/status"}
+"""The keys motcomp records by default, by role (the service config's defaults)."""
+
+
+@dataclass
+class RawStream:
+    """Messages of one key, undecoded."""
+
+    key: str
+    log_ns: np.ndarray
+    publish_ns: np.ndarray
+    payloads: list[bytes] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return int(self.log_ns.size)
+
+
+@dataclass
+class InputStream(RawStream):
+    seq: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 8)))
+    reason: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int8))
+
+
+@dataclass
+class OutputStream(RawStream):
+    seq: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    src_seq: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 8)))
+    flags: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    valid: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+
+@dataclass
+class FeedbackStream(RawStream):
+    t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 8)))
+    acc: np.ndarray = field(default_factory=lambda: np.zeros((0, 8)))
+    valid: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+
+@dataclass
+class Session:
+    """A recording (one file or the parts of a rotated one), decoded; see the module
+    docstring."""
+
+    paths: list[Path]
+    keys: dict[str, str]
+    metadata: dict[str, Any]
+    config_json: dict[str, Any] | None
+    inputs: InputStream | None
+    outputs: OutputStream | None
+    feedback: FeedbackStream | None
+    status: list[tuple[int, dict[str, Any]]]
+    other: dict[str, RawStream]
+    warnings: list[str]
+    truncated: bool
+    messages: int
+
+    @property
+    def name(self) -> str:
+        first = str(self.paths[0])
+        return first if len(self.paths) == 1 else f"{first} (+{len(self.paths) - 1} parts)"
+
+    def config(self) -> Any:
+        """The service's effective config recorded with the session, or None.
+
+        Raises
+        ------
+        ConfigError
+            If the attached config does not validate.
+        """
+        if self.config_json is None:
+            return None
+        from motcomp.config import parse_config
+
+        return parse_config(self.config_json, f"{self.name}: attachment config.json")
+
+    def duration_s(self) -> float:
+        times = [s.log_ns for s in (self.inputs, self.outputs, self.feedback) if s is not None
+                 and len(s)]
+        if not times:
+            return 0.0
+        return float((max(int(t[-1]) for t in times) - min(int(t[0]) for t in times)) / 1e9)
+
+    def identification_data(self, axis: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(t, cmd, acc)`` of ``axis``: feedback times (s), the output position in force at
+        each (the last output whose tick time ``t`` is not after it) and the feedback
+        acceleration.  Feedback before the first output is dropped.
+
+        Raises
+        ------
+        DataError
+            If the session lacks outputs or feedback, or the axis is unknown.
+        """
+        if axis not in AXIS_INDEX:
+            raise DataError(f"unknown axis {axis!r}")
+        if self.outputs is None or self.feedback is None or not len(self.outputs) or \
+                not len(self.feedback):
+            raise DataError(f"{self.name}: identification needs recorded outputs and feedback")
+        i = AXIS_INDEX[axis]
+        out, fb = self.outputs, self.feedback
+        ok_o = out.valid & np.isfinite(out.pos[:, i])
+        ok_f = fb.valid & np.isfinite(fb.acc[:, i])
+        to, cmd = out.t[ok_o], out.pos[ok_o, i]
+        order = np.argsort(to, kind="stable")
+        to, cmd = to[order], cmd[order]
+        tf, acc = fb.t[ok_f], fb.acc[ok_f, i]
+        k = np.searchsorted(to, tf, side="right") - 1
+        keep = k >= 0
+        return tf[keep], cmd[k[keep]], acc[keep]
+
+
+def session_parts(path: str | Path) -> list[Path]:
+    """The files of a recording: ``path`` itself, or, if it does not exist, the parts
+    ``<stem>-0001<suffix>``, ``<stem>-0002<suffix>``... that rotation wrote.
+
+    Raises
+    ------
+    DataError
+        If neither exists.
+    """
+    p = Path(path)
+    if p.is_file():
+        return [p]
+    pat = re.compile(re.escape(p.stem) + r"-(\d{4,})" + re.escape(p.suffix) + "$")
+    parts = sorted((int(m.group(1)), c) for c in p.parent.glob(f"{p.stem}-*{p.suffix}")
+                   if (m := pat.match(c.name)))
+    if not parts:
+        raise DataError(f"{p}: no such recording (nor rotated parts {p.stem}-0001{p.suffix}...)")
+    return [c for _, c in parts]
+
+
+def _concat(chunks: list[np.ndarray], empty: np.ndarray) -> np.ndarray:
+    return np.concatenate(chunks) if chunks else empty
+
+
+def _prefetch(it: Iterator[Any], depth: int = 2) -> Iterator[Any]:
+    """Run ``it`` in a thread, ``depth`` items ahead: file reading and decompression (which
+    release the GIL) overlap with the decoding of the previous batch."""
+    q: queue.Queue[Any] = queue.Queue(depth)
+    stop = threading.Event()
+    end = object()
+
+    def produce() -> None:
+        try:
+            for item in it:
+                while not stop.is_set():
+                    try:
+                        q.put(item, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            q.put(end)
+        except BaseException as exc:  # handed to the consumer
+            q.put(exc)
+
+    th = threading.Thread(target=produce, name="motcomp-read", daemon=True)
+    th.start()
+    try:
+        while True:
+            item = q.get()
+            if item is end:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        th.join(timeout=5)
+
+
+class _Collector:
+    """Decodes the batches of one key into its stream's columns: straight into arrays of the
+    final size when the file's summary gives the message count, else batch by batch (joined at
+    the end)."""
+
+    def __init__(self, key: str, role: str | None, total: int | None, acc: bool,
+                 windows: np.ndarray | None = None) -> None:
+        self.key, self.role, self.total, self.acc = key, role, total, acc
+        self.windows = windows  # [start, end, start, end...] log ns: decode only these
+        self.segments: list[tuple[Any, np.ndarray, np.ndarray, int]] = []
+        self.n = 0  # rows used in the last segment
+
+    def _new(self, n: int) -> Any:
+        if self.role == "input":
+            return InputColumns(n)
+        if self.role == "output":
+            return OutputColumns(n)
+        if self.role == "feedback":
+            return FeedbackColumns(n, self.acc)
+        return []
+
+    def add(self, mb: MessageBatch) -> None:
+        if self.windows is not None:
+            sel = np.searchsorted(self.windows, mb.log_ns, side="right") % 2 == 1
+            if not sel.all():
+                mb = MessageBatch(mb.channel, mb.buf, mb.offset[sel], mb.length[sel],
+                                  mb.log_ns[sel], mb.publish_ns[sel] if mb.publish_ns.size
+                                  else mb.publish_ns)
+        m = len(mb)
+        if not m:
+            return
+        if not self.segments or self.n + m > self.segments[-1][1].size:
+            size = self.total if (self.total and not self.segments and m <= self.total) else m
+            self.segments.append((self._new(size), np.zeros(size, np.int64),
+                                  np.zeros(size, np.int64), 0))
+            self.n = 0
+        ex, log_ns, pub_ns, _ = self.segments[-1]
+        log_ns[self.n:self.n + m] = mb.log_ns
+        if mb.publish_ns.size:
+            pub_ns[self.n:self.n + m] = mb.publish_ns
+        if isinstance(ex, list):
+            ex += [mb.payload(i) for i in range(m)]
+        else:
+            decode_rows(mb.buf, mb.offset, mb.length, ex, row0=self.n)
+        self.n += m
+        self.segments[-1] = (ex, log_ns, pub_ns, self.n)
+
+    def finish(self, warnings: list[str]) -> RawStream:
+        segs = self.segments
+
+        def cat(get: Any, empty: np.ndarray) -> np.ndarray:
+            parts = [get(seg)[:seg[3]] for seg in segs]
+            return parts[0] if len(parts) == 1 else _concat(parts, empty)
+
+        base: dict[str, Any] = dict(key=self.key, log_ns=cat(lambda x: x[1], np.zeros(0, np.int64)),
+                                    publish_ns=cat(lambda x: x[2], np.zeros(0, np.int64)))
+        if self.role == "input":
+            return InputStream(**base, seq=cat(lambda x: x[0].seq, np.zeros(0, np.int64)),
+                               t=cat(lambda x: x[0].t, np.zeros(0)),
+                               pos=cat(lambda x: x[0].pos, np.zeros((0, 8))),
+                               reason=cat(lambda x: x[0].reason, np.zeros(0, np.int8)))
+        if self.role == "output":
+            bad = sum(seg[0].bad for seg in segs)
+            if bad:
+                warnings.append(f"{self.key}: {bad} output frames could not be decoded")
+            return OutputStream(
+                **base, seq=cat(lambda x: x[0].seq, np.zeros(0)).astype(np.int64),
+                t=cat(lambda x: x[0].t, np.zeros(0)),
+                src_seq=cat(lambda x: x[0].src_seq, np.zeros(0)).astype(np.int64),
+                pos=cat(lambda x: x[0].pos, np.zeros((0, 8))),
+                flags=cat(lambda x: x[0].flags, np.zeros(0, np.int64)),
+                valid=cat(lambda x: x[0].valid, np.zeros(0, bool)))
+        if self.role == "feedback":
+            return FeedbackStream(**base, t=cat(lambda x: x[0].t, np.zeros(0)),
+                                  pos=cat(lambda x: x[0].pos, np.zeros((0, 8))),
+                                  acc=cat(lambda x: x[0].acc, np.zeros((0, 8))),
+                                  valid=cat(lambda x: x[0].valid, np.zeros(0, bool)))
+        return RawStream(**base, payloads=[p for seg in segs for p in seg[0]])
+
+
+def read_session(path: str | Path | Sequence[str | Path], keys: dict[str, str] | None = None,
+                 other_keys: bool = True, acc: bool = True, publish: bool = True,
+                 feedback_windows: tuple[int, float] | None = None) -> Session:
+    """Read a recording written by ``motcomp record`` (or any MCAP file of msgpack frames on
+    motcomp's keys).
+
+    ``keys`` maps roles (``input``, ``output``, ``feedback``, ``status``) to keys; the default
+    takes them from the recorded config, else :data:`DEFAULT_KEYS`.  ``acc=False`` skips the
+    feedback accelerations (left NaN), ``other_keys=False`` the keys of no role,
+    ``publish=False`` the messages' publish times (left empty); ``feedback_windows=(n, s)``
+    keeps only the feedback inside ``n`` windows of ``s`` seconds spread evenly over the
+    session (enough for delay estimates, and much faster on long recordings; all of it if the
+    file has no summary).  A truncated file is read up to
+    its last complete chunk, with a warning (logged and kept in :attr:`Session.warnings`)
+    naming the file and the number of messages recovered.
+
+    Raises
+    ------
+    DataError
+        If a file cannot be read or is not MCAP.
+    """
+    paths = (session_parts(path) if isinstance(path, str | Path)
+             else [Path(p) for p in path])
+    warnings: list[str] = []
+    metadata: dict[str, Any] = {}
+    config_json: dict[str, Any] | None = None
+    results: list[ScanResult] = []
+    status: list[tuple[int, dict[str, Any]]] = []
+    roles = dict(DEFAULT_KEYS)
+    explicit = dict(keys or {})
+    roles.update(explicit)
+    counts: dict[str, Any] | None = {}
+    span = [None, None]
+    for p in paths:
+        c = message_counts(p)
+        if c is None or counts is None:
+            counts = None
+            continue
+        first, last = c.pop("")
+        span = [first if span[0] is None else span[0], last]
+        for k, n in c.items():
+            counts[k] = counts.get(k, 0) + n
+    fb_windows = None
+    if feedback_windows is not None and counts is not None and span[0] is not None:
+        n_w, len_s = feedback_windows
+        t0, t1 = int(span[0]), int(span[1])
+        if (t1 - t0) / 1e9 > 2 * n_w * len_s:
+            centres = t0 + (np.arange(n_w) + 0.5) / n_w * (t1 - t0)
+            half = len_s * 1e9 / 2
+            fb_windows = np.column_stack([centres - half, centres + half]).ravel()
+    collectors: dict[str, _Collector] = {}
+    for p in paths:
+        res = ScanResult(p)
+        results.append(res)
+        for batch in _prefetch(scan(p, None, result=res, publish=publish)):
+            if not metadata:
+                metadata = metadata_dict(res)
+            if config_json is None:
+                config_json = _config_attachment(res, warnings)
+                if config_json is not None and not explicit:
+                    roles.update(_keys_of(config_json))
+            role_of = {v: k for k, v in roles.items()}
+            for mb in batch:
+                topic = mb.channel.topic
+                role = role_of.get(topic)
+                if role == "status":
+                    for i in range(len(mb)):
+                        try:
+                            obj = msgpack.unpackb(mb.payload(i), raw=False, strict_map_key=False)
+                        except Exception:  # a bad status frame is skipped
+                            continue
+                        if isinstance(obj, dict):
+                            status.append((int(mb.log_ns[i]), obj))
+                    continue
+                if role is None and not other_keys:
+                    continue
+                col = collectors.get(topic)
+                if col is None:
+                    windowed = role == "feedback" and fb_windows is not None
+                    col = _Collector(topic, role, None if windowed or not counts else
+                                     counts.get(topic), acc, fb_windows if windowed else None)
+                    collectors[topic] = col
+                col.add(mb)
+        if not metadata:
+            metadata = metadata_dict(res)
+        if config_json is None:
+            config_json = _config_attachment(res, warnings)
+        if res.truncated and not res.complete:
+            msg = (f"{p}: unfinished recording ({res.truncated}); recovered {res.messages} "
+                   f"messages from {res.chunks} complete chunks")
+            warnings.append(msg)
+            log.warning("%s", msg)
+    streams: dict[str, Any] = {}
+    other: dict[str, RawStream] = {}
+    for key, col in collectors.items():
+        stream = col.finish(warnings)
+        if col.role in ("input", "output", "feedback"):
+            streams[col.role] = stream
+        else:
+            other[key] = stream
+    return Session(paths=paths, keys=roles, metadata=metadata, config_json=config_json,
+                   inputs=streams.get("input"), outputs=streams.get("output"),
+                   feedback=streams.get("feedback"), status=status, other=other,
+                   warnings=warnings, truncated=any(r.truncated and not r.complete
+                                                    for r in results),
+                   messages=sum(r.messages for r in results))
+
+
+def _config_attachment(res: ScanResult, warnings: list[str]) -> dict[str, Any] | None:
+    for name, _media, data in res.attachments:
+        if name == "config.json":
+            try:
+                obj = json.loads(data)
+            except ValueError:
+                warnings.append(f"{res.path}: attachment config.json is not JSON")
+                return None
+            return obj if isinstance(obj, dict) else None
+    return None
+
+
+def _keys_of(cfg: dict[str, Any]) -> dict[str, str]:
+    out = {}
+    for role, section in (("input", "input"), ("output", "output"), ("feedback", "feedback"),
+                          ("status", "status")):
+        key = cfg.get(section, {}).get("key") if isinstance(cfg.get(section), dict) else None
+        if isinstance(key, str):
+            out[role] = key
+    return out

@@ -1,0 +1,374 @@
+"""What the service did, tick by tick: the :class:`TickPlan` a replay follows.
+
+A plan has one row per compensator step: its instant ``now_ns`` (the loop's own clock), the
+input frame consumed just before it (if any), whether it emitted an output (a tick) or was a
+catch-up step after a stall (``Service._catch_up``), and the bypass changes and the parking
+request between steps.  It is rebuilt from a recording in one of three ways (docs/REPLAY.md):
+
+``outputs+clock``
+    Recorded outputs and a status frame carrying the loop's ``clock``: each output's ``t`` is
+    mapped back to the exact tick instant (``tick_ns = grid0_ns + m * period_ns``), the input
+    frame each tick used is the one whose ``seq`` is the output's ``src_seq`` (a change of
+    ``src_seq`` marks a consumed frame), stalls show as gaps of whole periods and become
+    catch-up rows, bypass changes and parking come from the output flags.  The replay then
+    computes with the very numbers the service computed with.
+``outputs``
+    The same without the clock (older service, or no status recorded): tick instants are output
+    ``t`` snapped to the period relative to the first tick; the absolute instant is unknown,
+    which changes floating-point rounding in the reference reconstruction (see docs/REPLAY.md).
+``inputs``
+    No outputs: ticks at the config's rate from the first input's arrival, each consuming the
+    newest frame that arrived since the previous tick (recorder receive times).
+
+Frames are checked against the replay's config (wire checks, range; sequence order when the
+plan is built from input arrivals); a rejected frame is not consumed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from motcomp.config import ResolvedAxes, ServiceConfig
+from motcomp.core.axes import AXES
+from motcomp.errors import DataError
+from motcomp.io.wire import REJECT_REASONS
+from motcomp.record.frames import FLAG_BITS
+from motcomp.record.session import Session
+from motcomp.runtime.service import MAX_CATCH_UP
+
+__all__ = ["TickPlan", "build_plan", "validate_frames"]
+
+WARM_AFTER_TICKS = 5000
+"""A recording whose first output is a later tick than this, and already used an input,
+starts *warm* (mid-run)."""
+_PARK = FLAG_BITS["parking"]
+
+
+@dataclass
+class TickPlan:
+    """See the module docstring.  Row arrays all have one entry per compensator step."""
+
+    now_ns: np.ndarray
+    frame: np.ndarray
+    """Input index consumed before the step, or -1."""
+    output: np.ndarray
+    """Index of the recorded output of this step, or -1 (catch-up step, or not recorded)."""
+    emit: np.ndarray
+    """The step was a tick (it sent an output), not a catch-up."""
+    bypass0: np.ndarray | None
+    """Bypass mask at the first row (None: the config's)."""
+    bypass_events: list[tuple[int, np.ndarray]]
+    """``(row, mask)``: bypass set to ``mask`` before the row's step."""
+    park: tuple[int, float] | None
+    """``(row, time_s)``: parking requested before that row."""
+    warm: bool
+    method: str
+    period_ns: int
+    rejected: dict[str, int] = field(default_factory=dict)
+    missing_frames: int = 0
+    notes: list[str] = field(default_factory=list)
+    bypass_axes: np.ndarray | None = None
+    """Axes whose recorded bypass state is known (driven by the recorded service; the output
+    flags say nothing of the others).  None: all."""
+
+    @property
+    def rows(self) -> int:
+        return int(self.now_ns.size)
+
+    @property
+    def t_s(self) -> np.ndarray:
+        """Row instants relative to the first row (s)."""
+        return np.asarray((self.now_ns - self.now_ns[0]) / 1e9)
+
+
+def validate_frames(session: Session, cfg: ServiceConfig, axes: ResolvedAxes) -> np.ndarray:
+    """Per input frame: 0 if the replay's config accepts it (wire checks and range), else the
+    1-based index of its reject reason in :data:`motcomp.io.wire.REJECT_REASONS`."""
+    inp = session.inputs
+    assert inp is not None
+    reason = inp.reason.copy()
+    f = cfg.input.reject_beyond_fraction
+    lo = axes.limits.p_min - f * (axes.limits.p_max - axes.limits.p_min)
+    hi = axes.limits.p_max + f * (axes.limits.p_max - axes.limits.p_min)
+    with np.errstate(invalid="ignore"):
+        out = ((inp.pos < lo) | (inp.pos > hi)).any(axis=1)
+    reason[(reason == 0) & out] = REJECT_REASONS.index("range") + 1
+    return reason
+
+
+def _count(reason: np.ndarray, rows: np.ndarray) -> dict[str, int]:
+    codes = reason[rows]
+    codes = codes[codes > 0]
+    return {REJECT_REASONS[c - 1]: int(n) for c, n in zip(*np.unique(codes, return_counts=True),
+                                                          strict=True)}
+
+
+def _runs(seq: np.ndarray) -> list[np.ndarray]:
+    """Split recorded outputs into service runs (``seq`` restarts)."""
+    cuts = np.flatnonzero(np.diff(seq) <= 0) + 1
+    return np.split(np.arange(seq.size), cuts)
+
+
+def _clock_for(session: Session, t_first: float, t_last: float) -> dict[str, Any] | None:
+    """The loop clock of the service run whose outputs span ``[t_first, t_last]``."""
+    best = None
+    for _, st in session.status:
+        c = st.get("clock")
+        if not isinstance(c, dict) or not all(isinstance(c.get(k), int | float) for k in
+                                               ("wall0", "mono0_ns", "period_ns")):
+            continue
+        if c["wall0"] <= t_first + 1e-3 and (best is None or c["wall0"] > best["wall0"]):
+            best = c
+    if best is not None and best["wall0"] > t_last:
+        return None
+    return best
+
+
+def build_plan(session: Session, cfg: ServiceConfig, axes: ResolvedAxes, run: int = 0,
+               use_outputs: bool = True) -> TickPlan:
+    """The tick plan of a recording (see the module docstring).
+
+    Raises
+    ------
+    DataError
+        If the session has no input frames, or ``run`` does not exist.
+    """
+    inp = session.inputs
+    if inp is None or not len(inp):
+        raise DataError(f"{session.name}: no input frames on {session.keys['input']!r}")
+    reason = validate_frames(session, cfg, axes)
+    out = session.outputs
+    if use_outputs and out is not None and out.valid.any():
+        return _from_outputs(session, cfg, reason, run)
+    return _from_inputs(session, cfg, reason)
+
+
+def _frame_lookup(session: Session) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    inp = session.inputs
+    assert inp is not None
+    order = np.lexsort((inp.log_ns, inp.seq))
+    return order, inp.seq[order], inp.log_ns[order]
+
+
+def _from_outputs(session: Session, cfg: ServiceConfig, reason: np.ndarray, run: int
+                  ) -> TickPlan:
+    out = session.outputs
+    inp = session.inputs
+    assert out is not None and inp is not None
+    valid = np.flatnonzero(out.valid)
+    runs = _runs(out.seq[valid])
+    notes = []
+    if len(runs) > 1:
+        notes.append(f"the recording holds {len(runs)} service runs (output seq restarts); "
+                     f"replaying run {run}")
+    if not 0 <= run < len(runs):
+        raise DataError(f"{session.name}: no service run {run} (runs: {len(runs)})")
+    idx = valid[runs[run]]
+    seq, t, src = out.seq[idx], out.t[idx], out.src_seq[idx]
+    flags, log_ns = out.flags[idx], out.log_ns[idx]
+    clock = _clock_for(session, float(t[0]), float(t[-1]))
+    period = int(clock["period_ns"]) if clock else round(1e9 / cfg.loop.rate_hz)
+    if clock is not None:
+        est = clock["mono0_ns"] + np.round((t - clock["wall0"]) * 1e9).astype(np.int64)
+        grid0 = clock.get("grid0_ns")
+        if isinstance(grid0, int):
+            tick = grid0 + np.round((est - grid0) / period).astype(np.int64) * period
+            method = "outputs+clock"
+        else:
+            tick = est
+            method = "outputs+clock (input-synchronous ticks: instants to ~0.2 us)"
+    else:
+        rel = np.round((t - t[0]) / (period / 1e9)).astype(np.int64)
+        tick = rel * period + 10**12  # an arbitrary origin 1000 s after an imaginary boot
+        method = "outputs"
+        notes.append("no loop clock in the recorded status: tick instants rebuilt from output "
+                     "t (relative grid only)")
+    # ticks before the first recorded one: if the service had used no input yet (src_seq -1)
+    # it was at rest at neutral, exactly the state the replay starts from; otherwise a few
+    # seconds of ticks are rebuilt on the grid (frames by arrival), or the replay starts warm
+    warm = bool(seq[0] > WARM_AFTER_TICKS and src[0] >= 0)
+    if not warm and seq[0] > 0 and src[0] >= 0:
+        lead = np.arange(int(seq[0]), 0, -1)
+        tick = np.concatenate([tick[0] - lead * period, tick])
+        seq = np.concatenate([seq[0] - lead, seq])
+        src = np.concatenate([np.full(lead.size, -2), src])
+        flags = np.concatenate([np.full(lead.size, flags[0]), flags])
+        log_ns = np.concatenate([np.full(lead.size, -1), log_ns])
+        idx = np.concatenate([np.full(lead.size, -1), idx])
+        notes.append(f"the first {lead.size} ticks were not recorded: rebuilt on the grid")
+    # rows: recorded ticks, missing ticks (seq gaps) and catch-up steps (time gaps)
+    rows_now: list[np.ndarray] = []
+    rows_out: list[np.ndarray] = []
+    rows_emit: list[np.ndarray] = []
+    rows_src: list[np.ndarray] = []
+    gaps = np.diff(tick) // period - 1 if tick.size > 1 else np.zeros(0, np.int64)
+    seq_gap = np.diff(seq) - 1 if seq.size > 1 else np.zeros(0, np.int64)
+    irregular = np.flatnonzero((gaps != 0) | (seq_gap != 0)) + 1
+    start = 0
+    for j in [*irregular.tolist(), tick.size]:
+        rows_now.append(tick[start:j])
+        rows_out.append(idx[start:j])
+        rows_emit.append(np.ones(j - start, bool))
+        rows_src.append(src[start:j])
+        if j == tick.size:
+            break
+        missing = int(max(seq_gap[j - 1], 0))
+        skipped = int(max(gaps[j - 1] - missing, 0))
+        t_prev = int(tick[j - 1])
+        if missing:  # ticks the recorder lost: on the grid after the previous one
+            rows_now.append(t_prev + period * np.arange(1, missing + 1, dtype=np.int64))
+            rows_out.append(np.full(missing, -1))
+            rows_emit.append(np.ones(missing, bool))
+            rows_src.append(np.full(missing, -3))
+        n_cu = min(skipped, MAX_CATCH_UP)
+        if n_cu:
+            rows_now.append(int(tick[j]) - period * np.arange(n_cu, 0, -1, dtype=np.int64))
+            rows_out.append(np.full(n_cu, -1))
+            rows_emit.append(np.zeros(n_cu, bool))
+            rows_src.append(np.full(n_cu, -4))
+        start = j
+    now_ns = np.concatenate(rows_now)
+    output = np.concatenate(rows_out)
+    emit = np.concatenate(rows_emit)
+    row_src = np.concatenate(rows_src)
+    # frames: a change of src_seq between recorded ticks marks the frame consumed there
+    frame = np.full(now_ns.size, -1, dtype=np.int64)
+    rec = np.flatnonzero(row_src >= -1)
+    prev = np.concatenate([[-1 if not warm else -5], row_src[rec][:-1]])
+    changed = rec[(row_src[rec] != prev) & (row_src[rec] >= 0)]
+    want = row_src[changed]
+    if np.all(inp.seq[1:] > inp.seq[:-1]):  # the usual case: one sender, no restart
+        order, sseq = np.arange(len(inp)), inp.seq
+        lo = np.minimum(np.searchsorted(sseq, want, "left"), sseq.size - 1)
+        found = sseq[lo] == want
+        hi, pick = lo + 1, lo
+        dup = np.zeros(0, dtype=np.int64)
+    else:
+        order, sseq, slog = _frame_lookup(session)
+        lo = np.searchsorted(sseq, want, "left")
+        hi = np.searchsorted(sseq, want, "right")
+        found = hi > lo
+        pick = np.where(found, hi - 1, 0)
+        dup = np.flatnonzero(found & (hi - lo > 1))
+    out_log = np.where(output[changed] >= 0, out.log_ns[np.maximum(output[changed], 0)], 0)
+    for k in dup:  # several frames with that seq (a restarted sender): the latest before
+        cand = np.arange(lo[k], hi[k])
+        before = cand[slog[cand] <= out_log[k] + 10**9]
+        pick[k] = before[-1] if before.size else cand[0]
+    frame[changed[found]] = order[pick[found]]
+    missing_frames = int((~found).sum())
+    if missing_frames:
+        notes.append(f"{missing_frames} input frames the service used are not in the "
+                     "recording: their ticks see no new input")
+    # frames consumed in ticks the recorder lost: by arrival time (mapped to the tick clock),
+    # newer than the frame in use before the gap and older than the one in use after it
+    lost = np.flatnonzero((row_src == -2) | (row_src == -3))
+    if lost.size:
+        rec_rows = np.flatnonzero(output >= 0)
+        delta = int(np.median(now_ns[rec_rows] - out.log_ns[output[rec_rows]]))
+        known = np.flatnonzero(row_src >= -1)
+        pos = np.searchsorted(known, lost)
+        before = np.where(pos > 0, row_src[known[np.maximum(pos - 1, 0)]], -1)
+        after = np.where(pos < known.size, row_src[known[np.minimum(pos, known.size - 1)]],
+                         np.iinfo(np.int64).max)
+        _assign_by_arrival(frame, now_ns, lost, inp.log_ns + delta, inp.seq, before, after)
+    # bypass changes and parking, from the flags of the recorded ticks
+    rec_rows = np.flatnonzero(output >= 0)
+    flags_rows = out.flags[output[rec_rows]]
+    bits = flags_rows >> 8 & 0xFF
+
+    def mask_of(k: int) -> np.ndarray:
+        return ((int(bits[k]) >> np.arange(len(AXES))) & 1).astype(bool)
+
+    bypass0 = mask_of(0)
+    events = [(int(rec_rows[k]), mask_of(int(k)))
+              for k in np.flatnonzero(bits[1:] != bits[:-1]) + 1]
+    park = None
+    parked = np.flatnonzero(flags_rows & _PARK)
+    if parked.size and parked[0] > 0:
+        prev_tick = int(rec_rows[parked[0] - 1])
+        park = (prev_tick + 1, float(now_ns[prev_tick]) / 1e9)
+    # frames the replay's config rejects are not consumed
+    consumed = np.flatnonzero(frame >= 0)
+    bad = consumed[reason[frame[consumed]] != 0]
+    rejected = _count(reason, frame[bad])
+    frame[bad] = -1
+    if warm:
+        first = np.flatnonzero(frame >= 0)
+        if not first.size:
+            raise DataError(f"{session.name}: no usable input frame in the recording")
+        keep = slice(int(first[0]), None)
+        shift = int(first[0])
+        now_ns, frame, output, emit = now_ns[keep], frame[keep], output[keep], emit[keep]
+        events = [(r - shift, m) for r, m in events if r > shift]
+        bypass0 = mask_of(int(np.searchsorted(rec_rows, shift))) if rec_rows.size else bypass0
+        park = (park[0] - shift, park[1]) if park and park[0] > shift else None
+        notes.append(f"the recording starts mid-run (first tick seq {int(out.seq[idx[0]])}): "
+                     "warm start at rest at the first input")
+    rec_driven = [st["driven"] for _, st in session.status if isinstance(st.get("driven"), list)]
+    by_axes = np.array([a in rec_driven[-1] for a in AXES]) if rec_driven else None
+    return TickPlan(now_ns, frame, output, emit, bypass0, events, park, warm, method, period,
+                    rejected, missing_frames, notes, by_axes)
+
+
+def _assign_by_arrival(frame: np.ndarray, now_ns: np.ndarray, rows: np.ndarray,
+                       arrival_ns: np.ndarray, seq: np.ndarray, seq_lo: np.ndarray,
+                       seq_hi: np.ndarray) -> None:
+    """Give each of ``rows`` (ticks whose consumption was not recorded) the newest frame that
+    arrived since the previous row with ``seq_lo < seq < seq_hi``."""
+    last = -1
+    for k, r in enumerate(rows.tolist()):
+        t_lo = now_ns[r - 1] if r > 0 else now_ns[r] - 10**6
+        cand = np.flatnonzero((arrival_ns > t_lo) & (arrival_ns <= now_ns[r]) &
+                              (seq > max(int(seq_lo[k]), last)) & (seq < seq_hi[k]))
+        if cand.size:
+            frame[r] = cand[-1]
+            last = int(seq[cand[-1]])
+
+
+def _from_inputs(session: Session, cfg: ServiceConfig, reason: np.ndarray) -> TickPlan:
+    inp = session.inputs
+    assert inp is not None
+    period = round(1e9 / cfg.loop.rate_hz)
+    arrival = inp.log_ns - int(inp.log_ns[0])
+    n_rows = int(arrival[-1] // period) + 2
+    now_ns = np.arange(n_rows, dtype=np.int64) * period + 10**12
+    # the tick after each arrival; the newest frame of a tick wins (the ring channel)
+    tick_of = np.ceil(arrival / period).astype(np.int64)
+    last = np.flatnonzero(np.diff(tick_of, append=tick_of[-1] + 1) != 0)
+    frame = np.full(n_rows, -1, dtype=np.int64)
+    frame[tick_of[last]] = last
+    consumed = np.flatnonzero(frame >= 0)
+    bad = consumed[reason[frame[consumed]] != 0]
+    rejected = _count(reason, frame[bad])
+    frame[bad] = -1
+    # sequence rule: a frame must be newer than the last accepted one, unless input was stale
+    consumed = np.flatnonzero(frame >= 0)
+    s = inp.seq[frame[consumed]]
+    if s.size > 1 and np.any(np.diff(s) <= 0):
+        stale_ns = cfg.loop.stale_after_s * 1e9
+        last_seq, last_t = None, None
+        n_old = n_dup = 0
+        for r in consumed.tolist():
+            q = int(inp.seq[frame[r]])
+            after_stale = last_t is not None and now_ns[r] - last_t > stale_ns
+            if last_seq is not None and not after_stale and q <= last_seq:
+                n_dup += q == last_seq
+                n_old += q < last_seq
+                frame[r] = -1
+                continue
+            last_seq, last_t = q, now_ns[r]
+        for name, n in (("duplicate", n_dup), ("old", n_old)):
+            if n:
+                rejected[name] = rejected.get(name, 0) + n
+    first = np.flatnonzero(frame >= 0)
+    if not first.size:
+        raise DataError(f"{session.name}: no usable input frame in the recording")
+    keep = slice(int(first[0]), None)
+    return TickPlan(now_ns[keep], frame[keep], np.full(n_rows, -1)[keep],
+                    np.ones(n_rows, bool)[keep], None, [], None, True, "inputs", period,
+                    rejected, 0, ["no outputs recorded: ticks at the config's rate from the "
+                                  "input arrival times, warm start at the first input"])

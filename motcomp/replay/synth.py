@@ -1,0 +1,266 @@
+"""Synthetic sessions on virtual time, through the service's own code, written as recordings.
+
+For tests and benchmarks: a motion source publishing at its own (slightly drifting) clock, a
+transport with random transit times, the service's :meth:`~motcomp.runtime.service.Service.tick`
+on its deadline grid with stalls (catch-up), bypass switches, silent gaps (stale input),
+partial frames, bad frames and parking, and a recorder that receives every frame shortly after
+it was sent (and may start late or lose outputs).  The platform's feedback is simulated with
+:func:`~motcomp.sim.platform.simulate_axis` from the config's plant models.  Everything is a
+function of the seed.
+
+``engine="fast"`` computes the outputs with :func:`~motcomp.replay.engine.run_fast` instead of
+ticking the service (for hour-long benchmark sessions); the frames are the same.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import msgpack
+import numpy as np
+
+from motcomp.config import ServiceConfig, config_hash, resolve_axes
+from motcomp.core.axes import AXES, AXIS_INDEX
+from motcomp.io.wire import encode_feedback, encode_input, encode_output
+from motcomp.record.recorder import SessionWriter
+from motcomp.record.session import DEFAULT_KEYS
+
+__all__ = ["SynthOptions", "motion", "synthesize"]
+
+WALL0 = 1_750_000_000.0
+MONO0_NS = 123_456_789_012_345
+
+
+@dataclass
+class SynthOptions:
+    duration_s: float = 10.0
+    source_hz: float = 1000.0
+    seed: int = 0
+    transit_us: tuple[float, float] = (60.0, 400.0)
+    """Uniform range of the source -> service transit time."""
+    drift: float = 2e-5
+    """The source's clock runs this much fast."""
+    axes: tuple[str, ...] = AXES
+    amplitude: float = 1.0
+    stalls: list[tuple[float, int]] = field(default_factory=list)
+    """``(time_s, periods)``: the loop overruns by that many periods."""
+    gaps: list[tuple[float, float]] = field(default_factory=list)
+    """``(start_s, length_s)``: the source is silent."""
+    bypass: list[tuple[float, bool, tuple[str, ...]]] = field(default_factory=list)
+    """``(time_s, on, axes)``: an admin bypass request."""
+    steps: list[tuple[float, str, float]] = field(default_factory=list)
+    """``(time_s, axis, metres)``: a step added to the motion (makes the limiter act)."""
+    partial_every: int = 0
+    """Every n-th frame carries only the rails (0: never)."""
+    bad_every: int = 0
+    """Every n-th frame is followed by a bad frame (0: never)."""
+    no_t_every: int = 0
+    """Every n-th frame has no ``t`` (0: never)."""
+    record_from_s: float = 0.0
+    """The recorder starts this late (a warm start for the replay)."""
+    lose_outputs: list[tuple[float, int]] = field(default_factory=list)
+    """``(time_s, count)``: outputs the recorder did not receive."""
+    park_at_s: float | None = None
+    status: bool = True
+    clock_in_status: bool = True
+    feedback: bool = True
+    engine: str = "ticks"
+
+
+def motion(t: np.ndarray, axis: str, amplitude: float = 1.0) -> np.ndarray:
+    """A smooth test motion per axis, within each axis' limits (m or rad)."""
+    i = AXIS_INDEX[axis]
+    f = 0.13 + 0.07 * i
+    env = np.clip(t / 2.0, 0, 1) ** 2
+    base = np.sin(2 * math.pi * f * t) ** 3 + 0.4 * np.sin(2 * math.pi * 2.3 * f * t + i)
+    scale = 0.25 if axis.startswith("rails") else 0.05
+    return amplitude * scale * env * base
+
+
+def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict[str, object]:
+    """Write the recording of a synthetic session; returns facts about it (tick count...)."""
+    from motcomp.io.memory import MemorySink, MemorySource
+    from motcomp.io.zenoh_io import ZenohEndpoints
+    from motcomp.runtime.service import MAX_CATCH_UP, Service
+
+    rng = np.random.default_rng(opts.seed)
+    period = round(1e9 / cfg.loop.rate_hz)
+    n_src = int(opts.duration_s * opts.source_hz)
+    t_src = np.arange(n_src) / opts.source_hz
+    keep = np.ones(n_src, bool)
+    for start, length in opts.gaps:
+        keep &= ~((t_src >= start) & (t_src < start + length))
+    sig = {a: motion(t_src, a, opts.amplitude) for a in opts.axes}
+    for ts, axis, size in opts.steps:
+        sig[axis] = sig[axis] + size * (t_src >= ts)
+    # sender times (its own drifting clock) and arrival at the service (loop clock, ns)
+    t_sender = WALL0 + 0.2 + t_src * (1 + opts.drift)
+    transit = rng.uniform(*opts.transit_us, n_src) * 1e3
+    arrival = MONO0_NS + np.round((0.2 + t_src) * 1e9 + transit).astype(np.int64)
+    frames: list[tuple[int, bytes]] = []  # (arrival ns, payload)
+    for k in np.flatnonzero(keep).tolist():
+        carried = (("rails_x", "rails_y") if opts.partial_every and k % opts.partial_every == 0
+                   else opts.axes)
+        pos = {a: float(sig[a][k]) for a in carried if a in sig}
+        if opts.no_t_every and k % opts.no_t_every == 0:
+            payload = msgpack.packb({"seq": k, "pos": pos})
+        else:
+            payload = encode_input(k, float(t_sender[k]), pos)
+        frames.append((int(arrival[k]), payload))
+        if opts.bad_every and k % opts.bad_every == 0:
+            bad = [msgpack.packb({"seq": k, "pos": {"rails_x": float("nan")}}), b"\xc1",
+                   msgpack.packb({"seq": k + 1, "pos": {"rails_q": 0.0}})][k // opts.bad_every % 3]
+            frames.append((int(arrival[k]) + 1000, bad))
+    frames.sort(key=lambda f: f[0])
+    # the loop's deadlines: a grid with stalls
+    grid0 = MONO0_NS - 37_000
+    n_ticks = int((opts.duration_s + 1.0) * cfg.loop.rate_hz)
+    m = np.arange(1, n_ticks + 1, dtype=np.int64)
+    for ts, skip in opts.stalls:
+        m[m * period > (ts + 0.2) * 1e9] += skip
+    deadlines = grid0 + m * period
+    out_msgs: list[tuple[int, bytes]] = []
+    svc = Service(cfg, ZenohEndpoints())
+    src, sink = MemorySource(latest_only=True), MemorySink()
+    svc.attach(src, [sink])
+    svc._t_mono0, svc._t_wall0 = MONO0_NS, WALL0
+    bypass_at = sorted(opts.bypass)
+    fi = 0
+    parked_from = None
+    if opts.engine == "ticks":
+        for j, dl in enumerate(deadlines.tolist()):
+            t_rel = (dl - MONO0_NS) / 1e9 - 0.2
+            while bypass_at and bypass_at[0][0] <= t_rel:
+                _, on, names = bypass_at.pop(0)
+                svc.commands.append(_bypass_cmd(svc, on, names))
+            while fi < len(frames) and frames[fi][0] <= dl:
+                src.push(frames[fi][1])
+                fi += 1
+            skipped = int((dl - deadlines[j - 1]) // period - 1) if j else 0
+            if skipped:
+                svc._catch_up(dl, min(skipped, MAX_CATCH_UP))
+            svc.tick(dl)
+            if opts.park_at_s is not None and parked_from is None and t_rel >= opts.park_at_s:
+                parked_from = j
+                svc.shaper.park(dl / 1e9)
+            elif parked_from is not None and svc._parked():
+                break
+        out_msgs = [(int(dl), p) for dl, p in zip(deadlines.tolist(), sink.payloads,
+                                                  strict=False)]
+        u_out = None
+    else:
+        out_msgs, u_out = _fast_outputs(cfg, frames, deadlines, period)
+    n_out = len(out_msgs)
+    # what the recorder receives (wall ns)
+    def wall_ns(mono: int) -> int:
+        return round(WALL0 * 1e9) + (mono - MONO0_NS)
+
+    msgs: list[tuple[int, str, bytes]] = []
+    for arr, payload in frames:
+        msgs.append((wall_ns(arr) + 20_000, DEFAULT_KEYS["input"], payload))
+    lost: set[int] = set()
+    for ts, count in opts.lose_outputs:
+        j0 = int((ts + 0.2) * cfg.loop.rate_hz)
+        lost.update(range(j0, j0 + count))
+    for j, (dl, payload) in enumerate(out_msgs):
+        if j not in lost:
+            msgs.append((wall_ns(dl) + 150_000, DEFAULT_KEYS["output"], payload))
+    if opts.feedback and out_msgs:
+        msgs += _feedback(cfg, out_msgs, wall_ns, u_out)
+    if opts.status:
+        st = svc.status()
+        st["clock"] = ({"wall0": WALL0, "mono0_ns": MONO0_NS,
+                        "grid0_ns": None if cfg.loop.sync_to_input else grid0,
+                        "period_ns": period} if opts.clock_in_status else None)
+        for s in range(int(opts.duration_s) + 1):
+            st["t"] = WALL0 + s + 0.5
+            msgs.append((round((WALL0 + s + 0.5) * 1e9), DEFAULT_KEYS["status"],
+                         msgpack.packb(st)))
+    msgs.sort(key=lambda x: x[0])
+    t_rec = round((WALL0 + 0.2 + opts.record_from_s) * 1e9) if opts.record_from_s else 0
+    cfg_json = json.dumps(cfg.model_dump(mode="json")).encode()
+    with SessionWriter(path, list(DEFAULT_KEYS.values()), {"config_hash": config_hash(cfg)},
+                       cfg_json, flush_s=0, fsync=False) as w:
+        for log_ns, key, payload in msgs:
+            if log_ns >= t_rec:
+                w.write(key, log_ns, payload)
+    return {"ticks": n_out, "frames": len(frames), "messages": len(msgs),
+            "deadlines": deadlines[:n_out]}
+
+
+def _bypass_cmd(svc: object, on: bool, names: tuple[str, ...]) -> Callable[[], None]:
+    def apply() -> None:
+        comp = svc.comp  # type: ignore[attr-defined]
+        mask = list(comp.bypass)
+        for a in names:
+            if svc.axes.driven[AXIS_INDEX[a]]:  # type: ignore[attr-defined]
+                mask[AXIS_INDEX[a]] = on
+        comp.set_bypass(mask)
+        svc._set_bypass_flags()  # type: ignore[attr-defined]
+    return apply
+
+
+def _fast_outputs(cfg: ServiceConfig, frames: list[tuple[int, bytes]], deadlines: np.ndarray,
+                  period: int) -> tuple[list[tuple[int, bytes]], np.ndarray]:
+    """Outputs of a stall-free, bypass-free session by the offline engine."""
+    from motcomp.record.frames import InputColumns, decode_rows
+    from motcomp.record.session import InputStream
+    from motcomp.replay.engine import run_fast
+    from motcomp.replay.plan import TickPlan
+
+    axes = resolve_axes(cfg)
+    payloads = [p for _, p in frames]
+    buf = np.frombuffer(b"".join(payloads) + bytes(2048), np.uint8)
+    lens = np.array([len(p) for p in payloads], dtype=np.int64)
+    offs = np.concatenate([[0], np.cumsum(lens)[:-1]])
+    ex = InputColumns(len(payloads))
+    decode_rows(buf, offs, lens, ex)
+    arr = np.array([a for a, _ in frames], dtype=np.int64)
+    inp = InputStream("in", arr, arr, seq=ex.seq, t=ex.t, pos=ex.pos, reason=ex.reason)
+    row = np.searchsorted(deadlines, arr, side="left")
+    frame = np.full(deadlines.size, -1, np.int64)
+    ok = (row < deadlines.size) & (ex.reason == 0)
+    frame[row[ok]] = np.flatnonzero(ok)  # the newest of a tick wins
+    plan = TickPlan(deadlines, frame, np.full(deadlines.size, -1), np.ones(deadlines.size, bool),
+                    None, [], None, False, "synthetic", period)
+    res = run_fast(plan, inp, cfg, axes)
+    from motcomp.replay.engine import saturated
+    from motcomp.replay.reference import MODES
+
+    last = np.maximum.accumulate(np.where(frame >= 0, np.arange(frame.size), -1))
+    src = np.where(last >= 0, inp.seq[frame[np.maximum(last, 0)]], -1).tolist()
+    u = res.u.tolist()
+    sat = saturated(res, cfg.status.saturation_tolerance)
+    bypass = [f"bypass:{a}" for a, b, d in zip(AXES, axes.bypass, axes.driven, strict=True)
+              if b and d]
+    flags = [([MODES[m]] if m else []) + [f"sat:{AXES[i]}" for i in np.flatnonzero(row)]
+             + bypass for m, row in zip(res.mode.tolist(), sat, strict=True)]
+    return [(dl, encode_output(j, WALL0 + (dl - MONO0_NS) / 1e9, src[j], u[j], flags[j]))
+            for j, dl in enumerate(deadlines.tolist())], res.u
+
+
+def _feedback(cfg: ServiceConfig, out_msgs: list[tuple[int, bytes]], wall_ns: object,
+              u: np.ndarray | None) -> list[tuple[int, str, bytes]]:
+    from motcomp.io.wire import decode_output
+    from motcomp.sim.platform import simulate_axis
+
+    axes = resolve_axes(cfg)
+    if u is None:
+        u = np.array([[decode_output(p)["pos"][a] for a in AXES] for _, p in out_msgs])
+    y = np.column_stack([simulate_axis(axes.plants[i], u[:, i], cfg.loop.rate_hz)
+                         for i in range(len(AXES))])
+    acc = np.zeros_like(y)
+    h = 1.0 / cfg.loop.rate_hz
+    acc[2:] = (y[2:] - 2 * y[1:-1] + y[:-2]) / (h * h)
+    out = []
+    yl, al = y.tolist(), acc.tolist()
+    for j, (dl, _) in enumerate(out_msgs):
+        t = WALL0 + (dl - MONO0_NS) / 1e9 + 3e-4
+        out.append((wall_ns(dl) + 400_000, DEFAULT_KEYS["feedback"],  # type: ignore[operator]
+                    encode_feedback(t, dict(zip(AXES, yl[j], strict=True)),
+                                    dict(zip(AXES, al[j], strict=True)))))
+    return out
