@@ -76,8 +76,9 @@ def test_fast_engine_agrees_with_the_service(rich: Path) -> None:
     rows, rec = recorded_rows(plan, s)
     diff = np.abs(fast.u[rows] - rec)
     assert diff.max() < 1e-9, diff.max(axis=0)
-    # compensated rails: lfilter ordering, ~1e-11; bypassed axes: ~1e-16 (smoother rounding)
-    assert diff[:, 2:].max() < 1e-14
+    # compensated rails: lfilter ordering, ~1e-11; bypassed axes: ~1e-13 (the limiter's
+    # third-order target tracker through lfilter where the limiter acts)
+    assert diff[:, 2:].max() < 1e-12
     # the reference is the service's, bit for bit, where every frame carries the axis
     assert np.array_equal(fast.ref[rows, :2], exact.ref[rows, :2])
     # the limiter acted (steps, jitter) and the saturation verdicts agree with the recording
@@ -162,15 +163,15 @@ def test_limiter_stretches_equal_limit_axis(case: str) -> None:
     u, flags = _limit(target, _State(0.0, prm), lim)
     ref = np.empty_like(u)
     ref_flags = np.empty(u.size, dtype=np.int64)
-    u0 = v0 = ts = vs = tp = 0.0
+    u0 = v0 = sp = sv = sa = 0.0
     for i, x in enumerate(target.tolist()):
-        u0, v0, ts, vs, ref_flags[i] = limit_axis(x, tp, u0, v0, ts, vs, lim)
-        tp = x
+        u0, v0, sp, sv, sa, ref_flags[i] = limit_axis(x, u0, v0, sp, sv, sa, lim)
         ref[i] = u0
     assert (flags != 0).sum() > 100
     if case == "end_stops":
         assert 2.55 < u.max() <= 2.6 and -2.6 <= u.min() < -2.55  # at the stops
-    assert np.abs(u - ref).max() < 1e-12
+    # the tracker's lfilter vs its recursion: ~1e-11 m where the limiter acts
+    assert np.abs(u - ref).max() < 1e-10
     assert np.array_equal(flags != 0, ref_flags != 0)
 
 

@@ -172,7 +172,7 @@ def analyse(session: Session, plan: TickPlan, res: EngineResult, cfg: ServiceCon
     rate = 1e9 / plan.period_ns
     pre = int(PREROLL_S * rate)
     emit = plan.emit
-    sat_e = saturated(res, cfg.status.saturation_tolerance)
+    sat_e = saturated(res, cfg.status.saturation_tolerance, cfg.loop.rate_hz)
     if not emit.all():
         sat_e = sat_e[emit]
     held = np.maximum.accumulate(np.where(emit, np.arange(plan.rows), 0))

@@ -21,9 +21,9 @@
       through bit-exactly, and feasibility of sample ``k`` depends only on the two samples
       before: it is evaluated for the whole stretch at once, assuming passthrough; at each
       infeasible sample the exact ``limit_axis`` runs sample by sample until two samples in a
-      row pass through again, after which the assumption holds again.  The target smoother
+      row pass through again, after which the assumption holds again.  The target tracker
       (a linear filter of the clamped target) is computed with ``lfilter`` for the stretch.
-    * Bypassed axes: the target is the reference (plus the raised-cosine fade after a switch),
+    * Bypassed axes: the target is the reference (plus the minimum-jerk fade after a switch),
       through the same limiter; the PID state at the end of a bypass stretch (needed only if
       compensation is switched back on) is rebuilt from its difference equations in bulk.
 
@@ -67,16 +67,27 @@ class EngineResult:
     mode: np.ndarray
     bypass: np.ndarray
     """Per row and axis: compensation off (the service's bypass mask at that step)."""
+    emit: np.ndarray
+    """Per row: an output was sent (False for the steps computed to catch up after a stall)."""
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def saturated(res: EngineResult, tol: float) -> np.ndarray:
+def saturated(res: EngineResult, tol: float, rate_hz: float = 1000.0) -> np.ndarray:
     """Rows x axes: the service's "sat:<axis>" rule -- a position or velocity limit acted, or
-    the command departs from its target by more than ``tol``."""
+    the command departs from its target by more than ``tol`` on a 20 ms average (the service's
+    recursion, which ``lfilter`` reproduces operation for operation)."""
+    from scipy.signal import lfilter
+
     out = np.zeros(res.flags.shape, dtype=bool)
-    r, c = np.nonzero(res.flags)  # the limiter acted (rare): judge those samples only
-    f = res.flags[r, c]
-    out[r, c] = ((f & _HARD) != 0) | (np.abs(res.u[r, c] - res.target[r, c]) > tol)
+    alpha = min(1.0, 1.0 / (0.02 * rate_hz))
+    sent = np.flatnonzero(res.emit)  # the average runs on the ticks that sent an output
+    flags = res.flags[sent]
+    dev = np.where(flags != 0, res.u[sent] - res.target[sent], 0.0)
+    avg = lfilter([alpha], [1.0, -(1.0 - alpha)], dev, axis=0)
+    acted = flags != 0
+    judged = np.zeros(flags.shape, dtype=bool)
+    judged[acted] = ((flags[acted] & _HARD) != 0) | (np.abs(avg[acted]) > tol)
+    out[sent] = judged
     return out
 
 
@@ -171,7 +182,7 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig, progress: An
         mode[k] = next((i for i, m in enumerate(("", "rejoin", "stale", "parking"))
                         if m and m in fl), 0)
         j = k + 1
-    return EngineResult(ref, u, flags, target, mode, bypass)
+    return EngineResult(ref, u, flags, target, mode, bypass, plan.emit.copy())
 
 
 def _recorded_bypass_axes(plan: TickPlan, axes: ResolvedAxes) -> tuple[bool, ...]:
@@ -254,9 +265,7 @@ class _State:
         self.r = p
         self.u = p
         self.vel = 0.0
-        self.tprev = p
-        self.ts = p
-        self.vs = 0.0
+        self.track = (p, 0.0, 0.0)  # the limiter's target tracker
         self.xc = prm.K * p
         self.y = self.xc
         self.hist: deque[float] = deque([p] * prm.hist_len, maxlen=prm.hist_len)
@@ -274,7 +283,6 @@ class _State:
         if on:
             self.fade_offset = self.u - self.r
             self.fade_progress = 0.0
-        self.tprev = self.u
         self.bypass = on
 
 
@@ -348,19 +356,40 @@ def _advance(st: _State, prm: _Params, r: np.ndarray, v: np.ndarray) -> None:
     st.r = float(r[-1])
 
 
-def _smoother(x: np.ndarray, ts: float, vs: float, lim: tuple[float, ...]
-              ) -> tuple[np.ndarray, np.ndarray]:
-    """The limiter's target smoother over ``x`` (clamped targets), from state ``(ts, vs)``:
-    ``ts' = f00 ts + f01 vs + g0 x``, ``vs' = f10 ts + f11 vs + g1 x``."""
-    from scipy.signal import lfilter
+def _tracker_tf(lim: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Transfer functions from the clamped target to the three tracker states after each update
+    ``s[k] = F s[k-1] + G x[k]`` (``(3, 4)`` numerators, common denominator)."""
+    from scipy.signal import ss2tf
 
-    f00, f01, f10, f11, g0, g1 = lim[13:19]
-    a = [1.0, -(f00 + f11), f00 * f11 - f01 * f10]
-    ts_out, _ = lfilter([g0, f01 * g1 - f11 * g0], a, x,
-                        zi=[f00 * ts + f01 * vs, -a[2] * ts])
-    vs_out, _ = lfilter([g1, f10 * g0 - f00 * g1], a, x,
-                        zi=[f10 * ts + f11 * vs, -a[2] * vs])
-    return ts_out, vs_out
+    f = np.array(lim[12:21]).reshape(3, 3)
+    g = np.array(lim[21:24]).reshape(3, 1)
+    num, den = ss2tf(f, g, f, g)  # q[k+1] = F q[k] + G x[k], s[k] = F q[k] + G x[k]
+    return np.asarray(num), np.asarray(den)
+
+
+def _tracker(x: np.ndarray, s0: tuple[float, float, float], lim: tuple[float, ...]
+             ) -> np.ndarray:
+    """The limiter's target tracker over ``x`` (clamped targets) from state ``s0``: ``(3, n)``.
+    The first samples run the kernel's own recursion, the rest ``lfilter`` from them."""
+    from scipy.signal import lfilter, lfiltic
+
+    f00, f01, f02, f10, f11, f12, f20, f21, f22, g0, g1, g2 = lim[12:24]
+    n = x.size
+    out = np.empty((3, n))
+    warm = min(n, 3)
+    sp, sv, sa = s0
+    for k in range(warm):
+        t = float(x[k])
+        sp, sv, sa = (f00 * sp + f01 * sv + f02 * sa + g0 * t,
+                      f10 * sp + f11 * sv + f12 * sa + g1 * t,
+                      f20 * sp + f21 * sv + f22 * sa + g2 * t)
+        out[:, k] = (sp, sv, sa)
+    if n > warm:
+        num, den = _tracker_tf(lim)
+        for j in range(3):
+            zi = lfiltic(num[j], den, out[j, warm - 1::-1], x[warm - 1::-1])
+            out[j, warm:], _ = lfilter(num[j], den, x[warm:], zi=zi)
+    return out
 
 
 def _limit(target: np.ndarray, st: _State, lim: tuple[float, ...], need_state: bool = True
@@ -370,7 +399,7 @@ def _limit(target: np.ndarray, st: _State, lim: tuple[float, ...], need_state: b
     Feasibility is evaluated with the same comparisons as ``limit_axis``; the braking test
     only where the axis is within twice the worst braking distance of an end stop (elsewhere it
     holds with a wide margin), and the position test only at the first sample (later ones
-    follow clamped targets).  The target smoother is run only if the limiter acts, or if the
+    follow clamped targets).  The target tracker is run only if the limiter acts, or if the
     state is needed after the stretch."""
     (h, inv_h, p_min, p_max, v_max, ah, _ah2, _two_a, inv_two_a, *_rest) = lim
     n = target.size
@@ -399,7 +428,7 @@ def _limit(target: np.ndarray, st: _State, lim: tuple[float, ...], need_state: b
     bad = np.flatnonzero(~ok)
     u = tc
     if bad.size or need_state:
-        ts_all, vs_all = _smoother(tc, st.ts, st.vs, lim)
+        trk = _tracker(tc, st.track, lim)
     u0, v0 = st.u, st.vel
     pos = 0
     nb = bad.size
@@ -408,14 +437,13 @@ def _limit(target: np.ndarray, st: _State, lim: tuple[float, ...], need_state: b
         k = int(bad[b])
         if k > pos:
             u0, v0 = float(tc[k - 1]), float(vel[k - 1])
-        ts, vs = (float(ts_all[k - 1]), float(vs_all[k - 1])) if k > 0 else (st.ts, st.vs)
-        tprev = float(target[k - 1]) if k > 0 else st.tprev
+        sp, sv, sa = ((float(trk[0, k - 1]), float(trk[1, k - 1]), float(trk[2, k - 1]))
+                      if k > 0 else st.track)
         run = 0
         i = k
         while i < n:
             ti = float(target[i])
-            ui, vi, ts, vs, fl = limit_axis(ti, tprev, u0, v0, ts, vs, lim)
-            tprev = ti
+            ui, vi, sp, sv, sa, fl = limit_axis(ti, u0, v0, sp, sv, sa, lim)
             u[i] = ui
             flags[i] = fl
             u0, v0 = ui, vi
@@ -430,21 +458,20 @@ def _limit(target: np.ndarray, st: _State, lim: tuple[float, ...], need_state: b
     else:
         st.u, st.vel = u0, v0
     if bad.size or need_state:
-        st.ts, st.vs = float(ts_all[-1]), float(vs_all[-1])
-    st.tprev = float(target[-1])
+        st.track = (float(trk[0, -1]), float(trk[1, -1]), float(trk[2, -1]))
     return u, flags
 
 
 def _bypass_targets(r: np.ndarray, st: _State, fade_step: float) -> np.ndarray:
-    """The bypass target: the reference, plus the raised-cosine fade of the offset at the
-    switch (``Compensator.step``, bypass branch)."""
+    """The bypass target: the reference, plus the minimum-jerk fade of the offset at the switch
+    (``Compensator.step``, bypass branch)."""
     out = r.copy()
     p = st.fade_progress
     off = st.fade_offset
     n = r.size
     k = 0
     while p < 1.0 and k < n:
-        out[k] = float(r[k]) + off * (0.5 + 0.5 * math.cos(math.pi * p))
+        out[k] = float(r[k]) + off * (1.0 - p**3 * (10.0 - 15.0 * p + 6.0 * p * p))
         p = min(p + fade_step, 1.0)
         k += 1
     st.fade_progress = p
@@ -507,4 +534,4 @@ def run_fast(plan: TickPlan, inp: InputStream, cfg: ServiceConfig, axes: Resolve
         if progress is not None:
             progress(0.4 + 0.6 * (a + 1) / len(AXES))
     timings["compensator_s"] = time.perf_counter() - t1
-    return EngineResult(ref, u, flags, target, mode, bypass, timings)
+    return EngineResult(ref, u, flags, target, mode, bypass, plan.emit.copy(), timings)

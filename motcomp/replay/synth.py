@@ -234,7 +234,7 @@ def _fast_outputs(cfg: ServiceConfig, frames: list[tuple[int, bytes]], deadlines
     last = np.maximum.accumulate(np.where(frame >= 0, np.arange(frame.size), -1))
     src = np.where(last >= 0, inp.seq[frame[np.maximum(last, 0)]], -1).tolist()
     u = res.u.tolist()
-    sat = saturated(res, cfg.status.saturation_tolerance)
+    sat = saturated(res, cfg.status.saturation_tolerance, cfg.loop.rate_hz)
     bypass = [f"bypass:{a}" for a, b, d in zip(AXES, axes.bypass, axes.driven, strict=True)
               if b and d]
     flags = [([MODES[m]] if m else []) + [f"sat:{AXES[i]}" for i in np.flatnonzero(row)]

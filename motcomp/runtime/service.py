@@ -170,12 +170,13 @@ class Service:
         tol = self.cfg.status.saturation_tolerance
         dev = comp.deviation
         lp = self._dev_lp
-        alpha = self._dev_alpha
+        alpha, keep = self._dev_alpha, 1.0 - self._dev_alpha
         for i, f in enumerate(comp.flags):
             # a position or velocity bound, or a *sustained* departure from the target (its
             # 20 ms average): the limiter absorbing zero-mean jitter noise that the compensator
-            # amplifies is not a saturation of the motion
-            lp[i] += alpha * (dev[i] - lp[i])
+            # amplifies is not a saturation of the motion.  (Written as lfilter computes it, so
+            # that an offline replay reproduces the verdicts exactly.)
+            lp[i] = alpha * dev[i] + keep * lp[i]
             if f & _HARD_BITS or (f and abs(lp[i]) > tol):
                 sat[i] += 1
                 limited[i] = True
