@@ -156,8 +156,8 @@ class InputValidator:
 
     def set_limits(self, p_min: Sequence[float], p_max: Sequence[float]) -> None:
         f = self.reject_beyond_fraction
-        self._lo = {a: lo - f * (hi - lo) for a, lo, hi in zip(AXES, p_min, p_max, strict=True)}
-        self._hi = {a: hi + f * (hi - lo) for a, lo, hi in zip(AXES, p_min, p_max, strict=True)}
+        self._bounds = {a: (lo - f * (hi - lo), hi + f * (hi - lo))
+                        for a, lo, hi in zip(AXES, p_min, p_max, strict=True)}
         self.p_min, self.p_max = p_min, p_max
 
     def accept(self, payload: bytes, after_stale: bool = False
@@ -169,11 +169,7 @@ class InputValidator:
         """
         self.received += 1
         try:
-            seq, t, pos = decode_input(payload)
-            for axis, value in pos.items():
-                if not self._lo[axis] <= value <= self._hi[axis]:
-                    raise FrameError("range", f"pos.{axis} = {value!r} is outside "
-                                              f"[{self._lo[axis]:.6g}, {self._hi[axis]:.6g}]")
+            seq, t, pos = self._decode(payload)
             last = self.last_seq
             if last is not None and not after_stale and seq <= last:
                 raise FrameError("duplicate" if seq == last else "old",
@@ -184,6 +180,33 @@ class InputValidator:
             return None
         self.last_seq = seq
         self.accepted += 1
+        return seq, t, pos
+
+    def _decode(self, payload: bytes) -> tuple[int, float | None, dict[str, float]]:
+        """The common case in one pass: a map of the three keys whose ``pos`` values are floats
+        within their bounds (one chained comparison also rejects NaN and infinities); anything
+        else goes through :func:`decode_input`, which names the problem."""
+        try:
+            obj = msgpack.unpackb(payload, raw=False)
+        except Exception:  # msgpack raises several unrelated types
+            obj = None
+        if obj.__class__ is dict and "pos" in obj and "seq" in obj and len(obj) <= 3:
+            seq, pos, t = obj["seq"], obj["pos"], obj.get("t")
+            if (seq.__class__ is int and pos.__class__ is dict and pos
+                    and (t is None or t.__class__ is float) and (len(obj) == 2 or "t" in obj)):
+                bounds = self._bounds
+                for axis, value in pos.items():
+                    b = bounds.get(axis)
+                    if b is None or value.__class__ is not float or not b[0] <= value <= b[1]:
+                        break
+                else:
+                    return seq, t, pos
+        seq, t, pos = decode_input(payload)  # raises the precise FrameError
+        for axis, value in pos.items():
+            lo, hi = self._bounds[axis]
+            if not lo <= value <= hi:
+                raise FrameError("range", f"pos.{axis} = {value!r} is outside "
+                                          f"[{lo:.6g}, {hi:.6g}]")
         return seq, t, pos
 
     @property

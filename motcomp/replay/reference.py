@@ -64,6 +64,9 @@ class ReplayShaper(ReferenceShaper):
     def import_live(self, st: _Live, ref: list[float]) -> None:
         self.live, self._t_frame, self._slope, self._period = (
             st.live[:], st.t_frame[:], st.slope[:], st.period[:])
+        # the extrapolation caps derive from the periods, as the shaper computes them
+        self._cap = [min(1.5 * p, self.max_extrapolation_s) if p > 0.0 else 0.0
+                     for p in self._period]
         self._offset, self._offset_at, self.last_input_s = st.offset, st.offset_at, \
             st.last_input_s
         self.ref = ref

@@ -176,6 +176,8 @@ class Service:
             # 20 ms average): the limiter absorbing zero-mean jitter noise that the compensator
             # amplifies is not a saturation of the motion.  (Written as lfilter computes it, so
             # that an offline replay reproduces the verdicts exactly.)
+            if not f and lp[i] == 0.0:  # the common case: nothing to average
+                continue
             lp[i] = alpha * dev[i] + keep * lp[i]
             if f & _HARD_BITS or (f and abs(lp[i]) > tol):
                 sat[i] += 1

@@ -98,6 +98,7 @@ class ReferenceShaper:
         self._t_frame = [0.0] * self.n  # sender time of each axis' last value
         self._slope = [0.0] * self.n
         self._period = [0.0] * self.n  # average interval between an axis' frames
+        self._cap = [0.0] * self.n  # how far an axis may be extrapolated: min(1.5 period, max)
         self._offset: float | None = None  # local clock - sender clock (smallest transit)
         self._offset_at = 0.0
         self.ref = [0.0] * self.n
@@ -153,7 +154,9 @@ class ReferenceShaper:
                 self._slope[i] = (v - self.live[i]) / dt if fresh else 0.0
                 if fresh:
                     p = self._period[i]
-                    self._period[i] = dt if p == 0.0 else p + 0.05 * (dt - p)
+                    p = dt if p == 0.0 else p + 0.05 * (dt - p)
+                    self._period[i] = p
+                    self._cap[i] = min(1.5 * p, self.max_extrapolation_s)
                 self.live[i] = v
                 self._t_frame[i] = t
         if rejoin:
@@ -212,13 +215,10 @@ class ReferenceShaper:
         if not self.linear or self._offset is None:
             return self.live[:]
         t_now = now - self._offset
-        cap_max = self.max_extrapolation_s
-        out = []
-        for v, s, t, p in zip(self.live, self._slope, self._t_frame, self._period, strict=True):
-            tau = t_now - t
-            cap = min(1.5 * p, cap_max)
-            out.append(v + s * (tau if 0.0 < tau < cap else cap if tau >= cap else 0.0))
-        return out
+        return [v + s * (tau if 0.0 < tau < cap else cap if tau >= cap else 0.0)
+                for v, s, tau, cap in zip(self.live, self._slope,
+                                          [t_now - t for t in self._t_frame], self._cap,
+                                          strict=True)]
 
     def stale_time(self, now: float) -> float:
         """Seconds since the last valid frame (0 while live)."""
