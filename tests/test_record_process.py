@@ -189,5 +189,10 @@ def test_realtime_replay_drives_the_running_service(live: dict[str, Any]) -> Non
     assert abs(stats["duration_s"] - (MOTION_S + 1.0)) < 2.0  # the recorded timing
     after = _status(ep)
     got = after["frames"]["accepted"] - before["frames"]["accepted"]
-    assert got > 0.9 * len(s.inputs)
+    skipped = after["frames"]["superseded"] - before["frames"]["superseded"]
+    # the loop takes the newest frame per tick: a frame it did not take is a gap in seq, except
+    # for frames superseded before the first one taken (a burst while the sender warms up)
+    span = int(s.inputs.seq[-1] - s.inputs.seq[0]) + 1
+    assert got > 0.5 * len(s.inputs), (after["frames"], before["frames"])
+    assert span - 50 <= got + skipped <= span, (got, skipped, span)
     assert after["src_seq"] == int(s.inputs.seq[-1])

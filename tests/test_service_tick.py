@@ -127,6 +127,22 @@ def test_duplicate_and_old_seq_rejected_then_restart_after_stale() -> None:
     assert svc.validator.last_seq == 0
 
 
+def test_frames_not_taken_count_as_superseded() -> None:
+    """Two frames in one tick: the loop takes the newer; the gap in seq is counted, a restarted
+    sender (seq going back after a stale spell) is not."""
+    svc, src, _ = make_service()
+    seqs = [0, 1, 2, 3, 5, 6, 9, 10]  # 4, 7 and 8 arrive together with their successor
+    for k, seq in enumerate(seqs):
+        svc.tick(k * MS)
+        src.push(encode_input(seq, k / 1000, {"rails_y": 0.01}))
+    svc.tick(len(seqs) * MS)
+    assert svc.status()["frames"]["superseded"] == 3
+    svc.tick(300 * MS)  # stale
+    src.push(encode_input(0, 0.3, {"rails_y": 0.02}))
+    svc.tick(301 * MS)
+    assert svc.validator.last_seq == 0 and svc.status()["frames"]["superseded"] == 3
+
+
 def test_subset_frames_hold_the_other_axes() -> None:
     svc, src, sink = make_service()
     for k in range(1500):

@@ -80,14 +80,21 @@ def saturated(res: EngineResult, tol: float, rate_hz: float = 1000.0) -> np.ndar
 
     out = np.zeros(res.flags.shape, dtype=bool)
     alpha = min(1.0, 1.0 / (0.02 * rate_hz))
-    sent = np.flatnonzero(res.emit)  # the average runs on the ticks that sent an output
-    flags = res.flags[sent]
-    dev = np.where(flags != 0, res.u[sent] - res.target[sent], 0.0)
-    avg = lfilter([alpha], [1.0, -(1.0 - alpha)], dev, axis=0)
-    acted = flags != 0
-    judged = np.zeros(flags.shape, dtype=bool)
-    judged[acted] = ((flags[acted] & _HARD) != 0) | (np.abs(avg[acted]) > tol)
-    out[sent] = judged
+    # the average runs on the ticks that sent an output (views when all did)
+    rows = None if bool(res.emit.all()) else np.flatnonzero(res.emit)
+    for a in range(res.flags.shape[1]):
+        flags = res.flags[:, a] if rows is None else res.flags[rows, a]
+        acted = np.flatnonzero(flags)
+        if acted.size == 0:
+            continue
+        first = int(acted[0])  # before the first action the average is exactly zero
+        f = flags[first:]
+        u = res.u[first:, a] if rows is None else res.u[rows[first:], a]
+        target = res.target[first:, a] if rows is None else res.target[rows[first:], a]
+        avg = lfilter([alpha], [1.0, -(1.0 - alpha)], np.where(f != 0, u - target, 0.0))
+        k = acted - first
+        verdict = ((f[k] & _HARD) != 0) | (np.abs(avg[k]) > tol)
+        out[acted if rows is None else rows[acted], a] = verdict
     return out
 
 

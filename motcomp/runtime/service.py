@@ -76,6 +76,7 @@ class _Counters:
     ticks: int = 0
     sat: list[int] = field(default_factory=lambda: [0] * len(AXES))
     src_seq: int = -1
+    superseded: int = 0  # source frames skipped (a newer one arrived first, or lost)
     last_tick_mono: float = 0.0
     mode: str = "startup"
 
@@ -159,7 +160,11 @@ class Service:
         if payload is not None:
             res = self.validator.accept(payload, after_stale=shaper.is_stale(now))
             if res is not None:
-                self.counters.src_seq = res[0]
+                c = self.counters
+                gap = res[0] - c.src_seq - 1
+                if c.src_seq >= 0 and 0 < gap < 1_000_000:  # a regress is a source restart
+                    c.superseded += gap
+                c.src_seq = res[0]
                 shaper.on_input(res[2], now, res[1])
         ref, mode = shaper.reference(now)
         comp = self.comp
@@ -299,7 +304,8 @@ class Service:
             "loop": self.stats.snapshot(),
             "loop_window_s": self.cfg.status.window_s,
             "frames": {"received": v.received, "accepted": v.accepted, "rejected": v.rejected,
-                       "rejected_by_reason": dict(v.counts), "last_reject": v.last_error},
+                       "rejected_by_reason": dict(v.counts), "last_reject": v.last_error,
+                       "superseded": c.superseded},
             "stale_s": self.shaper.stale_time(now),
             "stale_total_s": self.shaper.stale_total_s,
             "stale_episodes": self.shaper.stale_episodes,
