@@ -260,6 +260,12 @@ def main() -> None:
         "the host, not the loop.  Tick on input arrival (sync_to_input) "
         "when the source runs at the loop rate: it cuts the sampling latency of the own clock.",
     ]
+    steal = [r["steal"] for r in rows]
+    if max(steal) > 1.0:
+        lines[-1] += (f"  The host took {min(steal):.1f}-{max(steal):.1f} % of this virtual "
+                      "machine's CPU during these runs (steal): such runs measure the host as "
+                      "much as the service: compare runs with little steal.")
+
     text = "\n".join(lines)
     print(text)
     if not args.no_write:
