@@ -3,12 +3,14 @@
 A publisher process sends setpoints for all 8 axes at 1 kHz (absolute deadlines, ``t`` stamped
 just before ``put``); ``motcomp run`` compensates them; this process receives the outputs and,
 matching each output's ``src_seq`` with the input's publish time, measures the in->out latency.
-The service's own status gives tick compute time and lateness (over the whole run), missed
-ticks; /proc gives its CPU time and RSS.  Run once on the service's clock and once with
+The service's own status gives tick compute time and lateness (over the steady part: its status
+window is set 2 s shorter than the run, which leaves the start-ups out) and missed ticks (counted
+from the publisher's first frame; those of the start-ups apart); /proc gives its CPU time and
+RSS.  Run once on the service's clock and once with
 ``loop.sync_to_input`` (ticking on input arrival).  Writes the "service" section of
 docs/BENCHMARKS.md.
 
-Usage: ``python tools/bench_service.py [--seconds 60]``
+Usage: ``python tools/bench_service.py [--seconds 60] [--repeats 3] [--rt]``
 """
 
 from __future__ import annotations
@@ -106,7 +108,8 @@ def run_once(seconds: float, sync: bool, tmp: Path) -> dict[str, Any]:
     if RT:
         spin += "realtime_priority = 50\ncpu = 1\n"
     cfg.write_text(f'include = ["{config_file("motcomp.toml")}"]\n[loop]\nsync_to_input = '
-                   f'{"true" if sync else "false"}\n{spin}[status]\nwindow_s = {seconds + 5:g}\n')
+                   f'{"true" if sync else "false"}\n{spin}[status]\nwindow_s = '
+                   f'{max(seconds - 2, 1):g}\n')  # the steady part: the start-up out
     env = dict(os.environ)
     root = str(Path(__file__).resolve().parent.parent)
     env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
@@ -135,12 +138,15 @@ def run_once(seconds: float, sync: bool, tmp: Path) -> dict[str, Any]:
             lat: list[float] = []
             seen: set[int] = set()
             drain_until = math.inf
+            start: dict[str, Any] | None = None
             while time.monotonic() < drain_until:
                 if drain_until == math.inf and pub.poll() is not None:
                     drain_until = time.monotonic() + 0.5  # the last outputs are in flight
                 while (s := sub_in.try_recv()) is not None:
                     f = msgpack.unpackb(s.payload.to_bytes())
                     sent[f["seq"]] = f["t"]
+                    if start is None:  # the publisher is up: its start-up ends here
+                        start = msgpack.unpackb(first_reply(session, "motcomp/status", None, 3.0))
                 while (s := sub_out.try_recv()) is not None:
                     now = time.time()
                     f = msgpack.unpackb(s.payload.to_bytes())
@@ -158,10 +164,13 @@ def run_once(seconds: float, sync: bool, tmp: Path) -> dict[str, Any]:
     finally:
         svc.send_signal(signal.SIGTERM)
         svc.wait(timeout=30)
+    if start is None:
+        raise SystemExit("the publisher's frames never arrived")
     lat_ms = np.array(lat) * 1e3
     loop = st["loop"]
     return {
-        "sync": sync, "ticks": st["ticks"], "missed": st["missed_ticks"],
+        "sync": sync, "ticks": st["ticks"] - start["ticks"],
+        "missed": st["missed_ticks"] - start["missed_ticks"], "missed_start": start["missed_ticks"],
         "compute_p50": loop["compute_p50_us"], "compute_p99": loop["compute_p99_us"],
         "late_p50": loop["late_p50_us"], "late_p99": loop["late_p99_us"],
         "late_p999": loop["late_p999_us"], "late_max": loop["late_max_us"],
@@ -181,6 +190,17 @@ TARGETS = (  # (label, row key, bound): a row meets a target when its value <= b
 )
 
 
+def mode_medians(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per mode (real-time, sync), the median of each number over that mode's runs."""
+    out = []
+    for mode in dict.fromkeys((r["rt"], r["sync"]) for r in rows):
+        runs = [r for r in rows if (r["rt"], r["sync"]) == mode]
+        out.append({k: float(np.median([r[k] for r in runs]))
+                    if isinstance(v, int | float) and not isinstance(v, bool) else v
+                    for k, v in runs[0].items()})
+    return out
+
+
 def verdict(rows: list[dict[str, Any]]) -> str:
     """Which targets the runs without real-time privileges meet, from their numbers."""
     plain = [r for r in rows if not r["rt"]]
@@ -191,11 +211,29 @@ def verdict(rows: list[dict[str, Any]]) -> str:
             f"{'; '.join(unmet) or 'none'}.")
 
 
+def missed_reading(rows: list[dict[str, Any]]) -> str:
+    """What the real-time runs (if any) say about the missed ticks."""
+    plain = [r["missed"] for r in rows if not r["rt"]]
+    rt = [r["missed"] for r in rows if r["rt"]]
+    if not rt:
+        return "Run with --rt to see what SCHED_FIFO on a pinned core changes."
+    both = (f"{' / '.join(f'{m:g}' for m in rt)} missed against "
+            f"{' / '.join(f'{m:g}' for m in plain)}")
+    if 4 * sum(rt) <= sum(plain):
+        return (f"With SCHED_FIFO on a pinned core: {both}, so most stalls were the scheduler "
+                "giving the loop's core to other threads; give the loop a real-time priority "
+                "in production (docs/DEPLOYMENT.md).")
+    return (f"With SCHED_FIFO on a pinned core: {both}, so the stalls are the host's, which "
+            "no priority inside this machine removes.")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--publisher", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="runs of each mode, interleaved; the reading uses their medians")
     ap.add_argument("--spin-us", type=float, help="loop.spin_us of the service (default: config)")
     ap.add_argument("--rt", action="store_true",
                     help="also run with SCHED_FIFO 50 and the loop pinned to CPU 1 (needs the "
@@ -208,31 +246,43 @@ def main() -> None:
         return
     with tempfile.TemporaryDirectory() as tmp:
         global RT
-        rows = [run_once(args.seconds, sync, Path(tmp)) for sync in (False, True)]
-        if args.rt:
-            RT = True
-            rows += [dict(run_once(args.seconds, sync, Path(tmp)), rt=True)
-                     for sync in (False, True)]
+        modes = [(False, False), (False, True)] + ([(True, False), (True, True)] if args.rt
+                                                     else [])
+        rows = []
+        for rep in range(args.repeats):  # interleaved, so slow spells of the host spread out
+            for rt, sync in modes:
+                RT = rt
+                rows.append(dict(run_once(args.seconds, sync, Path(tmp)), rt=rt, run=rep + 1))
+    rows.sort(key=lambda r: (r["rt"], r["sync"], r["run"]))
+    med = mode_medians(rows)
     lines = [
         f"Machine: {machine()}.",
         "",
-        f"`python tools/bench_service.py --seconds {args.seconds:g}`: `motcomp run` with the "
+        f"`python tools/bench_service.py --seconds {args.seconds:g} --repeats {args.repeats}"
+        f"{' --rt' if args.rt else ''}`: `motcomp run` with the "
         "example config (8 axes, 1 kHz; no real-time privileges unless the mode names them), a "
         "publisher process sending "
-        "all 8 axes at 1 kHz, this process receiving the outputs; tick times are the service's "
-        "own (whole run), latency = output received - input published (same clock); steal = "
-        "the share of this virtual machine's CPU time taken by the host during the run.",
+        "all 8 axes at 1 kHz, this process receiving the outputs.  Ticks and missed ticks count "
+        "from the publisher's first frame (start-up: the ticks missed before it, while the "
+        "service and the publisher started); tick times are the service's own, over the last "
+        f"{max(args.seconds - 2, 1):g} s (the maxima since the service started); latency = "
+        "output received - input published (same clock); steal = the share of this virtual "
+        "machine's CPU time taken by the host during the run.",
         "",
-        "| mode | ticks | missed | compute p50 / p99 (us) | lateness p50 / p99 / p99.9 / max (us) "
-        "| in->out p50 / p99 (ms) | CPU % | RSS (MB) | steal % |",
+        "| mode | ticks | missed (start-up) | compute p50 / p99 (us) "
+        "| lateness p50 / p99 / p99.9 / max (us) | in->out p50 / p99 (ms) | CPU % | RSS (MB) "
+        "| steal % |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         mode = "sync to input" if r["sync"] else "own clock"
         if r["rt"]:
             mode += f", {r['realtime']}"
+        if args.repeats > 1:
+            mode += f", run {r['run']}"
         lines.append(
-            f"| {mode} | {r['ticks']} | {r['missed']} | {r['compute_p50']:.0f} / "
+            f"| {mode} | {r['ticks']} | {r['missed']} ({r['missed_start']}) | "
+            f"{r['compute_p50']:.0f} / "
             f"{r['compute_p99']:.0f} | {r['late_p50']:.0f} / {r['late_p99']:.0f} / "
             f"{r['late_p999']:.0f} / {r['late_max']:.0f} | {r['lat_p50']:.2f} / "
             f"{r['lat_p99']:.2f} | {r['cpu']:.0f} | {r['rss']:.0f} | {r['steal']:.1f} |")
@@ -249,23 +299,22 @@ def main() -> None:
         "lateness p99.9 <= 500 us, 0 missed ticks, in->out p99 <= period + 0.5 ms (1.5 ms), "
         "RSS <= 150 MB.",
         "",
-        f"Reading (runs without real-time privileges): {verdict(rows)}  The service's tick "
-        f"costs {rows[0]['compute_p50'] / p50:.1f}x the same tick in a tight loop, and the "
+        f"Reading ({'medians of each mode' if args.repeats > 1 else 'runs'} without real-time "
+        f"privileges): {verdict(med)}  The service's tick "
+        f"costs {med[0]['compute_p50'] / p50:.1f}x the same tick in a tight loop, and the "
         f"in-process tick after a sleep already costs {s50 / p50:.1f}x: on this virtual "
-        "machine a thread that sleeps between ticks resumes on cold caches; the rest is each "
-        "zenoh call waking zenoh's own threads on the two cores the three processes share. "
-        "Missed ticks come from rare stalls of several milliseconds (the maxima) that "
-        "SCHED_FIFO on a pinned core does not remove either, nor does publishing the status "
-        "once a minute instead of every second (tried: 5-17 against 11-23 missed in 30 s): "
-        "the host, not the loop.  Tick on input arrival (sync_to_input) "
-        "when the source runs at the loop rate: it cuts the sampling latency of the own clock.",
+        "machine a thread that sleeps between ticks resumes on cold caches; zenoh's calls, "
+        "which wake zenoh's own threads on the two cores the three processes share, do the "
+        "rest.  Missed ticks come from rare stalls of several milliseconds (the maxima); "
+        "publishing the status once a minute instead of every second made no clear "
+        f"difference. {missed_reading(med)}  Tick on input arrival (sync_to_input) when the "
+        "source runs at the loop rate: it cuts the sampling latency of the own clock.",
     ]
     steal = [r["steal"] for r in rows]
     if max(steal) > 1.0:
         lines[-1] += (f"  The host took {min(steal):.1f}-{max(steal):.1f} % of this virtual "
                       "machine's CPU during these runs (steal): such runs measure the host as "
                       "much as the service: compare runs with little steal.")
-
     text = "\n".join(lines)
     print(text)
     if not args.no_write:
