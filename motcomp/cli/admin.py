@@ -64,6 +64,15 @@ def _request(args: argparse.Namespace, key: str, body: dict[str, Any] | None) ->
     return out
 
 
+def _command(args: argparse.Namespace, name: str, body: dict[str, Any]) -> dict[str, Any] | None:
+    """Call the admin endpoint ``name``; ``None`` (with the reason on stderr) if rejected."""
+    out = _request(args, f"{args.key}/{name}", body)
+    if not out.get("ok"):
+        print(f"motcomp {name}: rejected: {out.get('error')}", file=sys.stderr)
+        return None
+    return out
+
+
 def run_status(args: argparse.Namespace) -> int:
     st = _request(args, args.key, None)
     if args.json:
@@ -84,9 +93,8 @@ def run_status(args: argparse.Namespace) -> int:
 
 
 def run_bypass(args: argparse.Namespace) -> int:
-    out = _request(args, f"{args.key}/bypass", {"on": args.state == "on", "axes": args.axes})
-    if not out.get("ok"):
-        print(f"motcomp bypass: rejected: {out.get('error')}", file=sys.stderr)
+    out = _command(args, "bypass", {"on": args.state == "on", "axes": args.axes})
+    if out is None:
         return 1
     print(f"bypassed axes: {', '.join(out['bypass']) or 'none'}")
     return 0
@@ -94,9 +102,8 @@ def run_bypass(args: argparse.Namespace) -> int:
 
 def run_reload(args: argparse.Namespace) -> int:
     body = {"path": str(args.config.resolve())} if args.config else {}
-    out = _request(args, f"{args.key}/reload", body)
-    if not out.get("ok"):
-        print(f"motcomp reload: rejected: {out.get('error')}", file=sys.stderr)
+    out = _command(args, "reload", body)
+    if out is None:
         return 1
     print(f"reloaded: {out.get('path')} (hash {out.get('hash')}, version {out.get('version')})")
     return 0
@@ -104,9 +111,8 @@ def run_reload(args: argparse.Namespace) -> int:
 
 def run_profile(args: argparse.Namespace) -> int:
     name = None if args.name == "none" else args.name
-    out = _request(args, f"{args.key}/profile", {"name": name})
-    if not out.get("ok"):
-        print(f"motcomp profile: rejected: {out.get('error')}", file=sys.stderr)
+    out = _command(args, "profile", {"name": name})
+    if out is None:
         return 1
     print(f"profile {out.get('profile')} active (config hash {out.get('hash')}, version "
           f"{out.get('version')})")
