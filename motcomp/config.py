@@ -32,6 +32,7 @@ from motcomp.core.saturation import AxisLimits
 from motcomp.core.tuning import RULES, tune
 from motcomp.errors import ConfigError
 from motcomp.limits_config import LimitsConfig
+from motcomp.runtime.rt import SLICE_MAX_US, SLICE_MIN_US
 
 __all__ = [
     "RESTART_KEYS",
@@ -139,7 +140,16 @@ class LoopConfig(BaseModel):
     park_timeout_s: float = Field(15.0, gt=0.0, le=120.0)
     bypass_fade_s: float = Field(0.5, ge=0.0, le=10.0)
     realtime_priority: int = Field(0, ge=0, le=99)
+    slice_us: float = Field(100.0, ge=0.0, le=SLICE_MAX_US)
     cpu: int = Field(-1, ge=-1)
+
+    @field_validator("slice_us")
+    @classmethod
+    def _slice_range(cls, v: float) -> float:
+        if 0.0 < v < SLICE_MIN_US:
+            raise ValueError(f"the kernel takes a slice of 0 (its default) or "
+                             f"{SLICE_MIN_US:g}-{SLICE_MAX_US:g} us, got {v:g}")
+        return v
 
 
 class InputConfig(BaseModel):
@@ -239,8 +249,8 @@ class ServiceConfig(BaseModel):
 
 RESTART_KEYS: tuple[str, ...] = (
     "loop.rate_hz", "loop.sync_to_input", "loop.poll_us", "loop.spin_us",
-    "loop.realtime_priority", "loop.cpu", "input", "output", "feedback", "status.key",
-    "status.period_s", "status.window_s", "admin", "zenoh",
+    "loop.realtime_priority", "loop.slice_us", "loop.cpu", "input", "output", "feedback",
+    "status.key", "status.period_s", "status.window_s", "admin", "zenoh",
 )
 """Top-level keys (or sub-keys) that a live reload may not change: they need a restart."""
 

@@ -10,7 +10,11 @@ RSS.  Run once on the service's clock and once with
 ``loop.sync_to_input`` (ticking on input arrival).  Writes the "service" section of
 docs/BENCHMARKS.md.
 
-Usage: ``python tools/bench_service.py [--seconds 60] [--repeats 3] [--rt]``
+Scheduling modes: the example config as it is (normal scheduling with the loop's short slice,
+``loop.slice_us``); with ``--default-slice`` also the kernel's default slice (what the slice
+buys); with ``--rt`` also SCHED_FIFO 50 on a pinned core (needs the privilege).
+
+Usage: ``python tools/bench_service.py [--seconds 60] [--repeats 3] [--default-slice] [--rt]``
 """
 
 from __future__ import annotations
@@ -35,7 +39,11 @@ from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loop
 from motcomp.resources import config_file
 
 SPIN_US: float | None = None
-RT = False
+SCHEDS = {  # scheduling mode -> [loop] settings
+    "slice": "",
+    "default": "slice_us = 0\n",
+    "rt": "realtime_priority = 50\ncpu = 1\n",
+}
 
 
 def publisher(port: int, seconds: float) -> None:
@@ -82,6 +90,40 @@ def tick_in_process(ticks: int = 20000, gap_s: float = 0.0) -> tuple[float, floa
     return float(np.percentile(t, 50)), float(np.percentile(t, 99))
 
 
+def bare_clock(seconds: float, slice_us: float) -> dict[str, float]:
+    """Child process: the loop's clock alone (sleep, then spin to each 1 kHz deadline, no work,
+    no I/O) with the given slice: the stalls the machine itself imposes on a thread that sleeps
+    between ticks."""
+    from motcomp.runtime.clock import DeadlineClock
+    from motcomp.runtime.rt import set_slice
+
+    report = set_slice(slice_us)
+    n = int(seconds * 1000)
+    late = np.empty(n)
+    clock = DeadlineClock(1000.0, 200.0)
+    for k in range(n):
+        deadline, now = clock.wait()
+        late[k] = (now - deadline) / 1e3
+    return {"slice": report, "missed": clock.missed, "late_p999": float(np.percentile(late, 99.9)),
+            "late_max": float(late.max())}
+
+
+def bare_runs(seconds: float, repeats: int) -> list[dict[str, Any]]:
+    """:func:`bare_clock` in subprocesses, default slice and the config's, interleaved."""
+    import json
+
+    from motcomp.config import LoopConfig
+
+    out = []
+    for _ in range(repeats):
+        for sl in (0.0, LoopConfig().slice_us):
+            p = subprocess.run([sys.executable, __file__, "--bare", str(sl), "--seconds",
+                                str(seconds)], env=child_env(), capture_output=True, text=True,
+                               check=True)
+            out.append(json.loads(p.stdout))
+    return out
+
+
 def proc_cpu_rss(pid: int) -> tuple[float, float]:
     """(user+system CPU seconds, RSS MB) of a process."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -99,20 +141,23 @@ def cpu_times() -> list[int]:
     return [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:9]]
 
 
-def run_once(seconds: float, sync: bool, tmp: Path) -> dict[str, Any]:
-    import zenoh
-
-    p_svc, p_me = free_tcp_port(), free_tcp_port()
-    cfg = tmp / f"bench-{sync}.toml"
-    spin = f"spin_us = {SPIN_US:g}\n" if SPIN_US is not None else ""
-    if RT:
-        spin += "realtime_priority = 50\ncpu = 1\n"
-    cfg.write_text(f'include = ["{config_file("motcomp.toml")}"]\n[loop]\nsync_to_input = '
-                   f'{"true" if sync else "false"}\n{spin}[status]\nwindow_s = '
-                   f'{max(seconds - 2, 1):g}\n')  # the steady part: the start-up out
+def child_env() -> dict[str, str]:
     env = dict(os.environ)
     root = str(Path(__file__).resolve().parent.parent)
     env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+def run_once(seconds: float, sync: bool, sched: str, tmp: Path) -> dict[str, Any]:
+    import zenoh
+
+    p_svc, p_me = free_tcp_port(), free_tcp_port()
+    cfg = tmp / f"bench-{sync}-{sched}.toml"
+    spin = (f"spin_us = {SPIN_US:g}\n" if SPIN_US is not None else "") + SCHEDS[sched]
+    cfg.write_text(f'include = ["{config_file("motcomp.toml")}"]\n[loop]\nsync_to_input = '
+                   f'{"true" if sync else "false"}\n{spin}[status]\nwindow_s = '
+                   f'{max(seconds - 2, 1):g}\n')  # the steady part: the start-up out
+    env = child_env()
     svc = subprocess.Popen([sys.executable, "-m", "motcomp", "run", "--config", str(cfg), "-l",
                             loopback(p_svc), "--log-level", "warning"], env=env)
     try:
@@ -177,7 +222,7 @@ def run_once(seconds: float, sync: bool, tmp: Path) -> dict[str, Any]:
         "lat_p50": float(np.percentile(lat_ms, 50)), "lat_p99": float(np.percentile(lat_ms, 99)),
         "lat_n": lat_ms.size, "cpu": 100 * (cpu1 - cpu0) / wall, "rss": rss,
         "accepted": st["frames"]["accepted"], "steal": 100 * host[7] / max(sum(host), 1),
-        "rt": False, "realtime": st.get("realtime", ""),
+        "sched": sched, "realtime": st.get("realtime", ""),
     }
 
 
@@ -193,17 +238,23 @@ TARGETS = (  # (label, row key, bound): a row meets a target when its value <= b
 def mode_medians(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per mode (real-time, sync), the median of each number over that mode's runs."""
     out = []
-    for mode in dict.fromkeys((r["rt"], r["sync"]) for r in rows):
-        runs = [r for r in rows if (r["rt"], r["sync"]) == mode]
+    for mode in dict.fromkeys((r["sched"], r["sync"]) for r in rows):
+        runs = [r for r in rows if (r["sched"], r["sync"]) == mode]
         out.append({k: float(np.median([r[k] for r in runs]))
                     if isinstance(v, int | float) and not isinstance(v, bool) else v
                     for k, v in runs[0].items()})
     return out
 
 
+def sched_name(r: dict[str, Any]) -> str:
+    """How the loop thread was scheduled, from the service's own report."""
+    parts = [p for p in r["realtime"].split("; ") if p and p != "not pinned"
+             and not p.startswith(("normal scheduling", "slice not set"))]
+    return "; ".join(parts) or "default slice"
+
+
 def mode_name(r: dict[str, Any]) -> str:
-    return ("sync to input" if r["sync"] else "own clock") + (f", {r['realtime']}" if r["rt"]
-                                                              else "")
+    return ("sync to input" if r["sync"] else "own clock") + f", {sched_name(r)}"
 
 
 def verdict(rows: list[dict[str, Any]]) -> str:
@@ -218,29 +269,36 @@ def verdict(rows: list[dict[str, Any]]) -> str:
 
 
 def missed_reading(rows: list[dict[str, Any]]) -> str:
-    """What the real-time runs (if any) say about the missed ticks."""
-    plain = [r["missed"] for r in rows if not r["rt"]]
-    rt = [r["missed"] for r in rows if r["rt"]]
-    if not rt:
-        return "Run with --rt to see what SCHED_FIFO on a pinned core changes."
-    both = (f"{' / '.join(f'{m:g}' for m in rt)} missed against "
-            f"{' / '.join(f'{m:g}' for m in plain)}")
-    if 4 * sum(rt) <= sum(plain):
-        return (f"With SCHED_FIFO on a pinned core: {both}, so most stalls were the scheduler "
-                "giving the loop's core to other threads; give the loop a real-time priority "
-                "in production (docs/DEPLOYMENT.md).")
-    return (f"With SCHED_FIFO on a pinned core: {both}, so the stalls are the host's, which "
-            "no priority inside this machine removes.")
+    """What the scheduling modes say about the missed ticks (medians per mode, own clock and
+    sync to input)."""
+    by = {sched: [r["missed"] for r in rows if r["sched"] == sched] for sched in SCHEDS}
+
+    def fmt(ms: list[float]) -> str:
+        return " / ".join(f"{m:g}" for m in ms)
+
+    out = []
+    if by["default"] and by["slice"]:
+        out.append(f"Missed ticks with the loop's short slice: {fmt(by['slice'])}, with the "
+                   f"kernel's default slice: {fmt(by['default'])}.")
+    if by["rt"]:
+        plain = by["slice"] or by["default"]
+        out.append(f"With SCHED_FIFO on a pinned core: {fmt(by['rt'])} against {fmt(plain)}.")
+    if not by["rt"]:
+        out.append("Run with --rt to see what SCHED_FIFO on a pinned core changes.")
+    return " ".join(out)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--publisher", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--bare", type=float, help=argparse.SUPPRESS)
     ap.add_argument("--no-write", action="store_true")
     ap.add_argument("--repeats", type=int, default=1,
                     help="runs of each mode, interleaved; the reading uses their medians")
     ap.add_argument("--spin-us", type=float, help="loop.spin_us of the service (default: config)")
+    ap.add_argument("--default-slice", action="store_true",
+                    help="also run with the kernel's default scheduler slice (loop.slice_us = 0)")
     ap.add_argument("--rt", action="store_true",
                     help="also run with SCHED_FIFO 50 and the loop pinned to CPU 1 (needs the "
                          "privilege; the service reports whether it got it)")
@@ -250,23 +308,28 @@ def main() -> None:
     if args.publisher:
         publisher(args.publisher, args.seconds)
         return
+    if args.bare is not None:
+        import json
+
+        print(json.dumps(bare_clock(args.seconds, args.bare)))
+        return
     with tempfile.TemporaryDirectory() as tmp:
-        global RT
-        modes = [(False, False), (False, True)] + ([(True, False), (True, True)] if args.rt
-                                                     else [])
+        scheds = ["default"] * args.default_slice + ["slice"] + ["rt"] * args.rt
         rows = []
         for rep in range(args.repeats):  # interleaved, so slow spells of the host spread out
-            for rt, sync in modes:
-                RT = rt
-                rows.append(dict(run_once(args.seconds, sync, Path(tmp)), rt=rt, run=rep + 1))
-    rows.sort(key=lambda r: (r["rt"], r["sync"], r["run"]))
+            for sched in scheds:
+                for sync in (False, True):
+                    rows.append(dict(run_once(args.seconds, sync, sched, Path(tmp)),
+                                     run=rep + 1))
+    rows.sort(key=lambda r: (scheds.index(r["sched"]), r["sync"], r["run"]))
     med = mode_medians(rows)
     lines = [
         f"Machine: {machine()}.",
         "",
         f"`python tools/bench_service.py --seconds {args.seconds:g} --repeats {args.repeats}"
-        f"{' --rt' if args.rt else ''}`: `motcomp run` with the "
-        "example config (8 axes, 1 kHz; no real-time privileges unless the mode names them), a "
+        f"{' --default-slice' if args.default_slice else ''}{' --rt' if args.rt else ''}`: "
+        "`motcomp run` with the example config (8 axes, 1 kHz; no real-time privileges unless "
+        "the mode names SCHED_FIFO; the slice is the loop thread's, see docs/DEPLOYMENT.md), a "
         "publisher process sending "
         "all 8 axes at 1 kHz, this process receiving the outputs.  Ticks and missed ticks count "
         "from the publisher's first frame (start-up: the ticks missed before it, while the "
@@ -290,6 +353,17 @@ def main() -> None:
             f"{r['compute_p99']:.0f} | {r['late_p50']:.0f} / {r['late_p99']:.0f} / "
             f"{r['late_p999']:.0f} / {r['late_max']:.0f} | {r['lat_p50']:.2f} / "
             f"{r['lat_p99']:.2f} | {r['cpu']:.0f} | {r['rss']:.0f} | {r['steal']:.1f} |")
+    bare = bare_runs(20.0, args.repeats)
+    lines += [
+        "",
+        "The loop's clock alone, in a process of its own while nothing else of the benchmark "
+        "runs (sleep, then spin to each 1 kHz deadline; no work, no I/O), 20 s per run:",
+        "",
+        "| slice | missed | lateness p99.9 / max (us) |",
+        "|---|---|---|",
+        *(f"| {b['slice']} | {b['missed']} | {b['late_p999']:.0f} / {b['late_max']:.0f} |"
+          for b in bare),
+    ]
     p50, p99 = tick_in_process()
     s50, s99 = tick_in_process(5000, gap_s=0.0008)
     lines += [

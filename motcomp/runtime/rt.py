@@ -1,15 +1,92 @@
-"""Optional real-time scheduling and CPU pinning of the calling thread (Linux).
+"""Optional real-time scheduling, scheduler slice and CPU pinning of the calling thread (Linux).
 
-Both are best effort: without the privilege (``CAP_SYS_NICE`` or an ``RLIMIT_RTPRIO``), the call
-reports why and the loop runs at normal priority.  Open zenoh *before* raising the loop thread:
-zenoh's threads inherit the policy of the thread that opens the session.
+All are best effort: each call reports what happened and the loop runs whatever the answer.
+Open zenoh *before* raising the loop thread: zenoh's threads inherit the policy of the thread
+that opens the session.
+
+- SCHED_FIFO needs a privilege (``CAP_SYS_NICE`` or an ``RLIMIT_RTPRIO``).
+- The *slice* needs none.  Since Linux 6.12 the normal scheduler (EEVDF) takes a per-thread
+  request ``sched_attr.sched_runtime`` (0.1-100 ms; default about 0.7 ms x (1 + log2 CPUs)): a
+  thread with a shorter slice than the running one preempts it when it wakes up, instead of
+  waiting for that one's slice or the next scheduler tick.  For a loop that sleeps between ticks
+  this removes most stalls of a few milliseconds behind other normal-priority work (measured in
+  docs/BENCHMARKS.md).  Older kernels accept the call and ignore the value: the report says so
+  (read back with ``sched_getattr``).  Python has no wrapper for these two system calls, hence
+  ``ctypes``.
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
+import platform
 
-__all__ = ["pin_to_cpu", "set_realtime"]
+__all__ = ["SLICE_MAX_US", "SLICE_MIN_US", "get_slice_us", "pin_to_cpu", "set_realtime",
+           "set_slice"]
+
+SLICE_MIN_US = 100.0
+SLICE_MAX_US = 100_000.0
+"""The range the kernel accepts for a custom slice (it clamps other values into it)."""
+
+_SYSCALLS = {"x86_64": (314, 315), "aarch64": (274, 275)}
+"""(sched_setattr, sched_getattr) system call numbers."""
+
+
+class _SchedAttr(ctypes.Structure):
+    """``struct sched_attr`` (include/uapi/linux/sched/types.h), SCHED_ATTR_SIZE_VER1."""
+
+    _fields_ = [("size", ctypes.c_uint32), ("sched_policy", ctypes.c_uint32),
+                ("sched_flags", ctypes.c_uint64), ("sched_nice", ctypes.c_int32),
+                ("sched_priority", ctypes.c_uint32), ("sched_runtime", ctypes.c_uint64),
+                ("sched_deadline", ctypes.c_uint64), ("sched_period", ctypes.c_uint64),
+                ("sched_util_min", ctypes.c_uint32), ("sched_util_max", ctypes.c_uint32)]
+
+
+def _syscall(index: int, *args: object) -> None:
+    nrs = _SYSCALLS.get(platform.machine())
+    if nrs is None or not hasattr(os, "sched_getscheduler"):
+        raise OSError(0, f"sched_setattr is not known on {platform.system()} "
+                         f"{platform.machine()}")
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.syscall(ctypes.c_long(nrs[index]), *args) != 0:
+        err = ctypes.get_errno()
+        raise OSError(err, os.strerror(err))
+
+
+def _get_attr() -> _SchedAttr:
+    attr = _SchedAttr()
+    _syscall(1, ctypes.c_int(0), ctypes.byref(attr), ctypes.c_uint(ctypes.sizeof(attr)),
+             ctypes.c_uint(0))
+    return attr
+
+
+def get_slice_us() -> float:
+    """The calling thread's scheduler slice (us) as the kernel reports it (0: not reported)."""
+    return _get_attr().sched_runtime / 1e3
+
+
+def set_slice(slice_us: float) -> str:
+    """Ask the normal scheduler for a ``slice_us`` slice for the calling thread (0: leave the
+    kernel's default); returns what happened.  A thread under a real-time policy is left as it
+    is (its slice means nothing there)."""
+    if slice_us <= 0:
+        return "default slice"
+    slice_us = min(max(float(slice_us), SLICE_MIN_US), SLICE_MAX_US)  # what the kernel does
+    try:
+        attr = _get_attr()
+        if attr.sched_policy != 0:  # SCHED_OTHER
+            return "slice not set (not under the normal scheduler)"
+        attr.size = ctypes.sizeof(attr)
+        attr.sched_flags = 0
+        attr.sched_runtime = round(slice_us * 1e3)
+        _syscall(0, ctypes.c_int(0), ctypes.byref(attr), ctypes.c_uint(0))
+        got = get_slice_us()
+    except OSError as exc:
+        return f"slice {slice_us:g} us not set ({exc.strerror}); default slice"
+    if abs(got - slice_us) > 1.0:
+        return (f"slice {slice_us:g} us not supported by this kernel (it reports {got:g} us; "
+                "needs Linux 6.12 or later); default slice")
+    return f"slice {got:g} us"
 
 
 def set_realtime(priority: int) -> str:

@@ -5,7 +5,8 @@ Lifecycle::
     start    read config -> open zenoh (before any real-time priority) -> declare input
              subscriber, output publisher(s), status publisher and queryables -> CAN bus if
              configured -> build the compensator at neutral
-    loop     a thread at a fixed rate on absolute deadlines (optionally SCHED_FIFO and pinned),
+    loop     a thread at a fixed rate on absolute deadlines (a short scheduler slice, or
+             optionally SCHED_FIFO; optionally pinned),
              gc.freeze() at its start; each tick: apply queued commands, take the newest input
              frame (never blocks), validate it, shape the reference, step the compensator,
              publish; count, never log
@@ -45,7 +46,7 @@ from motcomp.io.wire import InputValidator, encode_output
 from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, ZenohSource, open_session
 from motcomp.resources import config_file
 from motcomp.runtime.clock import DeadlineClock
-from motcomp.runtime.rt import pin_to_cpu, set_realtime
+from motcomp.runtime.rt import pin_to_cpu, set_realtime, set_slice
 from motcomp.runtime.shaper import ReferenceShaper
 from motcomp.runtime.stats import LoopStats
 from motcomp.runtime.systemd import Notifier
@@ -217,11 +218,11 @@ class Service:
 
     def _loop(self) -> None:
         try:
-            self.rt_report = (f"{set_realtime(self.cfg.loop.realtime_priority)}; "
-                              f"{pin_to_cpu(self.cfg.loop.cpu)}")
+            loop = self.cfg.loop
+            self.rt_report = (f"{set_realtime(loop.realtime_priority)}; "
+                              f"{set_slice(loop.slice_us)}; {pin_to_cpu(loop.cpu)}")
             gc.collect()
             gc.freeze()
-            loop = self.cfg.loop
             clock = DeadlineClock(loop.rate_hz, loop.spin_us)
             self._clock = clock
             self._t_mono0 = time.perf_counter_ns()
