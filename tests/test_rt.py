@@ -5,8 +5,14 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from pathlib import Path
 
-from motcomp.runtime.rt import pin_to_cpu, set_realtime
+import pytest
+
+from motcomp.config import load_config
+from motcomp.errors import ConfigError
+from motcomp.resources import config_file
+from motcomp.runtime.rt import get_slice_us, pin_to_cpu, set_realtime, set_slice
 
 
 def test_off_by_default() -> None:
@@ -37,3 +43,62 @@ def test_reports_match_the_kernel_state() -> None:
     assert ("SCHED_FIFO priority 1" in rt) == (is_fifo == "True")
     assert ("pinned to CPU 0" in pin) == (pinned == "True")
     assert main_fifo == "False"  # only the calling thread was raised
+
+
+def _in_thread(code: str) -> list[str]:
+    """Run ``code`` (which fills ``out``) in a new thread of a child process; the printed lines
+    of ``out``'s values."""
+    prog = (
+        "import os, threading\n"
+        "from motcomp.runtime.rt import get_slice_us, set_realtime, set_slice\n"
+        "out = {}\n"
+        "def run():\n" + "".join(f"    {line}\n" for line in code.splitlines()) +
+        "t = threading.Thread(target=run); t.start(); t.join()\n"
+        "for v in out.values(): print(v)\n"
+    )
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    return subprocess.run([sys.executable, "-c", prog], capture_output=True, text=True,
+                          env=env, check=True, timeout=60).stdout.splitlines()
+
+
+def test_slice_report_matches_what_the_kernel_reads_back() -> None:
+    before, report, after, clamped, clamped_after = _in_thread(
+        "out['before'] = get_slice_us()\n"
+        "out['report'] = set_slice(250)\n"
+        "out['after'] = get_slice_us()\n"
+        "out['clamped'] = set_slice(20)\n"
+        "out['clamped_after'] = get_slice_us()\n")
+    if report.startswith("slice 250 us"):  # Linux 6.12+: the kernel keeps the request
+        assert float(after) == 250.0
+        assert clamped == "slice 100 us" and float(clamped_after) == 100.0  # the kernel's floor
+    else:  # older kernels ignore it, and the report says so
+        assert "not supported" in report or "not set" in report, report
+        assert float(after) == float(before)
+
+
+def test_slice_is_per_thread_and_zero_leaves_the_default() -> None:
+    assert set_slice(0) == "default slice"
+    default = get_slice_us()
+    (report,) = _in_thread("out['report'] = set_slice(300)\n")
+    assert get_slice_us() == default  # this process' own thread was not touched
+    assert "300" in report or "not" in report
+
+
+def test_slice_not_applied_under_a_real_time_policy() -> None:
+    rt, report = _in_thread("out['rt'] = set_realtime(1)\nout['slice'] = set_slice(200)\n")
+    if "SCHED_FIFO priority 1" in rt:
+        assert report == "slice not set (not under the normal scheduler)"
+    else:
+        assert report.startswith(("slice 200 us", "slice 200 us not supported"))
+
+
+@pytest.mark.parametrize(("value", "ok"), [(0, True), (100, True), (2500, True), (50, False),
+                                           (-1, False), (200_000, False)])
+def test_config_slice_range(tmp_path: Path, value: float, ok: bool) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'include = ["{config_file("motcomp.toml")}"]\n[loop]\nslice_us = {value}\n')
+    if ok:
+        assert load_config(cfg).loop.slice_us == value
+    else:
+        with pytest.raises(ConfigError, match="slice_us"):
+            load_config(cfg)

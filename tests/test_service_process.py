@@ -113,6 +113,7 @@ send_every = 4
                 assert rej[reason] >= 1, rej
             assert st["frames"]["accepted"] > 0.8 * n
             assert st["mode"] == "running"
+            assert "slice" in st["realtime"], st["realtime"]  # the loop thread's scheduling
             # outputs: every axis, finite, within the limits; the input reached them
             frames = []
             while (s := out_sub.try_recv()) is not None:

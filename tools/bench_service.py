@@ -90,14 +90,14 @@ def tick_in_process(ticks: int = 20000, gap_s: float = 0.0) -> tuple[float, floa
     return float(np.percentile(t, 50)), float(np.percentile(t, 99))
 
 
-def bare_clock(seconds: float, slice_us: float) -> dict[str, float]:
+def bare_clock(seconds: float, slice_us: float) -> dict[str, Any]:
     """Child process: the loop's clock alone (sleep, then spin to each 1 kHz deadline, no work,
-    no I/O) with the given slice: the stalls the machine itself imposes on a thread that sleeps
-    between ticks."""
+    no I/O) with the given slice (a negative one: SCHED_FIFO 50 instead): the stalls the machine
+    itself imposes on a thread that sleeps between ticks."""
     from motcomp.runtime.clock import DeadlineClock
-    from motcomp.runtime.rt import set_slice
+    from motcomp.runtime.rt import set_realtime, set_slice
 
-    report = set_slice(slice_us)
+    report = set_realtime(50) if slice_us < 0 else set_slice(slice_us)
     n = int(seconds * 1000)
     late = np.empty(n)
     clock = DeadlineClock(1000.0, 200.0)
@@ -108,15 +108,16 @@ def bare_clock(seconds: float, slice_us: float) -> dict[str, float]:
             "late_max": float(late.max())}
 
 
-def bare_runs(seconds: float, repeats: int) -> list[dict[str, Any]]:
-    """:func:`bare_clock` in subprocesses, default slice and the config's, interleaved."""
+def bare_runs(seconds: float, repeats: int, rt: bool) -> list[dict[str, Any]]:
+    """:func:`bare_clock` in subprocesses: default slice, the config's, and SCHED_FIFO if
+    ``rt``, interleaved."""
     import json
 
     from motcomp.config import LoopConfig
 
     out = []
     for _ in range(repeats):
-        for sl in (0.0, LoopConfig().slice_us):
+        for sl in (0.0, LoopConfig().slice_us, *([-1.0] if rt else [])):
             p = subprocess.run([sys.executable, __file__, "--bare", str(sl), "--seconds",
                                 str(seconds)], env=child_env(), capture_output=True, text=True,
                                check=True)
@@ -353,13 +354,13 @@ def main() -> None:
             f"{r['compute_p99']:.0f} | {r['late_p50']:.0f} / {r['late_p99']:.0f} / "
             f"{r['late_p999']:.0f} / {r['late_max']:.0f} | {r['lat_p50']:.2f} / "
             f"{r['lat_p99']:.2f} | {r['cpu']:.0f} | {r['rss']:.0f} | {r['steal']:.1f} |")
-    bare = bare_runs(20.0, args.repeats)
+    bare = bare_runs(20.0, args.repeats, args.rt)
     lines += [
         "",
         "The loop's clock alone, in a process of its own while nothing else of the benchmark "
         "runs (sleep, then spin to each 1 kHz deadline; no work, no I/O), 20 s per run:",
         "",
-        "| slice | missed | lateness p99.9 / max (us) |",
+        "| scheduling | missed | lateness p99.9 / max (us) |",
         "|---|---|---|",
         *(f"| {b['slice']} | {b['missed']} | {b['late_p999']:.0f} / {b['late_max']:.0f} |"
           for b in bare),
