@@ -63,3 +63,30 @@ def test_input_synchronous_ticks_early_but_not_faster_than_half_a_period(fake: F
     assert c.next_ns == now + 1_000_000  # re-phased to the input
     d2, _, polled = c.wait_or_poll(lambda: False, poll_us=50)
     assert not polled and d2 == now + 1_000_000  # no input: back on the own clock
+
+
+def test_naps_never_exceed_the_bound_and_keep_the_deadlines(
+        fake: FakeTime, monkeypatch: pytest.MonkeyPatch) -> None:
+    naps: list[int] = []
+
+    def sleep(s: float) -> None:
+        naps.append(int(s * 1e9))
+        fake.sleep(s)
+
+    def ticking_clock() -> int:  # each read costs 1 us, so the final spin ends
+        fake.ns += 1_000
+        return fake.ns
+
+    monkeypatch.setattr(clock_mod.time, "sleep", sleep)
+    c = DeadlineClock(1000.0, spin_us=200.0, clock=ticking_clock, sleep_max_us=100.0)
+    t0 = c.start_ns
+    for k in range(1, 4):
+        naps.clear()
+        d, now = c.wait()
+        assert d == t0 + k * 1_000_000 and 0 <= now - d <= 2_000  # on the grid, not late
+        assert naps and max(naps) <= 100_000  # never idle for longer than a nap
+        assert 700_000 <= sum(naps) <= 800_000  # sleeping until spin_us before the deadline
+    c = DeadlineClock(1000.0, spin_us=200.0, clock=ticking_clock, sleep_max_us=0.0)
+    naps.clear()
+    c.wait()
+    assert len(naps) == 1 and naps[0] > 700_000  # 0: one sleep

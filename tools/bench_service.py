@@ -10,11 +10,13 @@ RSS.  Run once on the service's clock and once with
 ``loop.sync_to_input`` (ticking on input arrival).  Writes the "service" section of
 docs/BENCHMARKS.md.
 
-Scheduling modes: the example config as it is (normal scheduling with the loop's short slice,
-``loop.slice_us``); with ``--default-slice`` also the kernel's default slice (what the slice
-buys); with ``--rt`` also SCHED_FIFO 50 on a pinned core (needs the privilege).
+Scheduling modes: the example config as it is (normal scheduling, the loop thread's short
+slice ``loop.slice_us`` and naps of at most ``loop.sleep_max_us``); with ``--plain`` also the
+kernel's default slice and one sleep per tick (what the two buy); with ``--rt`` also SCHED_FIFO
+50 on a pinned core (needs the privilege).  Every run is followed by nothing; then the loop's
+clock alone is timed in each mode (the stalls the machine itself imposes).
 
-Usage: ``python tools/bench_service.py [--seconds 60] [--repeats 3] [--default-slice] [--rt]``
+Usage: ``python tools/bench_service.py [--seconds 60] [--repeats 3] [--plain] [--rt]``
 """
 
 from __future__ import annotations
@@ -40,8 +42,8 @@ from motcomp.resources import config_file
 
 SPIN_US: float | None = None
 SCHEDS = {  # scheduling mode -> [loop] settings
-    "slice": "",
-    "default": "slice_us = 0\n",
+    "config": "",
+    "plain": "slice_us = 0\nsleep_max_us = 0\n",
     "rt": "realtime_priority = 50\ncpu = 1\n",
 }
 
@@ -53,7 +55,7 @@ def publisher(port: int, seconds: float) -> None:
     with open_session(ZenohEndpoints(connect=(loopback(port),))) as session:
         pub = session.declare_publisher("sim/motion/setpoint", express=True)
         time.sleep(1.0)
-        clock = DeadlineClock(1000.0, 200.0)
+        clock = DeadlineClock(1000.0, 200.0, sleep_max_us=100.0)
         pack = msgpack.Packer().pack
         for k in range(int(seconds * 1000)):
             clock.wait()
@@ -90,17 +92,24 @@ def tick_in_process(ticks: int = 20000, gap_s: float = 0.0) -> tuple[float, floa
     return float(np.percentile(t, 50)), float(np.percentile(t, 99))
 
 
-def bare_clock(seconds: float, slice_us: float) -> dict[str, Any]:
+BARE_MODES = (  # (slice_us, sleep_max_us, SCHED_FIFO) of the clock-alone probe
+    (0.0, 0.0, False), (100.0, 0.0, False), (0.0, 100.0, False), (100.0, 100.0, False),
+    (0.0, 0.0, True))
+
+
+def bare_clock(seconds: float, mode: int) -> dict[str, Any]:
     """Child process: the loop's clock alone (sleep, then spin to each 1 kHz deadline, no work,
-    no I/O) with the given slice (a negative one: SCHED_FIFO 50 instead): the stalls the machine
-    itself imposes on a thread that sleeps between ticks."""
+    no I/O) in :data:`BARE_MODES` ``[mode]``: the stalls the machine itself imposes on a thread
+    that sleeps between ticks."""
     from motcomp.runtime.clock import DeadlineClock
     from motcomp.runtime.rt import set_realtime, set_slice
 
-    report = set_realtime(50) if slice_us < 0 else set_slice(slice_us)
+    slice_us, nap_us, rt = BARE_MODES[mode]
+    report = set_realtime(50) if rt else set_slice(slice_us)
+    report += f"; naps of {nap_us:g} us" if nap_us else "; one sleep"
     n = int(seconds * 1000)
     late = np.empty(n)
-    clock = DeadlineClock(1000.0, 200.0)
+    clock = DeadlineClock(1000.0, 200.0, sleep_max_us=nap_us)
     for k in range(n):
         deadline, now = clock.wait()
         late[k] = (now - deadline) / 1e3
@@ -109,19 +118,28 @@ def bare_clock(seconds: float, slice_us: float) -> dict[str, Any]:
 
 
 def bare_runs(seconds: float, repeats: int, rt: bool) -> list[dict[str, Any]]:
-    """:func:`bare_clock` in subprocesses: default slice, the config's, and SCHED_FIFO if
-    ``rt``, interleaved."""
+    """:func:`bare_clock` in subprocesses, each mode (SCHED_FIFO only if ``rt``), interleaved;
+    one row per mode: the median over the runs of missed ticks per minute and of lateness p99.9,
+    and the largest lateness of all runs."""
     import json
 
-    from motcomp.config import LoopConfig
-
-    out = []
+    runs = []
     for _ in range(repeats):
-        for sl in (0.0, LoopConfig().slice_us, *([-1.0] if rt else [])):
-            p = subprocess.run([sys.executable, __file__, "--bare", str(sl), "--seconds",
+        for mode, m in enumerate(BARE_MODES):
+            if m[2] and not rt:
+                continue
+            p = subprocess.run([sys.executable, __file__, "--bare", str(mode), "--seconds",
                                 str(seconds)], env=child_env(), capture_output=True, text=True,
                                check=True)
-            out.append(json.loads(p.stdout))
+            runs.append(json.loads(p.stdout))
+    out = []
+    for name in dict.fromkeys(r["slice"] for r in runs):
+        mine = [r for r in runs if r["slice"] == name]
+        out.append({"slice": name, "runs": len(mine),
+                    "missed_min": float(np.median([r["missed"] for r in mine])) * 60 / seconds,
+                    "missed_worst": max(r["missed"] for r in mine) * 60 / seconds,
+                    "late_p999": float(np.median([r["late_p999"] for r in mine])),
+                    "late_max": max(r["late_max"] for r in mine)})
     return out
 
 
@@ -251,7 +269,7 @@ def sched_name(r: dict[str, Any]) -> str:
     """How the loop thread was scheduled, from the service's own report."""
     parts = [p for p in r["realtime"].split("; ") if p and p != "not pinned"
              and not p.startswith(("normal scheduling", "slice not set"))]
-    return "; ".join(parts) or "default slice"
+    return "; ".join(parts)
 
 
 def mode_name(r: dict[str, Any]) -> str:
@@ -278,28 +296,49 @@ def missed_reading(rows: list[dict[str, Any]]) -> str:
         return " / ".join(f"{m:g}" for m in ms)
 
     out = []
-    if by["default"] and by["slice"]:
-        out.append(f"Missed ticks with the loop's short slice: {fmt(by['slice'])}, with the "
-                   f"kernel's default slice: {fmt(by['default'])}.")
+    if by["plain"] and by["config"]:
+        out.append(f"Missed ticks (own clock / sync to input) with the config's short slice and "
+                   f"naps: {fmt(by['config'])}; with the kernel's default slice and one sleep "
+                   f"per tick: {fmt(by['plain'])}.")
     if by["rt"]:
-        plain = by["slice"] or by["default"]
-        out.append(f"With SCHED_FIFO on a pinned core: {fmt(by['rt'])} against {fmt(plain)}.")
+        out.append(f"With SCHED_FIFO on a pinned core: {fmt(by['rt'])} against "
+                   f"{fmt(by['config'])}.")
     if not by["rt"]:
         out.append("Run with --rt to see what SCHED_FIFO on a pinned core changes.")
     return " ".join(out)
+
+
+def bare_reading(bare: list[dict[str, Any]]) -> str:
+    """What the clock-alone probe says (its rows in :data:`BARE_MODES` order)."""
+    by = {b["slice"]: b for b in bare}
+    plain, config = bare[0], bare[3]
+    out = (f"The clock alone missed a median {plain['missed_min']:.0f} ticks per minute with the "
+           f"kernel's defaults and one sleep, {config['missed_min']:.0f} with the config's "
+           f"slice and naps (slice alone {bare[1]['missed_min']:.0f}, naps alone "
+           f"{bare[2]['missed_min']:.0f}): stalls that no work of the service causes; the "
+           "slice lets the loop preempt other normal-priority work on its core when it wakes, "
+           "the naps keep an idle virtual CPU from being handed back to the host "
+           "(docs/DEPLOYMENT.md).")
+    rt = [b for name, b in by.items() if name.startswith("SCHED_FIFO")]
+    if rt:
+        out += (f"  Under SCHED_FIFO it missed a median {rt[0]['missed_min']:.0f} per minute "
+                f"(worst run {rt[0]['missed_worst']:.0f}): what the host takes, which no "
+                "priority inside the machine removes.")
+    return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--publisher", type=int, help=argparse.SUPPRESS)
-    ap.add_argument("--bare", type=float, help=argparse.SUPPRESS)
+    ap.add_argument("--bare", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--no-write", action="store_true")
     ap.add_argument("--repeats", type=int, default=1,
                     help="runs of each mode, interleaved; the reading uses their medians")
     ap.add_argument("--spin-us", type=float, help="loop.spin_us of the service (default: config)")
-    ap.add_argument("--default-slice", action="store_true",
-                    help="also run with the kernel's default scheduler slice (loop.slice_us = 0)")
+    ap.add_argument("--plain", action="store_true",
+                    help="also run with the kernel's default slice and one sleep per tick "
+                         "(loop.slice_us = 0, loop.sleep_max_us = 0)")
     ap.add_argument("--rt", action="store_true",
                     help="also run with SCHED_FIFO 50 and the loop pinned to CPU 1 (needs the "
                          "privilege; the service reports whether it got it)")
@@ -315,7 +354,7 @@ def main() -> None:
         print(json.dumps(bare_clock(args.seconds, args.bare)))
         return
     with tempfile.TemporaryDirectory() as tmp:
-        scheds = ["default"] * args.default_slice + ["slice"] + ["rt"] * args.rt
+        scheds = ["plain"] * args.plain + ["config"] + ["rt"] * args.rt
         rows = []
         for rep in range(args.repeats):  # interleaved, so slow spells of the host spread out
             for sched in scheds:
@@ -328,10 +367,10 @@ def main() -> None:
         f"Machine: {machine()}.",
         "",
         f"`python tools/bench_service.py --seconds {args.seconds:g} --repeats {args.repeats}"
-        f"{' --default-slice' if args.default_slice else ''}{' --rt' if args.rt else ''}`: "
+        f"{' --plain' if args.plain else ''}{' --rt' if args.rt else ''}`: "
         "`motcomp run` with the example config (8 axes, 1 kHz; no real-time privileges unless "
-        "the mode names SCHED_FIFO; the slice is the loop thread's, see docs/DEPLOYMENT.md), a "
-        "publisher process sending "
+        "the mode names SCHED_FIFO; slice and naps are the loop thread's, see "
+        "docs/DEPLOYMENT.md), a publisher process (naps of 100 us) sending "
         "all 8 axes at 1 kHz, this process receiving the outputs.  Ticks and missed ticks count "
         "from the publisher's first frame (start-up: the ticks missed before it, while the "
         "service and the publisher started); tick times are the service's own, over the last "
@@ -354,16 +393,18 @@ def main() -> None:
             f"{r['compute_p99']:.0f} | {r['late_p50']:.0f} / {r['late_p99']:.0f} / "
             f"{r['late_p999']:.0f} / {r['late_max']:.0f} | {r['lat_p50']:.2f} / "
             f"{r['lat_p99']:.2f} | {r['cpu']:.0f} | {r['rss']:.0f} | {r['steal']:.1f} |")
-    bare = bare_runs(20.0, args.repeats, args.rt)
+    bare = bare_runs(6.0, 4 * args.repeats, args.rt)
     lines += [
         "",
-        "The loop's clock alone, in a process of its own while nothing else of the benchmark "
-        "runs (sleep, then spin to each 1 kHz deadline; no work, no I/O), 20 s per run:",
+        f"The loop's clock alone, in a process of its own while nothing else of the benchmark "
+        f"runs (sleep, then spin to each 1 kHz deadline; no work, no I/O): {bare[0]['runs']} "
+        "runs of 6 s per mode, interleaved; medians over the runs, and the worst run:",
         "",
-        "| scheduling | missed | lateness p99.9 / max (us) |",
-        "|---|---|---|",
-        *(f"| {b['slice']} | {b['missed']} | {b['late_p999']:.0f} / {b['late_max']:.0f} |"
-          for b in bare),
+        "| scheduling | missed per minute: median (worst run) | lateness p99.9: median (us) "
+        "| lateness max (us) |",
+        "|---|---|---|---|",
+        *(f"| {b['slice']} | {b['missed_min']:.0f} ({b['missed_worst']:.0f}) | "
+          f"{b['late_p999']:.0f} | {b['late_max']:.0f} |" for b in bare),
     ]
     p50, p99 = tick_in_process()
     s50, s99 = tick_in_process(5000, gap_s=0.0008)
@@ -384,10 +425,9 @@ def main() -> None:
         f"in-process tick after a sleep already costs {s50 / p50:.1f}x: on this virtual "
         "machine a thread that sleeps between ticks resumes on cold caches; zenoh's calls, "
         "which wake zenoh's own threads on the two cores the three processes share, do the "
-        "rest.  Missed ticks come from rare stalls of several milliseconds (the maxima); "
-        "publishing the status once a minute instead of every second made no clear "
-        f"difference. {missed_reading(med)}  Tick on input arrival (sync_to_input) when the "
-        "source runs at the loop rate: it cuts the sampling latency of the own clock.",
+        f"rest.  Missed ticks come from rare stalls of several milliseconds (the maxima). "
+        f"{missed_reading(med)}  {bare_reading(bare)}  Tick on input arrival (sync_to_input) "
+        "when the source runs at the loop rate: it cuts the sampling latency of the own clock.",
     ]
     steal = [r["steal"] for r in rows]
     if max(steal) > 1.0:

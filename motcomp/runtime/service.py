@@ -219,11 +219,13 @@ class Service:
     def _loop(self) -> None:
         try:
             loop = self.cfg.loop
+            naps = (f"naps of {loop.sleep_max_us:g} us" if loop.sleep_max_us > 0
+                    else "one sleep per tick")
             self.rt_report = (f"{set_realtime(loop.realtime_priority)}; "
-                              f"{set_slice(loop.slice_us)}; {pin_to_cpu(loop.cpu)}")
+                              f"{set_slice(loop.slice_us)}; {naps}; {pin_to_cpu(loop.cpu)}")
             gc.collect()
             gc.freeze()
-            clock = DeadlineClock(loop.rate_hz, loop.spin_us)
+            clock = DeadlineClock(loop.rate_hz, loop.spin_us, sleep_max_us=loop.sleep_max_us)
             self._clock = clock
             self._t_mono0 = time.perf_counter_ns()
             self._t_wall0 = time.time()
