@@ -34,7 +34,7 @@ class DeadlineClock:
 
     def __init__(self, rate_hz: float, spin_us: float = 200.0,
                  clock: Callable[[], int] = time.perf_counter_ns,
-                 sleep_max_us: float = 0.0) -> None:
+                 sleep_max_us: float = 100.0) -> None:
         self.period_ns = round(1e9 / rate_hz)
         self.spin_ns = int(spin_us * 1000)
         self.nap_ns = int(sleep_max_us * 1000)
