@@ -12,7 +12,7 @@ import pytest
 from motcomp.config import load_config
 from motcomp.errors import ConfigError
 from motcomp.resources import config_file
-from motcomp.runtime.rt import get_slice_us, pin_to_cpu, set_realtime, set_slice
+from motcomp.runtime.rt import pin_to_cpu, set_realtime
 
 
 def test_off_by_default() -> None:
@@ -45,15 +45,15 @@ def test_reports_match_the_kernel_state() -> None:
     assert main_fifo == "False"  # only the calling thread was raised
 
 
-def _in_thread(code: str) -> list[str]:
-    """Run ``code`` (which fills ``out``) in a new thread of a child process; the printed lines
-    of ``out``'s values."""
+def _in_thread(code: str, then: str = "") -> list[str]:
+    """Run ``code`` (which fills ``out``) in a new thread of a child process, then ``then`` in
+    that process' main thread; the printed lines of ``out``'s values."""
     prog = (
         "import os, threading\n"
         "from motcomp.runtime.rt import get_slice_us, set_realtime, set_slice\n"
         "out = {}\n"
         "def run():\n" + "".join(f"    {line}\n" for line in code.splitlines()) +
-        "t = threading.Thread(target=run); t.start(); t.join()\n"
+        "t = threading.Thread(target=run); t.start(); t.join()\n" + then +
         "for v in out.values(): print(v)\n"
     )
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
@@ -77,11 +77,17 @@ def test_slice_report_matches_what_the_kernel_reads_back() -> None:
 
 
 def test_slice_is_per_thread_and_zero_leaves_the_default() -> None:
-    assert set_slice(0) == "default slice"
-    default = get_slice_us()
-    (report,) = _in_thread("out['report'] = set_slice(300)\n")
-    assert get_slice_us() == default  # this process' own thread was not touched
-    assert "300" in report or "not" in report
+    report, zero, kept, main = _in_thread(
+        "out['report'] = set_slice(300)\n"
+        "out['zero'] = set_slice(0)\n"
+        "out['kept'] = get_slice_us()\n",
+        then="out['main'] = get_slice_us()\n")
+    assert zero == "default slice"
+    if report == "slice 300 us":
+        assert float(kept) == 300.0  # 0 leaves the thread's slice as it is
+        assert float(main) != 300.0  # the process' main thread kept its own
+    else:
+        assert "not" in report, report
 
 
 def test_slice_not_applied_under_a_real_time_policy() -> None:
