@@ -172,7 +172,14 @@ def test_limiter_stretches_equal_limit_axis(case: str) -> None:
         assert 2.55 < u.max() <= 2.6 and -2.6 <= u.min() < -2.55  # at the stops
     # the tracker's lfilter vs its recursion: ~1e-11 m where the limiter acts
     assert np.abs(u - ref).max() < 1e-10
-    assert np.array_equal(flags != 0, ref_flags != 0)
+    # Verdicts agree everywhere except, possibly, a sample resting on an end stop: there the
+    # target is clipped to the stop and "feasible" means the last command sits *exactly* on it,
+    # which a 1e-11 m difference decides either way (scipy's lfilter rounds differently across
+    # releases).  Such a sample is at the stop in both, with the same output.
+    differ = np.nonzero((flags != 0) != (ref_flags != 0))[0]
+    at_stop = np.minimum(np.abs(ref[differ] - 2.6), np.abs(ref[differ] + 2.6)) < 1e-9
+    assert at_stop.all(), (differ[~at_stop], flags[differ], ref_flags[differ])
+    assert differ.size <= 3
 
 
 def test_cli_json_compare_and_figures(rich: Path, tmp_path: Path) -> None:
