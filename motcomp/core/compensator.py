@@ -86,6 +86,8 @@ Rules for edge cases
 from __future__ import annotations
 
 import math
+import os
+from array import array
 from collections.abc import Sequence
 from dataclasses import dataclass
 from math import isfinite
@@ -100,7 +102,35 @@ from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import AxisLimits, axis_constants, check_position, limit_axis
 from motcomp.errors import ConfigError
 
-__all__ = ["NONFINITE", "Compensator", "CompensatorState", "p1d_coefficients"]
+__all__ = ["KERNELS", "NONFINITE", "Compensator", "CompensatorState", "default_kernel",
+           "p1d_coefficients"]
+
+try:  # the compiled tick (motcomp/core/_ckernel.c); optional at build time
+    from motcomp.core import _ckernel
+except ImportError:  # pragma: no cover - exercised where no C compiler was available
+    _ckernel = None  # type: ignore[assignment]
+
+KERNELS = ("c", "python")
+"""Implementations of :meth:`Compensator.step`: ``c`` (compiled, the default when built) and
+``python`` (the reference; bit-identical results)."""
+
+
+def default_kernel() -> str:
+    """``c`` if the compiled kernel is importable, else ``python``; the environment variable
+    ``MOTCOMP_KERNEL`` (``c`` or ``python``) overrides.
+
+    Raises
+    ------
+    ConfigError
+        If ``MOTCOMP_KERNEL`` names an unknown kernel, or ``c`` while it was not built.
+    """
+    want = os.environ.get("MOTCOMP_KERNEL", "").strip().lower()
+    if want and want not in KERNELS:
+        raise ConfigError(f"MOTCOMP_KERNEL={want!r}: use one of {', '.join(KERNELS)}")
+    if want == "c" and _ckernel is None:
+        raise ConfigError("MOTCOMP_KERNEL=c but the compiled kernel motcomp.core._ckernel is "
+                          "not built (reinstall with a C compiler)")
+    return want or ("c" if _ckernel is not None else "python")
 
 NONFINITE = 8
 """Flag bit: the reference was not finite and the last finite one was held."""
@@ -174,13 +204,17 @@ class Compensator:
     history_s
         Longest model dead time the delay line can hold after a live model change (default: the
         largest initial dead time plus 100 ms, at least 250 ms).
+    kernel
+        ``"c"``, ``"python"`` or None for :func:`default_kernel`.
 
     Notes
     -----
-    At 8 axes a per-axis loop over Python floats is about four times faster than numpy
-    (each numpy call on an 8-element array costs about a microsecond, and a tick needs ~60 of
-    them); see docs/BENCHMARKS.md.  Parameters live in per-axis tuples that are rebuilt off the
-    tick and swapped by one assignment.
+    The state and the per-axis parameters live in flat ``array('d')`` buffers allocated once
+    and only ever changed in place: the compiled kernel (``motcomp/core/_ckernel.c``) steps
+    them directly, and the Python reference (:meth:`_step_py`) and every method that resets,
+    reseeds or reconfigures the compensator work on the same memory.  Both kernels perform the
+    same floating-point operations in the same order, so their outputs are bit-identical
+    (tests/test_ckernel.py).  Parameters are rebuilt off the tick, between two steps.
     """
 
     def __init__(
@@ -192,6 +226,7 @@ class Compensator:
         position: ArrayLike | None = None,
         fade_s: float = 0.5,
         history_s: float | None = None,
+        kernel: str | None = None,
     ) -> None:
         if not (isinstance(rate_hz, int | float) and math.isfinite(rate_hz) and rate_hz > 0):
             raise ConfigError(f"compensator rate must be a positive finite number of Hz, "
@@ -214,8 +249,24 @@ class Compensator:
         self._hist_len = length
         self._mask = length - 1
         self._limits = limits
-        self._lim = axis_constants(limits, self.dt_s)
-        self._bypass = [False] * n
+        # every buffer below is allocated here, once, and changed in place only (the compiled
+        # kernel holds views of them)
+        zeros = [0.0] * n
+        (self._r, self._u, self._v, self._xc, self._xm, self._y_last, self._deriv, self._w_prev,
+         self._raw, self._fade_offset, self._fade_progress, self._integral) = (
+            array("d", zeros) for _ in range(12))
+        self.deviation = array("d", zeros)
+        """Per axis, emitted command minus its target at the last step (0 when feasible)."""
+        self._track = array("d", zeros * 3)  # the limiter's target tracker: (p, v, a) per axis
+        self._hist_c = array("d", zeros * length)  # axis i at [i * length, (i + 1) * length)
+        self._hist_m = array("d", zeros * length)
+        self._gain_p_buf = array("d", zeros * 6)
+        self._model_p_buf = array("d", zeros * 3)
+        self._offsets = array("q", [0] * (2 * n))
+        self._lim_buf = array("d", zeros * 24)
+        self._bypass = array("b", [0] * n)
+        self._lim: list[tuple[float, ...]] = []
+        self._set_lim(limits)
         self._models: tuple[P1D, ...] = ()
         self._gains: tuple[PIDGains, ...] = ()
         self._model_p: list[tuple[float, float, float, int, int]] = []
@@ -223,8 +274,19 @@ class Compensator:
         self._set_models(models)
         self._set_gains(gains)
         self.flags: list[int] = [0] * n
-        self.deviation: list[float] = [0.0] * n
-        """Per axis, emitted command minus its target at the last step (0 when feasible)."""
+        self.kernel = default_kernel() if kernel is None else kernel
+        if self.kernel not in KERNELS:
+            raise ConfigError(f"unknown compensator kernel {self.kernel!r}; use one of "
+                              f"{', '.join(KERNELS)}")
+        self._stepper = None
+        if self.kernel == "c":
+            if _ckernel is None:
+                raise ConfigError("the compiled kernel motcomp.core._ckernel is not built")
+            self._stepper = _ckernel.Stepper(n, length, [
+                self._r, self._u, self._v, self._xc, self._xm, self._y_last, self._deriv,
+                self._w_prev, self._raw, self._fade_offset, self._fade_progress, self._integral,
+                self.deviation, self._track, self._hist_c, self._hist_m, self._gain_p_buf,
+                self._model_p_buf, self._lim_buf, self._offsets, self._bypass])
         self.reset(np.zeros(n) if position is None else position)
 
     # --- configuration ------------------------------------------------------------------------
@@ -244,6 +306,10 @@ class Compensator:
     def bypass(self) -> np.ndarray:
         return np.array(self._bypass, dtype=bool)
 
+    def _set_lim(self, limits: AxisLimits) -> None:
+        self._lim = axis_constants(limits, self.dt_s)
+        self._lim_buf[:] = array("d", [x for c in self._lim for x in c])
+
     def _set_models(self, models: Sequence[P1D]) -> None:
         if len(models) != self.n:
             raise ConfigError(f"{len(models)} models for {self.n} axes")
@@ -259,6 +325,8 @@ class Compensator:
             # read offsets of u[k-d+1] and u[k-d] relative to the write slot k
             params.append((phi, g0, g1, 1 - d, -d))
         self._model_p = params
+        self._model_p_buf[:] = array("d", [x for p in params for x in p[:3]])
+        self._offsets[:] = array("q", [x for p in params for x in p[3:]])
         self._models = tuple(models)
 
     def _check_stable(self, models: Sequence[P1D], gains: Sequence[PIDGains]) -> None:
@@ -281,6 +349,7 @@ class Compensator:
         for g in gains:
             params.append((g.kp, g.ki * h, g.tf / (g.tf + h), g.kd / (g.tf + h), g.b, g.c))
         self._gain_p = params
+        self._gain_p_buf[:] = array("d", [x for p in params for x in p])
         self._gains = tuple(gains)
 
     def set_gains(self, gains: Sequence[PIDGains]) -> None:
@@ -334,7 +403,7 @@ class Compensator:
         is outside the new range)."""
         if limits.size != self.n:
             raise ConfigError(f"limits for {limits.size} axes, compensator has {self.n}")
-        self._lim = axis_constants(limits, self.dt_s)
+        self._set_lim(limits)
         self._limits = limits
 
     def set_fade(self, fade_s: float) -> None:
@@ -348,14 +417,14 @@ class Compensator:
         """Turn compensation off (True) or on (False) per axis, bumplessly."""
         new = np.array(bypass, dtype=bool).reshape(self.n).tolist()
         for i in range(self.n):
-            if new[i] == self._bypass[i]:
+            if new[i] == bool(self._bypass[i]):
                 continue
             if new[i]:
                 # offset between the command now and the plain reference, faded out over fade_s
                 # (minimum-jerk: no velocity or acceleration step at either end)
                 self._fade_offset[i] = self._u[i] - self._r[i]
                 self._fade_progress[i] = 0.0
-        self._bypass = new
+        self._bypass[:] = array("b", new)
 
     # --- state --------------------------------------------------------------------------------
     def reset(self, position: ArrayLike) -> None:
@@ -364,22 +433,20 @@ class Compensator:
         p = check_position(self._limits, position).tolist()
         n = self.n
         self._k = 0
-        self._r = p[:]
-        self._u = p[:]
-        self._v = [0.0] * n
-        self._track = [(pi, 0.0, 0.0) for pi in p]  # the limiter's target tracker
-        self._xc = [m.K * pi for m, pi in zip(self._models, p, strict=True)]
-        self._xm = self._xc[:]
-        self._y_last = self._xc[:]
-        self._hist_c = [[pi] * self._hist_len for pi in p]
-        self._hist_m = [[pi] * self._hist_len for pi in p]
-        self._deriv = [0.0] * n
-        self._w_prev = [gp[5] * pi - xi for gp, pi, xi in zip(self._gain_p, p, self._xc,
-                                                               strict=True)]
-        self._raw = p[:]
-        self._fade_offset = [0.0] * n
-        self._fade_progress = [1.0] * n
-        self._integral = [0.0] * n
+        xc = [m.K * pi for m, pi in zip(self._models, p, strict=True)]
+        zeros = [0.0] * n
+        for buf, values in ((self._r, p), (self._u, p), (self._v, zeros), (self._xc, xc),
+                            (self._xm, xc), (self._y_last, xc), (self._deriv, zeros),
+                            (self._raw, p), (self._fade_offset, zeros),
+                            (self._fade_progress, [1.0] * n), (self._integral, zeros),
+                            (self.deviation, zeros)):
+            buf[:] = array("d", values)
+        self._w_prev[:] = array("d", [gp[5] * pi - xi for gp, pi, xi in zip(
+            self._gain_p, p, xc, strict=True)])
+        self._track[:] = array("d", [x for pi in p for x in (pi, 0.0, 0.0)])
+        hist = array("d", [x for pi in p for x in [pi] * self._hist_len])
+        self._hist_c[:] = hist
+        self._hist_m[:] = hist
         self._reseed(p)
         self.flags = [0] * n
 
@@ -390,19 +457,22 @@ class Compensator:
 
     def _reseed(self, target: Sequence[float]) -> None:
         """Choose the integrator so that :meth:`_virtual_raw` equals ``target``."""
-        self._integral = [t - gp[0] * (gp[4] * r - y) - d for t, gp, r, y, d in
-                          zip(target, self._gain_p, self._r, self._y_last, self._deriv,
-                              strict=True)]
+        self._integral[:] = array("d", [t - gp[0] * (gp[4] * r - y) - d for t, gp, r, y, d in
+                                        zip(target, self._gain_p, self._r, self._y_last,
+                                            self._deriv, strict=True)])
 
     def state(self) -> CompensatorState:
         """A copy of the complete state."""
         return CompensatorState(
             k=self._k, r=np.array(self._r), xc=np.array(self._xc), xm=np.array(self._xm),
             integral=np.array(self._integral), deriv=np.array(self._deriv),
-            w_prev=np.array(self._w_prev), history_c=np.array(self._hist_c),
-            history_m=np.array(self._hist_m), u=np.array(self._u), v=np.array(self._v),
-            tracker=np.array(self._track), raw=np.array(self._raw),
-            bypass=np.array(self._bypass), fade_offset=np.array(self._fade_offset),
+            w_prev=np.array(self._w_prev),
+            history_c=np.array(self._hist_c).reshape(self.n, self._hist_len),
+            history_m=np.array(self._hist_m).reshape(self.n, self._hist_len),
+            u=np.array(self._u), v=np.array(self._v),
+            tracker=np.array(self._track).reshape(self.n, 3), raw=np.array(self._raw),
+            bypass=np.array(self._bypass, dtype=bool),
+            fade_offset=np.array(self._fade_offset),
             fade_progress=np.array(self._fade_progress),
         )
 
@@ -432,12 +502,23 @@ class Compensator:
         """
         ref: Sequence[float] = (reference.tolist() if isinstance(reference, np.ndarray)
                                 else reference)
+        if self._stepper is not None:
+            out, self.flags = self._stepper.step(ref, self._k, self._fade_step)
+            self._k += 1
+            return out
+        return self._step_py(ref)
+
+    def _step_py(self, ref: Sequence[float]) -> list[float]:
+        """The reference implementation of :meth:`step` (and the fallback without the compiled
+        kernel), on the same buffers."""
+        if len(ref) != self.n:
+            raise ValueError(f"reference has {len(ref)} values for {self.n} axes")
         k = self._k
         mask = self._mask
         rr, xcs, xms, ys, ints, ds, wps = (self._r, self._xc, self._xm, self._y_last,
                                            self._integral, self._deriv, self._w_prev)
         us, vs, trk, raws = self._u, self._v, self._track, self._raw
-        hcs, hms = self._hist_c, self._hist_m
+        hcs, hms, hist_len = self._hist_c, self._hist_m, self._hist_len
         bypass = self._bypass
         out = [0.0] * self.n
         flags = [0] * self.n
@@ -468,9 +549,9 @@ class Compensator:
                     target = r
             else:
                 target = v
-            sp, sv, sa = trk[i]
-            u, vs[i], sp, sv, sa, sat = limit_axis(target, us[i], vs[i], sp, sv, sa, lim)
-            trk[i] = (sp, sv, sa)
+            j = 3 * i
+            u, vs[i], trk[j], trk[j + 1], trk[j + 2], sat = limit_axis(
+                target, us[i], vs[i], trk[j], trk[j + 1], trk[j + 2], lim)
             us[i] = u
             dev[i] = u - target
             if bypass[i]:
@@ -479,15 +560,14 @@ class Compensator:
                 v = u
             raws[i] = v
             ints[i] += kih * (r - y)
-            slot = k & mask
-            slot0 = (k + off0) & mask
-            slot1 = (k + off1) & mask
-            hc = hcs[i]
-            hc[slot] = v
-            xcs[i] = phi * y + g0 * hc[slot0] + g1 * hc[slot1]
-            hm = hms[i]
-            hm[slot] = u
-            xms[i] = phi * xms[i] + g0 * hm[slot0] + g1 * hm[slot1]
+            base = i * hist_len
+            slot = base + (k & mask)
+            slot0 = base + ((k + off0) & mask)
+            slot1 = base + ((k + off1) & mask)
+            hcs[slot] = v
+            xcs[i] = phi * y + g0 * hcs[slot0] + g1 * hcs[slot1]
+            hms[slot] = u
+            xms[i] = phi * xms[i] + g0 * hms[slot0] + g1 * hms[slot1]
             out[i] = u
             flags[i] = fl | sat
         self._k = k + 1
