@@ -6,6 +6,20 @@
 #
 # SIGTERM (docker stop) parks the platform at neutral before exiting: give it the time
 # (--stop-timeout longer than loop.park_timeout_s).  See docs/DEPLOYMENT.md.
+# Build stage: the wheel, with the compiled compensator kernel (motcomp/core/_ckernel.c).
+FROM python:3.11-slim AS build
+# hadolint ignore=DL3008
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends gcc libc6-dev \
+    && rm -rf /var/lib/apt/lists/*
+WORKDIR /src
+COPY pyproject.toml setup.py MANIFEST.in README.md ./
+COPY motcomp ./motcomp
+COPY config ./config
+RUN pip wheel --no-cache-dir --no-deps -w /wheels . \
+    && python -c "import sys, zipfile, glob; names = zipfile.ZipFile(glob.glob('/wheels/*.whl')[0]).namelist(); sys.exit(not any('_ckernel' in n and n.endswith('.so') for n in names))"
+
+# Run stage: no compiler.
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
@@ -14,14 +28,12 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1
 
 WORKDIR /opt/motcomp
-COPY pyproject.toml README.md ./
-COPY motcomp ./motcomp
-COPY config ./config
-RUN pip install --no-cache-dir . \
+COPY --from=build /wheels /wheels
+COPY config/motcomp.toml config/motcomp.dbc /config/
+RUN pip install --no-cache-dir /wheels/*.whl \
+    && rm -rf /wheels \
     && groupadd --system --gid 10001 motcomp \
-    && useradd --system --no-create-home --uid 10001 --gid 10001 --shell /usr/sbin/nologin motcomp \
-    && mkdir -p /config \
-    && cp config/motcomp.toml config/motcomp.dbc /config/
+    && useradd --system --no-create-home --uid 10001 --gid 10001 --shell /usr/sbin/nologin motcomp
 
 USER 10001:10001
 VOLUME ["/config"]

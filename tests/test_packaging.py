@@ -79,11 +79,16 @@ def test_dockerfile_commands() -> None:
     assert base.startswith("python:3.11") and "slim" in base
     # every COPY source exists; the package is installed; a non-root numeric user runs it
     for instr, rest in steps:
-        if instr == "COPY":
+        if instr == "COPY" and not rest.startswith("--from="):
             for src in rest.split()[:-1]:
                 assert (ROOT / src).exists(), src
     run = " ".join(rest for i, rest in steps if i == "RUN")
-    assert "pip install --no-cache-dir ." in run
+    # a build stage with a compiler makes the wheel (with the compiled kernel, checked there);
+    # the run stage installs it
+    assert "pip wheel --no-cache-dir --no-deps -w /wheels ." in run and "_ckernel" in run
+    assert "gcc" in run
+    assert "pip install --no-cache-dir /wheels/*.whl" in run
+    assert [rest for i, rest in steps if i == "COPY" and rest.startswith("--from=build")]
     for name in ("motcomp.toml", "motcomp.dbc"):
         assert (ROOT / "config" / name).is_file()
     user = dict(steps)["USER"].split(":")[0]
@@ -111,15 +116,19 @@ def test_wheel_ships_the_config_and_finds_it_installed(tmp_path: Path) -> None:
     names = zipfile.ZipFile(wheel).namelist()
     for f in SHIPPED:
         assert f"motcomp/_config/{f}" in names, f
+    assert any(n.startswith("motcomp/core/_ckernel") and n.endswith(".so") for n in names)
+    assert "motcomp/core/_ckernel.pyi" in names
     site = tmp_path / "site"
     zipfile.ZipFile(wheel).extractall(site)
     env = {"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin"}
     code = ("import motcomp.resources as r, motcomp.presets as p; print(r.config_dir()); "
-            "print(p.load_preset('rails').model)")
+            "print(p.load_preset('rails').model); "
+            "import motcomp.core.compensator as c; print('kernel', c.default_kernel())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          env=env, cwd=tmp_path, timeout=60)
     assert out.returncode == 0, out.stderr
     assert str(site / "motcomp" / "_config") in out.stdout and "p1d:K=1" in out.stdout
+    assert "kernel c" in out.stdout  # the installed wheel runs the compiled kernel
     chk = subprocess.run([sys.executable, "-m", "motcomp", "config", "check",
                           str(site / "motcomp" / "_config" / "motcomp.toml")],
                          capture_output=True, text=True, env=env, cwd=tmp_path, timeout=60)

@@ -64,3 +64,15 @@ def test_zero_and_out_of_range_values() -> None:
     assert snap["compute_p50_us"] == 0.0 and snap["late_p999_us"] == 0.0
     st.record(5e8, 1.0)  # beyond the last bin: counted there, the maximum stays exact
     assert st.snapshot()["compute_max_us"] == 5e8
+
+
+def test_named_series_are_kept_apart() -> None:
+    st = LoopStats(100, ("tick", "compute", "io", "late"))
+    for k in range(100):
+        st.record(30.0 + k % 2, 20.0, 10.0 + k % 2, 1.0)
+    snap = st.snapshot()
+    assert sorted({key.split("_")[0] for key in snap}) == ["compute", "io", "late", "tick"]
+    assert snap["tick_max_us"] == 31.0 and snap["io_max_us"] == 11.0
+    assert 20.0 <= snap["compute_p99_us"] <= 20.0 * WIDTH
+    with pytest.raises(ValueError):
+        st.record(1.0, 2.0)  # one value per series

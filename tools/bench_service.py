@@ -45,6 +45,7 @@ SCHEDS = {  # scheduling mode -> [loop] settings
     "config": "",
     "plain": "slice_us = 0\nsleep_max_us = 0\n",
     "rt": "realtime_priority = 50\ncpu = 1\n",
+    "pykernel": "",  # the config as it is, with the compensator's Python kernel
 }
 
 
@@ -66,16 +67,24 @@ def publisher(port: int, seconds: float) -> None:
         pub.undeclare()
 
 
-def tick_in_process(ticks: int = 20000, gap_s: float = 0.0) -> tuple[float, float]:
-    """(p50, p99) us of ``Service.tick`` with in-memory adapters: the Python work of a tick
-    without transport or other processes; in a tight loop, or with a sleep of ``gap_s`` between
-    ticks (as the service's loop does), which shows what waking from a sleep costs."""
+def tick_in_process(ticks: int = 20000, gap_s: float = 0.0, kernel: str = "c"
+                    ) -> tuple[float, float]:
+    """(p50, p99) us of ``Service.tick`` with in-memory adapters: the work of a tick without
+    transport or other processes, with the given compensator kernel; in a tight loop, or with a
+    sleep of ``gap_s`` between ticks (as the service's loop does), which shows what waking from
+    a sleep costs."""
     from motcomp.config import load_config
     from motcomp.io.memory import MemorySink, MemorySource
     from motcomp.io.wire import encode_input
     from motcomp.runtime.service import Service
 
-    svc = Service(load_config(config_file("motcomp.toml")), ZenohEndpoints())
+    old = os.environ.get("MOTCOMP_KERNEL")
+    os.environ["MOTCOMP_KERNEL"] = kernel
+    try:
+        svc = Service(load_config(config_file("motcomp.toml")), ZenohEndpoints())
+    finally:
+        os.environ.pop("MOTCOMP_KERNEL") if old is None else os.environ.update(
+            MOTCOMP_KERNEL=old)
     src = MemorySource(latest_only=True)
     svc.attach(src, [MemorySink(keep=1)])
     frames = [encode_input(k, k / 1000, {a: 0.05 * math.sin(k / 300 + i)
@@ -177,6 +186,8 @@ def run_once(seconds: float, sync: bool, sched: str, tmp: Path) -> dict[str, Any
                    f'{"true" if sync else "false"}\n{spin}[status]\nwindow_s = '
                    f'{max(seconds - 2, 1):g}\n')  # the steady part: the start-up out
     env = child_env()
+    if sched == "pykernel":
+        env["MOTCOMP_KERNEL"] = "python"
     svc = subprocess.Popen([sys.executable, "-m", "motcomp", "run", "--config", str(cfg), "-l",
                             loopback(p_svc), "--log-level", "warning"], env=env)
     try:
@@ -236,6 +247,8 @@ def run_once(seconds: float, sync: bool, sched: str, tmp: Path) -> dict[str, Any
         "sync": sync, "ticks": st["ticks"] - start["ticks"],
         "missed": st["missed_ticks"] - start["missed_ticks"], "missed_start": start["missed_ticks"],
         "compute_p50": loop["compute_p50_us"], "compute_p99": loop["compute_p99_us"],
+        "tick_p50": loop["tick_p50_us"], "tick_p99": loop["tick_p99_us"],
+        "io_p50": loop["io_p50_us"], "io_p99": loop["io_p99_us"], "kernel": st["kernel"],
         "late_p50": loop["late_p50_us"], "late_p99": loop["late_p99_us"],
         "late_p999": loop["late_p999_us"], "late_max": loop["late_max_us"],
         "lat_p50": float(np.percentile(lat_ms, 50)), "lat_p99": float(np.percentile(lat_ms, 99)),
@@ -273,7 +286,8 @@ def sched_name(r: dict[str, Any]) -> str:
 
 
 def mode_name(r: dict[str, Any]) -> str:
-    return ("sync to input" if r["sync"] else "own clock") + f", {sched_name(r)}"
+    kernel = ", Python kernel" if r["kernel"] == "python" else ""
+    return ("sync to input" if r["sync"] else "own clock") + f", {sched_name(r)}{kernel}"
 
 
 def verdict(rows: list[dict[str, Any]]) -> str:
@@ -339,6 +353,9 @@ def main() -> None:
     ap.add_argument("--plain", action="store_true",
                     help="also run with the kernel's default slice and one sleep per tick "
                          "(loop.slice_us = 0, loop.sleep_max_us = 0)")
+    ap.add_argument("--pykernel", action="store_true",
+                    help="also run the config with the compensator's Python kernel "
+                         "(MOTCOMP_KERNEL=python): what the compiled one buys")
     ap.add_argument("--rt", action="store_true",
                     help="also run with SCHED_FIFO 50 and the loop pinned to CPU 1 (needs the "
                          "privilege; the service reports whether it got it)")
@@ -354,7 +371,8 @@ def main() -> None:
         print(json.dumps(bare_clock(args.seconds, args.bare)))
         return
     with tempfile.TemporaryDirectory() as tmp:
-        scheds = ["plain"] * args.plain + ["config"] + ["rt"] * args.rt
+        scheds = (["plain"] * args.plain + ["config"] + ["pykernel"] * args.pykernel
+                  + ["rt"] * args.rt)
         rows = []
         for rep in range(args.repeats):  # interleaved, so slow spells of the host spread out
             for sched in scheds:
@@ -367,7 +385,8 @@ def main() -> None:
         f"Machine: {machine()}.",
         "",
         f"`python tools/bench_service.py --seconds {args.seconds:g} --repeats {args.repeats}"
-        f"{' --plain' if args.plain else ''}{' --rt' if args.rt else ''}`: "
+        f"{' --plain' if args.plain else ''}{' --pykernel' if args.pykernel else ''}"
+        f"{' --rt' if args.rt else ''}`: "
         "`motcomp run` with the example config (8 axes, 1 kHz; no real-time privileges unless "
         "the mode names SCHED_FIFO; slice and naps are the loop thread's, see "
         "docs/DEPLOYMENT.md), a publisher process (naps of 100 us) sending "
@@ -376,12 +395,16 @@ def main() -> None:
         "service and the publisher started); tick times are the service's own, over the last "
         f"{max(args.seconds - 2, 1):g} s (the maxima since the service started); latency = "
         "output received - input published (same clock); steal = the share of this virtual "
-        "machine's CPU time taken by the host during the run.",
+        "machine's CPU time taken by the host during the run.  Tick times: *compute* is the "
+        "tick's own work (validation, reference, compensator, saturation verdicts, encoding), "
+        "*io* its calls into zenoh (taking the newest input, sending the output), *whole* the "
+        "two together (percentiles of each series apart: they do not add up).",
         "",
-        "| mode | ticks | missed (start-up) | compute p50 / p99 (us) "
+        "| mode | ticks | missed (start-up) | compute p50 / p99 (us) | io p50 / p99 (us) "
+        "| whole tick p50 / p99 (us) "
         "| lateness p50 / p99 / p99.9 / max (us) | in->out p50 / p99 (ms) | CPU % | RSS (MB) "
         "| steal % |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         mode = mode_name(r)
@@ -390,7 +413,9 @@ def main() -> None:
         lines.append(
             f"| {mode} | {r['ticks']} | {r['missed']} ({r['missed_start']}) | "
             f"{r['compute_p50']:.0f} / "
-            f"{r['compute_p99']:.0f} | {r['late_p50']:.0f} / {r['late_p99']:.0f} / "
+            f"{r['compute_p99']:.0f} | {r['io_p50']:.0f} / {r['io_p99']:.0f} | "
+            f"{r['tick_p50']:.0f} / {r['tick_p99']:.0f} | "
+            f"{r['late_p50']:.0f} / {r['late_p99']:.0f} / "
             f"{r['late_p999']:.0f} / {r['late_max']:.0f} | {r['lat_p50']:.2f} / "
             f"{r['lat_p99']:.2f} | {r['cpu']:.0f} | {r['rss']:.0f} | {r['steal']:.1f} |")
     bare = bare_runs(6.0, 4 * args.repeats, args.rt)
@@ -406,21 +431,26 @@ def main() -> None:
         *(f"| {b['slice']} | {b['missed_min']:.0f} ({b['missed_worst']:.0f}) | "
           f"{b['late_p999']:.0f} | {b['late_max']:.0f} |" for b in bare),
     ]
-    p50, p99 = tick_in_process()
-    s50, s99 = tick_in_process(5000, gap_s=0.0008)
+    ticks = {(k, gap): tick_in_process(20000 if gap == 0 else 5000, gap, k)
+             for k in ("c", "python") for gap in (0.0, 0.0008)}
+    p50, p99 = ticks["c", 0.0]
+    s50, s99 = ticks["c", 0.0008]
+    q50, q99 = ticks["python", 0.0]
+    r50, r99 = ticks["python", 0.0008]
     lines += [
         "",
-        f"The same tick in this process, in-memory adapters, tight loop: p50 {p50:.0f} us, "
-        f"p99 {p99:.0f} us (the Python work: decode and validate, reference, 8-axis "
-        "compensator, flags, encode); with a 0.8 ms sleep before each tick, as in the "
-        f"service's loop: p50 {s50:.0f} us, p99 {s99:.0f} us.",
+        f"The same tick in this process, in-memory adapters (decode and validate, reference, "
+        f"8-axis compensator, flags, encode), tight loop: p50 {p50:.0f} us, p99 {p99:.0f} us "
+        f"with the compiled kernel, p50 {q50:.0f} us, p99 {q99:.0f} us with the Python one; "
+        f"with a 0.8 ms sleep before each tick, as in the service's loop: p50 {s50:.0f} us, "
+        f"p99 {s99:.0f} us (compiled), p50 {r50:.0f} us, p99 {r99:.0f} us (Python).",
         "",
         "Targets (2-core machine, no real-time privileges): compute p99 <= 50 us, "
         "lateness p99.9 <= 500 us, 0 missed ticks, in->out p99 <= period + 0.5 ms (1.5 ms), "
         "RSS <= 150 MB.",
         "",
         f"Reading ({'medians of each mode' if args.repeats > 1 else 'each run'}): "
-        f"{verdict(med)}  The service's tick "
+        f"{verdict(med)}  The service's tick (compute) "
         f"costs {med[0]['compute_p50'] / p50:.1f}x the same tick in a tight loop, and the "
         f"in-process tick after a sleep already costs {s50 / p50:.1f}x: on this virtual "
         "machine a thread that sleeps between ticks resumes on cold caches; zenoh's calls, "

@@ -60,6 +60,11 @@ MAX_CATCH_UP = 20
 """Longest stall (in periods) whose samples are computed afterwards (see Service._catch_up)."""
 _SAT_FLAGS = tuple(f"sat:{a}" for a in AXES)
 _BYPASS_FLAGS = tuple(f"bypass:{a}" for a in AXES)
+STAT_SERIES = ("tick", "compute", "io", "late")
+"""What the loop times, per tick (us): ``tick`` from waking at the deadline to the end of the
+tick; ``io`` the part of it spent in transport calls (taking the newest input, sending the
+outputs); ``compute`` the rest (commands, catch-up steps, validation, reference, compensator,
+saturation verdicts, encoding); ``late`` waking after the deadline."""
 
 
 def build_compensator(cfg: ServiceConfig, axes: ResolvedAxes) -> Compensator:
@@ -100,7 +105,7 @@ class Service:
                                       cfg.loop.stale_after_s, cfg.loop.hold_s, cfg.loop.rejoin_s,
                                       cfg.loop.startup_s, cfg.input.reconstruction == "linear",
                                       cfg.input.max_extrapolation_s)
-        self.stats = LoopStats(round(cfg.status.window_s * cfg.loop.rate_hz))
+        self.stats = LoopStats(round(cfg.status.window_s * cfg.loop.rate_hz), STAT_SERIES)
         self.counters = _Counters()
         self.notifier = Notifier()
         self.commands: deque[Callable[[], None]] = deque()
@@ -124,6 +129,9 @@ class Service:
         self._bypass_flags: list[str] = []
         self._dev_lp = [0.0] * len(AXES)
         self._dev_alpha = min(1.0, 1.0 / (0.02 * cfg.loop.rate_hz))
+        self.io_ns = 0
+        """Time the last :meth:`tick` spent in transport calls (input take, sends)."""
+        self._perf = time.perf_counter_ns
 
     @staticmethod
     def _ramp_speeds(cfg: ServiceConfig, axes: ResolvedAxes) -> list[float]:
@@ -155,8 +163,12 @@ class Service:
         now = now_ns / 1e9
         payload = self._pending
         self._pending = None
+        perf = self._perf
+        io = 0
         if payload is None and self._source is not None:
+            t_io = perf()
             payload = self._source.latest()
+            io = perf() - t_io
         shaper = self.shaper
         if payload is not None:
             res = self.validator.accept(payload, after_stale=shaper.is_stale(now))
@@ -192,10 +204,12 @@ class Service:
         flags.extend(self._bypass_flags)
         t_wall = self._t_wall0 + (now_ns - self._t_mono0) / 1e9
         out = encode_output(self._seq, t_wall, self.counters.src_seq, u, flags)
+        t_io = perf()
         for sink in self._sinks:
             sink.put(out)
         if self._can is not None:
             self._can.send(self._seq, u, limited, mode == "stale", mode == "parking")
+        self.io_ns = io + perf() - t_io
         self._seq += 1
         self.counters.mode = mode or "running"
         self.counters.ticks += 1
@@ -240,7 +254,10 @@ class Service:
                 if clock.skipped:
                     self._catch_up(deadline, clock.skipped)
                 self.tick(deadline)
-                record((perf() - now) / 1e3, (now - deadline) / 1e3)
+                tick_ns = perf() - now
+                io_ns = self.io_ns
+                record(tick_ns / 1e3, (tick_ns - io_ns) / 1e3, io_ns / 1e3,
+                       (now - deadline) / 1e3)
                 self.counters.last_tick_mono = time.monotonic()
                 if self.stop_event.is_set():
                     if park_deadline is None:
@@ -303,6 +320,7 @@ class Service:
             "rate_hz": self.cfg.loop.rate_hz,
             "sync_to_input": self.cfg.loop.sync_to_input,
             "ticks": c.ticks,
+            "kernel": self.comp.kernel,
             "missed_ticks": clock.missed if clock else 0,
             "loop": self.stats.snapshot(),
             "loop_window_s": self.cfg.status.window_s,
@@ -441,8 +459,11 @@ class Service:
             if healthy and not ready:
                 ready = True
                 self.notifier.ready(f"running at {cfg.loop.rate_hz:g} Hz")
-                log.info("running: %g Hz, config %s, %s", cfg.loop.rate_hz, self.config_id,
-                         self.rt_report)
+                log.info("running: %g Hz, config %s, %s; compensator kernel %s",
+                         cfg.loop.rate_hz, self.config_id, self.rt_report, self.comp.kernel)
+                if self.comp.kernel != "c":
+                    log.warning("the compiled compensator kernel is not in use (not built, or "
+                                "MOTCOMP_KERNEL=python): each tick costs about 15 us more")
             if healthy and now >= next_dog:
                 self.notifier.watchdog()
                 next_dog = now + dog_every

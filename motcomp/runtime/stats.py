@@ -52,46 +52,44 @@ def _quantiles(hist: np.ndarray) -> list[float]:
 
 class LoopStats:
     """Histograms of about the last ``window`` ticks (between ``window`` and ``window`` plus one
-    block), plus running maxima."""
+    block), plus running maxima, of each of the named ``series`` (default: compute time and
+    lateness; the service also records the whole tick and its transport calls)."""
 
-    def __init__(self, window: int) -> None:
+    def __init__(self, window: int, series: tuple[str, ...] = ("compute", "late")) -> None:
         self.window = max(int(window), BLOCKS)
         self.block = math.ceil(self.window / BLOCKS)
+        self.series = tuple(series)
         self._zero = array("q", bytes(8 * _NBINS))
-        self._compute = [array("q", self._zero) for _ in range(BLOCKS + 1)]
-        self._late = [array("q", self._zero) for _ in range(BLOCKS + 1)]
-        self._cur_c = self._compute[0]
-        self._cur_l = self._late[0]
+        # per series, a ring of BLOCKS + 1 histograms
+        self._hists = [[array("q", self._zero) for _ in range(BLOCKS + 1)] for _ in series]
+        self._cur = [h[0] for h in self._hists]
         self._left = self.block
         self._slot = 0
         self.n = 0
-        self.max_compute_us = 0.0
-        self.max_late_us = 0.0
+        self.maxima = [0.0] * len(series)
 
-    def record(self, compute_us: float, late_us: float) -> None:
+    def record(self, *values_us: float) -> None:
+        """One tick's values, in the order of :attr:`series`."""
         if self._left == 0:  # start the next block, overwriting the oldest
-            self._slot = (self._slot + 1) % (BLOCKS + 1)
-            self._cur_c = self._compute[self._slot]
-            self._cur_l = self._late[self._slot]
-            self._cur_c[:] = self._zero
-            self._cur_l[:] = self._zero
+            self._slot = slot = (self._slot + 1) % (BLOCKS + 1)
+            for j, hists in enumerate(self._hists):
+                cur = self._cur[j] = hists[slot]
+                cur[:] = self._zero
             self._left = self.block
         self._left -= 1
-        self._cur_c[_bin(compute_us)] += 1
-        self._cur_l[_bin(late_us)] += 1
+        peaks = self.maxima
+        for j, (cur, x) in enumerate(zip(self._cur, values_us, strict=True)):
+            cur[_bin(x)] += 1
+            if x > peaks[j]:
+                peaks[j] = x
         self.n += 1
-        if compute_us > self.max_compute_us:
-            self.max_compute_us = compute_us
-        if late_us > self.max_late_us:
-            self.max_late_us = late_us
 
     def snapshot(self) -> dict[str, float]:
-        """Percentiles (us) over the window, and the maxima since start."""
+        """``{series}_{p50,p99,p999,max}_us``: percentiles over the window, maxima since start."""
         if self.n == 0:
             return {}
         out: dict[str, float] = {}
-        for name, blocks, peak in (("compute", self._compute, self.max_compute_us),
-                                   ("late", self._late, self.max_late_us)):
+        for name, blocks, peak in zip(self.series, self._hists, self.maxima, strict=True):
             hist = np.zeros(_NBINS, np.int64)
             for b in blocks:
                 hist += np.frombuffer(b.tobytes(), np.int64)  # a copy: no buffer export
