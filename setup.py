@@ -1,10 +1,11 @@
-"""Build of the compiled tick: the compensator (motcomp/core/_ckernel.c) and the service's input
-parsing and output packing (motcomp/io/_cwire.c); everything else is in pyproject.toml.
+"""Build of the compiled tick: the compensator (motcomp/core/_ckernel.c), the reference shaper's
+per-axis loops (motcomp/runtime/_cshaper.c) and the service's input parsing and output packing
+(motcomp/io/_cwire.c); everything else is in pyproject.toml.
 
 The extensions are optional: without a C compiler the install still succeeds, the compensator
 runs its pure-Python reference kernel (``motcomp config check`` and the service's status say
 which kernel runs) and the wire codec falls back to msgpack-python.  ``-ffp-contract=off`` keeps
-the compiler from fusing multiply-adds, so the compiled kernel's results stay bit-identical to
+the compiler from fusing multiply-adds, so the compiled kernels' results stay bit-identical to
 the Python reference.
 
 The wheel also carries the repository's ``config/`` as ``motcomp/_config``
@@ -38,6 +39,12 @@ setup(
         Extension(
             "motcomp.core._ckernel",
             sources=["motcomp/core/_ckernel.c"],
+            extra_compile_args=["-O2", "-ffp-contract=off", "-fno-fast-math", "-std=c11"],
+            optional=True,
+        ),
+        Extension(
+            "motcomp.runtime._cshaper",
+            sources=["motcomp/runtime/_cshaper.c"],
             extra_compile_args=["-O2", "-ffp-contract=off", "-fno-fast-math", "-std=c11"],
             optional=True,
         ),

@@ -32,11 +32,20 @@ arrival time.  ``hold`` keeps the last value.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
+from typing import Any
 
 from motcomp.core.axes import AXES, AXIS_INDEX
 
 __all__ = ["OFFSET_LEAK", "ReferenceShaper"]
+
+_cshaper: Any = None
+if os.environ.get("MOTCOMP_KERNEL", "").strip().lower() != "python":
+    try:  # the per-axis loops in C (motcomp/runtime/_cshaper.c): bit-identical results
+        from motcomp.runtime import _cshaper
+    except ImportError:  # pragma: no cover - exercised where no C compiler was available
+        _cshaper = None
 
 OFFSET_LEAK = 0.05
 """Upward drift (s per s) allowed to the estimated clock offset between sender and loop."""
@@ -145,20 +154,12 @@ class ReferenceShaper:
         else:  # leak upwards so a drifting clock is followed
             self._offset = min(off + OFFSET_LEAK * (now - self._offset_at), transit)
         self._offset_at = now
-        for axis, value in pos.items():
-            i = AXIS_INDEX[axis]
-            if self.driven[i]:
-                v = float(value)
-                dt = t - self._t_frame[i]
-                fresh = self.linear and not rejoin and 0.0 < dt <= self.stale_after_s
-                self._slope[i] = (v - self.live[i]) / dt if fresh else 0.0
-                if fresh:
-                    p = self._period[i]
-                    p = dt if p == 0.0 else p + 0.05 * (dt - p)
-                    self._period[i] = p
-                    self._cap[i] = min(1.5 * p, self.max_extrapolation_s)
-                self.live[i] = v
-                self._t_frame[i] = t
+        if _cshaper is not None:
+            _cshaper.update_axes(pos, AXIS_INDEX, self.driven, t, self.linear and not rejoin,
+                                 self.stale_after_s, self.max_extrapolation_s, self.live,
+                                 self._t_frame, self._slope, self._period, self._cap)
+        else:
+            self._update_axes(pos, t, self.linear and not rejoin)
         if rejoin:
             if self._stale_since is not None:
                 self.stale_total_s += now - self._stale_since
@@ -168,6 +169,24 @@ class ReferenceShaper:
             self._blend_s = self.startup_s if first else self.rejoin_s
             self._blend_offset = [r - v for r, v in zip(self.ref, self.live, strict=True)]
         self.last_input_s = now
+
+    def _update_axes(self, pos: dict[str, float], t: float, fresh_allowed: bool) -> None:
+        """The axes a frame carries: value, slope, input period, extrapolation cap (the
+        reference of motcomp/runtime/_cshaper.c's ``update_axes``)."""
+        for axis, value in pos.items():
+            i = AXIS_INDEX[axis]
+            if self.driven[i]:
+                v = float(value)
+                dt = t - self._t_frame[i]
+                fresh = fresh_allowed and 0.0 < dt <= self.stale_after_s
+                self._slope[i] = (v - self.live[i]) / dt if fresh else 0.0
+                if fresh:
+                    p = self._period[i]
+                    p = dt if p == 0.0 else p + 0.05 * (dt - p)
+                    self._period[i] = p
+                    self._cap[i] = min(1.5 * p, self.max_extrapolation_s)
+                self.live[i] = v
+                self._t_frame[i] = t
 
     def park(self, now: float) -> None:
         """Stop requested: ramp to neutral, ignoring input from now on."""
@@ -215,6 +234,8 @@ class ReferenceShaper:
         if not self.linear or self._offset is None:
             return self.live[:]
         t_now = now - self._offset
+        if _cshaper is not None:
+            return _cshaper.live_now(t_now, self.live, self._slope, self._t_frame, self._cap)
         return [v + s * (tau if 0.0 < tau < cap else cap if tau >= cap else 0.0)
                 for v, s, tau, cap in zip(self.live, self._slope,
                                           [t_now - t for t in self._t_frame], self._cap,

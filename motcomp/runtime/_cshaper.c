@@ -1,0 +1,146 @@
+/* The reference shaper's two per-tick loops in C: motcomp.runtime._cshaper.
+ *
+ * They work on the shaper's own per-axis Python lists (floats), operation for operation as
+ * ReferenceShaper.on_input and ReferenceShaper._live_now do in motcomp/runtime/shaper.py, so
+ * the results are bit-identical (tests/test_shaper_kernel.py checks it).
+ *
+ * update_axes(pos, index, driven, t, fresh_allowed, stale_after_s, max_extrapolation_s,
+ *             live, t_frame, slope, period, cap) -> None
+ * live_now(t_now, live, slope, t_frame, cap) -> list
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+static int item(PyObject *list, Py_ssize_t i, double *out) {
+    PyObject *x = PyList_GET_ITEM(list, i);
+    if (PyFloat_CheckExact(x)) {
+        *out = PyFloat_AS_DOUBLE(x);
+        return 0;
+    }
+    *out = PyFloat_AsDouble(x);
+    return (*out == -1.0 && PyErr_Occurred()) ? -1 : 0;
+}
+
+static int set(PyObject *list, Py_ssize_t i, double x) {
+    PyObject *f = PyFloat_FromDouble(x);
+    if (f == NULL) return -1;
+    PyObject *old = PyList_GET_ITEM(list, i);
+    PyList_SET_ITEM(list, i, f);
+    Py_DECREF(old);
+    return 0;
+}
+
+static int lists(PyObject *const *lst, int count, Py_ssize_t n) {
+    for (int j = 0; j < count; j++) {
+        if (!PyList_CheckExact(lst[j]) || PyList_GET_SIZE(lst[j]) != n) {
+            PyErr_Format(PyExc_TypeError, "per-axis state must be lists of %zd floats", n);
+            return -1;
+        }
+    }
+    return 0;
+}
+
+static PyObject *update_axes(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 12) {
+        PyErr_SetString(PyExc_TypeError,
+                        "update_axes(pos, index, driven, t, fresh_allowed, stale_after_s, "
+                        "max_extrapolation_s, live, t_frame, slope, period, cap)");
+        return NULL;
+    }
+    PyObject *pos = args[0], *index = args[1], *driven = args[2];
+    if (!PyDict_Check(pos) || !PyDict_Check(index) || !PyList_CheckExact(driven)) {
+        PyErr_SetString(PyExc_TypeError, "pos and index must be dicts, driven a list");
+        return NULL;
+    }
+    Py_ssize_t n = PyList_GET_SIZE(driven);
+    PyObject *live = args[7], *t_frame = args[8], *slope = args[9], *period = args[10],
+             *cap = args[11];
+    if (lists(args + 7, 5, n) < 0) return NULL;
+    double t = PyFloat_AsDouble(args[3]);
+    int fresh_allowed = PyObject_IsTrue(args[4]);
+    double stale_after = PyFloat_AsDouble(args[5]), max_ext = PyFloat_AsDouble(args[6]);
+    if (PyErr_Occurred() || fresh_allowed < 0) return NULL;
+    Py_ssize_t it = 0;
+    PyObject *axis, *value;
+    while (PyDict_Next(pos, &it, &axis, &value)) {
+        PyObject *idx = PyDict_GetItemWithError(index, axis);
+        if (idx == NULL) {
+            if (!PyErr_Occurred()) PyErr_SetObject(PyExc_KeyError, axis);
+            return NULL;
+        }
+        Py_ssize_t i = PyLong_AsSsize_t(idx);
+        if (i == -1 && PyErr_Occurred()) return NULL;
+        if (i < 0 || i >= n) {
+            PyErr_Format(PyExc_IndexError, "axis index %zd out of range", i);
+            return NULL;
+        }
+        int drv = PyObject_IsTrue(PyList_GET_ITEM(driven, i));
+        if (drv < 0) return NULL;
+        if (!drv) continue;
+        double v = PyFloat_AsDouble(value);
+        double tf, lv;
+        if ((v == -1.0 && PyErr_Occurred()) || item(t_frame, i, &tf) < 0 ||
+            item(live, i, &lv) < 0)
+            return NULL;
+        double dt = t - tf;
+        int fresh = fresh_allowed && 0.0 < dt && dt <= stale_after;
+        if (set(slope, i, fresh ? (v - lv) / dt : 0.0) < 0) return NULL;
+        if (fresh) {
+            double p;
+            if (item(period, i, &p) < 0) return NULL;
+            p = p == 0.0 ? dt : p + 0.05 * (dt - p);
+            double c = 1.5 * p;
+            if (set(period, i, p) < 0 || set(cap, i, max_ext < c ? max_ext : c) < 0)
+                return NULL;
+        }
+        if (set(live, i, v) < 0 || set(t_frame, i, t) < 0) return NULL;
+    }
+    Py_RETURN_NONE;
+}
+
+static PyObject *live_now(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 5) {
+        PyErr_SetString(PyExc_TypeError, "live_now(t_now, live, slope, t_frame, cap)");
+        return NULL;
+    }
+    double t_now = PyFloat_AsDouble(args[0]);
+    if (t_now == -1.0 && PyErr_Occurred()) return NULL;
+    if (!PyList_CheckExact(args[1])) {
+        PyErr_SetString(PyExc_TypeError, "live must be a list");
+        return NULL;
+    }
+    Py_ssize_t n = PyList_GET_SIZE(args[1]);
+    if (lists(args + 1, 4, n) < 0) return NULL;
+    PyObject *out = PyList_New(n);
+    if (out == NULL) return NULL;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double v, s, tf, c;
+        if (item(args[1], i, &v) < 0 || item(args[2], i, &s) < 0 ||
+            item(args[3], i, &tf) < 0 || item(args[4], i, &c) < 0) {
+            Py_DECREF(out);
+            return NULL;
+        }
+        double tau = t_now - tf;
+        double x = (0.0 < tau && tau < c) ? tau : (tau >= c ? c : 0.0);
+        PyObject *f = PyFloat_FromDouble(v + s * x);
+        if (f == NULL) {
+            Py_DECREF(out);
+            return NULL;
+        }
+        PyList_SET_ITEM(out, i, f);
+    }
+    return out;
+}
+
+static PyMethodDef methods[] = {
+    {"update_axes", (PyCFunction)(void (*)(void))update_axes, METH_FASTCALL,
+     "The per-axis part of ReferenceShaper.on_input."},
+    {"live_now", (PyCFunction)(void (*)(void))live_now, METH_FASTCALL,
+     "ReferenceShaper._live_now with linear reconstruction: the extrapolated live values."},
+    {NULL, NULL, 0, NULL}};
+
+static struct PyModuleDef cshaper_module = {
+    PyModuleDef_HEAD_INIT, "_cshaper", "The reference shaper's per-tick loops in C.", -1,
+    methods};
+
+PyMODINIT_FUNC PyInit__cshaper(void) { return PyModule_Create(&cshaper_module); }
