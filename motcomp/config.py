@@ -132,6 +132,7 @@ class LoopConfig(BaseModel):
     sync_to_input: bool = False
     poll_us: float = Field(50.0, ge=10.0, le=1000.0)
     spin_us: float = Field(200.0, ge=0.0, le=2000.0)
+    warm_up: bool = True
     sleep_max_us: float = Field(100.0, ge=0.0, le=100_000.0)
     stale_after_s: float = Field(0.05, gt=0.0, le=10.0)
     hold_s: float = Field(0.5, ge=0.0, le=60.0)

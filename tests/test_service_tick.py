@@ -268,3 +268,48 @@ def test_tick_times_its_transport_calls_apart() -> None:
     svc.attach(src, [])
     svc.tick(MS)
     assert svc.io_ns < 2 * MS  # no sink, only the input take
+
+
+def test_warm_up_changes_no_output_and_runs_the_shadow_one_tick_behind() -> None:
+    """The shadow tick between two ticks (what the loop does as its spin starts) exercises
+    the same code on a copy, one tick behind; the service's outputs are bit-identical to a
+    run without it, through start-up, bad frames, a silence and a rejoin."""
+    plain, src_p, sink_p = make_service()
+    warm, src_w, sink_w = make_service()
+    warm._shadow = warm.make_shadow()
+    shadow_src = warm._shadow._source
+    for k in range(1500):
+        if 700 <= k < 900:  # a silence: stale, then rejoin
+            frame = None
+        elif k % 97 == 0:
+            frame = BAD_FRAMES["range"]
+        else:
+            frame = slalom_frame(k)
+        for src in (src_p, src_w):
+            if frame is not None:
+                src.push(frame)
+        warm.warm_up()
+        if frame is not None and k > 0:
+            assert shadow_src.latest() is None  # the shadow took the previous tick's frame
+        plain.tick(k * MS)
+        warm.tick(k * MS)
+    assert sink_w.payloads == sink_p.payloads
+    assert warm._shadow is not None and warm._shadow.counters.ticks == 1500
+    assert warm._shadow._seq == 1500 and warm.counters.ticks == 1500
+    # the shadow saw the same frames: its validator counted the same verdicts, a tick later
+    assert warm._shadow.validator.counts == warm.validator.counts
+    assert warm._shadow.counters.src_seq == warm.counters.src_seq - 1 == 1498
+
+
+def test_a_failing_warm_up_is_dropped_and_the_service_goes_on() -> None:
+    svc, src, sink = make_service()
+    svc._shadow = svc.make_shadow()
+    svc._shadow.comp = None  # type: ignore[assignment]  # its tick will raise
+    src.push(slalom_frame(0))
+    svc.tick(0)
+    svc.warm_up()
+    assert svc._shadow is None
+    svc.warm_up()  # a no-op from now on
+    src.push(slalom_frame(1))
+    svc.tick(MS)
+    assert len(sink.payloads) == 2

@@ -12,6 +12,11 @@ given back to the host, and under load on the host it can come back milliseconds
 shorter than the window keep it.  Measured here on a busy host, the clock alone at 1 kHz for
 10 s: one sleep 9-627 missed ticks, naps of 100 us 1-3 and of 50 us 2-14, for about 7 % more of
 a core (docs/BENCHMARKS.md).  0 sleeps in one piece.
+
+``warm``: a callable run once per wait as the spin starts (``spin_us`` before the deadline), when
+the loop has just woken from its last nap: the service runs a shadow tick there, so that the
+real tick finds its code in the CPU caches (a sleep through the kernel's idle path leaves them
+cold: the same tick costs about three times as much; docs/BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -47,26 +52,33 @@ class DeadlineClock:
         self.ticks = 0
         self._last_tick_ns = self.start_ns
 
-    def wait(self) -> tuple[int, int]:
+    def wait(self, warm: Callable[[], None] | None = None) -> tuple[int, int]:
         clock = self._clock
         deadline = self.next_ns
         wake = deadline - self.spin_ns
         nap = self.nap_ns
+        slept = False
         while (rest := wake - clock()) > 0:
             time.sleep((nap if 0 < nap < rest else rest) / 1e9)
+            slept = True
+        if warm is not None and slept:
+            warm()
         while clock() < deadline:
             pass
         return self._advance(deadline)
 
-    def wait_or_poll(self, poll: Callable[[], bool], poll_us: float) -> tuple[int, int, bool]:
+    def wait_or_poll(self, poll: Callable[[], bool], poll_us: float,
+                     warm: Callable[[], None] | None = None) -> tuple[int, int, bool]:
         """Like :meth:`wait`, but tick early when ``poll()`` says an input has arrived.
 
         Returns ``(deadline_ns, now_ns, polled)``; after an early tick the schedule is re-phased
-        to it, so a source at the loop rate drives the loop.
+        to it, so a source at the loop rate drives the loop.  ``warm`` runs once, ``spin_us``
+        before the deadline (about when the next input is due), if no input came first.
         """
         clock = self._clock
         deadline = self.next_ns
         earliest = self._last_tick_ns + self.period_ns // 2
+        warm_at = deadline - self.spin_ns
         step = poll_us / 1e6
         while True:
             now = clock()
@@ -77,6 +89,10 @@ class DeadlineClock:
             if now >= deadline:
                 d, n = self._advance(deadline)
                 return d, n, False
+            if warm is not None and now >= warm_at:
+                warm()
+                warm = None
+                continue
             time.sleep(min(step, max((deadline - now) / 1e9, 0.0)))
 
     def _advance(self, deadline: int) -> tuple[int, int]:
