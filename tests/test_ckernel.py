@@ -185,3 +185,16 @@ def test_without_the_compiled_kernel_the_python_one_runs() -> None:
                          env=subprocess_env(), timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split()[:2] == ["python", "python"]
+
+
+def test_service_reports_its_kernels() -> None:
+    """The status' "kernel": "c" with everything built, "python" when asked for."""
+    code = ("from motcomp.config import load_config\nfrom motcomp.resources import config_file\n"
+            "from motcomp.io.zenoh_io import ZenohEndpoints\n"
+            "from motcomp.runtime.service import Service\n"
+            "print(Service(load_config(config_file('motcomp.toml')), ZenohEndpoints()).kernels())")
+    for env, want in (({}, "c"), ({"MOTCOMP_KERNEL": "python"}, "python")):
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             env={**subprocess_env(), **env}, timeout=60)
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.strip() == want

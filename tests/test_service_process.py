@@ -114,6 +114,8 @@ send_every = 4
             assert st["frames"]["accepted"] > 0.8 * n
             assert st["mode"] == "running"
             assert "slice" in st["realtime"], st["realtime"]  # the loop thread's scheduling
+            assert st["kernel"] == "c", st["kernel"]  # the compiled hot path (see DEPLOYMENT)
+            assert st["loop"]["tick_p50_us"] >= st["loop"]["compute_p50_us"] > 0
             # outputs: every axis, finite, within the limits; the input reached them
             frames = []
             while (s := out_sub.try_recv()) is not None:

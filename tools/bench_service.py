@@ -45,7 +45,8 @@ SCHEDS = {  # scheduling mode -> [loop] settings
     "config": "",
     "plain": "slice_us = 0\nsleep_max_us = 0\n",
     "rt": "realtime_priority = 50\ncpu = 1\n",
-    "pykernel": "",  # the config as it is, with the compensator's Python kernel
+    "pykernel": "",  # the config as it is, with the tick's Python code (MOTCOMP_KERNEL=python)
+    "nowarm": "warm_up = false\n",
 }
 
 
@@ -67,33 +68,54 @@ def publisher(port: int, seconds: float) -> None:
         pub.undeclare()
 
 
-def tick_in_process(ticks: int = 20000, gap_s: float = 0.0, kernel: str = "c"
-                    ) -> tuple[float, float]:
+def tick_in_process(ticks: int = 20000, gap_s: float = 0.0, kernel: str = "c",
+                    warm: bool = False) -> tuple[float, float]:
     """(p50, p99) us of ``Service.tick`` with in-memory adapters: the work of a tick without
-    transport or other processes, with the given compensator kernel; in a tight loop, or with a
-    sleep of ``gap_s`` between ticks (as the service's loop does), which shows what waking from
-    a sleep costs."""
+    transport or other processes, with the given compensator kernel; in a tight loop, or
+    ``gap_s`` after the last tick, waited as the service's loop waits (naps of 100 us, then a
+    spin of 200 us, the shadow tick first if ``warm``), which shows what waking from a sleep
+    costs and what the warm-up buys back."""
     from motcomp.config import load_config
-    from motcomp.io.memory import MemorySink, MemorySource
-    from motcomp.io.wire import encode_input
+    from motcomp.io import wire
+    from motcomp.runtime import shaper
     from motcomp.runtime.service import Service
 
     old = os.environ.get("MOTCOMP_KERNEL")
+    saved = wire._cwire, shaper._cshaper
     os.environ["MOTCOMP_KERNEL"] = kernel
+    if kernel == "python":  # all of the tick's code in Python, as MOTCOMP_KERNEL=python at start
+        wire._cwire = shaper._cshaper = None
     try:
         svc = Service(load_config(config_file("motcomp.toml")), ZenohEndpoints())
+        return _time_ticks(svc, ticks, gap_s, warm)
     finally:
         os.environ.pop("MOTCOMP_KERNEL") if old is None else os.environ.update(
             MOTCOMP_KERNEL=old)
+        wire._cwire, shaper._cshaper = saved
+
+
+def _time_ticks(svc: Any, ticks: int, gap_s: float, warm: bool) -> tuple[float, float]:
+    from motcomp.io.memory import MemorySink, MemorySource
+    from motcomp.io.wire import encode_input
+
     src = MemorySource(latest_only=True)
     svc.attach(src, [MemorySink(keep=1)])
     frames = [encode_input(k, k / 1000, {a: 0.05 * math.sin(k / 300 + i)
                                          for i, a in enumerate(AXES)}) for k in range(ticks)]
     times = np.empty(ticks)
+    if warm:
+        svc._shadow = svc.make_shadow()
+    perf = time.perf_counter_ns
     for k, f in enumerate(frames):
         src.push(f)
         if gap_s:
-            time.sleep(gap_s)
+            deadline = perf() + int(gap_s * 1e9)
+            while deadline - perf() > 200_000:
+                time.sleep(0.0001)
+            if warm:
+                svc.warm_up()
+            while perf() < deadline:
+                pass
         t0 = time.perf_counter_ns()
         svc.tick(k * 1_000_000)
         times[k] = time.perf_counter_ns() - t0
@@ -286,8 +308,9 @@ def sched_name(r: dict[str, Any]) -> str:
 
 
 def mode_name(r: dict[str, Any]) -> str:
-    kernel = ", Python kernel" if r["kernel"] == "python" else ""
-    return ("sync to input" if r["sync"] else "own clock") + f", {sched_name(r)}{kernel}"
+    kernel = ", Python code" if r["kernel"] == "python" else ""
+    warm = ", no warm-up" if r["sched"] == "nowarm" else ""
+    return ("sync to input" if r["sync"] else "own clock") + f", {sched_name(r)}{kernel}{warm}"
 
 
 def verdict(rows: list[dict[str, Any]]) -> str:
@@ -356,6 +379,8 @@ def main() -> None:
     ap.add_argument("--pykernel", action="store_true",
                     help="also run the config with the compensator's Python kernel "
                          "(MOTCOMP_KERNEL=python): what the compiled one buys")
+    ap.add_argument("--nowarm", action="store_true",
+                    help="also run the config without the shadow tick (loop.warm_up = false)")
     ap.add_argument("--rt", action="store_true",
                     help="also run with SCHED_FIFO 50 and the loop pinned to CPU 1 (needs the "
                          "privilege; the service reports whether it got it)")
@@ -371,8 +396,8 @@ def main() -> None:
         print(json.dumps(bare_clock(args.seconds, args.bare)))
         return
     with tempfile.TemporaryDirectory() as tmp:
-        scheds = (["plain"] * args.plain + ["config"] + ["pykernel"] * args.pykernel
-                  + ["rt"] * args.rt)
+        scheds = (["plain"] * args.plain + ["config"] + ["nowarm"] * args.nowarm
+                  + ["pykernel"] * args.pykernel + ["rt"] * args.rt)
         rows = []
         for rep in range(args.repeats):  # interleaved, so slow spells of the host spread out
             for sched in scheds:
@@ -385,7 +410,8 @@ def main() -> None:
         f"Machine: {machine()}.",
         "",
         f"`python tools/bench_service.py --seconds {args.seconds:g} --repeats {args.repeats}"
-        f"{' --plain' if args.plain else ''}{' --pykernel' if args.pykernel else ''}"
+        f"{' --plain' if args.plain else ''}{' --nowarm' if args.nowarm else ''}"
+        f"{' --pykernel' if args.pykernel else ''}"
         f"{' --rt' if args.rt else ''}`: "
         "`motcomp run` with the example config (8 axes, 1 kHz; no real-time privileges unless "
         "the mode names SCHED_FIFO; slice and naps are the loop thread's, see "
@@ -431,19 +457,32 @@ def main() -> None:
         *(f"| {b['slice']} | {b['missed_min']:.0f} ({b['missed_worst']:.0f}) | "
           f"{b['late_p999']:.0f} | {b['late_max']:.0f} |" for b in bare),
     ]
-    ticks = {(k, gap): tick_in_process(20000 if gap == 0 else 5000, gap, k)
-             for k in ("c", "python") for gap in (0.0, 0.0008)}
-    p50, p99 = ticks["c", 0.0]
-    s50, s99 = ticks["c", 0.0008]
-    q50, q99 = ticks["python", 0.0]
-    r50, r99 = ticks["python", 0.0008]
+    runs: dict[tuple[str, float, bool], list[tuple[float, float]]] = {}
+    for _ in range(3):  # interleaved; medians
+        for k in ("c", "python"):
+            for gap, warm in ((0.0, False), (0.001, False), (0.001, True)):
+                runs.setdefault((k, gap, warm), []).append(
+                    tick_in_process(20000 if gap == 0 else 5000, gap, k, warm))
+    ticks = {key: (float(np.median([v[0] for v in vals])),
+                   float(np.median([v[1] for v in vals]))) for key, vals in runs.items()}
+
+    def fmt(key: tuple[str, float, bool]) -> str:
+        return f"{ticks[key][0]:.1f} / {ticks[key][1]:.1f}"
+
+    p50 = ticks["c", 0.0, False][0]
+    s50 = ticks["c", 0.001, False][0]
     lines += [
         "",
-        f"The same tick in this process, in-memory adapters (decode and validate, reference, "
-        f"8-axis compensator, flags, encode), tight loop: p50 {p50:.0f} us, p99 {p99:.0f} us "
-        f"with the compiled kernel, p50 {q50:.0f} us, p99 {q99:.0f} us with the Python one; "
-        f"with a 0.8 ms sleep before each tick, as in the service's loop: p50 {s50:.0f} us, "
-        f"p99 {s99:.0f} us (compiled), p50 {r50:.0f} us, p99 {r99:.0f} us (Python).",
+        "The same tick in this process, in-memory adapters (decode and validate, reference, "
+        "8-axis compensator, flags, encode; no transport), p50 / p99 in us, medians of 3 "
+        "interleaved runs (20 000 ticks back to back, 5 000 one per millisecond):",
+        "",
+        "| code | back to back | 1 ms apart, as the loop waits (naps, spin) | 1 ms apart, "
+        "shadow tick before the spin (`loop.warm_up`) |",
+        "|---|---|---|---|",
+        *(f"| {name} | {fmt((k, 0.0, False))} | {fmt((k, 0.001, False))} | "
+          f"{fmt((k, 0.001, True))} |"
+          for k, name in (("c", "compiled"), ("python", "Python"))),
         "",
         "Targets (2-core machine, no real-time privileges): compute p99 <= 50 us, "
         "lateness p99.9 <= 500 us, 0 missed ticks, in->out p99 <= period + 0.5 ms (1.5 ms), "

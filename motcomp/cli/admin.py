@@ -87,7 +87,7 @@ def run_status(args: argparse.Namespace) -> int:
               f"  (whole tick with transport calls p99 {loop.get('tick_p99_us', 0.0):.1f} us)"
               f"  lateness p99.9 {loop['late_p999_us']:.1f} us  max {loop['late_max_us']:.0f} us")
     if st.get("kernel"):
-        print(f"compensator kernel {st['kernel']}")
+        print(f"tick kernels: {st['kernel']}")
     print(f"frames received {fr['received']} accepted {fr['accepted']} rejected "
           f"{fr['rejected']} {fr['rejected_by_reason']}")
     print(f"stale {st['stale_s']:.2f} s (total {st['stale_total_s']:.2f} s)  "

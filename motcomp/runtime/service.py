@@ -357,7 +357,7 @@ class Service:
             "rate_hz": self.cfg.loop.rate_hz,
             "sync_to_input": self.cfg.loop.sync_to_input,
             "ticks": c.ticks,
-            "kernel": self.comp.kernel,
+            "kernel": self.kernels(),
             "missed_ticks": clock.missed if clock else 0,
             "loop": self.stats.snapshot(),
             "loop_window_s": self.cfg.status.window_s,
@@ -379,6 +379,21 @@ class Service:
             "realtime": self.rt_report,
             "clock": self.tick_clock(),
         }
+
+    def kernels(self) -> str:
+        """Which code runs the tick's hot path: ``c`` (the compiled compensator, shaper loops
+        and wire codec), ``python`` (none of them: not built, or ``MOTCOMP_KERNEL=python``),
+        or which part runs which."""
+        from motcomp.io import wire
+        from motcomp.runtime import shaper
+
+        parts = {"compensator": self.comp.kernel,
+                 "shaper": "c" if shaper._cshaper is not None else "python",
+                 "wire": "c" if wire._cwire is not None else "python"}
+        kinds = set(parts.values())
+        if len(kinds) == 1:
+            return kinds.pop()
+        return ", ".join(f"{k} {v}" for k, v in parts.items())
 
     def tick_clock(self) -> dict[str, Any] | None:
         """How output ``t`` maps back to the loop's own tick instants (None before the loop
@@ -496,11 +511,13 @@ class Service:
             if healthy and not ready:
                 ready = True
                 self.notifier.ready(f"running at {cfg.loop.rate_hz:g} Hz")
-                log.info("running: %g Hz, config %s, %s; compensator kernel %s",
-                         cfg.loop.rate_hz, self.config_id, self.rt_report, self.comp.kernel)
-                if self.comp.kernel != "c":
-                    log.warning("the compiled compensator kernel is not in use (not built, or "
-                                "MOTCOMP_KERNEL=python): each tick costs about 15 us more")
+                kernels = self.kernels()
+                log.info("running: %g Hz, config %s, %s; tick kernels: %s",
+                         cfg.loop.rate_hz, self.config_id, self.rt_report, kernels)
+                if kernels != "c":
+                    log.warning("the tick's compiled kernels are not all in use (%s; not built, "
+                                "or MOTCOMP_KERNEL=python): a tick costs up to 4x more CPU",
+                                kernels)
             if healthy and now >= next_dog:
                 self.notifier.watchdog()
                 next_dog = now + dog_every
