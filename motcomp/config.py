@@ -161,7 +161,7 @@ class InputConfig(BaseModel):
     key: str = "sim/motion/setpoint"
     reject_beyond_fraction: float = Field(0.25, ge=0.0, le=10.0)
     reconstruction: Literal["linear", "hold"] = "linear"
-    max_extrapolation_s: float = Field(0.01, ge=0.0, le=1.0)
+    max_extrapolation_s: float = Field(0.02, ge=0.0, le=1.0)
 
 
 class CanConfig(BaseModel):

@@ -19,6 +19,11 @@ class FakeTime:
     def sleep(self, s: float) -> None:
         self.ns += max(int(s * 1e9), 1)
 
+    def ticking(self) -> int:
+        """A clock that moves 1 us per read, so the loop's spins end."""
+        self.ns += 1_000
+        return self.ns
+
 
 @pytest.fixture
 def fake(monkeypatch: pytest.MonkeyPatch) -> FakeTime:
@@ -47,7 +52,7 @@ def test_absolute_deadlines_and_skip_without_burst(fake: FakeTime) -> None:
 
 
 def test_input_synchronous_ticks_early_but_not_faster_than_half_a_period(fake: FakeTime) -> None:
-    c = DeadlineClock(1000.0, spin_us=0.0, clock=fake.clock)
+    c = DeadlineClock(1000.0, spin_us=0.0, clock=fake.ticking)
     t0 = c.start_ns
     d, now, polled = c.wait_or_poll(lambda: False, poll_us=50)
     assert not polled and d == t0 + 1_000_000  # no input: the own clock
@@ -60,9 +65,21 @@ def test_input_synchronous_ticks_early_but_not_faster_than_half_a_period(fake: F
     d, now, polled = c.wait_or_poll(arrived, poll_us=50)
     assert polled and now < t0 + 2_000_000  # ticked on arrival, before its deadline ...
     assert calls[0] >= t0 + 1_500_000  # ... but not before half a period after the last tick
-    assert c.next_ns == now + 1_000_000  # re-phased to the input
+    assert c.next_ns == d + 1_250_000  # re-phased to the input, with a quarter period's grace
     d2, _, polled = c.wait_or_poll(lambda: False, poll_us=50)
-    assert not polled and d2 == now + 1_000_000  # no input: back on the own clock
+    assert not polled and d2 == d + 1_250_000  # no input: back on the own clock ...
+    d3, _, polled = c.wait_or_poll(lambda: False, poll_us=50)
+    assert not polled and d3 == d2 + 1_000_000  # ... at its own period, no grace
+
+
+def test_input_synchronous_waits_for_a_slightly_late_input(fake: FakeTime) -> None:
+    c = DeadlineClock(1000.0, spin_us=200.0, clock=fake.ticking)
+    _, t1, polled = c.wait_or_poll(lambda: True, poll_us=50)  # input at half a period
+    assert polled
+    due = t1 + 1_000_000
+    _, t2, polled = c.wait_or_poll(lambda: fake.ns >= due + 100_000, poll_us=50)
+    assert polled and due + 100_000 <= t2 <= due + 150_000  # 100 us late: still one tick on it
+    assert c.missed == 0 and c.ticks == 2
 
 
 def test_naps_never_exceed_the_bound_and_keep_the_deadlines(
@@ -73,12 +90,8 @@ def test_naps_never_exceed_the_bound_and_keep_the_deadlines(
         naps.append(int(s * 1e9))
         fake.sleep(s)
 
-    def ticking_clock() -> int:  # each read costs 1 us, so the final spin ends
-        fake.ns += 1_000
-        return fake.ns
-
     monkeypatch.setattr(clock_mod.time, "sleep", sleep)
-    c = DeadlineClock(1000.0, spin_us=200.0, clock=ticking_clock, sleep_max_us=100.0)
+    c = DeadlineClock(1000.0, spin_us=200.0, clock=fake.ticking, sleep_max_us=100.0)
     t0 = c.start_ns
     for k in range(1, 4):
         naps.clear()
@@ -86,18 +99,14 @@ def test_naps_never_exceed_the_bound_and_keep_the_deadlines(
         assert d == t0 + k * 1_000_000 and 0 <= now - d <= 2_000  # on the grid, not late
         assert naps and max(naps) <= 100_000  # never idle for longer than a nap
         assert 700_000 <= sum(naps) <= 800_000  # sleeping until spin_us before the deadline
-    c = DeadlineClock(1000.0, spin_us=200.0, clock=ticking_clock, sleep_max_us=0.0)
+    c = DeadlineClock(1000.0, spin_us=200.0, clock=fake.ticking, sleep_max_us=0.0)
     naps.clear()
     c.wait()
     assert len(naps) == 1 and naps[0] > 700_000  # 0: one sleep
 
 
 def test_warm_up_runs_once_per_wait_as_the_spin_starts(fake: FakeTime) -> None:
-    def ticking() -> int:  # a clock that moves while the loop spins on it
-        fake.ns += 1_000
-        return fake.ns
-
-    c = DeadlineClock(1000.0, spin_us=200.0, clock=ticking, sleep_max_us=100.0)
+    c = DeadlineClock(1000.0, spin_us=200.0, clock=fake.ticking, sleep_max_us=100.0)
     t0 = c.start_ns
     at: list[int] = []
 
@@ -117,3 +126,28 @@ def test_warm_up_runs_once_per_wait_as_the_spin_starts(fake: FakeTime) -> None:
     fake.ns = d + 10_000
     _, _, polled = c.wait_or_poll(lambda: True, 50.0, warm)  # input at half a period
     assert polled and len(at) == 2
+
+
+def test_input_synchronous_wait_sleeps_in_poll_steps_then_spins(
+        fake: FakeTime, monkeypatch: pytest.MonkeyPatch) -> None:
+    naps: list[tuple[int, int]] = []  # (when, how long)
+
+    def sleep(s: float) -> None:
+        naps.append((fake.ns, int(s * 1e9)))
+        fake.sleep(s)
+
+    monkeypatch.setattr(clock_mod.time, "sleep", sleep)
+    c = DeadlineClock(1000.0, spin_us=200.0, clock=fake.ticking)
+    arrive = c.next_ns - 50_000  # the input lands 50 us before the own-clock deadline
+    seen: list[int] = []
+
+    def poll() -> bool:
+        seen.append(fake.ns)
+        return fake.ns >= arrive
+
+    _, now, polled = c.wait_or_poll(poll, 50.0)
+    assert polled and arrive <= now <= arrive + 5_000  # seen as it landed, not a poll step late
+    assert naps and max(n for _, n in naps) <= 50_000  # poll steps ...
+    spin_at = arrive + 50_000 - 200_000
+    assert all(t + n <= spin_at + 1_000 for t, n in naps)  # ... none into the last spin_us
+    assert len(seen) > 100  # the spin polled at every clock read

@@ -38,6 +38,11 @@ def run(args: argparse.Namespace) -> int:
 
     traj = (builtin(args.signal, args.rate) if args.signal
             else load_trajectory(args.file, args.rate, args.axis))
-    publish(traj, endpoints_from_args(args), args.key, args.seq_start, args.repeat,
-            lead_in_s=args.lead_in)
+    end = publish(traj, endpoints_from_args(args), args.key, args.seq_start, args.repeat,
+                  lead_in_s=args.lead_in)
+    sent = end - args.seq_start
+    samples = traj.samples * args.repeat
+    print(f"published {sent} frames (seq {args.seq_start}-{end - 1}) of {samples} samples"
+          + (f"; {samples - sent} not sent: their instants passed while this process was "
+             "stalled" if sent < samples else ""), flush=True)
     return 0

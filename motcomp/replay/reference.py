@@ -8,8 +8,10 @@ The shaper has two regimes.  *Live and settled* (mode ``""``) -- nearly every ti
                  per axis: slope = (v - v_prev) / dt if 0 < dt <= stale_after_s else 0
                            period = dt if period == 0 else period + 0.05 (dt - period)
     per tick:    tau = (now - offset) - t_frame
-                 ref = v + slope * (tau if 0 < tau < cap else cap if tau >= cap else 0)
-                 cap = min(1.5 period, max_extrapolation_s)
+                 c = 1.5 period
+                 bound = min(max(max_extrapolation_s, c) if late <= c else 2 c, age + c)
+                 ref = v + slope * (tau if 0 < tau < bound else bound if tau >= bound else 0)
+                 (age = now - the arrival of the last frame, late = its transit - offset)
 
 which is evaluated here with numpy for all the ticks of a live stretch, with the *same*
 floating-point operations in the same order (so the result is bit for bit the shaper's); only
@@ -51,6 +53,7 @@ class _Live:
     offset: float
     offset_at: float
     last_input_s: float
+    excess: float
 
 
 class ReplayShaper(ReferenceShaper):
@@ -59,16 +62,16 @@ class ReplayShaper(ReferenceShaper):
     def export_live(self) -> _Live:
         assert self._offset is not None and self.last_input_s is not None
         return _Live(self.live[:], self._t_frame[:], self._slope[:], self._period[:],
-                     self._offset, self._offset_at, self.last_input_s)
+                     self._offset, self._offset_at, self.last_input_s, self._excess)
 
     def import_live(self, st: _Live, ref: list[float]) -> None:
         self.live, self._t_frame, self._slope, self._period = (
             st.live[:], st.t_frame[:], st.slope[:], st.period[:])
         # the extrapolation caps derive from the periods, as the shaper computes them
-        self._cap = [min(1.5 * p, self.max_extrapolation_s) if p > 0.0 else 0.0
-                     for p in self._period]
+        self._cap = [1.5 * p for p in self._period]
         self._offset, self._offset_at, self.last_input_s = st.offset, st.offset_at, \
             st.last_input_s
+        self._excess = st.excess
         self.ref = ref
         self._blend_offset = None
         self._stale_since = None
@@ -211,8 +214,9 @@ def _offsets(off0: float, at0: float, now_f: np.ndarray, transit: np.ndarray) ->
 def _periods(p0: float, dt: np.ndarray, fresh: np.ndarray) -> np.ndarray:
     """The average-interval recursion (``period += 0.05 (dt - period)`` on fresh frames, ``dt``
     when it was 0) with ``lfilter``: equal to the shaper's to an ulp or two.  The period only
-    caps the extrapolation (1.5 periods), so this changes a reference by at most ~1e-19 m, and
-    only at ticks where the extrapolation is capped."""
+    enters the extrapolation's bound (1.5 periods), so this changes a reference by at most an
+    ulp of its value, and only at ticks where that bound binds (a frame later than 1.5 periods
+    beyond the fastest transit, at the tick it arrives)."""
     from scipy.signal import lfilter
 
     out = np.empty(dt.size)
@@ -250,15 +254,22 @@ def _live_stretch(st: _Live, j0: int, j1: int, now: np.ndarray, frame: np.ndarra
     t_in = inp.t[F]
     t_eff = np.where(np.isnan(t_in), now_f, t_in)  # t = now if t_sender is None else t_sender
     out = _Live(st.live[:], st.t_frame[:], st.slope[:], st.period[:], st.offset, st.offset_at,
-                st.last_input_s)
+                st.last_input_s, st.excess)
     kf = np.cumsum(has_frame)  # frames up to each row: 0 = none yet in the stretch
     if F.size:
-        offs = _offsets(st.offset, st.offset_at, now_f, now_f - t_eff)
+        transit = now_f - t_eff
+        offs = _offsets(st.offset, st.offset_at, now_f, transit)
+        excess = transit - offs
         out.offset, out.offset_at, out.last_input_s = float(offs[-1]), float(now_f[-1]), \
             float(now_f[-1])
+        out.excess = float(excess[-1])
         t_now = now[j0:j1] - np.concatenate([[st.offset], offs])[kf]
+        age = now[j0:j1] - np.concatenate([[st.last_input_s], now_f])[kf]
+        late = np.concatenate([[st.excess], excess])[kf]
     else:
         t_now = now[j0:j1] - st.offset
+        age = now[j0:j1] - st.last_input_s
+        late = np.full(j1 - j0, st.excess)
     cols = {a: inp.pos[:, a][F] for a in driven}
     groups: dict[tuple[bytes, float, float], list[int]] = {}
     for a in driven:
@@ -281,9 +292,11 @@ def _live_stretch(st: _Live, j0: int, j1: int, now: np.ndarray, frame: np.ndarra
         per = np.concatenate([[p0], _periods(p0, dt, fresh)])
         if linear:
             tau = t_now - t[k]
-            cap = np.minimum(1.5 * per[k], cap_max)
-            # tau if 0 < tau < cap else cap if tau >= cap else 0  (cap >= 0): a clip
-            ext = np.minimum(np.maximum(tau, 0.0), cap)
+            cap = 1.5 * per[k]
+            bound = np.minimum(np.where(late <= cap, np.maximum(cap_max, cap), cap + cap),
+                               age + cap)
+            # tau if 0 < tau < bound else bound if tau >= bound else 0  (bound >= 0): a clip
+            ext = np.minimum(np.maximum(tau, 0.0), bound)
         for a in members:
             v = np.empty(t.size)
             v[0] = st.live[a]

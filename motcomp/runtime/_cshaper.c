@@ -4,9 +4,9 @@
  * ReferenceShaper.on_input and ReferenceShaper._live_now do in motcomp/runtime/shaper.py, so
  * the results are bit-identical (tests/test_shaper_kernel.py checks it).
  *
- * update_axes(pos, index, driven, t, fresh_allowed, stale_after_s, max_extrapolation_s,
+ * update_axes(pos, index, driven, t, fresh_allowed, stale_after_s,
  *             live, t_frame, slope, period, cap) -> None
- * live_now(t_now, live, slope, t_frame, cap) -> list
+ * live_now(t_now, age, late, max_extrapolation_s, live, slope, t_frame, cap) -> list
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -41,10 +41,10 @@ static int lists(PyObject *const *lst, int count, Py_ssize_t n) {
 }
 
 static PyObject *update_axes(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
-    if (nargs != 12) {
+    if (nargs != 11) {
         PyErr_SetString(PyExc_TypeError,
                         "update_axes(pos, index, driven, t, fresh_allowed, stale_after_s, "
-                        "max_extrapolation_s, live, t_frame, slope, period, cap)");
+                        "live, t_frame, slope, period, cap)");
         return NULL;
     }
     PyObject *pos = args[0], *index = args[1], *driven = args[2];
@@ -53,12 +53,12 @@ static PyObject *update_axes(PyObject *mod, PyObject *const *args, Py_ssize_t na
         return NULL;
     }
     Py_ssize_t n = PyList_GET_SIZE(driven);
-    PyObject *live = args[7], *t_frame = args[8], *slope = args[9], *period = args[10],
-             *cap = args[11];
-    if (lists(args + 7, 5, n) < 0) return NULL;
+    PyObject *live = args[6], *t_frame = args[7], *slope = args[8], *period = args[9],
+             *cap = args[10];
+    if (lists(args + 6, 5, n) < 0) return NULL;
     double t = PyFloat_AsDouble(args[3]);
     int fresh_allowed = PyObject_IsTrue(args[4]);
-    double stale_after = PyFloat_AsDouble(args[5]), max_ext = PyFloat_AsDouble(args[6]);
+    double stale_after = PyFloat_AsDouble(args[5]);
     if (PyErr_Occurred() || fresh_allowed < 0) return NULL;
     Py_ssize_t it = 0;
     PyObject *axis, *value;
@@ -89,9 +89,7 @@ static PyObject *update_axes(PyObject *mod, PyObject *const *args, Py_ssize_t na
             double p;
             if (item(period, i, &p) < 0) return NULL;
             p = p == 0.0 ? dt : p + 0.05 * (dt - p);
-            double c = 1.5 * p;
-            if (set(period, i, p) < 0 || set(cap, i, max_ext < c ? max_ext : c) < 0)
-                return NULL;
+            if (set(period, i, p) < 0 || set(cap, i, 1.5 * p) < 0) return NULL;
         }
         if (set(live, i, v) < 0 || set(t_frame, i, t) < 0) return NULL;
     }
@@ -99,29 +97,38 @@ static PyObject *update_axes(PyObject *mod, PyObject *const *args, Py_ssize_t na
 }
 
 static PyObject *live_now(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
-    if (nargs != 5) {
-        PyErr_SetString(PyExc_TypeError, "live_now(t_now, live, slope, t_frame, cap)");
+    if (nargs != 8) {
+        PyErr_SetString(PyExc_TypeError, "live_now(t_now, age, late, max_extrapolation_s, "
+                                         "live, slope, t_frame, cap)");
         return NULL;
     }
-    double t_now = PyFloat_AsDouble(args[0]);
-    if (t_now == -1.0 && PyErr_Occurred()) return NULL;
-    if (!PyList_CheckExact(args[1])) {
+    double x4[4];  /* t_now, age, late, max_extrapolation_s */
+    for (int j = 0; j < 4; j++) {
+        x4[j] = PyFloat_AsDouble(args[j]);
+        if (x4[j] == -1.0 && PyErr_Occurred()) return NULL;
+    }
+    double t_now = x4[0], age = x4[1], late = x4[2], max_ext = x4[3];
+    if (!PyList_CheckExact(args[4])) {
         PyErr_SetString(PyExc_TypeError, "live must be a list");
         return NULL;
     }
-    Py_ssize_t n = PyList_GET_SIZE(args[1]);
-    if (lists(args + 1, 4, n) < 0) return NULL;
+    Py_ssize_t n = PyList_GET_SIZE(args[4]);
+    if (lists(args + 4, 4, n) < 0) return NULL;
     PyObject *out = PyList_New(n);
     if (out == NULL) return NULL;
     for (Py_ssize_t i = 0; i < n; i++) {
         double v, s, tf, c;
-        if (item(args[1], i, &v) < 0 || item(args[2], i, &s) < 0 ||
-            item(args[3], i, &tf) < 0 || item(args[4], i, &c) < 0) {
+        if (item(args[4], i, &v) < 0 || item(args[5], i, &s) < 0 ||
+            item(args[6], i, &tf) < 0 || item(args[7], i, &c) < 0) {
             Py_DECREF(out);
             return NULL;
         }
         double tau = t_now - tf;
-        double x = (0.0 < tau && tau < c) ? tau : (tau >= c ? c : 0.0);
+        /* min(max(max_ext, c) if late <= c else c + c, age + c) */
+        double hi = late <= c ? (max_ext >= c ? max_ext : c) : c + c;
+        double b = age + c;
+        b = hi <= b ? hi : b;
+        double x = (0.0 < tau && tau < b) ? tau : (tau >= b ? b : 0.0);
         PyObject *f = PyFloat_FromDouble(v + s * x);
         if (f == NULL) {
             Py_DECREF(out);

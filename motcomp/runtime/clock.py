@@ -24,7 +24,11 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-__all__ = ["DeadlineClock"]
+__all__ = ["INPUT_GRACE", "DeadlineClock"]
+
+INPUT_GRACE = 25
+"""Input-synchronous mode: after a tick on an input, the own clock waits this percentage of a
+period beyond the period for the next input before it ticks without one."""
 
 
 class DeadlineClock:
@@ -51,6 +55,7 @@ class DeadlineClock:
         self._skip_next = 0
         self.ticks = 0
         self._last_tick_ns = self.start_ns
+        self._grace_ns = 0
 
     def wait(self, warm: Callable[[], None] | None = None) -> tuple[int, int]:
         clock = self._clock
@@ -72,28 +77,35 @@ class DeadlineClock:
         """Like :meth:`wait`, but tick early when ``poll()`` says an input has arrived.
 
         Returns ``(deadline_ns, now_ns, polled)``; after an early tick the schedule is re-phased
-        to it, so a source at the loop rate drives the loop.  ``warm`` runs once, ``spin_us``
-        before the deadline (about when the next input is due), if no input came first.
+        to it, so a source at the loop rate drives the loop: the next input is due a period
+        later, and the own clock waits :data:`INPUT_GRACE` of a period more for it before it
+        ticks without (a frame a few microseconds late would otherwise cost an extra tick on
+        stale input, and another half a period later on the frame).  Polls every ``poll_us``
+        until ``spin_us`` before the input is due, then without sleeping, as :meth:`wait`
+        spins: the input is seen as it lands and the tick runs on the caches the spin keeps
+        warm.  ``warm`` runs once as that spin starts, if no input came first.
         """
         clock = self._clock
         deadline = self.next_ns
         earliest = self._last_tick_ns + self.period_ns // 2
-        warm_at = deadline - self.spin_ns
+        spin_at = deadline - self._grace_ns - self.spin_ns
         step = poll_us / 1e6
         while True:
             now = clock()
             if now >= earliest and poll():
-                self.next_ns = now
                 d, n = self._advance(now)
+                self._grace_ns = self.period_ns * INPUT_GRACE // 100
+                self.next_ns += self._grace_ns
                 return d, n, True
             if now >= deadline:
                 d, n = self._advance(deadline)
+                self._grace_ns = 0
                 return d, n, False
-            if warm is not None and now >= warm_at:
+            if now < spin_at:
+                time.sleep(min(step, (spin_at - now) / 1e9))
+            elif warm is not None:
                 warm()
                 warm = None
-                continue
-            time.sleep(min(step, max((deadline - now) / 1e9, 0.0)))
 
     def _advance(self, deadline: int) -> tuple[int, int]:
         now = self._clock()

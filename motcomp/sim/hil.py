@@ -2,8 +2,9 @@
 
 Consumes corrected setpoints (zenoh ``platform/setpoint`` or the CAN frames of the DBC), holds
 the latest one per axis, advances :class:`~motcomp.sim.platform.PlatformSimulator` (true
-dynamics per axis, which may differ from the compensator's model) at its own fixed rate, enforces
-its own hard limits (violations are counted, logged and published), and publishes feedback
+dynamics per axis, which may differ from the compensator's model) at its own fixed rate on wall
+time (periods its loop missed are simulated afterwards: see :class:`HilPlatform`), enforces its
+own hard limits (violations are counted, logged and published), and publishes feedback
 ``{"t", "pos", "acc"}`` with accelerometer imperfections on ``platform/feedback``.  Its counters
 go to ``platform/status`` at 1 Hz.
 """
@@ -31,7 +32,7 @@ from motcomp.presets import load_preset
 from motcomp.runtime.clock import DeadlineClock
 from motcomp.sim.platform import Accelerometer, PlatformSimulator
 
-__all__ = ["HilConfig", "default_truth", "run_hil"]
+__all__ = ["HilConfig", "HilPlatform", "default_truth", "run_hil"]
 
 log = logging.getLogger("motcomp.hil")
 
@@ -73,6 +74,77 @@ class HilConfig:
     duration_s: float = math.inf
 
 
+class HilPlatform:
+    """The simulated platform's work at each of its ticks, apart from the transports and the
+    clock (so that tests can drive it tick by tick).
+
+    The platform lives on wall time: a real one keeps moving while the simulator's thread is
+    stalled.  So after a stall the skipped periods are simulated first, with the setpoint held
+    before it (at most :attr:`max_catch_up_s` of them), then the tick's own period with the
+    newest setpoint.  Without that, every missed tick would freeze the simulated platform for
+    a period: under a few percent of missed ticks its dynamics would look that much slower
+    (the rails' 186 ms lag becoming 195 ms or more), which no compensator tuned on the true
+    model can cancel.
+    """
+
+    max_catch_up_s = 1.0
+
+    def __init__(self, cfg: HilConfig) -> None:
+        # position limits are enforced by the simulator at every tick; the velocity limit is
+        # judged between consecutive frames with their own timestamps (the two clocks are not in
+        # step, so one tick may see two frames' worth of motion)
+        self.sim = PlatformSimulator(cfg.models, cfg.rate_hz, cfg.p_min, cfg.p_max, None,
+                                     cfg.accelerometer, seed=cfg.seed)
+        self.v_hard = None if cfg.v_max is None else np.asarray(cfg.v_max, dtype=float)
+        self.setpoint = [0.0] * len(AXES)
+        self.frames = 0
+        self.bad = 0
+        self.caught_up = 0
+        """Periods simulated after a stall of the simulator's own loop."""
+        self._max_catch_up = max(1, round(self.max_catch_up_s * cfg.rate_hz))
+        self._prev_t: float | None = None
+        self._prev = np.zeros(len(AXES))
+
+    def take_frame(self, payload: bytes) -> None:
+        """A setpoint frame of the service (zenoh): its axes replace the held setpoint."""
+        self.frames += 1
+        try:
+            frame = decode_output(payload)
+            pos = frame["pos"]
+            for i, axis in enumerate(AXES):
+                value = pos.get(axis)
+                if isinstance(value, int | float):
+                    self.setpoint[i] = float(value)
+            t_frame = float(frame["t"])
+        except (FrameError, AttributeError, TypeError, ValueError):
+            self.bad += 1
+            return
+        now_sp = np.array(self.setpoint)
+        if self.v_hard is not None and self._prev_t is not None and t_frame > self._prev_t:
+            fast = np.abs(now_sp - self._prev) > self.v_hard * (t_frame - self._prev_t) * (
+                1 + 1e-6)
+            self.sim.violations += fast
+        self._prev_t, self._prev = t_frame, now_sp
+
+    def take_axes(self, got: dict[str, float]) -> None:
+        """Setpoints decoded from CAN frames: the axes received replace the held setpoint."""
+        for i, axis in enumerate(AXES):
+            if axis in got:
+                self.setpoint[i] = got[axis]
+
+    def catch_up(self, skipped: int) -> None:
+        """Simulate ``skipped`` periods the loop did not tick (a stall) on the held setpoint."""
+        n = min(skipped, self._max_catch_up)
+        for _ in range(n):
+            self.sim.step(self.setpoint)
+        self.caught_up += n
+
+    def step(self) -> np.ndarray:
+        """Simulate this tick's period; returns the acceleration measured at its start."""
+        _, acc, _ = self.sim.step(self.setpoint)
+        return acc
+
+
 def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
             stop: threading.Event | None = None) -> int:
     """Run until SIGTERM/SIGINT (or ``stop``, or ``duration_s``); returns the exit code."""
@@ -80,16 +152,8 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: stop.set())
-    # position limits are enforced by the simulator at every tick; the velocity limit is judged
-    # between consecutive frames with their own timestamps (the two clocks are not in step, so
-    # one tick may see two frames' worth of motion)
-    sim = PlatformSimulator(cfg.models, cfg.rate_hz, cfg.p_min, cfg.p_max, None,
-                            cfg.accelerometer, seed=cfg.seed)
-    v_hard = None if cfg.v_max is None else np.asarray(cfg.v_max, dtype=float)
-    setpoint = [0.0] * len(AXES)
-    frames = bad = 0
-    prev_t: float | None = None
-    prev = np.zeros(len(AXES))
+    plat = HilPlatform(cfg)
+    sim = plat.sim
     receiver: Any = None
     if cfg.transport == "can":
         from motcomp.io.can_io import CanSetpointReceiver, open_bus
@@ -109,33 +173,15 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
         try:
             while not stop.is_set() and time.monotonic() < t_end:
                 _, now = clock.wait()
+                if clock.skipped:
+                    plat.catch_up(clock.skipped)
                 if source is not None:
                     payload = source.latest()
                     if payload is not None:
-                        frames += 1
-                        try:
-                            frame = decode_output(payload)
-                            pos = frame["pos"]
-                            for i, axis in enumerate(AXES):
-                                value = pos.get(axis)
-                                if isinstance(value, int | float):
-                                    setpoint[i] = float(value)
-                            t_frame = float(frame["t"])
-                        except (FrameError, AttributeError, TypeError, ValueError):
-                            bad += 1
-                        else:
-                            now_sp = np.array(setpoint)
-                            if v_hard is not None and prev_t is not None and t_frame > prev_t:
-                                fast = np.abs(now_sp - prev) > v_hard * (t_frame - prev_t) * (
-                                    1 + 1e-6)
-                                sim.violations += fast
-                            prev_t, prev = t_frame, now_sp
+                        plat.take_frame(payload)
                 else:
-                    got = receiver.poll()
-                    for i, axis in enumerate(AXES):
-                        if axis in got:
-                            setpoint[i] = got[axis]
-                _, acc, _ = sim.step(setpoint)
+                    plat.take_axes(receiver.poll())
+                acc = plat.step()
                 if clock.ticks % cfg.feedback_every == 0:
                     # position and acceleration at the instant of this setpoint (the start of
                     # the period), stamped with it
@@ -149,9 +195,9 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
                     for j in np.nonzero(new)[0]:
                         log.warning("hard-limit violations on %s: %d", AXES[j], int(new[j]))
                     reported = sim.violations.copy()
-                    status_pub.put(msgpack.packb(_status(sim, clock, frames, bad, receiver)))
+                    status_pub.put(msgpack.packb(_status(plat, clock, receiver)))
         finally:
-            status_pub.put(msgpack.packb(_status(sim, clock, frames, bad, receiver)))
+            status_pub.put(msgpack.packb(_status(plat, clock, receiver)))
             status_pub.undeclare()
             feedback.close()
             if source is not None:
@@ -161,11 +207,11 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
     return 0
 
 
-def _status(sim: PlatformSimulator, clock: DeadlineClock, frames: int, bad: int,
-            receiver: Any) -> dict[str, Any]:
+def _status(plat: HilPlatform, clock: DeadlineClock, receiver: Any) -> dict[str, Any]:
+    sim = plat.sim
     out: dict[str, Any] = {
         "t": time.time(), "ticks": clock.ticks, "missed_ticks": clock.missed,
-        "frames": frames, "bad_frames": bad,
+        "caught_up": plat.caught_up, "frames": plat.frames, "bad_frames": plat.bad,
         "violations": dict(zip(AXES, sim.violations.tolist(), strict=True)),
         "position": dict(zip(AXES, sim.position.tolist(), strict=True)),
     }

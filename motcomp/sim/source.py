@@ -138,7 +138,12 @@ def load_trajectory(path: Path, rate_hz: float, axis: str | None = None) -> Traj
 def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/setpoint",
             seq_start: int = 0, repeat: int = 1, stop: threading.Event | None = None,
             spin_us: float = 100.0, lead_in_s: float = 0.0) -> int:
-    """Publish the trajectory (``repeat`` times) on absolute deadlines; returns the next seq."""
+    """Publish the trajectory (``repeat`` times) on absolute deadlines; returns the next seq.
+
+    The motion stays on wall time, as a vehicle model's does: samples whose instants pass while
+    this loop is stalled are dropped, not published late (that would stretch the motion in
+    time).  ``seq`` counts the frames sent, so it stays consecutive.
+    """
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
@@ -146,22 +151,26 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
     axes = [a for a in AXES if a in traj.pos]
     columns = [traj.pos[a].tolist() for a in axes]
     seq = seq_start
+    total = traj.samples * repeat
     with open_session(endpoints) as session:
         sink = ZenohSink(session, key)
         if lead_in_s > 0:
             time.sleep(lead_in_s)
         clock = DeadlineClock(traj.rate_hz, spin_us)
         t_wall0, t_mono0 = time.time(), time.perf_counter_ns()
+        k = 0  # the sample due at the next deadline
         try:
-            for _ in range(repeat):
-                for k in range(traj.samples):
-                    if stop.is_set():
-                        return seq
-                    deadline, _ = clock.wait()
-                    t = t_wall0 + (deadline - t_mono0) / 1e9  # the sample's nominal time
-                    sink.put(encode_input(seq, t, {a: col[k] for a, col in
-                                                   zip(axes, columns, strict=True)}))
-                    seq += 1
+            while not stop.is_set():
+                deadline, _ = clock.wait()
+                k += clock.skipped
+                if k >= total:
+                    break
+                t = t_wall0 + (deadline - t_mono0) / 1e9  # the sample's nominal time
+                i = k % traj.samples
+                sink.put(encode_input(seq, t, {a: col[i] for a, col in
+                                               zip(axes, columns, strict=True)}))
+                seq += 1
+                k += 1
         finally:
             sink.close()
     return seq
