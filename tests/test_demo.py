@@ -26,5 +26,8 @@ def test_demo_reports_the_delay_gained(tmp_path: Path) -> None:
     assert off_x - on_x > 100
     for axis in ("hex_z", "hex_roll", "hex_pitch"):  # bypassed: unchanged
         assert abs(rows[axis][0] - rows[axis][1]) < 5
+    limited = {m.group(1): (int(m.group(2)), int(m.group(3)))
+               for m in re.finditer(r"^(\w+)\s.*ms\s+(\d+) / (\d+)", p.stdout, re.M)}
+    assert set(limited) == set(rows)  # per phase, for every axis in the table
     assert "Platform hard-limit violations: 0" in p.stdout
     assert (tmp_path / "demo.png").stat().st_size > 10_000
