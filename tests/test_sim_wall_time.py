@@ -84,6 +84,42 @@ def test_the_setpoint_held_during_a_stall_is_the_one_before_it() -> None:
         p1d_step(t, 0.1) + p1d_step(t - 31 / RATE, 0.2), abs=1e-12)
 
 
+def test_frames_received_during_a_stall_apply_at_their_own_times() -> None:
+    """The service keeps sending while the simulator stalls: after the stall, each skipped
+    period is simulated with the frames stamped before its start, so the platform ends where
+    it would have been without the stall (a ramp of setpoints, one per period)."""
+    stalled, smooth = platform(), platform()
+    ramp = [0.001 * k for k in range(200)]
+    for k in range(200):  # smooth: frame k arrives during period k (stamped at its start)
+        smooth.take_frame(encode_output(k, k / RATE, k, [ramp[k]] * len(AXES), []))
+        smooth.step()
+    for k in range(100):  # stalled: the same up to period 99 ...
+        stalled.take_frame(encode_output(k, k / RATE, k, [ramp[k]] * len(AXES), []))
+        stalled.step()
+    for k in range(100, 200):  # ... then frames 100-199 all arrive while the loop is stalled
+        stalled.take_frame(encode_output(k, k / RATE, k, [ramp[k]] * len(AXES), []))
+    stalled.catch_up(99, tick_t=199 / RATE)  # the tick of period 199 ends the stall
+    stalled.step()
+    np.testing.assert_array_equal(stalled.sim.position, smooth.sim.position)
+    assert stalled.caught_up == 99
+    # without the stamps (CAN) the stall is simulated on the setpoint held before it
+    held = platform()
+    for k in range(100):
+        held.take_frame(encode_output(k, k / RATE, k, [ramp[k]] * len(AXES), []))
+        held.step()
+    held.catch_up(99)
+    assert held.setpoint[0] == ramp[99]
+
+
+def test_bad_frames_are_counted_and_change_nothing() -> None:
+    plat = platform()
+    plat.take_frame(frame(0, 0.1))
+    plat.take_frame(b"\xc1 not msgpack")
+    plat.take_frame(msgpack.packb({"seq": 1, "t": "late", "src_seq": 1, "pos": {}, "flags": []}))
+    plat.step()
+    assert plat.bad == 2 and plat.frames == 3 and plat.setpoint[0] == 0.1
+
+
 def test_catch_up_is_bounded() -> None:
     plat = platform()
     plat.catch_up(10**9)

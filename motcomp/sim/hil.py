@@ -16,6 +16,7 @@ import math
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -27,7 +28,7 @@ from motcomp.core.axes import AXES
 from motcomp.core.models import ProcessModel
 from motcomp.errors import FrameError
 from motcomp.io.wire import decode_output, encode_feedback
-from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, ZenohSource, open_session
+from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, open_session
 from motcomp.presets import load_preset
 from motcomp.runtime.clock import DeadlineClock
 from motcomp.sim.platform import Accelerometer, PlatformSimulator
@@ -79,12 +80,15 @@ class HilPlatform:
     clock (so that tests can drive it tick by tick).
 
     The platform lives on wall time: a real one keeps moving while the simulator's thread is
-    stalled.  So after a stall the skipped periods are simulated first, with the setpoint held
-    before it (at most :attr:`max_catch_up_s` of them), then the tick's own period with the
-    newest setpoint.  Without that, every missed tick would freeze the simulated platform for
-    a period: under a few percent of missed ticks its dynamics would look that much slower
-    (the rails' 186 ms lag becoming 195 ms or more), which no compensator tuned on the true
-    model can cancel.
+    stalled, and its drives take each setpoint when it comes.  So frames are queued as they
+    arrive (:meth:`take_frame`), and after a stall the skipped periods are simulated first
+    (:meth:`catch_up`, at most :attr:`max_catch_up_s` of them), each with the frames stamped
+    before its start -- what the platform would have had then -- and then the tick's own period
+    with every frame received (:meth:`step`).  Without that, every missed tick would freeze the
+    simulated platform for a period: under a few percent of missed ticks its dynamics would
+    look that much slower (the rails' 186 ms lag becoming 195 ms or more), which no compensator
+    tuned on the true model can cancel.  Frames from CAN carry no time: a stall is simulated on
+    the setpoint held before it.
     """
 
     max_catch_up_s = 1.0
@@ -102,23 +106,36 @@ class HilPlatform:
         self.caught_up = 0
         """Periods simulated after a stall of the simulator's own loop."""
         self._max_catch_up = max(1, round(self.max_catch_up_s * cfg.rate_hz))
+        self._period_s = 1.0 / cfg.rate_hz
+        self._queue: deque[tuple[float, dict[str, float]]] = deque()
         self._prev_t: float | None = None
         self._prev = np.zeros(len(AXES))
 
     def take_frame(self, payload: bytes) -> None:
-        """A setpoint frame of the service (zenoh): its axes replace the held setpoint."""
+        """A setpoint frame of the service (zenoh), queued until the period it belongs to."""
         self.frames += 1
         try:
             frame = decode_output(payload)
-            pos = frame["pos"]
-            for i, axis in enumerate(AXES):
-                value = pos.get(axis)
-                if isinstance(value, int | float):
-                    self.setpoint[i] = float(value)
+            pos = {axis: float(v) for axis, v in frame["pos"].items()
+                   if axis in AXES and isinstance(v, int | float)}
             t_frame = float(frame["t"])
         except (FrameError, AttributeError, TypeError, ValueError):
             self.bad += 1
             return
+        self._queue.append((t_frame, pos))
+
+    def _apply(self, until_t: float) -> None:
+        """Apply the queued frames stamped up to ``until_t``, in order (their axes replace the
+        held setpoint; the velocity limit is judged between consecutive frames)."""
+        queue = self._queue
+        while queue and queue[0][0] <= until_t:
+            t_frame, pos = queue.popleft()
+            for i, axis in enumerate(AXES):
+                if axis in pos:
+                    self.setpoint[i] = pos[axis]
+            self._judge_speed(t_frame)
+
+    def _judge_speed(self, t_frame: float) -> None:
         now_sp = np.array(self.setpoint)
         if self.v_hard is not None and self._prev_t is not None and t_frame > self._prev_t:
             fast = np.abs(now_sp - self._prev) > self.v_hard * (t_frame - self._prev_t) * (
@@ -132,15 +149,21 @@ class HilPlatform:
             if axis in got:
                 self.setpoint[i] = got[axis]
 
-    def catch_up(self, skipped: int) -> None:
-        """Simulate ``skipped`` periods the loop did not tick (a stall) on the held setpoint."""
+    def catch_up(self, skipped: int, tick_t: float | None = None) -> None:
+        """Simulate the ``skipped`` periods before the tick at wall time ``tick_t`` that the
+        loop did not tick (a stall), each with the frames stamped before its start (none if
+        ``tick_t`` is None: the held setpoint)."""
         n = min(skipped, self._max_catch_up)
-        for _ in range(n):
+        for j in range(n, 0, -1):
+            if tick_t is not None:
+                self._apply(tick_t - j * self._period_s)
             self.sim.step(self.setpoint)
         self.caught_up += n
 
     def step(self) -> np.ndarray:
-        """Simulate this tick's period; returns the acceleration measured at its start."""
+        """Simulate this tick's period with every frame received; returns the acceleration
+        measured at its start."""
+        self._apply(math.inf)
         _, acc, _ = self.sim.step(self.setpoint)
         return acc
 
@@ -152,6 +175,8 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: stop.set())
+    import zenoh
+
     plat = HilPlatform(cfg)
     sim = plat.sim
     receiver: Any = None
@@ -162,7 +187,9 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
         receiver = CanSetpointReceiver(open_bus(cfg.can_interface, cfg.can_channel),
                                        cfg.dbc or config_file("motcomp.dbc"))
     with open_session(endpoints) as session:
-        source = ZenohSource(session, cfg.setpoint_key) if cfg.transport == "zenoh" else None
+        # every frame, in order (a ring: never blocks zenoh, keeps the newest 4096)
+        source = (session.declare_subscriber(cfg.setpoint_key, zenoh.handlers.RingChannel(4096))
+                  if cfg.transport == "zenoh" else None)
         feedback = ZenohSink(session, cfg.feedback_key)
         status_pub = session.declare_publisher(cfg.status_key)
         clock = DeadlineClock(cfg.rate_hz, cfg.spin_us)
@@ -172,15 +199,17 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
         reported = np.zeros(len(AXES), dtype=np.int64)
         try:
             while not stop.is_set() and time.monotonic() < t_end:
-                _, now = clock.wait()
-                if clock.skipped:
-                    plat.catch_up(clock.skipped)
+                deadline, now = clock.wait()
                 if source is not None:
-                    payload = source.latest()
-                    if payload is not None:
-                        plat.take_frame(payload)
+                    while (sample := source.try_recv()) is not None:
+                        plat.take_frame(sample.payload.to_bytes())
+                    if clock.skipped:
+                        plat.catch_up(clock.skipped, t_wall0 + (deadline - t_mono0) / 1e9)
                 else:
-                    plat.take_axes(receiver.poll())
+                    got = receiver.poll()
+                    if clock.skipped:
+                        plat.catch_up(clock.skipped)
+                    plat.take_axes(got)
                 acc = plat.step()
                 if clock.ticks % cfg.feedback_every == 0:
                     # position and acceleration at the instant of this setpoint (the start of
@@ -201,7 +230,7 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
             status_pub.undeclare()
             feedback.close()
             if source is not None:
-                source.close()
+                source.undeclare()
             if receiver is not None:
                 receiver.close()
     return 0
