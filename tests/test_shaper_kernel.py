@@ -53,7 +53,7 @@ def _run(events: list[tuple], compiled: bool, linear: bool) -> tuple[list, dict]
                     sh.park(now)
                 out.append(sh.reference(now))
         state = {name: getattr(sh, name) for name in (
-            "live", "_t_frame", "_slope", "_period", "_cap", "ref", "_offset",
+            "live", "_t_frame", "_slope", "_period", "_excess", "ref", "_offset",
             "stale_total_s", "stale_episodes")}
         return out, state
     finally:
@@ -81,7 +81,7 @@ def test_a_jittery_slalom_is_bit_identical_and_extrapolated() -> None:
     assert fast == slow
     refs = [r for r, _ in fast[0]]
     assert len({r[1] for r in refs}) > 1000  # it moved
-    assert 0.0 < fast[1]["_cap"][1] <= 0.01 and fast[1]["_slope"][1] != 0.0  # 1.5 periods
+    assert 0.0 < fast[1]["_period"][1] <= 0.01 and fast[1]["_slope"][1] != 0.0
 
 
 def test_compiled_loops_reject_wrong_state() -> None:
@@ -89,11 +89,11 @@ def test_compiled_loops_reject_wrong_state() -> None:
     five = [0.0] * 5
     with pytest.raises(TypeError, match="lists of 8 floats"):
         c.update_axes({"rails_x": 0.1}, {"rails_x": 0}, [True] * 8, 1.0, True, 0.05,
-                      five, five, five, five, five)
+                      five, five, five, five)
     with pytest.raises(KeyError):
         eight = [0.0] * 8
         c.update_axes({"rails_z": 0.1}, {"rails_x": 0}, [True] * 8, 1.0, True, 0.05,
-                      eight, eight[:], eight[:], eight[:], eight[:])
+                      eight, eight[:], eight[:], eight[:])
     with pytest.raises(TypeError, match="live must be a list"):
         c.live_now(1.0, 0.0, 0.0, 0.02, (0.0,) * 8, [0.0] * 8, [0.0] * 8, [0.0] * 8)
     with pytest.raises(TypeError, match="lists of 8 floats"):

@@ -87,28 +87,38 @@ def test_the_setpoint_held_during_a_stall_is_the_one_before_it() -> None:
 def test_frames_received_during_a_stall_apply_at_their_own_times() -> None:
     """The service keeps sending while the simulator stalls: after the stall, each skipped
     period is simulated with the frames stamped before its start, so the platform ends where
-    it would have been without the stall (a ramp of setpoints, one per period)."""
+    it would have been without the stall (a ramp of setpoints, one per period, each stamped
+    half a period before the period that takes it)."""
     stalled, smooth = platform(), platform()
     ramp = [0.001 * k for k in range(200)]
-    for k in range(200):  # smooth: frame k arrives during period k (stamped at its start)
-        smooth.take_frame(encode_output(k, k / RATE, k, [ramp[k]] * len(AXES), []))
+
+    def ramp_frame(k: int) -> bytes:
+        return encode_output(k, (k - 0.5) / RATE, k, [ramp[k]] * len(AXES), [])
+
+    for k in range(200):  # smooth: frame k arrives just before period k
+        smooth.take_frame(ramp_frame(k))
         smooth.step()
     for k in range(100):  # stalled: the same up to period 99 ...
-        stalled.take_frame(encode_output(k, k / RATE, k, [ramp[k]] * len(AXES), []))
+        stalled.take_frame(ramp_frame(k))
         stalled.step()
     for k in range(100, 200):  # ... then frames 100-199 all arrive while the loop is stalled
-        stalled.take_frame(encode_output(k, k / RATE, k, [ramp[k]] * len(AXES), []))
+        stalled.take_frame(ramp_frame(k))
     stalled.catch_up(99, tick_t=199 / RATE)  # the tick of period 199 ends the stall
     stalled.step()
     np.testing.assert_array_equal(stalled.sim.position, smooth.sim.position)
     assert stalled.caught_up == 99
-    # without the stamps (CAN) the stall is simulated on the setpoint held before it
+    # without a tick time (CAN frames carry none) the stall is simulated on the setpoint held
+    # before it, and the frames queued meanwhile apply from the tick that ends it
     held = platform()
     for k in range(100):
-        held.take_frame(encode_output(k, k / RATE, k, [ramp[k]] * len(AXES), []))
+        held.take_frame(ramp_frame(k))
         held.step()
+    for k in range(100, 200):
+        held.take_frame(ramp_frame(k))
     held.catch_up(99)
     assert held.setpoint[0] == ramp[99]
+    held.step()
+    assert held.setpoint[0] == ramp[199]
 
 
 def test_bad_frames_are_counted_and_change_nothing() -> None:
@@ -150,7 +160,7 @@ def test_source_drops_the_samples_of_a_stall_instead_of_stretching_the_motion(
     with open_session(ZenohEndpoints(listen=(loopback(port),))) as session:
         sub = session.declare_subscriber("sim/motion/setpoint", zenoh.handlers.FifoChannel(4096))
         pub = threading.Thread(target=source_mod.publish, args=(
-            traj, ZenohEndpoints(connect=(loopback(port),))), kwargs={"lead_in_s": 0.5})
+            traj, ZenohEndpoints(connect=(loopback(port),))), kwargs={"lead_in_s": 1.0})
         pub.start()
         t_end = time.monotonic() + 20.0
         while (pub.is_alive() or got == []) and time.monotonic() < t_end:
@@ -171,5 +181,5 @@ def test_source_drops_the_samples_of_a_stall_instead_of_stretching_the_motion(
     offset = t - value  # constant if the motion is on wall time
     assert np.ptp(offset) < 1e-5
     dropped = np.round(value * RATE).astype(int) - seq  # samples never sent, so far
-    assert dropped[0] == 0 and np.all(np.diff(dropped) >= 0)
-    assert dropped[-1] >= 25  # the stall's (and any the machine's own stalls cost)
+    assert np.all(np.diff(dropped) >= 0)
+    assert dropped[-1] - dropped[0] >= 25  # the stall's (and any the machine's own stalls cost)

@@ -67,8 +67,6 @@ class ReplayShaper(ReferenceShaper):
     def import_live(self, st: _Live, ref: list[float]) -> None:
         self.live, self._t_frame, self._slope, self._period = (
             st.live[:], st.t_frame[:], st.slope[:], st.period[:])
-        # the extrapolation caps derive from the periods, as the shaper computes them
-        self._cap = [1.5 * p for p in self._period]
         self._offset, self._offset_at, self.last_input_s = st.offset, st.offset_at, \
             st.last_input_s
         self._excess = st.excess

@@ -5,8 +5,8 @@
  * the results are bit-identical (tests/test_shaper_kernel.py checks it).
  *
  * update_axes(pos, index, driven, t, fresh_allowed, stale_after_s,
- *             live, t_frame, slope, period, cap) -> None
- * live_now(t_now, age, late, max_extrapolation_s, live, slope, t_frame, cap) -> list
+ *             live, t_frame, slope, period) -> None
+ * live_now(t_now, age, late, max_extrapolation_s, live, slope, t_frame, period) -> list
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -41,10 +41,10 @@ static int lists(PyObject *const *lst, int count, Py_ssize_t n) {
 }
 
 static PyObject *update_axes(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
-    if (nargs != 11) {
+    if (nargs != 10) {
         PyErr_SetString(PyExc_TypeError,
                         "update_axes(pos, index, driven, t, fresh_allowed, stale_after_s, "
-                        "live, t_frame, slope, period, cap)");
+                        "live, t_frame, slope, period)");
         return NULL;
     }
     PyObject *pos = args[0], *index = args[1], *driven = args[2];
@@ -53,9 +53,8 @@ static PyObject *update_axes(PyObject *mod, PyObject *const *args, Py_ssize_t na
         return NULL;
     }
     Py_ssize_t n = PyList_GET_SIZE(driven);
-    PyObject *live = args[6], *t_frame = args[7], *slope = args[8], *period = args[9],
-             *cap = args[10];
-    if (lists(args + 6, 5, n) < 0) return NULL;
+    PyObject *live = args[6], *t_frame = args[7], *slope = args[8], *period = args[9];
+    if (lists(args + 6, 4, n) < 0) return NULL;
     double t = PyFloat_AsDouble(args[3]);
     int fresh_allowed = PyObject_IsTrue(args[4]);
     double stale_after = PyFloat_AsDouble(args[5]);
@@ -89,7 +88,7 @@ static PyObject *update_axes(PyObject *mod, PyObject *const *args, Py_ssize_t na
             double p;
             if (item(period, i, &p) < 0) return NULL;
             p = p == 0.0 ? dt : p + 0.05 * (dt - p);
-            if (set(period, i, p) < 0 || set(cap, i, 1.5 * p) < 0) return NULL;
+            if (set(period, i, p) < 0) return NULL;
         }
         if (set(live, i, v) < 0 || set(t_frame, i, t) < 0) return NULL;
     }
@@ -99,7 +98,7 @@ static PyObject *update_axes(PyObject *mod, PyObject *const *args, Py_ssize_t na
 static PyObject *live_now(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
     if (nargs != 8) {
         PyErr_SetString(PyExc_TypeError, "live_now(t_now, age, late, max_extrapolation_s, "
-                                         "live, slope, t_frame, cap)");
+                                         "live, slope, t_frame, period)");
         return NULL;
     }
     double x4[4];  /* t_now, age, late, max_extrapolation_s */
@@ -117,13 +116,14 @@ static PyObject *live_now(PyObject *mod, PyObject *const *args, Py_ssize_t nargs
     PyObject *out = PyList_New(n);
     if (out == NULL) return NULL;
     for (Py_ssize_t i = 0; i < n; i++) {
-        double v, s, tf, c;
+        double v, s, tf, p;
         if (item(args[4], i, &v) < 0 || item(args[5], i, &s) < 0 ||
-            item(args[6], i, &tf) < 0 || item(args[7], i, &c) < 0) {
+            item(args[6], i, &tf) < 0 || item(args[7], i, &p) < 0) {
             Py_DECREF(out);
             return NULL;
         }
         double tau = t_now - tf;
+        double c = 1.5 * p; /* the transit jitter allowed for */
         /* min(max(max_ext, c) if late <= c else c + c, age + c) */
         double hi = late <= c ? (max_ext >= c ? max_ext : c) : c + c;
         double b = age + c;

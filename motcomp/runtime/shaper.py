@@ -121,7 +121,6 @@ class ReferenceShaper:
         self._t_frame = [0.0] * self.n  # sender time of each axis' last value
         self._slope = [0.0] * self.n
         self._period = [0.0] * self.n  # average interval between an axis' frames
-        self._cap = [0.0] * self.n  # transit jitter allowed for: 1.5 input periods
         self._offset: float | None = None  # local clock - sender clock (smallest transit)
         self._offset_at = 0.0
         self._excess = 0.0  # the last frame's transit beyond the offset (s)
@@ -173,7 +172,7 @@ class ReferenceShaper:
         if _cshaper is not None:
             _cshaper.update_axes(pos, AXIS_INDEX, self.driven, t, self.linear and not rejoin,
                                  self.stale_after_s, self.live, self._t_frame, self._slope,
-                                 self._period, self._cap)
+                                 self._period)
         else:
             self._update_axes(pos, t, self.linear and not rejoin)
         if rejoin:
@@ -187,7 +186,7 @@ class ReferenceShaper:
         self.last_input_s = now
 
     def _update_axes(self, pos: dict[str, float], t: float, fresh_allowed: bool) -> None:
-        """The axes a frame carries: value, slope, input period, jitter allowance (the
+        """The axes a frame carries: value, slope, input period (the
         reference of motcomp/runtime/_cshaper.c's ``update_axes``)."""
         for axis, value in pos.items():
             i = AXIS_INDEX[axis]
@@ -200,7 +199,6 @@ class ReferenceShaper:
                     p = self._period[i]
                     p = dt if p == 0.0 else p + 0.05 * (dt - p)
                     self._period[i] = p
-                    self._cap[i] = 1.5 * p
                 self.live[i] = v
                 self._t_frame[i] = t
 
@@ -259,10 +257,11 @@ class ReferenceShaper:
         mx = self.max_extrapolation_s
         if _cshaper is not None:
             return _cshaper.live_now(t_now, age, late, mx, self.live, self._slope,
-                                     self._t_frame, self._cap)
+                                     self._t_frame, self._period)
         out = []
-        for v, s, tf, c in zip(self.live, self._slope, self._t_frame, self._cap, strict=True):
+        for v, s, tf, p in zip(self.live, self._slope, self._t_frame, self._period, strict=True):
             tau = t_now - tf
+            c = 1.5 * p  # the transit jitter allowed for
             b = min(max(mx, c) if late <= c else c + c, age + c)
             out.append(v + s * (tau if 0.0 < tau < b else b if tau >= b else 0.0))
         return out

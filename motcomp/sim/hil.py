@@ -130,9 +130,7 @@ class HilPlatform:
         queue = self._queue
         while queue and queue[0][0] <= until_t:
             t_frame, pos = queue.popleft()
-            for i, axis in enumerate(AXES):
-                if axis in pos:
-                    self.setpoint[i] = pos[axis]
+            self.take_axes(pos)
             self._judge_speed(t_frame)
 
     def _judge_speed(self, t_frame: float) -> None:
@@ -144,7 +142,8 @@ class HilPlatform:
         self._prev_t, self._prev = t_frame, now_sp
 
     def take_axes(self, got: dict[str, float]) -> None:
-        """Setpoints decoded from CAN frames: the axes received replace the held setpoint."""
+        """Setpoints by axis (decoded from CAN frames, or a queued frame's): they replace the
+        held setpoint at once."""
         for i, axis in enumerate(AXES):
             if axis in got:
                 self.setpoint[i] = got[axis]
