@@ -73,6 +73,9 @@ class DemoResult:
     delays: dict[str, dict[str, float]]
     saturation: dict[str, dict[str, int]]
     """Ticks the service flagged saturated, per axis and phase."""
+    stale: dict[str, int]
+    """Stale-input episodes of the service (no valid frame for ``loop.stale_after_s``), per
+    phase: each holds the reference, then blends back, which adds to the delay measured."""
     status: dict[str, Any]
     hil_status: dict[str, Any]
     exit_codes: dict[str, int]
@@ -123,6 +126,7 @@ def run_demo(out_dir: Path, quiet: bool = False, keep_logs: bool = True) -> Demo
     counts = [0]
     phases: dict[str, tuple[float, float]] = {}
     saturation: dict[str, dict[str, int]] = {}
+    stale: dict[str, int] = {}
     status: dict[str, Any] = {}
     hil_status: dict[str, Any] = {}
     say(f"motcomp demo: platform simulator on :{p_hil}, service on :{p_svc}, recorder on :{p_me}")
@@ -165,15 +169,17 @@ def run_demo(out_dir: Path, quiet: bool = False, keep_logs: bool = True) -> Demo
             wait_ready()
             from motcomp.sim.source import builtin
 
-            def sat_counts() -> dict[str, int]:
+            def counters() -> tuple[dict[str, int], int, bool]:
+                """Saturation counts, stale episodes begun so far, stale now."""
                 st = msgpack.unpackb(first_reply(session, "motcomp/status", None, 3.0))
-                return dict(st.get("saturation", {}))
+                return (dict(st.get("saturation", {})), int(st.get("stale_episodes", 0)),
+                        st.get("mode") == "stale")
 
             duration = builtin("demo").duration_s
             seq = 0
             for phase, bypass in (("off", True), ("on", False)):
                 admin("bypass", {"on": bypass, "axes": list(RAILS)})
-                sat0 = sat_counts()
+                sat0, stale0, _ = counters()
                 say(f"phase {phase}: compensation {'OFF (bypass)' if bypass else 'ON'} on the "
                     f"rails, {duration:.1f} s of motion")
                 t0 = time.time()
@@ -195,9 +201,11 @@ def run_demo(out_dir: Path, quiet: bool = False, keep_logs: bool = True) -> Demo
                 if src.returncode != 0:
                     raise ServiceError(f"motion source failed; see {logs}/source-{phase}.log")
                 phases[phase] = (t0, time.time())
-                sat1 = sat_counts()
+                sat1, stale1, stale_now = counters()
                 for axis, n in sat1.items():
                     saturation.setdefault(axis, {})[phase] = n - sat0.get(axis, 0)
+                # (the input goes stale once the source has stopped: not during the motion)
+                stale[phase] = stale1 - stale0 - stale_now
                 seq += round(duration * 1000) + 1
             status = msgpack.unpackb(first_reply(session, "motcomp/status", None, 3.0))
             hs = sub_hs.try_recv()
@@ -222,7 +230,7 @@ def run_demo(out_dir: Path, quiet: bool = False, keep_logs: bool = True) -> Demo
         delays[axis] = {ph: _resampled_delay(setpoints, feedback, axis, *span)
                         for ph, span in phases.items()}
     fig = _figure(setpoints, feedback, phases, delays, out_dir / "demo.png")
-    result = DemoResult(delays, saturation, status, hil_status, codes, fig, phases)
+    result = DemoResult(delays, saturation, stale, status, hil_status, codes, fig, phases)
     if not keep_logs:
         for f in logs.iterdir():
             f.unlink()
@@ -261,7 +269,10 @@ def report(res: DemoResult) -> str:
                   f"{loop.get('late_p999_us', float('nan')):.0f} us (last "
                   f"{st.get('loop_window_s', 10):g} s)",
               f"Input frames: {fr.get('received', 0)} received, {fr.get('accepted', 0)} accepted,"
-              f" {fr.get('rejected', 0)} rejected",
+              f" {fr.get('rejected', 0)} rejected; stale-input episodes off / on: "
+              f"{res.stale.get('off', 0)} / {res.stale.get('on', 0)}"
+              + (" (each holds the reference, then blends back: the delay of that phase "
+                 "includes it)" if any(res.stale.values()) else ""),
               f"Platform hard-limit violations: "
               f"{sum(res.hil_status.get('violations', {}).values())}",
               f"Exit codes: {res.exit_codes}"]
