@@ -6,20 +6,15 @@
 #
 # SIGTERM (docker stop) parks the platform at neutral before exiting: give it the time
 # (--stop-timeout longer than loop.park_timeout_s).  See docs/DEPLOYMENT.md.
-# Build stage: the wheel, with the compiled compensator kernel (motcomp/core/_ckernel.c).
+# Build stage: the wheel (pure Python; it carries config/ as motcomp/_config).
 FROM python:3.11-slim AS build
-# hadolint ignore=DL3008
-RUN apt-get update \
-    && apt-get install -y --no-install-recommends gcc libc6-dev \
-    && rm -rf /var/lib/apt/lists/*
 WORKDIR /src
 COPY pyproject.toml setup.py MANIFEST.in README.md ./
 COPY motcomp ./motcomp
 COPY config ./config
-RUN pip wheel --no-cache-dir --no-deps -w /wheels . \
-    && python -c "import sys, zipfile, glob; names = zipfile.ZipFile(glob.glob('/wheels/*.whl')[0]).namelist(); sys.exit(not any('_ckernel' in n and n.endswith('.so') for n in names))"
+RUN pip wheel --no-cache-dir --no-deps -w /wheels .
 
-# Run stage: no compiler.
+# Run stage.
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \

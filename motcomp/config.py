@@ -26,13 +26,15 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from motcomp.core.axes import AXES
+from motcomp.core.compensator import Compensator
 from motcomp.core.models import P1D, ProcessModel, parse_model
 from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import AxisLimits
+from motcomp.core.shaper import ShaperParams
+from motcomp.core.tick import TickParams, TickState
 from motcomp.core.tuning import RULES, tune
 from motcomp.errors import ConfigError
 from motcomp.limits_config import LimitsConfig
-from motcomp.runtime.rt import SLICE_MAX_US, SLICE_MIN_US
 
 __all__ = [
     "RESTART_KEYS",
@@ -124,6 +126,11 @@ class ProfileConfig(TuningConfig):
     axes: dict[str, TuningConfig] = {}
 
 
+SLICE_MIN_US = 100.0
+"""The scheduler slices the kernel takes (``loop.slice_us``; 0 = its default)."""
+SLICE_MAX_US = 100_000.0
+
+
 class LoopConfig(BaseModel):
     """The fixed-rate loop and the behaviour on missing input and at stop."""
 
@@ -132,7 +139,6 @@ class LoopConfig(BaseModel):
     sync_to_input: bool = False
     poll_us: float = Field(50.0, ge=10.0, le=1000.0)
     spin_us: float = Field(200.0, ge=0.0, le=2000.0)
-    warm_up: bool = True
     sleep_max_us: float = Field(100.0, ge=0.0, le=100_000.0)
     stale_after_s: float = Field(0.05, gt=0.0, le=10.0)
     hold_s: float = Field(0.5, ge=0.0, le=60.0)
@@ -162,6 +168,7 @@ class InputConfig(BaseModel):
     reject_beyond_fraction: float = Field(0.25, ge=0.0, le=10.0)
     reconstruction: Literal["linear", "hold"] = "linear"
     max_extrapolation_s: float = Field(0.02, ge=0.0, le=1.0)
+    max_frame_bytes: int = Field(4096, ge=64, le=1_048_576)
 
 
 class CanConfig(BaseModel):
@@ -458,3 +465,34 @@ def config_hash(cfg: ServiceConfig) -> str:
     """Short stable hash of the effective config (shown in the status and the logs)."""
     text = json.dumps(cfg.model_dump(mode="json"), sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def tick_params(cfg: ServiceConfig, axes: ResolvedAxes) -> TickParams:
+    """The tick's parameters of a config (:mod:`motcomp.core.tick`): input accepted, and the
+    reference kept, within each axis' limits widened by ``input.reject_beyond_fraction`` of its
+    range."""
+    f = cfg.input.reject_beyond_fraction
+    lim = axes.limits
+    lo = tuple(float(a - f * (b - a)) for a, b in zip(lim.p_min, lim.p_max, strict=True))
+    hi = tuple(float(b + f * (b - a)) for a, b in zip(lim.p_min, lim.p_max, strict=True))
+    loop = cfg.loop
+    shaper = ShaperParams(
+        driven=axes.driven, ramp_speed=tuple(loop.ramp_speed_fraction * float(v)
+                                             for v in lim.v_max),
+        reach_lo=lo, reach_hi=hi, stale_after_s=loop.stale_after_s, hold_s=loop.hold_s,
+        rejoin_s=loop.rejoin_s, startup_s=loop.startup_s,
+        linear=cfg.input.reconstruction == "linear",
+        max_extrapolation_s=cfg.input.max_extrapolation_s)
+    return TickParams(loop.rate_hz, shaper, cfg.status.saturation_tolerance,
+                      cfg.input.max_frame_bytes)
+
+
+def new_tick(cfg: ServiceConfig, axes: ResolvedAxes | None = None
+             ) -> tuple[TickParams, TickState]:
+    """Parameters and a fresh state (compensator at rest at neutral, the config's bypass) of a
+    config's tick."""
+    axes = axes if axes is not None else resolve_axes(cfg)
+    comp = Compensator(axes.models, axes.gains, axes.limits, cfg.loop.rate_hz,
+                       fade_s=cfg.loop.bypass_fade_s, history_s=0.5)
+    comp.set_bypass(axes.bypass)
+    return tick_params(cfg, axes), TickState(comp, axes.driven)

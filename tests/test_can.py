@@ -10,6 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from motcomp.core.axes import AXES
+from motcomp.core.tick import TickOutput
 from motcomp.errors import ConfigError, FrameError
 from motcomp.io.can_io import (
     CanSetpointReceiver,
@@ -79,7 +80,7 @@ def test_virtual_bus_round_trip_staggered_with_alive_and_crc() -> None:
     try:
         for tick in range(40):
             pos = [0.001 * tick * (i + 1) for i in range(8)]
-            sink.send(tick, pos, [i == 1 for i in range(8)], stale=False, parking=False)
+            sink.send(TickOutput(tick, -1, pos, [], [i == 1 for i in range(8)], ""), 0.0)
             got = recv.poll()
             lay = LAYOUTS[tick % 4]  # one frame per tick, in turn
             for a in lay.axes:

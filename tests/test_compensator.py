@@ -10,30 +10,20 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.signal import lfilter
 
-from motcomp.core import compensator as compmod
 from motcomp.core.axes import AXES
-from motcomp.core.compensator import KERNELS, NONFINITE, Compensator, p1d_coefficients
+from motcomp.core.compensator import NONFINITE, Compensator
 from motcomp.core.loop import pid_tf, stability
-from motcomp.core.models import P1D
+from motcomp.core.models import P1D, p1d_coefficients
 from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import AxisLimits
 from motcomp.core.tuning import tune
 from motcomp.design.frequency import loop_response
 from motcomp.errors import ConfigError
-from motcomp.sim.platform import simulate_axis
+from motcomp.core.models import simulate_axis
 from tests.conftest import RAILS
 from tests.test_saturation import check_sequence
 
 WIDE = AxisLimits.uniform(1, 1e6, 1e9, 1e12)
-
-
-@pytest.fixture(autouse=True, params=KERNELS)
-def kernel(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
-    """Every test here runs with the compiled kernel and with the Python reference."""
-    if request.param == "c" and compmod._ckernel is None:
-        pytest.skip("the compiled kernel is not built")
-    monkeypatch.setenv("MOTCOMP_KERNEL", request.param)
-    return str(request.param)
 
 
 def test_hand_computed_first_samples() -> None:

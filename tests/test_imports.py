@@ -25,6 +25,9 @@ def loaded_after(imports: list[str]) -> set[str]:
 def test_core_is_pure() -> None:
     mods = loaded_after(CORE)
     assert not mods & set(FORBIDDEN_IN_CORE), mods & set(FORBIDDEN_IN_CORE)
+    # the tick decodes its input frames: msgpack (a pure codec) is all it adds
+    mods = loaded_after(["motcomp.core.tick"])
+    assert not mods & (set(FORBIDDEN_IN_CORE) - {"msgpack"}), mods & set(FORBIDDEN_IN_CORE)
 
 
 def test_design_imports_scipy_and_matplotlib_lazily() -> None:
@@ -32,3 +35,72 @@ def test_design_imports_scipy_and_matplotlib_lazily() -> None:
                          "motcomp.design.report", "motcomp.cli"])
     assert "matplotlib" not in mods
     assert "scipy" not in mods
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """motcomp's modules and the motcomp modules each imports (anywhere in it, function-level
+    imports included; ``if TYPE_CHECKING:`` blocks excluded)."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    files = {".".join(p.relative_to(root).with_suffix("").parts).removesuffix(".__init__"): p
+             for p in (root / "motcomp").rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for mod, path in files.items():
+        tree = ast.parse(path.read_text())
+        skip = {id(n) for node in ast.walk(tree) if isinstance(node, ast.If)
+                and ast.unparse(node.test).endswith("TYPE_CHECKING") for n in ast.walk(node)}
+        deps: set[str] = set()
+        for node in ast.walk(tree):
+            if id(node) in skip:
+                continue
+            names: list[str] = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+            deps |= {n for n in names if n in files and n != mod}
+        graph[mod] = deps
+    return graph
+
+
+def test_no_import_circles() -> None:
+    """No module of motcomp imports, directly or through others, a module that imports it."""
+    graph = _import_graph()
+    state: dict[str, int] = {}
+    stack: list[str] = []
+    cycles: list[list[str]] = []
+
+    def visit(m: str) -> None:
+        state[m] = 1
+        stack.append(m)
+        for d in sorted(graph[m]):
+            if state.get(d) == 1:
+                cycles.append(stack[stack.index(d):] + [d])
+            elif d not in state:
+                visit(d)
+        stack.pop()
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m)
+    # a package importing its own submodules (its public surface) is not a circle
+    cycles = [c for c in cycles if not any(b.startswith(a + ".") for a, b in zip(c, c[1:]))]
+    assert not cycles, "\n".join(" -> ".join(c) for c in cycles)
+
+
+def test_layers_import_downwards() -> None:
+    """The pure core imports nothing above it; config imports no runtime; design no simulator;
+    replay not the service."""
+    graph = _import_graph()
+    up = {m: {d for d in deps if not d.startswith(("motcomp.core", "motcomp.errors"))}
+          for m, deps in graph.items() if m.startswith("motcomp.core")}
+    assert not any(up.values()), up
+    assert not {d for d in graph["motcomp.config"] if d.startswith("motcomp.runtime")}
+    for m, deps in graph.items():
+        if m.startswith("motcomp.design"):
+            assert not {d for d in deps if d.startswith("motcomp.sim")}, m
+        if m.startswith("motcomp.replay"):
+            assert "motcomp.runtime.service" not in deps, m

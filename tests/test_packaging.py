@@ -83,10 +83,8 @@ def test_dockerfile_commands() -> None:
             for src in rest.split()[:-1]:
                 assert (ROOT / src).exists(), src
     run = " ".join(rest for i, rest in steps if i == "RUN")
-    # a build stage with a compiler makes the wheel (with the compiled kernel, checked there);
-    # the run stage installs it
-    assert "pip wheel --no-cache-dir --no-deps -w /wheels ." in run and "_ckernel" in run
-    assert "gcc" in run
+    # a build stage makes the wheel; the run stage installs it
+    assert "pip wheel --no-cache-dir --no-deps -w /wheels ." in run
     assert "pip install --no-cache-dir /wheels/*.whl" in run
     assert [rest for i, rest in steps if i == "COPY" and rest.startswith("--from=build")]
     for name in ("motcomp.toml", "motcomp.dbc"):
@@ -116,19 +114,16 @@ def test_wheel_ships_the_config_and_finds_it_installed(tmp_path: Path) -> None:
     names = zipfile.ZipFile(wheel).namelist()
     for f in SHIPPED:
         assert f"motcomp/_config/{f}" in names, f
-    assert any(n.startswith("motcomp/core/_ckernel") and n.endswith(".so") for n in names)
-    assert "motcomp/core/_ckernel.pyi" in names
+    assert not any(n.endswith((".so", ".c")) for n in names)  # one implementation: Python
     site = tmp_path / "site"
     zipfile.ZipFile(wheel).extractall(site)
     env = {"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin"}
     code = ("import motcomp.resources as r, motcomp.presets as p; print(r.config_dir()); "
-            "print(p.load_preset('rails').model); "
-            "import motcomp.core.compensator as c; print('kernel', c.default_kernel())")
+            "print(p.load_preset('rails').model)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          env=env, cwd=tmp_path, timeout=60)
     assert out.returncode == 0, out.stderr
     assert str(site / "motcomp" / "_config") in out.stdout and "p1d:K=1" in out.stdout
-    assert "kernel c" in out.stdout  # the installed wheel runs the compiled kernel
     chk = subprocess.run([sys.executable, "-m", "motcomp", "config", "check",
                           str(site / "motcomp" / "_config" / "motcomp.toml")],
                          capture_output=True, text=True, env=env, cwd=tmp_path, timeout=60)

@@ -17,12 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
-from motcomp.core.compensator import Compensator, p1d_coefficients
+from motcomp.core.compensator import Compensator
+from motcomp.core.models import p1d_coefficients, simulate_axis
 from motcomp.core.saturation import AxisLimits, axis_constants, limit_axis
 from motcomp.core.tuning import tune
 from motcomp.design.timedomain import swept_sine
 from motcomp.presets import load_preset
-from motcomp.sim.platform import simulate_axis
 
 DOC = Path(__file__).resolve().parent.parent / "docs" / "ANTIWINDUP.md"
 

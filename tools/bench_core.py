@@ -15,7 +15,8 @@ import time
 import numpy as np
 from _bench import machine, percentiles, write_section
 
-from motcomp.core.compensator import Compensator, p1d_coefficients
+from motcomp.core.compensator import Compensator
+from motcomp.core.models import p1d_coefficients
 from motcomp.core.saturation import AxisLimits
 from motcomp.core.tuning import tune
 from motcomp.presets import load_preset

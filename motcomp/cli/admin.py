@@ -86,8 +86,6 @@ def run_status(args: argparse.Namespace) -> int:
         print(f"compute p50 {loop['compute_p50_us']:.1f} us  p99 {loop['compute_p99_us']:.1f} us"
               f"  (whole tick with transport calls p99 {loop.get('tick_p99_us', 0.0):.1f} us)"
               f"  lateness p99.9 {loop['late_p999_us']:.1f} us  max {loop['late_max_us']:.0f} us")
-    if st.get("kernel"):
-        print(f"tick kernels: {st['kernel']}")
     print(f"frames received {fr['received']} accepted {fr['accepted']} rejected "
           f"{fr['rejected']} {fr['rejected_by_reason']}")
     print(f"stale {st['stale_s']:.2f} s (total {st['stale_total_s']:.2f} s)  "

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from motcomp.config import RESTART_KEYS, config_hash, load_config, resolve_axes
+from motcomp.config import RESTART_KEYS, config_hash, load_config, new_tick, resolve_axes
 
 ORDER = 5
 
@@ -28,12 +28,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_check(args: argparse.Namespace) -> int:
-    from motcomp.core.compensator import Compensator
 
     cfg = load_config(args.file)
     axes = resolve_axes(cfg)
     # the stability of every gain/model pair, exactly as the service will check it
-    comp = Compensator(axes.models, axes.gains, axes.limits, cfg.loop.rate_hz, history_s=0.5)
+    new_tick(cfg, axes)
     effective = cfg.model_dump(mode="json")
     if args.json:
         json.dump({"hash": config_hash(cfg), "config": effective}, sys.stdout, indent=2)
@@ -42,7 +41,7 @@ def run_check(args: argparse.Namespace) -> int:
         print(f"{args.file}: OK (hash {config_hash(cfg)})")
         print(f"loop {cfg.loop.rate_hz:g} Hz, input {cfg.input.key}, output "
               f"{cfg.output.transport} ({cfg.output.key}), admin "
-              f"{'on' if cfg.admin.enabled else 'off'}; compensator kernel {comp.kernel}")
+              f"{'on' if cfg.admin.enabled else 'off'}")
         for i, name in enumerate(axes.names):
             if not axes.driven[i]:
                 print(f"  {name:<10} not driven (held at neutral)")

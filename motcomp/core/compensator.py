@@ -63,8 +63,9 @@ The transfer functions of exactly this algorithm are in :mod:`motcomp.design.fre
 Rules for edge cases
 --------------------
 * Rate: fixed at construction (``rate_hz``); ``rate_hz <= 0`` or non-finite raises
-  :class:`~motcomp.errors.ConfigError`.  One :meth:`Compensator.step` is one sample; a caller that
-  missed a deadline calls it once (the platform held its last setpoint meanwhile).
+  :class:`~motcomp.errors.ConfigError`.  One :meth:`Compensator.step` is one sample on a uniform
+  grid; what a caller does about missed deadlines is its own rule (the service's, stated once:
+  :mod:`motcomp.core.tick`, "catch-up").
 * Non-finite reference on an axis: the last finite reference of that axis is used instead; the
   axis is flagged :data:`NONFINITE`.  A NaN never reaches the state or the output.
 * Limits: inverted or empty ranges are rejected when :class:`AxisLimits` is built; see
@@ -86,8 +87,6 @@ Rules for edge cases
 from __future__ import annotations
 
 import math
-import os
-from array import array
 from collections.abc import Sequence
 from dataclasses import dataclass
 from math import isfinite
@@ -97,69 +96,16 @@ from numpy.typing import ArrayLike
 
 from motcomp.core.loop import stability
 from motcomp.core.lti import FloatArray
-from motcomp.core.models import P1D
+from motcomp.core.minjerk import min_jerk
+from motcomp.core.models import P1D, p1d_coefficients
 from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import AxisLimits, axis_constants, check_position, limit_axis
 from motcomp.errors import ConfigError
 
-__all__ = ["KERNELS", "NONFINITE", "Compensator", "CompensatorState", "default_kernel",
-           "p1d_coefficients"]
-
-try:  # the compiled tick (motcomp/core/_ckernel.c); optional at build time
-    from motcomp.core import _ckernel
-except ImportError:  # pragma: no cover - exercised where no C compiler was available
-    _ckernel = None  # type: ignore[assignment]
-
-KERNELS = ("c", "python")
-"""Implementations of :meth:`Compensator.step`: ``c`` (compiled, the default when built) and
-``python`` (the reference; bit-identical results)."""
-
-
-def default_kernel() -> str:
-    """``c`` if the compiled kernel is importable, else ``python``; the environment variable
-    ``MOTCOMP_KERNEL`` (``c`` or ``python``) overrides.
-
-    Raises
-    ------
-    ConfigError
-        If ``MOTCOMP_KERNEL`` names an unknown kernel, or ``c`` while it was not built.
-    """
-    want = os.environ.get("MOTCOMP_KERNEL", "").strip().lower()
-    if want and want not in KERNELS:
-        raise ConfigError(f"MOTCOMP_KERNEL={want!r}: use one of {', '.join(KERNELS)}")
-    if want == "c" and _ckernel is None:
-        raise ConfigError("MOTCOMP_KERNEL=c but the compiled kernel motcomp.core._ckernel is "
-                          "not built (reinstall with a C compiler)")
-    return want or ("c" if _ckernel is not None else "python")
+__all__ = ["NONFINITE", "Compensator", "CompensatorState"]
 
 NONFINITE = 8
 """Flag bit: the reference was not finite and the last finite one was held."""
-
-
-def p1d_coefficients(model: P1D, dt_s: float) -> tuple[float, float, float, int]:
-    """``(phi, g0, g1, d)`` of the exact ZOH discretisation of a P1D with sub-sample delay.
-
-    With ``Td = (d-1) h + tau'``, ``0 < tau' <= h`` (``d = 0``, ``tau' = h`` for ``Td = 0``)::
-
-        phi = exp(-h/Tp1)
-        g0  = K (1 - exp(-(h - tau')/Tp1))
-        g1  = K exp(-(h - tau')/Tp1) (1 - exp(-tau'/Tp1))
-        x[k+1] = phi x[k] + g0 u[k-d+1] + g1 u[k-d]
-    """
-    h = dt_s
-    ratio = model.Td / h
-    d = math.ceil(ratio - 1e-12)
-    if d <= 0:
-        d, tau_p = 0, h
-    else:
-        tau_p = min(max(model.Td - (d - 1) * h, 0.0), h)
-        if tau_p <= 1e-15 * h:
-            tau_p = h
-    phi = math.exp(-h / model.Tp1)
-    e_rest = math.exp(-(h - tau_p) / model.Tp1)
-    g0 = model.K * (1.0 - e_rest)
-    g1 = model.K * e_rest * (1.0 - math.exp(-tau_p / model.Tp1))
-    return phi, g0, g1, d
 
 
 @dataclass
@@ -204,17 +150,11 @@ class Compensator:
     history_s
         Longest model dead time the delay line can hold after a live model change (default: the
         largest initial dead time plus 100 ms, at least 250 ms).
-    kernel
-        ``"c"``, ``"python"`` or None for :func:`default_kernel`.
 
     Notes
     -----
-    The state and the per-axis parameters live in flat ``array('d')`` buffers allocated once
-    and only ever changed in place: the compiled kernel (``motcomp/core/_ckernel.c``) steps
-    them directly, and the Python reference (:meth:`_step_py`) and every method that resets,
-    reseeds or reconfigures the compensator work on the same memory.  Both kernels perform the
-    same floating-point operations in the same order, so their outputs are bit-identical
-    (tests/test_ckernel.py).  Parameters are rebuilt off the tick, between two steps.
+    The state lives in flat lists allocated once and changed in place; parameters are rebuilt
+    between two steps, never during one.
     """
 
     def __init__(
@@ -226,7 +166,6 @@ class Compensator:
         position: ArrayLike | None = None,
         fade_s: float = 0.5,
         history_s: float | None = None,
-        kernel: str | None = None,
     ) -> None:
         if not (isinstance(rate_hz, int | float) and math.isfinite(rate_hz) and rate_hz > 0):
             raise ConfigError(f"compensator rate must be a positive finite number of Hz, "
@@ -249,22 +188,16 @@ class Compensator:
         self._hist_len = length
         self._mask = length - 1
         self._limits = limits
-        # every buffer below is allocated here, once, and changed in place only (the compiled
-        # kernel holds views of them)
         zeros = [0.0] * n
         (self._r, self._u, self._v, self._xc, self._xm, self._y_last, self._deriv, self._w_prev,
          self._raw, self._fade_offset, self._fade_progress, self._integral) = (
-            array("d", zeros) for _ in range(12))
-        self.deviation = array("d", zeros)
+            [0.0] * n for _ in range(12))
+        self.deviation = [0.0] * n
         """Per axis, emitted command minus its target at the last step (0 when feasible)."""
-        self._track = array("d", zeros * 3)  # the limiter's target tracker: (p, v, a) per axis
-        self._hist_c = array("d", zeros * length)  # axis i at [i * length, (i + 1) * length)
-        self._hist_m = array("d", zeros * length)
-        self._gain_p_buf = array("d", zeros * 6)
-        self._model_p_buf = array("d", zeros * 3)
-        self._offsets = array("q", [0] * (2 * n))
-        self._lim_buf = array("d", zeros * 24)
-        self._bypass = array("b", [0] * n)
+        self._track = zeros * 3  # the limiter's target tracker: (p, v, a) per axis
+        self._hist_c = zeros * length  # axis i at [i * length, (i + 1) * length)
+        self._hist_m = zeros * length
+        self._bypass = [False] * n
         self._lim: list[tuple[float, ...]] = []
         self._set_lim(limits)
         self._models: tuple[P1D, ...] = ()
@@ -274,19 +207,6 @@ class Compensator:
         self._set_models(models)
         self._set_gains(gains)
         self.flags: list[int] = [0] * n
-        self.kernel = default_kernel() if kernel is None else kernel
-        if self.kernel not in KERNELS:
-            raise ConfigError(f"unknown compensator kernel {self.kernel!r}; use one of "
-                              f"{', '.join(KERNELS)}")
-        self._stepper = None
-        if self.kernel == "c":
-            if _ckernel is None:
-                raise ConfigError("the compiled kernel motcomp.core._ckernel is not built")
-            self._stepper = _ckernel.Stepper(n, length, [
-                self._r, self._u, self._v, self._xc, self._xm, self._y_last, self._deriv,
-                self._w_prev, self._raw, self._fade_offset, self._fade_progress, self._integral,
-                self.deviation, self._track, self._hist_c, self._hist_m, self._gain_p_buf,
-                self._model_p_buf, self._lim_buf, self._offsets, self._bypass])
         self.reset(np.zeros(n) if position is None else position)
 
     # --- configuration ------------------------------------------------------------------------
@@ -308,7 +228,6 @@ class Compensator:
 
     def _set_lim(self, limits: AxisLimits) -> None:
         self._lim = axis_constants(limits, self.dt_s)
-        self._lim_buf[:] = array("d", [x for c in self._lim for x in c])
 
     def _set_models(self, models: Sequence[P1D]) -> None:
         if len(models) != self.n:
@@ -325,8 +244,6 @@ class Compensator:
             # read offsets of u[k-d+1] and u[k-d] relative to the write slot k
             params.append((phi, g0, g1, 1 - d, -d))
         self._model_p = params
-        self._model_p_buf[:] = array("d", [x for p in params for x in p[:3]])
-        self._offsets[:] = array("q", [x for p in params for x in p[3:]])
         self._models = tuple(models)
 
     def _check_stable(self, models: Sequence[P1D], gains: Sequence[PIDGains]) -> None:
@@ -349,7 +266,6 @@ class Compensator:
         for g in gains:
             params.append((g.kp, g.ki * h, g.tf / (g.tf + h), g.kd / (g.tf + h), g.b, g.c))
         self._gain_p = params
-        self._gain_p_buf[:] = array("d", [x for p in params for x in p])
         self._gains = tuple(gains)
 
     def set_gains(self, gains: Sequence[PIDGains]) -> None:
@@ -424,7 +340,7 @@ class Compensator:
                 # (minimum-jerk: no velocity or acceleration step at either end)
                 self._fade_offset[i] = self._u[i] - self._r[i]
                 self._fade_progress[i] = 0.0
-        self._bypass[:] = array("b", new)
+        self._bypass[:] = new
 
     # --- state --------------------------------------------------------------------------------
     def reset(self, position: ArrayLike) -> None:
@@ -440,11 +356,10 @@ class Compensator:
                             (self._raw, p), (self._fade_offset, zeros),
                             (self._fade_progress, [1.0] * n), (self._integral, zeros),
                             (self.deviation, zeros)):
-            buf[:] = array("d", values)
-        self._w_prev[:] = array("d", [gp[5] * pi - xi for gp, pi, xi in zip(
-            self._gain_p, p, xc, strict=True)])
-        self._track[:] = array("d", [x for pi in p for x in (pi, 0.0, 0.0)])
-        hist = array("d", [x for pi in p for x in [pi] * self._hist_len])
+            buf[:] = values
+        self._w_prev[:] = [gp[5] * pi - xi for gp, pi, xi in zip(self._gain_p, p, xc, strict=True)]
+        self._track[:] = [x for pi in p for x in (pi, 0.0, 0.0)]
+        hist = [x for pi in p for x in [pi] * self._hist_len]
         self._hist_c[:] = hist
         self._hist_m[:] = hist
         self._reseed(p)
@@ -457,9 +372,9 @@ class Compensator:
 
     def _reseed(self, target: Sequence[float]) -> None:
         """Choose the integrator so that :meth:`_virtual_raw` equals ``target``."""
-        self._integral[:] = array("d", [t - gp[0] * (gp[4] * r - y) - d for t, gp, r, y, d in
-                                        zip(target, self._gain_p, self._r, self._y_last,
-                                            self._deriv, strict=True)])
+        self._integral[:] = [t - gp[0] * (gp[4] * r - y) - d for t, gp, r, y, d in
+                             zip(target, self._gain_p, self._r, self._y_last, self._deriv,
+                                 strict=True)]
 
     def state(self) -> CompensatorState:
         """A copy of the complete state."""
@@ -502,15 +417,6 @@ class Compensator:
         """
         ref: Sequence[float] = (reference.tolist() if isinstance(reference, np.ndarray)
                                 else reference)
-        if self._stepper is not None:
-            out, self.flags = self._stepper.step(ref, self._k, self._fade_step)
-            self._k += 1
-            return out
-        return self._step_py(ref)
-
-    def _step_py(self, ref: Sequence[float]) -> list[float]:
-        """The reference implementation of :meth:`step` (and the fallback without the compiled
-        kernel), on the same buffers."""
         if len(ref) != self.n:
             raise ValueError(f"reference has {len(ref)} values for {self.n} axes")
         k = self._k
@@ -542,8 +448,7 @@ class Compensator:
             if bypass[i]:
                 progress = self._fade_progress[i]  # fade progress, 0 -> 1
                 if progress < 1.0:  # minimum-jerk fade: no acceleration step at either end
-                    target = r + self._fade_offset[i] * (
-                        1.0 - progress**3 * (10.0 - 15.0 * progress + 6.0 * progress * progress))
+                    target = r + self._fade_offset[i] * (1.0 - min_jerk(progress))
                     self._fade_progress[i] = min(progress + self._fade_step, 1.0)
                 else:
                     target = r

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from motcomp.core.lti import ComplexArray, FloatArray
-from motcomp.core.models import P1D
+from motcomp.core.models import P1D, p1d_coefficients
 from motcomp.core.pid import PIDGains
 
 __all__ = ["STABILITY_MARGIN", "Poly", "model_tf", "pid_tf", "poles", "stability"]
@@ -53,8 +53,6 @@ def pid_tf(g: PIDGains, dt_s: float) -> tuple[Poly, Poly]:
 
 def model_tf(model: P1D, dt_s: float) -> Poly:
     """``M(z) = (g0 z + g1) / ((z - phi) z^d)``: the compensator's own internal model."""
-    from motcomp.core.compensator import p1d_coefficients
-
     phi, g0, g1, d = p1d_coefficients(model, dt_s)
     return np.array([g0, g1]), np.concatenate([[1.0, -phi], np.zeros(d)])
 

@@ -59,6 +59,7 @@ __all__ = [
     "P2UZD",
     "ProcessModel",
     "format_model",
+    "p1d_coefficients",
     "pade",
     "parse_model",
     "phase_delay_from_response",
@@ -548,3 +549,47 @@ def format_model(model: ProcessModel) -> str:
         else:
             parts.append(f"{key}={_fmt(value)}")
     return f"{model.kind}:{','.join(parts)}"
+
+
+def p1d_coefficients(model: P1D, dt_s: float) -> tuple[float, float, float, int]:
+    """``(phi, g0, g1, d)`` of the exact ZOH discretisation of a P1D with sub-sample delay.
+
+    With ``Td = (d-1) h + tau'``, ``0 < tau' <= h`` (``d = 0``, ``tau' = h`` for ``Td = 0``)::
+
+        phi = exp(-h/Tp1)
+        g0  = K (1 - exp(-(h - tau')/Tp1))
+        g1  = K exp(-(h - tau')/Tp1) (1 - exp(-tau'/Tp1))
+        x[k+1] = phi x[k] + g0 u[k-d+1] + g1 u[k-d]
+    """
+    h = dt_s
+    ratio = model.Td / h
+    d = math.ceil(ratio - 1e-12)
+    if d <= 0:
+        d, tau_p = 0, h
+    else:
+        tau_p = min(max(model.Td - (d - 1) * h, 0.0), h)
+        if tau_p <= 1e-15 * h:
+            tau_p = h
+    phi = math.exp(-h / model.Tp1)
+    e_rest = math.exp(-(h - tau_p) / model.Tp1)
+    g0 = model.K * (1.0 - e_rest)
+    g1 = model.K * e_rest * (1.0 - math.exp(-tau_p / model.Tp1))
+    return phi, g0, g1, d
+
+
+def simulate_axis(model: ProcessModel, commands: ArrayLike, rate_hz: float,
+                  initial: float | None = None) -> FloatArray:
+    """Position response of one axis to a ZOH command sequence, from rest at ``initial``
+    (default: the first command).  Exact; uses scipy's ``lfilter`` when available (offline)."""
+    u = np.asarray(commands, dtype=float)
+    u0 = float(u[0]) if initial is None else float(initial)
+    disc = model.discretize(rate_hz)
+    try:
+        from scipy.signal import lfilter, lfilter_zi
+    except ImportError:  # pragma: no cover - scipy is a dependency, this is for slim installs
+        return disc.simulate(u, u_before=u0)
+    num, den = disc.tf()
+    b = np.concatenate([np.zeros(den.size - num.size), num])
+    zi = lfilter_zi(b, den) * u0 if abs(np.sum(den)) > 1e-12 else np.zeros(den.size - 1)
+    y, _ = lfilter(b, den, u, zi=zi)
+    return np.asarray(y)

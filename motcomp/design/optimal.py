@@ -64,8 +64,7 @@ from typing import Any
 
 import numpy as np
 
-from motcomp.core.compensator import p1d_coefficients
-from motcomp.core.models import OE, P1D, ProcessModel
+from motcomp.core.models import OE, P1D, ProcessModel, p1d_coefficients
 from motcomp.core.pid import PIDGains
 from motcomp.core.tuning import RULES, tune
 from motcomp.design.fastloop import LoopGrid

@@ -32,11 +32,10 @@ from numpy.typing import ArrayLike
 
 from motcomp.core.compensator import Compensator
 from motcomp.core.lti import FloatArray
-from motcomp.core.models import P1D, ProcessModel
+from motcomp.core.models import P1D, ProcessModel, simulate_axis
 from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import AxisLimits
 from motcomp.errors import ConfigError
-from motcomp.sim.platform import simulate_axis
 
 __all__ = [
     "SimulationResult",

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from motcomp.core.axes import AXES
+from motcomp.core.tick import TickOutput
 from motcomp.errors import ConfigError, FrameError, TransportError
 
 __all__ = [
@@ -200,8 +201,8 @@ def open_bus(interface: str, channel: str, bitrate_bps: int | None = None) -> ob
 class CanSink:
     """Sends output frames on a CAN bus every ``send_every`` ticks, frames staggered.
 
-    ``send(tick, positions, limited, stale, parking)``; never blocks (``timeout=0``): a frame the
-    driver cannot take is dropped and counted in :attr:`errors`.
+    ``send(out, t)`` with a :class:`~motcomp.core.tick.TickOutput`; never blocks (``timeout=0``):
+    a frame the driver cannot take is dropped and counted in :attr:`errors`.
     """
 
     def __init__(self, bus: object, layouts: list[FrameLayout], send_every: int = 1) -> None:
@@ -217,11 +218,14 @@ class CanSink:
         self.errors = 0
         self.last_error = ""
 
-    def send(self, tick: int, positions: Sequence[float], limited: Sequence[bool], stale: bool,
-             parking: bool) -> None:
-        slot = tick % self.send_every
+    def send(self, out: TickOutput, t: float = 0.0) -> None:
+        """The frames of this tick's slot (an :class:`~motcomp.io.ports.OutputPort`; CAN frames
+        carry no time, ``t`` is unused)."""
+        slot = out.seq % self.send_every
         first = slot * self._per_tick
-        base = (FLAG_STALE if stale else 0) | (FLAG_PARK if parking else 0)
+        positions, limited = out.u, out.limited
+        base = (FLAG_STALE if out.mode == "stale" else 0) | (FLAG_PARK if out.mode == "parking"
+                                                              else 0)
         for j in range(first, min(first + self._per_tick, len(self.layouts))):
             lay = self.layouts[j]
             flags = (base | (FLAG_SAT_A if limited[lay.axis_index[0]] else 0)

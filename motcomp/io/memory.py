@@ -9,6 +9,9 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Iterable
 
+from motcomp.core.tick import TickOutput
+from motcomp.io.wire import encode_output
+
 __all__ = ["MemorySink", "MemorySource"]
 
 
@@ -40,6 +43,13 @@ class MemorySink:
 
     def __init__(self, keep: int | None = None) -> None:
         self.payloads: deque[bytes] = deque(maxlen=keep)
+        self.sent = 0
+        self.errors = 0
+
+    def send(self, out: TickOutput, t: float) -> None:
+        """An :class:`~motcomp.io.ports.OutputPort`: keeps the encoded output frame."""
+        self.put(encode_output(out.seq, t, out.src_seq, out.u, out.flags))
+        self.sent += 1
 
     def put(self, payload: bytes) -> None:
         self.payloads.append(payload)

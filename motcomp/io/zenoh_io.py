@@ -18,7 +18,9 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
+from motcomp.core.tick import TickOutput
 from motcomp.errors import ConfigError, TransportError
+from motcomp.io.wire import encode_output
 
 __all__ = [
     "ZenohEndpoints",
@@ -146,6 +148,10 @@ class ZenohSink:
             self.sent += 1
         except Exception:  # a closed session or a transport error must not stop the loop
             self.errors += 1
+
+    def send(self, out: TickOutput, t: float) -> None:
+        """An :class:`~motcomp.io.ports.OutputPort`: the output frame of docs/WIRE.md."""
+        self.put(encode_output(out.seq, t, out.src_seq, out.u, out.flags))
 
     def close(self) -> None:
         self._pub.undeclare()

@@ -32,7 +32,6 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from motcomp.core.axes import AXES, AXIS_INDEX
-from motcomp.io.wire import REJECT_REASONS
 
 __all__ = [
     "FLAG_BITS",
@@ -358,20 +357,19 @@ def _one(buf: np.ndarray, offset: np.ndarray, length: np.ndarray, i: int, ex: Ex
 
 
 # --- input frames ---------------------------------------------------------------------------
-REASON_CODE = {r: i + 1 for i, r in enumerate(REJECT_REASONS)}
-"""Reject reason -> code in :attr:`InputColumns.reason` (0: structurally valid)."""
-
-
 def _is_number(x: object) -> bool:
     return isinstance(x, int | float) and not isinstance(x, bool)
 
 
 class InputColumns(Extractor):
-    """Input frames (``{"seq", "t", "pos"}``) as columns, with the wire contract's checks that
-    need no state (decode, schema, type, axis, nonfinite); range and sequence checks depend on
-    the config and on time, and are made by the replay.
+    """Input frames (``{"seq", "t", "pos"}``) as columns, for analysis (delays, plots, lookup
+    of a frame by ``seq``).
 
-    ``pos[i, a]`` is NaN where frame ``i`` does not carry axis ``a``; ``t`` is NaN without ``t``.
+    ``decoded[i]``: frame ``i`` is a msgpack map with an integer ``seq`` and a ``pos`` map;
+    ``pos[i, a]`` is its value of axis ``a`` if that is a number (NaN otherwise, and where the
+    frame does not carry the axis); ``t`` is NaN without a numeric ``t``.  Whether the service
+    *accepts* a frame (schema, types, axes, range, sequence) is not decided here: only
+    :func:`motcomp.core.tick.parse_input` decides, when the replay's tick reads the frame.
     """
 
     def __init__(self, n: int) -> None:
@@ -379,89 +377,49 @@ class InputColumns(Extractor):
         self.seq = np.zeros(n, dtype=np.int64)
         self.t = np.full(n, np.nan)
         self.pos = np.full((n, len(AXES)), np.nan)
-        self.reason = np.zeros(n, dtype=np.int8)
-        self.last_error = ""
-
-    def _reject(self, rows: np.ndarray | int, reason: str, message: str) -> None:
-        self.reason[rows] = REASON_CODE[reason]
-        self.last_error = f"{reason}: {message}"
+        self.decoded = np.zeros(n, dtype=bool)
 
     def undecodable(self, row: int, message: str) -> None:
-        self._reject(row, "decode", message)
-
-    def _structure(self, keys: list[str], kinds: dict[str, Any],
-                   pos_keys: list[str] | None, pos_kinds: dict[str, Any]) -> str | None:
-        extra = set(keys) - {"seq", "t", "pos"}
-        if extra:
-            return "schema"
-        if "seq" not in keys or "pos" not in keys:
-            return "schema"
-        if kinds["seq"] != "int":
-            return "type"
-        if "t" in keys and kinds["t"] not in ("num", "int", "nil"):
-            return "type"
-        if pos_keys is None:
-            return "type"
-        if not pos_keys:
-            return "schema"
-        for a in pos_keys:
-            if a not in AXIS_INDEX:
-                return "axis"
-            if pos_kinds[a] not in ("num", "int"):
-                return "type"
-        return None
+        pass
 
     def from_layout(self, layout: Layout, g: np.ndarray, rows: np.ndarray,
                     same: dict[str, np.ndarray]) -> None:
         if rows.size == 0:
             return
-        top = layout.maps.get(())
-        if top is None:
-            self._reject(rows, "decode", "frame is not a map")
-            return
-        kinds: dict[str, Any] = {}
-        pos_kinds: dict[str, Any] = {}
-        leaves: dict[tuple[Any, ...], Leaf] = {}
-        for leaf in layout.leaves:
-            leaves[leaf.path] = leaf
-            kind = ("int" if leaf.kind in INTEGER else "num" if leaf.kind in NUMERIC
-                    else "nil" if leaf.kind == NIL else "other")
-            if len(leaf.path) == 1:
-                kinds[leaf.path[0]] = kind
-            elif len(leaf.path) == 2 and leaf.path[0] == "pos":
-                pos_kinds[leaf.path[1]] = kind
-        for key in top:
-            kinds.setdefault(key, "container")
+        leaves = {leaf.path: leaf for leaf in layout.leaves}
+        seq = leaves.get(("seq",))
         pos_keys = layout.maps.get(("pos",))
-        bad = self._structure(top, kinds, pos_keys, pos_kinds)
-        if bad is not None:
-            self._reject(rows, bad, "frame layout")
+        if seq is None or seq.kind not in INTEGER or pos_keys is None or \
+                layout.maps.get(()) is None:
             return
-        self.seq[rows] = _int_column(g, leaves[("seq",)])
+        if seq.dtype == ">u8":  # beyond int64: not decoded (as in from_object)
+            small = _leaf_view(g, seq, ">u8") < 2**63
+            if not small.all():
+                rows, g = rows[small], g[small]
+        self.seq[rows] = _int_column(g, seq)
         t_leaf = leaves.get(("t",))
-        if t_leaf is not None and t_leaf.kind != NIL:
+        if t_leaf is not None and t_leaf.kind in NUMERIC:
             self.t[rows] = _column(g, t_leaf)
-        assert pos_keys is not None
-        block = _map_block(g, leaves, "pos", pos_keys)
-        finite = np.isfinite(block).sum(axis=1) == len(pos_keys)
-        self.pos[rows] = block
-        if not finite.all():
-            self._reject(rows[~finite], "nonfinite", "non-finite position")
+        keys = [a for a in pos_keys if a in AXIS_INDEX and leaves.get(("pos", a)) is not None
+                and leaves[("pos", a)].kind in NUMERIC]
+        if keys:
+            self.pos[rows] = _map_block(g, leaves, "pos", keys)
+        self.decoded[rows] = True
 
     def from_object(self, obj: Any, row: int) -> None:
-        from motcomp.errors import FrameError
-        from motcomp.io.wire import decode_input
-
-        try:
-            seq, t, pos = decode_input(msgpack.packb(obj, use_bin_type=True))
-        except FrameError as exc:
-            self._reject(row, exc.reason, str(exc))
+        if obj.__class__ is not dict:
+            return
+        seq, pos = obj.get("seq"), obj.get("pos")
+        if seq.__class__ is not int or not -2**63 <= seq < 2**63 or pos.__class__ is not dict:
             return
         self.seq[row] = seq
-        if t is not None:
-            self.t[row] = t
+        t = obj.get("t")
+        if _is_number(t):
+            self.t[row] = float(t)
         for a, v in pos.items():
-            self.pos[row, AXIS_INDEX[a]] = float(v)
+            if a.__class__ is str and a in AXIS_INDEX and _is_number(v):
+                self.pos[row, AXIS_INDEX[a]] = float(v)
+        self.decoded[row] = True
 
 
 # --- output frames --------------------------------------------------------------------------

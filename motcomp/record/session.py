@@ -6,9 +6,10 @@ the ``publish_ns`` and ``sequence`` of the MCAP message, and its decoded fields:
 =================  =========================================================================
 stream             fields
 =================  =========================================================================
-``inputs``         ``seq`` (int64), ``t`` (s, NaN without ``t``), ``pos`` (n x 8, NaN where
-                   the frame does not carry the axis), ``reason`` (0, or the code of the wire
-                   check it fails: :data:`motcomp.record.frames.REASON_CODE`)
+``inputs``         the raw payloads (:meth:`InputStream.payload`: what a replay's tick reads),
+                   and for analysis ``seq`` (int64), ``t`` (s, NaN without ``t``), ``pos``
+                   (n x 8, NaN where the frame does not carry the axis), ``decoded`` (those
+                   could be read; whether the service accepts a frame is the tick's call)
 ``outputs``        ``seq``, ``t`` (the tick's time), ``src_seq``, ``pos`` (n x 8), ``flags``
                    (bit field, :data:`motcomp.record.frames.FLAG_BITS`), ``valid``
 ``feedback``       ``t``, ``pos``, ``acc`` (n x 8), ``valid``
@@ -70,13 +71,26 @@ class RawStream:
     def __len__(self) -> int:
         return int(self.log_ns.size)
 
+    def payload(self, i: int) -> bytes:
+        """The recorded bytes of message ``i``."""
+        return self.payloads[i]
+
 
 @dataclass
 class InputStream(RawStream):
+    """Input frames: their payloads in one buffer (``data[bounds[i]:bounds[i + 1]]`` is frame
+    ``i``; an hour at 1 kHz is 3.6 M frames, kept without an object each) and columns decoded
+    for analysis."""
+
+    data: bytes = b""
+    bounds: np.ndarray = field(default_factory=lambda: np.zeros(1, np.int64))
     seq: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     t: np.ndarray = field(default_factory=lambda: np.zeros(0))
     pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 8)))
-    reason: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int8))
+    decoded: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+    def payload(self, i: int) -> bytes:
+        return self.data[int(self.bounds[i]):int(self.bounds[i + 1])]
 
 
 @dataclass
@@ -241,6 +255,8 @@ class _Collector:
         self.windows = windows  # [start, end, start, end...] log ns: decode only these
         self.segments: list[tuple[Any, np.ndarray, np.ndarray, int]] = []
         self.n = 0  # rows used in the last segment
+        self.data: list[bytes] = []  # input payloads, one buffer per batch
+        self.lengths: list[np.ndarray] = []
 
     def _new(self, n: int) -> Any:
         if self.role == "input":
@@ -273,6 +289,11 @@ class _Collector:
         if isinstance(ex, list):
             ex += [mb.payload(i) for i in range(m)]
         else:
+            if self.role == "input":
+                mv = memoryview(mb.buf)
+                self.data.append(b"".join([mv[o:o + n] for o, n in zip(
+                    mb.offset.tolist(), mb.length.tolist(), strict=True)]))
+                self.lengths.append(mb.length.astype(np.int64))
             decode_rows(mb.buf, mb.offset, mb.length, ex, row0=self.n)
         self.n += m
         self.segments[-1] = (ex, log_ns, pub_ns, self.n)
@@ -287,10 +308,15 @@ class _Collector:
         base: dict[str, Any] = dict(key=self.key, log_ns=cat(lambda x: x[1], np.zeros(0, np.int64)),
                                     publish_ns=cat(lambda x: x[2], np.zeros(0, np.int64)))
         if self.role == "input":
-            return InputStream(**base, seq=cat(lambda x: x[0].seq, np.zeros(0, np.int64)),
+            bounds = np.zeros(sum(x.size for x in self.lengths) + 1, np.int64)
+            np.cumsum(_concat(self.lengths, np.zeros(0, np.int64)), out=bounds[1:])
+            data = b"".join(self.data)
+            self.data.clear()
+            return InputStream(**base, data=data, bounds=bounds,
+                               seq=cat(lambda x: x[0].seq, np.zeros(0, np.int64)),
                                t=cat(lambda x: x[0].t, np.zeros(0)),
                                pos=cat(lambda x: x[0].pos, np.zeros((0, 8))),
-                               reason=cat(lambda x: x[0].reason, np.zeros(0, np.int8)))
+                               decoded=cat(lambda x: x[0].decoded, np.zeros(0, bool)))
         if self.role == "output":
             bad = sum(seg[0].bad for seg in segs)
             if bad:

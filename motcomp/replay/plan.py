@@ -1,9 +1,9 @@
 """What the service did, tick by tick: the :class:`TickPlan` a replay follows.
 
 A plan has one row per compensator step: its instant ``now_ns`` (the loop's own clock), the
-input frame consumed just before it (if any), whether it emitted an output (a tick) or was a
-catch-up step after a stall (``Service._catch_up``), and the bypass changes and the parking
-request between steps.  It is rebuilt from a recording in one of three ways (docs/REPLAY.md):
+input frame the tick read (if any), whether it emitted an output (a tick) or was a catch-up
+step after a stall (computed by the following tick: :func:`motcomp.core.tick.step` with
+``skipped``), and the bypass changes and the parking request between steps.  It is rebuilt from a recording in one of three ways (docs/REPLAY.md):
 
 ``outputs+clock``
     Recorded outputs and a status frame carrying the loop's ``clock``: each output's ``t`` is
@@ -17,11 +17,14 @@ request between steps.  It is rebuilt from a recording in one of three ways (doc
     ``t`` snapped to the period relative to the first tick; the absolute instant is unknown,
     which changes floating-point rounding in the reference reconstruction (see docs/REPLAY.md).
 ``inputs``
-    No outputs: ticks at the config's rate from the first input's arrival, each consuming the
-    newest frame that arrived since the previous tick (recorder receive times).
+    No outputs: ticks at the config's rate from the first input's arrival, each reading the
+    newest frame that arrived since the previous tick (recorder receive times), valid or not,
+    as the service's latest-value input does.
 
-Frames are checked against the replay's config (wire checks, range; sequence order when the
-plan is built from input arrivals); a rejected frame is not consumed.
+A plan does not judge frames: the replay's tick reads the recorded bytes and accepts or rejects
+them itself (:func:`motcomp.core.tick.parse_input` and the sequence rule).  The one use of
+:func:`~motcomp.core.tick.parse_input` here is the start of a warm plan: the first frame the
+replay's tick accepts, since the replay starts at rest at its position.
 """
 
 from __future__ import annotations
@@ -31,15 +34,14 @@ from typing import Any
 
 import numpy as np
 
-from motcomp.config import ResolvedAxes, ServiceConfig
+from motcomp.config import ResolvedAxes, ServiceConfig, tick_params
 from motcomp.core.axes import AXES
-from motcomp.errors import DataError
-from motcomp.io.wire import REJECT_REASONS
+from motcomp.core.tick import MAX_CATCH_UP, TickParams, parse_input
+from motcomp.errors import DataError, FrameError
 from motcomp.record.frames import FLAG_BITS
-from motcomp.record.session import Session
-from motcomp.runtime.service import MAX_CATCH_UP
+from motcomp.record.session import InputStream, Session
 
-__all__ = ["TickPlan", "build_plan", "validate_frames"]
+__all__ = ["TickPlan", "build_plan", "first_position"]
 
 WARM_AFTER_TICKS = 5000
 """A recording whose first output is a later tick than this, and already used an input,
@@ -53,7 +55,7 @@ class TickPlan:
 
     now_ns: np.ndarray
     frame: np.ndarray
-    """Input index consumed before the step, or -1."""
+    """Index of the input frame the step's tick reads, or -1 (none)."""
     output: np.ndarray
     """Index of the recorded output of this step, or -1 (catch-up step, or not recorded)."""
     emit: np.ndarray
@@ -62,12 +64,13 @@ class TickPlan:
     """Bypass mask at the first row (None: the config's)."""
     bypass_events: list[tuple[int, np.ndarray]]
     """``(row, mask)``: bypass set to ``mask`` before the row's step."""
-    park: tuple[int, float] | None
-    """``(row, time_s)``: parking requested before that row."""
+    park: tuple[int, int] | None
+    """``(row, now_ns)``: parking requested at ``now_ns``, before that row."""
     warm: bool
+    """Starts mid-run: at rest at the first frame (:func:`first_position`), without the
+    start-up blend."""
     method: str
     period_ns: int
-    rejected: dict[str, int] = field(default_factory=dict)
     missing_frames: int = 0
     notes: list[str] = field(default_factory=list)
     bypass_axes: np.ndarray | None = None
@@ -84,26 +87,24 @@ class TickPlan:
         return np.asarray((self.now_ns - self.now_ns[0]) / 1e9)
 
 
-def validate_frames(session: Session, cfg: ServiceConfig, axes: ResolvedAxes) -> np.ndarray:
-    """Per input frame: 0 if the replay's config accepts it (wire checks and range), else the
-    1-based index of its reject reason in :data:`motcomp.io.wire.REJECT_REASONS`."""
-    inp = session.inputs
-    assert inp is not None
-    reason = inp.reason.copy()
-    f = cfg.input.reject_beyond_fraction
-    lo = axes.limits.p_min - f * (axes.limits.p_max - axes.limits.p_min)
-    hi = axes.limits.p_max + f * (axes.limits.p_max - axes.limits.p_min)
-    with np.errstate(invalid="ignore"):
-        out = ((inp.pos < lo) | (inp.pos > hi)).any(axis=1)
-    reason[(reason == 0) & out] = REJECT_REASONS.index("range") + 1
-    return reason
+def first_position(inp: InputStream, frame: int, params: TickParams
+                   ) -> dict[int, float] | None:
+    """``{axis index: value}`` of input frame ``frame`` if the tick accepts it (alone, as a
+    first frame), else None."""
+    sp = params.shaper
+    try:
+        return parse_input(inp.payload(frame), sp.reach_lo, sp.reach_hi,
+                           params.max_frame_bytes)[2]
+    except FrameError:
+        return None
 
 
-def _count(reason: np.ndarray, rows: np.ndarray) -> dict[str, int]:
-    codes = reason[rows]
-    codes = codes[codes > 0]
-    return {REJECT_REASONS[c - 1]: int(n) for c, n in zip(*np.unique(codes, return_counts=True),
-                                                          strict=True)}
+def _warm_start(inp: InputStream, frame: np.ndarray, params: TickParams, name: str) -> int:
+    """The row of a warm plan's first tick: the first whose frame the tick accepts."""
+    for r in np.flatnonzero(frame >= 0).tolist():
+        if first_position(inp, int(frame[r]), params) is not None:
+            return int(r)
+    raise DataError(f"{name}: no usable input frame in the recording")
 
 
 def _runs(seq: np.ndarray) -> list[np.ndarray]:

@@ -1,30 +1,27 @@
-"""Synthetic sessions on virtual time, through the service's own code, written as recordings.
+"""Synthetic sessions on virtual time, through the service's own tick, written as recordings.
 
 For tests and benchmarks: a motion source publishing at its own (slightly drifting) clock, a
-transport with random transit times, the service's :meth:`~motcomp.runtime.service.Service.tick`
-on its deadline grid with stalls (catch-up), bypass switches, silent gaps (stale input),
+transport with random transit times, the tick (:func:`motcomp.core.tick.step`, what the service
+runs) on its deadline grid with stalls (catch-up), bypass switches, silent gaps (stale input),
 partial frames, bad frames and parking, and a recorder that receives every frame shortly after
 it was sent (and may start late or lose outputs).  The platform's feedback is simulated with
 :func:`~motcomp.sim.platform.simulate_axis` from the config's plant models.  Everything is a
 function of the seed.
-
-``engine="fast"`` computes the outputs with :func:`~motcomp.replay.engine.run_fast` instead of
-ticking the service (for hour-long benchmark sessions); the frames are the same.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import msgpack
 import numpy as np
 
-from motcomp.config import ServiceConfig, config_hash, resolve_axes
+from motcomp.config import ServiceConfig, config_hash, new_tick, resolve_axes
 from motcomp.core.axes import AXES, AXIS_INDEX
+from motcomp.core.tick import is_parked, park, set_bypass, step
 from motcomp.io.wire import encode_feedback, encode_input, encode_output
 from motcomp.record.recorder import SessionWriter
 from motcomp.record.session import DEFAULT_KEYS
@@ -68,7 +65,6 @@ class SynthOptions:
     status: bool = True
     clock_in_status: bool = True
     feedback: bool = True
-    engine: str = "ticks"
 
 
 def motion(t: np.ndarray, axis: str, amplitude: float = 1.0) -> np.ndarray:
@@ -83,10 +79,6 @@ def motion(t: np.ndarray, axis: str, amplitude: float = 1.0) -> np.ndarray:
 
 def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict[str, object]:
     """Write the recording of a synthetic session; returns facts about it (tick count...)."""
-    from motcomp.io.memory import MemorySink, MemorySource
-    from motcomp.io.zenoh_io import ZenohEndpoints
-    from motcomp.runtime.service import MAX_CATCH_UP, Service
-
     rng = np.random.default_rng(opts.seed)
     period = round(1e9 / cfg.loop.rate_hz)
     n_src = int(opts.duration_s * opts.source_hz)
@@ -123,37 +115,30 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
     for ts, skip in opts.stalls:
         m[m * period > (ts + 0.2) * 1e9] += skip
     deadlines = grid0 + m * period
-    out_msgs: list[tuple[int, bytes]] = []
-    svc = Service(cfg, ZenohEndpoints())
-    src, sink = MemorySource(latest_only=True), MemorySink()
-    svc.attach(src, [sink])
-    svc._t_mono0, svc._t_wall0 = MONO0_NS, WALL0
+    params, state = new_tick(cfg)
     bypass_at = sorted(opts.bypass)
     fi = 0
     parked_from = None
-    if opts.engine == "ticks":
-        for j, dl in enumerate(deadlines.tolist()):
-            t_rel = (dl - MONO0_NS) / 1e9 - 0.2
-            while bypass_at and bypass_at[0][0] <= t_rel:
-                _, on, names = bypass_at.pop(0)
-                svc.commands.append(_bypass_cmd(svc, on, names))
-            while fi < len(frames) and frames[fi][0] <= dl:
-                src.push(frames[fi][1])
-                fi += 1
-            skipped = int((dl - deadlines[j - 1]) // period - 1) if j else 0
-            if skipped:
-                svc._catch_up(dl, min(skipped, MAX_CATCH_UP))
-            svc.tick(dl)
-            if opts.park_at_s is not None and parked_from is None and t_rel >= opts.park_at_s:
-                parked_from = j
-                svc.shaper.park(dl / 1e9)
-            elif parked_from is not None and svc._parked():
-                break
-        out_msgs = [(int(dl), p) for dl, p in zip(deadlines.tolist(), sink.payloads,
-                                                  strict=False)]
-        u_out = None
-    else:
-        out_msgs, u_out = _fast_outputs(cfg, frames, deadlines, period)
+    out_msgs: list[tuple[int, bytes]] = []
+    for j, dl in enumerate(deadlines.tolist()):
+        t_rel = (dl - MONO0_NS) / 1e9 - 0.2
+        while bypass_at and bypass_at[0][0] <= t_rel:
+            _, on, names = bypass_at.pop(0)
+            set_bypass(state, [on if a in names else b
+                               for a, b in zip(AXES, state.comp.bypass, strict=True)])
+        payload = None  # the newest frame arrived since the last tick (a latest-value input)
+        while fi < len(frames) and frames[fi][0] <= dl:
+            payload = frames[fi][1]
+            fi += 1
+        skipped = int((dl - deadlines[j - 1]) // period - 1) if j else 0
+        out = step(state, params, dl, payload, skipped)
+        out_msgs.append((dl, encode_output(out.seq, WALL0 + (dl - MONO0_NS) / 1e9, out.src_seq,
+                                           out.u, out.flags)))
+        if opts.park_at_s is not None and parked_from is None and t_rel >= opts.park_at_s:
+            parked_from = j
+            park(state, params, dl)
+        elif parked_from is not None and is_parked(state):
+            break
     n_out = len(out_msgs)
     # what the recorder receives (wall ns)
     def wall_ns(mono: int) -> int:
@@ -170,9 +155,16 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
         if j not in lost:
             msgs.append((wall_ns(dl) + 150_000, DEFAULT_KEYS["output"], payload))
     if opts.feedback and out_msgs:
-        msgs += _feedback(cfg, out_msgs, wall_ns, u_out)
+        msgs += _feedback(cfg, out_msgs, wall_ns)
     if opts.status:
-        st = svc.status()
+        axes = resolve_axes(cfg)
+        st: dict[str, object] = {
+            "config": {"hash": config_hash(cfg), "version": 1, "path": None},
+            "rate_hz": cfg.loop.rate_hz, "ticks": state.ticks,
+            "driven": [a for a, d in zip(AXES, axes.driven, strict=True) if d],
+            "frames": {"received": state.received, "accepted": state.accepted,
+                       "rejected_by_reason": dict(state.rejected_by_reason)},
+            "saturation": dict(zip(AXES, state.sat, strict=True))}
         st["clock"] = ({"wall0": WALL0, "mono0_ns": MONO0_NS,
                         "grid0_ns": None if cfg.loop.sync_to_input else grid0,
                         "period_ns": period} if opts.clock_in_status else None)
@@ -192,65 +184,13 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
             "deadlines": deadlines[:n_out]}
 
 
-def _bypass_cmd(svc: object, on: bool, names: tuple[str, ...]) -> Callable[[], None]:
-    def apply() -> None:
-        comp = svc.comp  # type: ignore[attr-defined]
-        mask = list(comp.bypass)
-        for a in names:
-            if svc.axes.driven[AXIS_INDEX[a]]:  # type: ignore[attr-defined]
-                mask[AXIS_INDEX[a]] = on
-        comp.set_bypass(mask)
-        svc._set_bypass_flags()  # type: ignore[attr-defined]
-    return apply
-
-
-def _fast_outputs(cfg: ServiceConfig, frames: list[tuple[int, bytes]], deadlines: np.ndarray,
-                  period: int) -> tuple[list[tuple[int, bytes]], np.ndarray]:
-    """Outputs of a stall-free, bypass-free session by the offline engine."""
-    from motcomp.record.frames import InputColumns, decode_rows
-    from motcomp.record.session import InputStream
-    from motcomp.replay.engine import run_fast
-    from motcomp.replay.plan import TickPlan
-
-    axes = resolve_axes(cfg)
-    payloads = [p for _, p in frames]
-    buf = np.frombuffer(b"".join(payloads) + bytes(2048), np.uint8)
-    lens = np.array([len(p) for p in payloads], dtype=np.int64)
-    offs = np.concatenate([[0], np.cumsum(lens)[:-1]])
-    ex = InputColumns(len(payloads))
-    decode_rows(buf, offs, lens, ex)
-    arr = np.array([a for a, _ in frames], dtype=np.int64)
-    inp = InputStream("in", arr, arr, seq=ex.seq, t=ex.t, pos=ex.pos, reason=ex.reason)
-    row = np.searchsorted(deadlines, arr, side="left")
-    frame = np.full(deadlines.size, -1, np.int64)
-    ok = (row < deadlines.size) & (ex.reason == 0)
-    frame[row[ok]] = np.flatnonzero(ok)  # the newest of a tick wins
-    plan = TickPlan(deadlines, frame, np.full(deadlines.size, -1), np.ones(deadlines.size, bool),
-                    None, [], None, False, "synthetic", period)
-    res = run_fast(plan, inp, cfg, axes)
-    from motcomp.replay.engine import saturated
-    from motcomp.replay.reference import MODES
-
-    last = np.maximum.accumulate(np.where(frame >= 0, np.arange(frame.size), -1))
-    src = np.where(last >= 0, inp.seq[frame[np.maximum(last, 0)]], -1).tolist()
-    u = res.u.tolist()
-    sat = saturated(res, cfg.status.saturation_tolerance, cfg.loop.rate_hz)
-    bypass = [f"bypass:{a}" for a, b, d in zip(AXES, axes.bypass, axes.driven, strict=True)
-              if b and d]
-    flags = [([MODES[m]] if m else []) + [f"sat:{AXES[i]}" for i in np.flatnonzero(row)]
-             + bypass for m, row in zip(res.mode.tolist(), sat, strict=True)]
-    return [(dl, encode_output(j, WALL0 + (dl - MONO0_NS) / 1e9, src[j], u[j], flags[j]))
-            for j, dl in enumerate(deadlines.tolist())], res.u
-
-
-def _feedback(cfg: ServiceConfig, out_msgs: list[tuple[int, bytes]], wall_ns: object,
-              u: np.ndarray | None) -> list[tuple[int, str, bytes]]:
+def _feedback(cfg: ServiceConfig, out_msgs: list[tuple[int, bytes]], wall_ns: object
+              ) -> list[tuple[int, str, bytes]]:
+    from motcomp.core.models import simulate_axis
     from motcomp.io.wire import decode_output
-    from motcomp.sim.platform import simulate_axis
 
     axes = resolve_axes(cfg)
-    if u is None:
-        u = np.array([[decode_output(p)["pos"][a] for a in AXES] for _, p in out_msgs])
+    u = np.array([[decode_output(p)["pos"][a] for a in AXES] for _, p in out_msgs])
     y = np.column_stack([simulate_axis(axes.plants[i], u[:, i], cfg.loop.rate_hz)
                          for i in range(len(AXES))])
     acc = np.zeros_like(y)

@@ -12,11 +12,6 @@ given back to the host, and under load on the host it can come back milliseconds
 shorter than the window keep it.  Measured here on a busy host, the clock alone at 1 kHz for
 10 s: one sleep 9-627 missed ticks, naps of 100 us 1-3 and of 50 us 2-14, for about 7 % more of
 a core (docs/BENCHMARKS.md).  0 sleeps in one piece.
-
-``warm``: a callable run once per wait as the spin starts (``spin_us`` before the deadline), when
-the loop has just woken from its last nap: the service runs a shadow tick there, so that the
-real tick finds its code in the CPU caches (a sleep through the kernel's idle path leaves them
-cold: the same tick costs about three times as much; docs/BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -57,23 +52,18 @@ class DeadlineClock:
         self._last_tick_ns = self.start_ns
         self._grace_ns = 0
 
-    def wait(self, warm: Callable[[], None] | None = None) -> tuple[int, int]:
+    def wait(self) -> tuple[int, int]:
         clock = self._clock
         deadline = self.next_ns
         wake = deadline - self.spin_ns
         nap = self.nap_ns
-        slept = False
         while (rest := wake - clock()) > 0:
             time.sleep((nap if 0 < nap < rest else rest) / 1e9)
-            slept = True
-        if warm is not None and slept:
-            warm()
         while clock() < deadline:
             pass
         return self._advance(deadline)
 
-    def wait_or_poll(self, poll: Callable[[], bool], poll_us: float,
-                     warm: Callable[[], None] | None = None) -> tuple[int, int, bool]:
+    def wait_or_poll(self, poll: Callable[[], bool], poll_us: float) -> tuple[int, int, bool]:
         """Like :meth:`wait`, but tick early when ``poll()`` says an input has arrived.
 
         Returns ``(deadline_ns, now_ns, polled)``; after an early tick the schedule is re-phased
@@ -82,8 +72,7 @@ class DeadlineClock:
         ticks without (a frame a few microseconds late would otherwise cost an extra tick on
         stale input, and another half a period later on the frame).  Polls every ``poll_us``
         until ``spin_us`` before the input is due, then without sleeping, as :meth:`wait`
-        spins: the input is seen as it lands and the tick runs on the caches the spin keeps
-        warm.  ``warm`` runs once as that spin starts, if no input came first.
+        spins: the input is seen as it lands.
         """
         clock = self._clock
         deadline = self.next_ns
@@ -103,9 +92,6 @@ class DeadlineClock:
                 return d, n, False
             if now < spin_at:
                 time.sleep(min(step, (spin_at - now) / 1e9))
-            elif warm is not None:
-                warm()
-                warm = None
 
     def _advance(self, deadline: int) -> tuple[int, int]:
         now = self._clock()

@@ -21,12 +21,9 @@ import ctypes
 import os
 import platform
 
-__all__ = ["SLICE_MAX_US", "SLICE_MIN_US", "get_slice_us", "pin_to_cpu", "set_realtime",
-           "set_slice"]
+from motcomp.config import SLICE_MAX_US, SLICE_MIN_US
 
-SLICE_MIN_US = 100.0
-SLICE_MAX_US = 100_000.0
-"""The range the kernel accepts for a custom slice (it clamps other values into it)."""
+__all__ = ["get_slice_us", "pin_to_cpu", "set_realtime", "set_slice"]
 
 _SYSCALLS = {"x86_64": (314, 315), "aarch64": (274, 275)}
 """(sched_setattr, sched_getattr) system call numbers."""

@@ -8,8 +8,9 @@ Lifecycle::
     loop     a thread at a fixed rate on absolute deadlines (a short scheduler slice, or
              optionally SCHED_FIFO; optionally pinned),
              gc.freeze() at its start; each tick: apply queued commands, take the newest input
-             frame (never blocks), validate it, shape the reference, step the compensator,
-             publish; count, never log
+             frame (never blocks), run :func:`motcomp.core.tick.step` on it (validation,
+             reference, catch-up, compensator, verdict: the whole per-tick policy), send the
+             output on every port; count, never log
     main     the main thread: signals, status at 1 Hz (and on query), admin requests, the
              systemd watchdog (only while the loop ticks), reloads
     stop     SIGTERM/SIGINT -> park (ramp to neutral within the limits) -> exit 0; exit 1 if
@@ -18,7 +19,8 @@ Lifecycle::
 Everything the loop needs from the outside world comes through two non-blocking doors: the
 input source's ``latest()`` and a command queue (a deque: appends and pops are atomic) through
 which the main thread hands it closures to run between two ticks -- bypass toggles and config
-swaps.  The loop thread is the only one that touches the compensator.
+swaps.  The loop thread is the only one that touches the tick's state.  Reloads are validated
+in the main thread (:mod:`motcomp.runtime.reload`) and swapped in by :meth:`Service.apply_config`.
 """
 
 from __future__ import annotations
@@ -30,36 +32,29 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import msgpack
 
 from motcomp import __version__
-from motcomp.config import ResolvedAxes, ServiceConfig, config_hash, resolve_axes
+from motcomp.config import ServiceConfig, config_hash, new_tick, resolve_axes
 from motcomp.core.axes import AXES
-from motcomp.core.compensator import Compensator
-from motcomp.core.saturation import POS, VEL
+from motcomp.core.tick import MAX_ERROR_CHARS, TickParams, is_parked, park, set_bypass, step
 from motcomp.errors import ConfigError, MotcompError, ServiceError
-from motcomp.io.wire import InputValidator, encode_output
+from motcomp.io.ports import InputPort, OutputPort
 from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, ZenohSource, open_session
 from motcomp.resources import config_file
 from motcomp.runtime.clock import DeadlineClock
+from motcomp.runtime.reload import Prepared, prepare_config, prepare_profile
 from motcomp.runtime.rt import pin_to_cpu, set_realtime, set_slice
-from motcomp.runtime.shaper import ReferenceShaper
 from motcomp.runtime.stats import LoopStats
 from motcomp.runtime.systemd import Notifier
 
-__all__ = ["Service", "build_compensator"]
+__all__ = ["Service"]
 
 log = logging.getLogger("motcomp.service")
 
-_HARD_BITS = POS | VEL
-MAX_CATCH_UP = 20
-"""Longest stall (in periods) whose samples are computed afterwards (see Service._catch_up)."""
-_SAT_FLAGS = tuple(f"sat:{a}" for a in AXES)
-_BYPASS_FLAGS = tuple(f"bypass:{a}" for a in AXES)
 STAT_SERIES = ("tick", "compute", "io", "late")
 """What the loop times, per tick (us): ``tick`` from waking at the deadline to the end of the
 tick; ``io`` the part of it spent in transport calls (taking the newest input, sending the
@@ -67,48 +62,22 @@ outputs); ``compute`` the rest (commands, catch-up steps, validation, reference,
 saturation verdicts, encoding); ``late`` waking after the deadline."""
 
 
-def build_compensator(cfg: ServiceConfig, axes: ResolvedAxes) -> Compensator:
-    """The compensator of a config, at rest at neutral."""
-    comp = Compensator(axes.models, axes.gains, axes.limits, cfg.loop.rate_hz,
-                       fade_s=cfg.loop.bypass_fade_s, history_s=0.5)
-    comp.set_bypass(axes.bypass)
-    return comp
-
-
-@dataclass
-class _Counters:
-    """Written by the loop thread only."""
-
-    ticks: int = 0
-    sat: list[int] = field(default_factory=lambda: [0] * len(AXES))
-    src_seq: int = -1
-    superseded: int = 0  # source frames skipped (a newer one arrived first, or lost)
-    last_tick_mono: float = 0.0
-    mode: str = "startup"
-
-
 class Service:
     """See the module docstring.  ``run()`` blocks until stopped and returns the exit code."""
 
     def __init__(self, cfg: ServiceConfig, endpoints: ZenohEndpoints,
-                 config_path: Path | None = None, *, shadow: bool = False) -> None:
-        """``shadow``: a copy for :meth:`warm_up` (no warnings logged, no systemd socket)."""
+                 config_path: Path | None = None) -> None:
         self.cfg = cfg
         self.endpoints = endpoints
         self.config_path = config_path
         self.axes = resolve_axes(cfg)
-        for w in self.axes.warnings if not shadow else ():
+        for w in self.axes.warnings:
             log.warning("%s", w)
-        self.comp = build_compensator(cfg, self.axes)
-        self.validator = InputValidator(list(self.axes.limits.p_min), list(self.axes.limits.p_max),
-                                        cfg.input.reject_beyond_fraction)
-        self.shaper = ReferenceShaper(self.axes.driven, self._ramp_speeds(cfg, self.axes),
-                                      cfg.loop.stale_after_s, cfg.loop.hold_s, cfg.loop.rejoin_s,
-                                      cfg.loop.startup_s, cfg.input.reconstruction == "linear",
-                                      cfg.input.max_extrapolation_s)
+        self.params: TickParams
+        self.params, self.state = new_tick(cfg, self.axes)
         self.stats = LoopStats(round(cfg.status.window_s * cfg.loop.rate_hz), STAT_SERIES)
-        self.counters = _Counters()
-        self.notifier = Notifier("" if shadow else None)
+        self.last_tick_mono = 0.0
+        self.notifier = Notifier(None)
         self.commands: deque[Callable[[], None]] = deque()
         self.stop_event = threading.Event()
         self.reload_event = threading.Event()
@@ -119,35 +88,29 @@ class Service:
         self.reloads: list[dict[str, Any]] = []
         self.rt_report = ""
         self._loop_error: BaseException | None = None
-        self._pending: bytes | None = None
-        self._seq = 0
-        self._source: ZenohSource | None = None
-        self._sinks: list[Any] = []
+        self._source: InputPort | None = None
+        self._ports: list[OutputPort] = []
         self._can: Any = None
         self._clock: DeadlineClock | None = None
         self._t_wall0 = 0.0
         self._t_mono0 = 0
-        self._bypass_flags: list[str] = []
-        self._dev_lp = [0.0] * len(AXES)
-        self._dev_alpha = min(1.0, 1.0 / (0.02 * cfg.loop.rate_hz))
         self.io_ns = 0
-        self._last_payload: bytes | None = None
-        self._last_tick_ns = 0
-        self._shadow: Service | None = None
         """Time the last :meth:`tick` spent in transport calls (input take, sends)."""
+        self._pending: bytes | None = None
         self._perf = time.perf_counter_ns
 
-    @staticmethod
-    def _ramp_speeds(cfg: ServiceConfig, axes: ResolvedAxes) -> list[float]:
-        return [cfg.loop.ramp_speed_fraction * float(v) for v in axes.limits.v_max]
-
     # --- the loop thread ------------------------------------------------------------------
-    def attach(self, source: Any, sinks: list[Any]) -> None:
-        """Use these adapters (e.g. the in-memory twins of :mod:`motcomp.io.memory`) instead of
-        opening transports: then :meth:`tick` can be driven directly with a given time."""
+    def attach(self, source: InputPort, ports: list[OutputPort], *, wall0: float | None = None,
+               mono0_ns: int | None = None) -> None:
+        """Use these ports (e.g. the in-memory twins of :mod:`motcomp.io.memory`) instead of
+        opening transports: then :meth:`tick` can be driven directly with a given time;
+        ``wall0``/``mono0_ns`` map tick instants to output ``t`` (see :meth:`tick_clock`)."""
         self._source = source
-        self._sinks = list(sinks)
-        self._set_bypass_flags()
+        self._ports = list(ports)
+        if wall0 is not None:
+            self._t_wall0 = wall0
+        if mono0_ns is not None:
+            self._t_mono0 = mono0_ns
 
     def _poll_input(self) -> bool:
         assert self._source is not None
@@ -157,14 +120,13 @@ class Service:
         self._pending = payload
         return True
 
-    def tick(self, now_ns: int) -> None:
+    def tick(self, now_ns: int, skipped: int = 0) -> None:
         """One tick at the sample instant ``now_ns`` (the deadline: the reference is evaluated
         on the ideal, uniform time grid the compensator assumes, not at the jittered moment the
-        thread woke up)."""
+        thread woke up), after ``skipped`` missed deadlines."""
         commands = self.commands
         while commands:
             commands.popleft()()
-        now = now_ns / 1e9
         payload = self._pending
         self._pending = None
         perf = self._perf
@@ -173,96 +135,12 @@ class Service:
             t_io = perf()
             payload = self._source.latest()
             io = perf() - t_io
-        shaper = self.shaper
-        if payload is not None:
-            self._last_payload = payload
-            res = self.validator.accept(payload, after_stale=shaper.is_stale(now))
-            if res is not None:
-                c = self.counters
-                gap = res[0] - c.src_seq - 1
-                if c.src_seq >= 0 and 0 < gap < 1_000_000:  # a regress is a source restart
-                    c.superseded += gap
-                c.src_seq = res[0]
-                shaper.on_input(res[2], now, res[1])
-        ref, mode = shaper.reference(now)
-        comp = self.comp
-        u = comp.step(ref)
-        flags = [mode] if mode else []
-        sat = self.counters.sat
-        limited = [False] * len(u)
-        tol = self.cfg.status.saturation_tolerance
-        dev = comp.deviation
-        lp = self._dev_lp
-        alpha, keep = self._dev_alpha, 1.0 - self._dev_alpha
-        for i, f in enumerate(comp.flags):
-            # a position or velocity bound, or a *sustained* departure from the target (its
-            # 20 ms average): the limiter absorbing zero-mean jitter noise that the compensator
-            # amplifies is not a saturation of the motion.  (Written as lfilter computes it, so
-            # that an offline replay reproduces the verdicts exactly.)
-            if not f and lp[i] == 0.0:  # the common case: nothing to average
-                continue
-            lp[i] = alpha * dev[i] + keep * lp[i]
-            if f & _HARD_BITS or (f and abs(lp[i]) > tol):
-                sat[i] += 1
-                limited[i] = True
-                flags.append(_SAT_FLAGS[i])
-        flags.extend(self._bypass_flags)
+        out = step(self.state, self.params, now_ns, payload, skipped)
         t_wall = self._t_wall0 + (now_ns - self._t_mono0) / 1e9
-        out = encode_output(self._seq, t_wall, self.counters.src_seq, u, flags)
         t_io = perf()
-        for sink in self._sinks:
-            sink.put(out)
-        if self._can is not None:
-            self._can.send(self._seq, u, limited, mode == "stale", mode == "parking")
+        for port in self._ports:
+            port.send(out, t_wall)
         self.io_ns = io + perf() - t_io
-        self._seq += 1
-        self._last_tick_ns = now_ns
-        self.counters.mode = mode or "running"
-        self.counters.ticks += 1
-
-    # --- cache warming --------------------------------------------------------------------
-    def make_shadow(self) -> Service:
-        """A copy of this service without transports, for :meth:`warm_up`: same config, its
-        own compensator, shaper and validator, an in-memory input and no output."""
-        from motcomp.io.memory import MemorySource
-
-        shadow = Service(self.cfg, self.endpoints, shadow=True)
-        shadow.attach(MemorySource(latest_only=True), [])
-        return shadow
-
-    def warm_up(self) -> None:
-        """Run the tick's code on the shadow service, one tick behind this one: the payload
-        this service took last (if new) at the instant of its last tick.  Nothing leaves the
-        shadow; its only effect is on the CPU's caches and predictors, which a sleep through
-        the kernel's idle path leaves cold (docs/BENCHMARKS.md: the real tick then costs
-        about a third)."""
-        shadow = self._shadow
-        if shadow is None:
-            return
-        payload, self._last_payload = self._last_payload, None
-        try:
-            if payload is not None:
-                shadow._source.push(payload)  # type: ignore[union-attr]
-            shadow.tick(self._last_tick_ns)
-        except Exception as exc:  # never let the warm-up stop the loop: drop the shadow
-            self._shadow = None
-            log.error("cache warm-up failed and is off from now on: %r", exc)
-
-    def _catch_up(self, deadline_ns: int, skipped: int) -> None:
-        """Step the compensator (no input, no output) at the ``skipped`` deadlines before this
-        one: its discrete dynamics stay on the real time grid, instead of seeing the reference
-        jump by several samples at once (which a high-gain tuning amplifies).  At most
-        :data:`MAX_CATCH_UP` periods; a longer stall is left to the stale-input logic."""
-        period = round(1e9 / self.cfg.loop.rate_hz)
-        for j in range(min(skipped, MAX_CATCH_UP), 0, -1):
-            ref, _ = self.shaper.reference((deadline_ns - j * period) / 1e9)
-            self.comp.step(ref)
-
-    def _parked(self) -> bool:
-        if not self.shaper.parked:
-            return False
-        st = self.comp.state()
-        return bool(max(abs(x) for x in st.u) < 1e-6 and max(abs(x) for x in st.v) < 1e-4)
 
     def _loop(self) -> None:
         try:
@@ -271,9 +149,6 @@ class Service:
                     else "one sleep per tick")
             self.rt_report = (f"{set_realtime(loop.realtime_priority)}; "
                               f"{set_slice(loop.slice_us)}; {naps}; {pin_to_cpu(loop.cpu)}")
-            warm = self.warm_up if loop.warm_up else None
-            if warm is not None:
-                self._shadow = self.make_shadow()
             gc.collect()
             gc.freeze()
             clock = DeadlineClock(loop.rate_hz, loop.spin_us, sleep_max_us=loop.sleep_max_us)
@@ -285,22 +160,20 @@ class Service:
             perf = time.perf_counter_ns
             while True:
                 if loop.sync_to_input:
-                    deadline, now, _ = clock.wait_or_poll(self._poll_input, loop.poll_us, warm)
+                    deadline, now, _ = clock.wait_or_poll(self._poll_input, loop.poll_us)
                 else:
-                    deadline, now = clock.wait(warm)
-                if clock.skipped:
-                    self._catch_up(deadline, clock.skipped)
-                self.tick(deadline)
+                    deadline, now = clock.wait()
+                self.tick(deadline, clock.skipped)
                 tick_ns = perf() - now
                 io_ns = self.io_ns
                 record(tick_ns / 1e3, (tick_ns - io_ns) / 1e3, io_ns / 1e3,
                        (now - deadline) / 1e3)
-                self.counters.last_tick_mono = time.monotonic()
+                self.last_tick_mono = time.monotonic()
                 if self.stop_event.is_set():
                     if park_deadline is None:
-                        self.shaper.park(now / 1e9)
+                        park(self.state, self.params, now)
                         park_deadline = time.monotonic() + loop.park_timeout_s
-                    elif self._parked():
+                    elif is_parked(self.state):
                         break
                     elif time.monotonic() > park_deadline:
                         log.error("parking did not finish within %.1f s", loop.park_timeout_s)
@@ -313,87 +186,96 @@ class Service:
             self.loop_done.set()
 
     # --- configuration changes (main thread builds, loop thread swaps) ---------------------
-    def _set_bypass_flags(self) -> None:
-        """Recompute the per-axis "bypass:" flags (loop thread, after a bypass change)."""
-        bypass = self.comp.bypass
-        self._bypass_flags = [_BYPASS_FLAGS[i] for i in range(len(AXES))
-                              if bypass[i] and self.axes.driven[i]]
-
     def request_bypass(self, on: bool, axes: list[str] | None = None) -> list[str]:
-        """Queue a bumpless bypass change for the given driven axes (all when None)."""
-        names = axes or [a for a, d in zip(AXES, self.axes.driven, strict=True) if d]
+        """Queue a bumpless bypass change for the given driven axes (all when None); returns the
+        axes in bypass once the loop applied it."""
+        names = list(axes) if axes is not None else [
+            a for a, d in zip(AXES, self.axes.driven, strict=True) if d]
         unknown = [a for a in names if a not in AXES]
         if unknown:
-            raise ConfigError(f"unknown axis {unknown[0]!r}")
+            raise ConfigError(f"unknown axis {str(unknown[0])[:40]!r}; axes: {', '.join(AXES)}")
+        result: list[str] = []
         done = threading.Event()
 
         def apply() -> None:
-            mask = list(self.comp.bypass)
-            for a in names:
-                i = AXES.index(a)
-                if self.axes.driven[i]:
-                    mask[i] = on
-            self.comp.set_bypass(mask)
-            self._set_bypass_flags()
+            mask = [on if a in names else b
+                    for a, b in zip(AXES, self.state.comp.bypass, strict=True)]
+            result.extend(set_bypass(self.state, mask))
             done.set()
 
-        self.commands.append(apply)
-        if not done.wait(1.0):
-            raise ServiceError("the loop did not apply the bypass change within 1 s")
-        return [a for a, b in zip(AXES, self.comp.bypass, strict=True) if b]
+        self.run_between_ticks(apply, done, "the bypass change")
+        log.info("bypass %s for %s: compensation %s (admin request)", "on" if on else "off",
+                 ", ".join(names) or "no axis", "off" if on else "on")
+        return result
+
+    def run_between_ticks(self, fn: Callable[[], None], done: threading.Event, what: str,
+                          timeout_s: float = 2.0) -> None:
+        """Queue ``fn`` to the loop thread (it runs between two ticks and sets ``done``).
+
+        Raises
+        ------
+        ServiceError
+            If the loop did not run it within ``timeout_s``.
+        """
+        self.commands.append(fn)
+        if not done.wait(timeout_s):
+            raise ServiceError(f"the loop did not apply {what} within {timeout_s:g} s")
+
+    def apply_config(self, new: Prepared) -> None:
+        """Swap a validated config in between two ticks, bumplessly (see
+        :mod:`motcomp.runtime.reload`)."""
+        done = threading.Event()
+
+        def swap() -> None:
+            comp = self.state.comp
+            comp.reconfigure(new.axes.models, new.axes.gains, new.axes.limits)
+            comp.set_fade(new.cfg.loop.bypass_fade_s)
+            set_bypass(self.state, new.axes.bypass)
+            self.params = new.params
+            self.cfg = new.cfg
+            self.axes = new.axes
+            done.set()
+
+        self.run_between_ticks(swap, done, "the new config")
+        self.config_version += 1
+        self.config_id = new.digest
 
     # --- status ---------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
         now = self._t_mono_s()
-        c = self.counters
-        v = self.validator
+        st = self.state
+        shaper = st.shaper
         clock = self._clock
         return {
             "t": time.time(),
             "version": __version__,
-            "mode": c.mode,
+            "mode": st.mode,
             "config": {"hash": self.config_id, "version": self.config_version,
                        "path": str(self.config_path) if self.config_path else None},
             "rate_hz": self.cfg.loop.rate_hz,
             "sync_to_input": self.cfg.loop.sync_to_input,
-            "ticks": c.ticks,
-            "kernel": self.kernels(),
+            "ticks": st.ticks,
             "missed_ticks": clock.missed if clock else 0,
             "loop": self.stats.snapshot(),
             "loop_window_s": self.cfg.status.window_s,
-            "frames": {"received": v.received, "accepted": v.accepted, "rejected": v.rejected,
-                       "rejected_by_reason": dict(v.counts), "last_reject": v.last_error,
-                       "superseded": c.superseded},
-            "stale_s": self.shaper.stale_time(now),
-            "stale_total_s": self.shaper.stale_total_s,
-            "stale_episodes": self.shaper.stale_episodes,
-            "saturation": dict(zip(AXES, c.sat, strict=True)),
-            "bypass": [a for a, b in zip(AXES, self.comp.bypass, strict=True) if b],
+            "frames": {"received": st.received, "accepted": st.accepted,
+                       "rejected": st.rejected, "rejected_by_reason": dict(st.rejected_by_reason),
+                       "last_reject": st.last_reject, "superseded": st.superseded},
+            "stale_s": shaper.stale_time(now),
+            "stale_total_s": shaper.stale_total_s,
+            "stale_episodes": shaper.stale_episodes,
+            "saturation": dict(zip(AXES, st.sat, strict=True)),
+            "bypass": [a for a, b in zip(AXES, st.comp.bypass, strict=True) if b],
             "profile": self.cfg.profile,
             "profiles": sorted(self.cfg.profiles),
             "driven": [a for a, d in zip(AXES, self.axes.driven, strict=True) if d],
-            "src_seq": c.src_seq,
+            "src_seq": st.src_seq,
             "can": ({"sent": self._can.sent, "errors": self._can.errors}
                     if self._can is not None else None),
             "reloads": self.reloads[-10:],
             "realtime": self.rt_report,
             "clock": self.tick_clock(),
         }
-
-    def kernels(self) -> str:
-        """Which code runs the tick's hot path: ``c`` (the compiled compensator, shaper loops
-        and wire codec), ``python`` (none of them: not built, or ``MOTCOMP_KERNEL=python``),
-        or which part runs which."""
-        from motcomp.io import wire
-        from motcomp.runtime import shaper
-
-        parts = {"compensator": self.comp.kernel,
-                 "shaper": "c" if shaper._cshaper is not None else "python",
-                 "wire": "c" if wire._cwire is not None else "python"}
-        kinds = set(parts.values())
-        if len(kinds) == 1:
-            return kinds.pop()
-        return ", ".join(f"{k} {v}" for k, v in parts.items())
 
     def tick_clock(self) -> dict[str, Any] | None:
         """How output ``t`` maps back to the loop's own tick instants (None before the loop
@@ -415,36 +297,79 @@ class Service:
         name = str(query.key_expr).rsplit("/", 1)[-1]
         try:
             body = query.payload.to_bytes() if query.payload is not None else b""
+            result = self.admin(name, body)
+        except Exception as exc:  # never let a request stop the main thread
+            result = {"ok": False, "error": f"internal error: {type(exc).__name__}"}
+        query.reply(str(query.key_expr), msgpack.packb(result))
+
+    def admin(self, name: str, body: bytes) -> dict[str, Any]:
+        """Answer one admin request (``bypass``, ``reload``, ``profile``; msgpack ``body``):
+        ``{"ok": True, ...}`` or ``{"ok": False, "error": text}`` for any failure."""
+        try:
+            if len(body) > 65536:
+                raise ConfigError(f"admin request of {len(body)} bytes (at most 65536)")
             req = msgpack.unpackb(body) if body else {}
             if not isinstance(req, dict):
                 raise ConfigError("admin request must be a msgpack map")
             if name == "bypass":
-                on = req.get("on")
-                if not isinstance(on, bool):
-                    raise ConfigError("bypass request needs {'on': true|false, 'axes': [...]}")
-                axes = req.get("axes")
-                result: dict[str, Any] = {"ok": True, "bypass": self.request_bypass(on, axes)}
-            elif name == "reload":
-                result = self.reload(req.get("path"))
-            elif name == "profile":
-                from motcomp.runtime.reload import switch_profile
-
+                on, axes = req.get("on"), req.get("axes")
+                if not isinstance(on, bool) or not (
+                        axes is None or (isinstance(axes, list)
+                                         and all(isinstance(a, str) for a in axes))):
+                    raise ConfigError("bypass request needs {'on': true|false, 'axes': [str]}")
+                return {"ok": True, "bypass": self.request_bypass(on, axes)}
+            if name == "reload":
+                path = req.get("path")
+                if path is not None and not isinstance(path, str):
+                    raise ConfigError("reload request needs {'path': str | None}")
+                return self.reload(path)
+            if name == "profile":
                 pname = req.get("name")
                 if pname is not None and not isinstance(pname, str):
                     raise ConfigError("profile request needs {'name': str | None}")
-                result = switch_profile(self, pname)
-            else:
-                raise ConfigError(f"unknown admin command {name!r}; commands: bypass, reload, "
-                                  "profile")
-        except MotcompError as exc:
-            result = {"ok": False, "error": str(exc)}
-        query.reply(str(query.key_expr), msgpack.packb(result))
+                return self.switch_profile(pname)
+            raise ConfigError(f"unknown admin command {name[:40]!r}; commands: bypass, reload, "
+                              "profile")
+        except Exception as exc:
+            text = str(exc) if isinstance(exc, MotcompError) else \
+                f"internal error: {type(exc).__name__}: {exc}"
+            return {"ok": False, "error": text[:MAX_ERROR_CHARS * 5]}
 
     def reload(self, path: str | None = None) -> dict[str, Any]:
-        """Reload the config (see :mod:`motcomp.runtime.reload`)."""
-        from motcomp.runtime.reload import reload_service
+        """Validate and apply a config file (default: the one started with); returns
+        ``{"ok": bool, ...}`` and never raises for a bad config."""
+        source = Path(path) if path else self.config_path
+        attempt: dict[str, Any] = {"t": time.time(), "kind": "reload",
+                                   "path": str(source) if source else None}
+        return self._attempt(attempt, lambda: prepare_config(self.cfg, self.axes, source),
+                             "reload")
 
-        return reload_service(self, path)
+    def switch_profile(self, name: str | None) -> dict[str, Any]:
+        """Make ``name`` the active scenario profile (None: none), bumplessly."""
+        attempt: dict[str, Any] = {"t": time.time(), "kind": "profile", "path": None}
+        return self._attempt(attempt, lambda: prepare_profile(self.cfg, self.axes, name),
+                             f"switch to profile {name}")
+
+    def _attempt(self, attempt: dict[str, Any], prepare: Callable[[], Prepared], what: str
+                 ) -> dict[str, Any]:
+        self.notifier.reloading()
+        try:
+            new = prepare()
+            attempt["hash"] = new.digest
+            self.apply_config(new)
+            attempt.update(ok=True, version=self.config_version, profile=new.cfg.profile)
+            for w in new.axes.warnings:
+                log.warning("%s", w)
+            log.info("%s ok: %s (hash %s, version %d, profile %s)", what,
+                     attempt.get("path") or "-", new.digest, self.config_version,
+                     new.cfg.profile)
+        except MotcompError as exc:
+            attempt.update(ok=False, error=str(exc))
+            log.error("%s rejected: %s (running config %s kept)", what, exc, self.config_id)
+        finally:
+            self.notifier.ready()
+        self.reloads.append(attempt)
+        return {"ok": attempt["ok"], **{k: v for k, v in attempt.items() if k != "ok"}}
 
     def run(self) -> int:
         """Start, loop until SIGTERM/SIGINT, park, stop; returns the exit code."""
@@ -457,15 +382,15 @@ class Service:
         with open_session(self.endpoints) as session:
             self._source = ZenohSource(session, cfg.input.key)
             if cfg.output.transport in ("zenoh", "both"):
-                self._sinks.append(ZenohSink(session, cfg.output.key))
+                self._ports.append(ZenohSink(session, cfg.output.key))
             if cfg.output.transport in ("can", "both"):
                 self._can = self._open_can()
+                self._ports.append(self._can)
             status_pub = session.declare_publisher(cfg.status.key)
             status_q = session.declare_queryable(cfg.status.key, zenoh.handlers.FifoChannel(16))
             admin_q = (session.declare_queryable(f"{cfg.admin.key}/**",
                                                  zenoh.handlers.FifoChannel(16))
                        if cfg.admin.enabled else None)
-            self._set_bypass_flags()
             thread = threading.Thread(target=self._loop, name="motcomp-loop", daemon=True)
             thread.start()
             try:
@@ -478,12 +403,10 @@ class Service:
                     if q is not None:
                         q.undeclare()
                 status_pub.undeclare()
-                for sink in self._sinks:
-                    sink.close()
+                for port in self._ports:
+                    port.close()
                 if self._source is not None:
                     self._source.close()
-                if self._can is not None:
-                    self._can.close()
                 self.notifier.close()
 
     def _open_can(self) -> Any:
@@ -507,17 +430,12 @@ class Service:
         while not self.loop_done.is_set():
             self.loop_done.wait(0.02)
             now = time.monotonic()
-            healthy = self.counters.ticks > 0 and now - self.counters.last_tick_mono < 0.25
+            healthy = self.state.ticks > 0 and now - self.last_tick_mono < 0.25
             if healthy and not ready:
                 ready = True
                 self.notifier.ready(f"running at {cfg.loop.rate_hz:g} Hz")
-                kernels = self.kernels()
-                log.info("running: %g Hz, config %s, %s; tick kernels: %s",
-                         cfg.loop.rate_hz, self.config_id, self.rt_report, kernels)
-                if kernels != "c":
-                    log.warning("the tick's compiled kernels are not all in use (%s; not built, "
-                                "or MOTCOMP_KERNEL=python): a tick costs up to 4x more CPU",
-                                kernels)
+                log.info("running: %g Hz, config %s, %s", cfg.loop.rate_hz, self.config_id,
+                         self.rt_report)
             if healthy and now >= next_dog:
                 self.notifier.watchdog()
                 next_dog = now + dog_every

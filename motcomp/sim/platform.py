@@ -46,7 +46,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from motcomp.core.lti import DiscreteLTI, FloatArray
-from motcomp.core.models import ProcessModel
+from motcomp.core.models import ProcessModel, simulate_axis
 from motcomp.errors import ConfigError
 
 __all__ = [
@@ -54,7 +54,7 @@ __all__ = [
     "PlatformSimulator",
     "measure_irregular",
     "record_identification",
-    "simulate_axis",
+    "simulate_axis",  # (motcomp.core.models), kept here for the simulator's users
     "true_acceleration",
 ]
 
@@ -124,24 +124,6 @@ class Accelerometer:
         if self.lsb > 0:
             out = np.round(out / self.lsb) * self.lsb
         return np.asarray(out)
-
-
-def simulate_axis(model: ProcessModel, commands: ArrayLike, rate_hz: float,
-                  initial: float | None = None) -> FloatArray:
-    """Position response of one axis to a ZOH command sequence, from rest at ``initial``
-    (default: the first command).  Exact; uses scipy's ``lfilter`` when available (offline)."""
-    u = np.asarray(commands, dtype=float)
-    u0 = float(u[0]) if initial is None else float(initial)
-    disc = model.discretize(rate_hz)
-    try:
-        from scipy.signal import lfilter, lfilter_zi
-    except ImportError:  # pragma: no cover - scipy is a dependency, this is for slim installs
-        return disc.simulate(u, u_before=u0)
-    num, den = disc.tf()
-    b = np.concatenate([np.zeros(den.size - num.size), num])
-    zi = lfilter_zi(b, den) * u0 if abs(np.sum(den)) > 1e-12 else np.zeros(den.size - 1)
-    y, _ = lfilter(b, den, u, zi=zi)
-    return np.asarray(y)
 
 
 class _SensorStream:

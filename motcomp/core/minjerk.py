@@ -1,0 +1,32 @@
+"""The minimum-jerk (quintic) blend, the one shape of every fade, ramp and blend in motcomp.
+
+``s(x) = 10 x^3 - 15 x^4 + 6 x^5`` goes from 0 to 1 over ``x`` in [0, 1] with zero velocity
+*and* acceleration at both ends, so a compensator that amplifies high frequencies sees no step
+(a raised cosine has an acceleration step at its ends, which turns into a command spike).
+Peak speed: ``1.875 * distance / duration``.
+"""
+
+from __future__ import annotations
+
+from typing import TypeVar
+
+__all__ = ["PEAK_SPEED_FACTOR", "min_jerk", "min_jerk_weight"]
+
+PEAK_SPEED_FACTOR = 1.875
+"""Peak of ``ds/dx``: a minimum-jerk move of ``distance`` over ``T`` peaks at 1.875 distance/T."""
+
+X = TypeVar("X")
+
+
+def min_jerk(x: X) -> X:
+    """``10 x^3 - 15 x^4 + 6 x^5`` for a float or a numpy array ``x`` (not clipped)."""
+    return x**3 * (10.0 - 15.0 * x + 6.0 * x * x)  # type: ignore[operator]
+
+
+def min_jerk_weight(progress: float) -> float:
+    """1 -> 0 as ``progress`` goes 0 -> 1 (``1 - min_jerk``), clipped outside [0, 1]."""
+    if progress >= 1.0:
+        return 0.0
+    if progress <= 0.0:
+        return 1.0
+    return 1.0 - min_jerk(progress)

@@ -1,0 +1,324 @@
+"""One tick of the compensator, the whole per-tick policy in one pure function: :func:`step`.
+
+The service (:mod:`motcomp.runtime.service`), the offline and real-time replays
+(:mod:`motcomp.replay`) and the synthetic sessions (:mod:`motcomp.replay.synth`) all call it,
+and nothing else of the tick, so a replay computes with the very code that ran::
+
+     payload (bytes | None, the newest input frame since the last tick)
+        |
+        v
+     parse and check: size, msgpack, schema, types, axes, finite, range, seq
+        |  rejected: counted under its reason (REJECT_REASONS), changes nothing
+        v
+     ReferenceShaper.on_input                   motcomp.core.shaper: start-up, stale, hold,
+        |                                       rejoin, parking, linear reconstruction
+     catch-up (skipped deadlines, below)
+        |
+     now --> ReferenceShaper.reference --> r --> Compensator.step --> u  (motcomp.core.compensator:
+                                                    |                    PID, internal model,
+                                                    v                    limiter)
+                                     saturation verdict, flags --> TickOutput(seq, src_seq, u,
+                                                                   flags, limited, mode)
+
+No I/O, no clock, no threads: time comes in as ``now_ns`` (the tick's instant on the loop's
+clock), bytes come in, a :class:`TickOutput` goes out; the caller encodes and sends it.
+
+Rules for edge cases
+--------------------
+* Any payload: :func:`step` never raises because of it.  A frame larger than
+  ``max_frame_bytes`` is rejected unread (``oversize``); msgpack-python decodes the rest (its
+  unpacker keeps an explicit stack, bounded at 1024 levels: deeper is ``decode``); the checks
+  that follow are one flat pass that never recurses into a value, and every error text is
+  bounded (:data:`MAX_ERROR_CHARS`).  An exception of any other kind while handling the frame
+  is counted as ``internal`` and the tick goes on.  A rejected frame changes no state but the
+  counters.
+* Sequence: ``seq`` must increase (``duplicate``, ``old``), except after the input was stale,
+  when any ``seq`` is accepted (a restarted sender).  A jump forward counts the skipped frames
+  as ``superseded`` (a regress of more than a million counts nothing: a restart).
+* Catch-up: when the caller missed deadlines (``skipped`` > 0, a stall of its thread), the
+  compensator is first stepped at the ``min(skipped, MAX_CATCH_UP)`` deadlines just before
+  ``now_ns``, with the reference of each and no output, so that its discrete dynamics stay on
+  the real time grid instead of seeing the reference jump several samples at once.  A longer
+  stall is left to the stale-input rules.  One output per call, never a burst.
+* Saturation verdict (flag ``sat:<axis>``, ``limited``): a position or velocity bound acted,
+  or the command departs from its target by more than ``saturation_tolerance`` on a 20 ms
+  exponential average; the limiter absorbing zero-mean jitter is not a saturation.
+* Flags, in this order: the shaper's mode (``rejoin``, ``stale``, ``parking``) if any, then
+  ``sat:<axis>`` per limited axis, then ``bypass:<axis>`` per driven axis in bypass.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import msgpack
+
+from motcomp.core.axes import AXES, AXIS_INDEX
+from motcomp.core.compensator import Compensator
+from motcomp.core.saturation import POS, VEL
+from motcomp.core.shaper import ReferenceShaper, ShaperParams
+from motcomp.errors import FrameError
+
+__all__ = [
+    "MAX_CATCH_UP",
+    "MAX_ERROR_CHARS",
+    "REJECT_REASONS",
+    "TickOutput",
+    "TickParams",
+    "TickState",
+    "is_parked",
+    "park",
+    "parse_input",
+    "set_bypass",
+    "step",
+]
+
+REJECT_REASONS: tuple[str, ...] = ("oversize", "decode", "schema", "type", "axis", "nonfinite",
+                                   "range", "duplicate", "old", "internal")
+"""Why an input frame was rejected (the status counts each)."""
+MAX_CATCH_UP = 20
+"""Longest stall (in periods) whose samples are computed afterwards."""
+MAX_ERROR_CHARS = 200
+"""Longest text of a rejected frame's error (status ``last_reject``)."""
+_INPUT_KEYS = frozenset({"seq", "t", "pos"})
+_HARD_BITS = POS | VEL
+_SAT_FLAGS = tuple(f"sat:{a}" for a in AXES)
+_BYPASS_FLAGS = tuple(f"bypass:{a}" for a in AXES)
+_unpackb = msgpack.unpackb
+
+
+@dataclass(frozen=True)
+class TickParams:
+    """Everything a tick needs besides its state; swapped whole on a reload."""
+
+    rate_hz: float
+    shaper: ShaperParams
+    saturation_tolerance: float = 1e-4
+    """Departure (axis units, 20 ms average) from the target that counts as saturated."""
+    max_frame_bytes: int = 4096
+    """Longest input frame read; a larger one is rejected (``oversize``)."""
+
+    @property
+    def period_ns(self) -> int:
+        return round(1e9 / self.rate_hz)
+
+    @property
+    def verdict_alpha(self) -> float:
+        """Weight of the newest sample in the verdict's 20 ms average."""
+        return min(1.0, 1.0 / (0.02 * self.rate_hz))
+
+
+@dataclass
+class TickOutput:
+    """What one tick sends: the command ``u`` in :data:`AXES` order and what goes with it."""
+
+    seq: int
+    """Counts the outputs (catch-up steps send nothing)."""
+    src_seq: int
+    """``seq`` of the last valid input frame (-1 before the first)."""
+    u: list[float]
+    flags: list[str]
+    limited: list[bool]
+    mode: str
+    """``""`` when live and settled, else ``rejoin``, ``stale`` or ``parking``."""
+
+
+class TickState:
+    """Everything that changes from tick to tick: the compensator, the shaper, the counters."""
+
+    def __init__(self, comp: Compensator, driven: Sequence[bool]) -> None:
+        n = comp.n
+        self.comp = comp
+        self.shaper = ReferenceShaper(n)
+        self.last_seq: int | None = None
+        self.received = 0
+        self.accepted = 0
+        self.rejected_by_reason = dict.fromkeys(REJECT_REASONS, 0)
+        self.last_reject = ""
+        self.src_seq = -1
+        self.superseded = 0
+        self.sat = [0] * n
+        self.ticks = 0
+        self.mode = "startup"
+        self._dev_lp = [0.0] * n
+        self.bypass_flags: list[str] = []
+        self._driven = tuple(driven)
+        _set_bypass_flags(self)
+
+    @property
+    def rejected(self) -> int:
+        return sum(self.rejected_by_reason.values())
+
+    def _reject(self, reason: str, text: str) -> None:
+        self.rejected_by_reason[reason] += 1
+        text = f"{reason}: {text}"
+        self.last_reject = (text if len(text) <= MAX_ERROR_CHARS
+                            else text[:MAX_ERROR_CHARS - 3] + "...")
+
+
+def step(state: TickState, p: TickParams, now_ns: int, payload: bytes | None = None,
+         skipped: int = 0) -> TickOutput:
+    """One tick at the instant ``now_ns`` (ns, the loop's clock) with the newest input frame
+    (None if none arrived); ``skipped`` deadlines were missed before it.  See the module
+    docstring; never raises because of ``payload``."""
+    now = now_ns / 1e9
+    shaper, sp = state.shaper, p.shaper
+    if payload is not None:
+        _take(state, p, now, payload)
+    if skipped > 0:
+        period = p.period_ns
+        for j in range(min(skipped, MAX_CATCH_UP), 0, -1):
+            state.comp.step(shaper.reference(sp, (now_ns - j * period) / 1e9)[0])
+    ref, mode = shaper.reference(sp, now)
+    comp = state.comp
+    u = comp.step(ref)
+    flags = [mode] if mode else []
+    limited = [False] * len(u)
+    sat, lp, dev = state.sat, state._dev_lp, comp.deviation
+    tol = p.saturation_tolerance
+    alpha = p.verdict_alpha
+    keep = 1.0 - alpha
+    for i, f in enumerate(comp.flags):
+        if not f and lp[i] == 0.0:  # the common case: nothing to average
+            continue
+        lp[i] = alpha * dev[i] + keep * lp[i]
+        if f & _HARD_BITS or (f and abs(lp[i]) > tol):
+            sat[i] += 1
+            limited[i] = True
+            flags.append(_SAT_FLAGS[i])
+    flags.extend(state.bypass_flags)
+    out = TickOutput(state.ticks, state.src_seq, u, flags, limited, mode)
+    state.ticks += 1
+    state.mode = mode or "running"
+    return out
+
+
+def _take(state: TickState, p: TickParams, now: float, payload: bytes) -> None:
+    """Check one frame and hand it to the shaper; a rejection is counted, never raised."""
+    state.received += 1
+    shaper, sp = state.shaper, p.shaper
+    try:
+        seq, t, pos = parse_input(payload, sp.reach_lo, sp.reach_hi, p.max_frame_bytes)
+        last = state.last_seq
+        if last is not None and seq <= last and not shaper.is_stale(sp, now):
+            raise FrameError("duplicate" if seq == last else "old", f"seq {seq} after {last}")
+    except FrameError as exc:
+        state._reject(exc.reason, str(exc))
+        return
+    except Exception as exc:  # a bug must not stop the loop: count it
+        state._reject("internal", f"{type(exc).__name__}: {str(exc)[:MAX_ERROR_CHARS]}")
+        return
+    shaper.on_input(sp, pos, now, t)
+    state.last_seq = seq
+    state.accepted += 1
+    gap = seq - state.src_seq - 1
+    if state.src_seq >= 0 and 0 < gap < 1_000_000:  # a regress is a source restart
+        state.superseded += gap
+    state.src_seq = seq
+
+
+def parse_input(payload: bytes, lo: Sequence[float], hi: Sequence[float],
+                max_bytes: int = 4096) -> tuple[int, float | None, dict[int, float]]:
+    """``(seq, t, {axis index: value})`` of an input frame ``{"seq", "t"?, "pos"}``
+    (docs/WIRE.md) whose values lie within ``[lo, hi]`` per axis.
+
+    Raises
+    ------
+    FrameError
+        ``reason`` one of :data:`REJECT_REASONS`; the message names the key and the value.
+    """
+    if not isinstance(payload, bytes | bytearray | memoryview):
+        raise FrameError("decode", f"payload is {_describe(payload)}, not bytes")
+    size = len(payload)
+    if size > max_bytes:
+        raise FrameError("oversize", f"frame of {size} bytes exceeds the cap of {max_bytes}")
+    try:
+        obj = _unpackb(payload, raw=False, strict_map_key=False)
+    except Exception as exc:  # msgpack raises several unrelated types
+        raise FrameError("decode", f"not a msgpack frame: {str(exc)[:80]}") from None
+    if obj.__class__ is not dict:
+        raise FrameError("decode", f"frame is {_describe(obj)}, not a map")
+    for key in obj:
+        if key not in _INPUT_KEYS:
+            raise FrameError("schema", f"unknown key {_describe(key)} in input frame")
+    if "seq" not in obj or "pos" not in obj:
+        raise FrameError("schema", f"input frame lacks {'seq' if 'seq' not in obj else 'pos'}")
+    seq = obj["seq"]
+    if seq.__class__ is not int:
+        raise FrameError("type", f"seq must be an int, got {_describe(seq)}")
+    t = obj.get("t")
+    if t is not None:
+        if t.__class__ is not float:
+            if t.__class__ is not int:
+                raise FrameError("type", f"t must be a number, got {_describe(t)}")
+            t = float(t)
+        if not math.isfinite(t):
+            raise FrameError("nonfinite", f"t is {t!r}")
+    pos = obj["pos"]
+    if pos.__class__ is not dict:
+        raise FrameError("type", f"pos must be a map, got {_describe(pos)}")
+    if not pos:
+        raise FrameError("schema", "pos is empty")
+    out: dict[int, float] = {}
+    index = AXIS_INDEX
+    for axis, value in pos.items():
+        i = index.get(axis) if axis.__class__ is str else None
+        if i is None:
+            raise FrameError("axis", f"unknown axis {_describe(axis)} in pos")
+        if value.__class__ is not float:
+            if value.__class__ is not int:
+                raise FrameError("type", f"pos.{axis} must be a number, got {_describe(value)}")
+            value = float(value)
+        if not lo[i] <= value <= hi[i]:
+            if not math.isfinite(value):
+                raise FrameError("nonfinite", f"pos.{axis} is {value!r}")
+            raise FrameError("range", f"pos.{axis} = {value!r} is outside "
+                                      f"[{lo[i]:.6g}, {hi[i]:.6g}]")
+        out[i] = value
+    return seq, t, out
+
+
+def _describe(x: object) -> str:
+    """A short description of any value, without recursing into it."""
+    if x is None or isinstance(x, bool | float):
+        return repr(x)
+    if isinstance(x, int):
+        return str(x) if -10**30 < x < 10**30 else f"an int of {x.bit_length()} bits"
+    if isinstance(x, str | bytes):
+        return repr(x[:40]) + ("..." if len(x) > 40 else "")
+    try:
+        return f"a {type(x).__name__} of {len(x)} items"  # type: ignore[arg-type]
+    except Exception:
+        return f"a {type(x).__name__}"
+
+
+# --- between ticks: bypass, parking ----------------------------------------------------------
+def set_bypass(state: TickState, mask: Sequence[bool]) -> list[str]:
+    """Compensation off (True) or on (False) per axis, bumplessly; entries of undriven axes are
+    ignored.  Returns the axes in bypass."""
+    comp = state.comp
+    new = [bool(m) if d else bool(b) for m, d, b in zip(mask, state._driven, comp.bypass,
+                                                       strict=True)]
+    comp.set_bypass(new)
+    _set_bypass_flags(state)
+    return [a for a, b in zip(AXES, comp.bypass, strict=True) if b]
+
+
+def _set_bypass_flags(state: TickState) -> None:
+    state.bypass_flags = [_BYPASS_FLAGS[i] for i, (b, d) in enumerate(zip(
+        state.comp.bypass, state._driven, strict=True)) if b and d]
+
+
+def park(state: TickState, p: TickParams, now_ns: int) -> None:
+    """Stop requested: ramp every axis to neutral from the next tick on, ignoring input."""
+    state.shaper.park(p.shaper, now_ns / 1e9)
+
+
+def is_parked(state: TickState) -> bool:
+    """Parking requested and finished: the reference at neutral, the command at rest."""
+    if not state.shaper.parked:
+        return False
+    st = state.comp.state()
+    return bool(max(abs(x) for x in st.u) < 1e-6 and max(abs(x) for x in st.v) < 1e-4)
