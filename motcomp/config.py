@@ -76,8 +76,7 @@ class GainsConfig(BaseModel):
         return _finite(v)
 
     def to_gains(self) -> PIDGains:
-        return PIDGains(kp=self.kp, ki=self.ki_per_s, kd=self.kd_s, tf=self.tf_s, b=self.b,
-                        c=self.c)
+        return PIDGains.from_config(self.model_dump())
 
 
 class TuningConfig(BaseModel):

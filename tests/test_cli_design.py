@@ -23,7 +23,7 @@ def test_design_json_schema() -> None:
     assert out["model"]["kind"] == "p1d"
     assert set(out["model"]) >= {"K", "Td", "Tp1"}
     assert out["rate_hz"] == 1000.0 and out["rule"] == "zn"
-    assert set(out["gains"]) == {"kp", "ki", "kd", "tf"}
+    assert set(out["gains"]) == {"kp", "ki_per_s", "kd_s", "tf_s", "b", "c"}  # the config's keys
     for block in ("uncorrected", "corrected"):
         assert set(out[block]["phase_delay_ms"]) == {"0.2", "0.5", "1", "2"}
     c = out["corrected"]
@@ -31,6 +31,25 @@ def test_design_json_schema() -> None:
         assert isinstance(c[key], float)
     assert c["stable"] is True and out["warnings"] == []
     assert c["phase_delay_ms"]["0.2"] < 10
+
+
+def test_design_gains_paste_into_the_config(tmp_path: Path) -> None:
+    """``design --json`` gains are ``[axes.<name>.gains]`` as the config takes them."""
+    from motcomp.config import load_config, resolve_axes
+    from motcomp.core.pid import PIDGains
+    from motcomp.resources import config_file
+
+    p = run("design", "--plant", "rails", "--rule", "zn", "--json")
+    assert p.returncode == 0, p.stderr
+    gains = json.loads(p.stdout)["gains"]
+    body = ", ".join(f"{k} = {v!r}" for k, v in gains.items())
+    path = tmp_path / "site.toml"
+    path.write_text(f'include = ["{config_file("motcomp.toml")}"]\n'
+                    f"[axes.rails_y]\ngains = {{ {body} }}\n")
+    axes = resolve_axes(load_config(path))
+    assert axes.gains[axes.names.index("rails_y")] == PIDGains.from_config(gains)
+    chk = run("config", "check", str(path))
+    assert chk.returncode == 0, chk.stderr
 
 
 def test_design_with_model_spec_and_hexapod_warning() -> None:

@@ -105,29 +105,6 @@ def test_naps_never_exceed_the_bound_and_keep_the_deadlines(
     assert len(naps) == 1 and naps[0] > 700_000  # 0: one sleep
 
 
-def test_warm_up_runs_once_per_wait_as_the_spin_starts(fake: FakeTime) -> None:
-    c = DeadlineClock(1000.0, spin_us=200.0, clock=fake.ticking, sleep_max_us=100.0)
-    t0 = c.start_ns
-    at: list[int] = []
-
-    def warm() -> None:
-        at.append(fake.ns)
-        fake.ns += 30_000  # the shadow tick takes 30 us
-
-    d, now = c.wait(warm)
-    assert d == t0 + 1_000_000 and now >= d
-    assert len(at) == 1 and d - 200_000 <= at[0] < d - 150_000  # after the last nap
-    fake.ns = d + 1_500_000  # overran into the next period: no sleep, so no warm-up either
-    c.wait(warm)
-    assert len(at) == 1
-    # input-synchronous: once, spin_us before the own-clock deadline, unless input came first
-    d, _, polled = c.wait_or_poll(lambda: False, 50.0, warm)
-    assert not polled and len(at) == 2 and d - 200_000 <= at[1] < d
-    fake.ns = d + 10_000
-    _, _, polled = c.wait_or_poll(lambda: True, 50.0, warm)  # input at half a period
-    assert polled and len(at) == 2
-
-
 def test_input_synchronous_wait_sleeps_in_poll_steps_then_spins(
         fake: FakeTime, monkeypatch: pytest.MonkeyPatch) -> None:
     naps: list[tuple[int, int]] = []  # (when, how long)

@@ -13,13 +13,12 @@ from scipy.signal import lfilter
 from motcomp.core.axes import AXES
 from motcomp.core.compensator import NONFINITE, Compensator
 from motcomp.core.loop import pid_tf, stability
-from motcomp.core.models import P1D, p1d_coefficients
+from motcomp.core.models import P1D, p1d_coefficients, simulate_axis
 from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import AxisLimits
 from motcomp.core.tuning import tune
 from motcomp.design.frequency import loop_response
 from motcomp.errors import ConfigError
-from motcomp.core.models import simulate_axis
 from tests.conftest import RAILS
 from tests.test_saturation import check_sequence
 

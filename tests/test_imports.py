@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import subprocess
 import sys
@@ -77,7 +78,7 @@ def test_no_import_circles() -> None:
         stack.append(m)
         for d in sorted(graph[m]):
             if state.get(d) == 1:
-                cycles.append(stack[stack.index(d):] + [d])
+                cycles.append([*stack[stack.index(d):], d])
             elif d not in state:
                 visit(d)
         stack.pop()
@@ -87,7 +88,7 @@ def test_no_import_circles() -> None:
         if m not in state:
             visit(m)
     # a package importing its own submodules (its public surface) is not a circle
-    cycles = [c for c in cycles if not any(b.startswith(a + ".") for a, b in zip(c, c[1:]))]
+    cycles = [c for c in cycles if not any(b.startswith(a + ".") for a, b in itertools.pairwise(c))]
     assert not cycles, "\n".join(" -> ".join(c) for c in cycles)
 
 

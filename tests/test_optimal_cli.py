@@ -21,12 +21,12 @@ def test_design_optimal_json_keeps_the_schema_and_adds_its_block() -> None:
     # the schema of the other rules
     assert out["rule"] == "optimal" and out["rate_hz"] == 1000.0
     assert set(out["model"]) >= {"kind", "K", "Td", "Tp1"}
-    assert set(out["gains"]) >= {"kp", "ki", "kd", "tf"}
+    assert set(out["gains"]) == {"kp", "ki_per_s", "kd_s", "tf_s", "b", "c"}
     for block in ("uncorrected", "corrected"):
         assert set(out[block]["phase_delay_ms"]) == {"0.2", "0.5", "1", "2"}
     assert out["warnings"] == [] and out["corrected"]["stable"] is True
     # what optimal adds: the setpoint weights, the bounds and the values reached
-    assert {"b", "c"} <= set(out["gains"])
+    assert (out["gains"]["b"], out["gains"]["c"]) != (1.0, 1.0)
     opt = out["optimal"]
     assert opt["constraints"]["peak_db"] == 8.0 and opt["constraints"]["band_hz"] == [0.1, 2.0]
     assert opt["values"]["max_residual_delay_ms"] == out["corrected"]["max_residual_delay_ms"]
@@ -43,7 +43,7 @@ def test_design_optimal_options_reach_the_optimiser() -> None:
     out = json.loads(p.stdout)
     c = out["optimal"]["constraints"]
     assert (c["peak_db"], c["band_hz"], c["max_command_gain"]) == (6.0, [0.1, 1.5], 40.0)
-    assert out["optimal"]["setpoint_weights"] is False and "b" not in out["gains"]
+    assert out["optimal"]["setpoint_weights"] is False and out["gains"]["b"] == 1.0
     assert out["corrected"]["peak_gain_db"] <= 6.02
     assert out["corrected"]["peak_command_gain"] <= 40.0 * 1.002
 

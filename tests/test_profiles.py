@@ -1,4 +1,5 @@
-"""Scenario profiles: named gain sets in the config, switched live and bumplessly."""
+"""Scenario profiles: named gain sets in the config, switched live and bumplessly (in process,
+and against a running service); an unknown profile is refused and the running one stays."""
 
 from __future__ import annotations
 
@@ -19,8 +20,10 @@ from motcomp.errors import ConfigError
 from motcomp.io.wire import decode_output, encode_input
 from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loopback, open_session
 from motcomp.resources import config_file
+from motcomp.runtime.service import Service
 from tests._frames import assert_frames_within_limits
 from tests.conftest import RAILS, motcomp_cmd, subprocess_env
+from tests.test_reload import Y, assert_within_limits, running
 from tests.test_service_process import process, wait_status
 
 PROFILES = """
@@ -71,6 +74,29 @@ def test_profile_precedence() -> None:
 def test_bad_profiles_rejected(extra: str, msg: str) -> None:
     with pytest.raises(ConfigError, match=msg):
         parse_config(config(extra))
+
+
+def test_profile_switch_in_process() -> None:
+    """Switched between two ticks of the running loop, each profile's gains take over; an
+    unknown profile changes nothing; the command stays within the limits throughout."""
+    svc = Service(parse_config(config()), ZenohEndpoints())
+    with running(svc) as run:
+        for name, gains in (("fast", (3.0, 40.0)), ("normal", tune("zn", RAILS).gains),
+                            (None, resolve_axes(parse_config(config())).gains[Y])):
+            r = svc.admin("profile", msgpack.packb({"name": name}))
+            assert r["ok"] and svc.cfg.profile == name and svc.status()["profile"] == name, r
+            got = svc.axes.gains[Y]
+            if isinstance(gains, tuple):  # the profile's own rails_y gains
+                assert (got.kp, got.ki) == gains
+            else:
+                assert got == gains
+            run.wait(200)
+        kept = (svc.cfg, svc.axes, svc.params, svc.config_id, svc.config_version)
+        r = svc.switch_profile("sport")
+        assert not r["ok"] and "profile 'sport' is not defined" in r["error"]
+        assert (svc.cfg, svc.axes, svc.params, svc.config_id, svc.config_version) == kept
+    assert len(run.swaps()) == 3
+    assert_within_limits(run, svc)
 
 
 @pytest.mark.slow

@@ -1,27 +1,44 @@
-"""Live reload against a running service (subprocess): ``motcomp reload`` and SIGHUP."""
+"""Live reload: in process (the service's tick driven by a thread standing in for its loop,
+in-memory ports) and against a running service (subprocess): ``motcomp reload`` and SIGHUP.
+
+Either way: a valid config is swapped in bumplessly (no step in the raw PID output, the command
+within the limits), an invalid one is refused with its reason and the running config stays,
+untouched."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import signal
 import subprocess
 import threading
 import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import msgpack
+import numpy as np
 import pytest
 
+from motcomp.config import load_config
+from motcomp.core.axes import AXES
+from motcomp.core.saturation import AxisLimits
+from motcomp.core.tuning import tune
+from motcomp.io.memory import MemorySink, MemorySource
 from motcomp.io.wire import decode_output, encode_input
 from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loopback, open_session
 from motcomp.resources import config_file
+from motcomp.runtime.service import Service
 from tests._frames import assert_frames_within_limits
 from tests._notify import NotifyListener
-from tests.conftest import motcomp_cmd, subprocess_env
+from tests.conftest import RAILS, motcomp_cmd, subprocess_env
+from tests.test_saturation import check_sequence
 from tests.test_service_process import process, wait_status
 
-pytestmark = pytest.mark.slow
+MS = 1_000_000  # ns
+Y = AXES.index("rails_y")
 
 BASE = f'include = ["{config_file("motcomp.toml")}"]\n[admin]\nenabled = true\n'
 
@@ -50,6 +67,129 @@ INVALID = {
 }
 
 
+# --- in process ------------------------------------------------------------------------------
+@dataclass
+class Run:
+    """Per tick of :func:`running`: the rails_y command and raw PID output, and the tick
+    parameters it ran with."""
+
+    u: list[float] = field(default_factory=list)
+    raw: list[float] = field(default_factory=list)
+    params: list[object] = field(default_factory=list)
+
+    def swaps(self) -> list[int]:
+        """The first tick of each new config."""
+        return [k for k in range(1, len(self.params)) if self.params[k] is not self.params[k - 1]]
+
+    def wait(self, ticks: int) -> None:
+        """Let the loop run ``ticks`` more ticks."""
+        end = len(self.u) + ticks
+        while len(self.u) < end:
+            time.sleep(1e-3)
+
+
+@contextlib.contextmanager
+def running(svc: Service) -> Iterator[Run]:
+    """Tick ``svc`` from a thread standing in for its loop (1 ms of tick time per tick, a
+    feasible motion on rails_y that starts at rest; 1.5 s of it before the block, 0.3 s after),
+    while the block calls the service from this thread, as its main thread would."""
+    src, sink = MemorySource(latest_only=True), MemorySink(keep=1)
+    svc.attach(src, [sink])
+    stop = threading.Event()
+    errors: list[BaseException] = []
+    run = Run()
+
+    def tick(k: int) -> None:
+        t = k / 1000
+        src.push(encode_input(k, t, {"rails_y": 0.25 * math.sin(0.6 * math.pi * t) ** 3}))
+        svc.tick(k * MS)
+        run.u.append(decode_output(sink.payloads[-1])["pos"]["rails_y"])
+        run.raw.append(float(svc.state.comp.raw_output[Y]))
+        run.params.append(svc.params)  # swapped in by the tick's commands, before its step
+
+    def loop(k: int) -> None:
+        try:
+            while not stop.is_set():
+                tick(k)
+                k += 1
+                time.sleep(50e-6)  # let the main thread run
+            for j in range(k, k + 300):
+                tick(j)
+        except BaseException as exc:  # reported below
+            errors.append(exc)
+
+    for k in range(1500):  # start-up, in this thread
+        tick(k)
+    thread = threading.Thread(target=loop, args=(1500,), daemon=True)
+    thread.start()
+    try:
+        yield run
+    finally:
+        stop.set()
+        thread.join(timeout=30)
+    assert not errors and not thread.is_alive()
+
+
+def assert_within_limits(run: Run, svc: Service) -> None:
+    lim = svc.axes.limits
+    check_sequence(np.array(run.u), 0.0, AxisLimits(lim.p_min[Y:Y + 1], lim.p_max[Y:Y + 1],
+                                                     lim.v_max[Y:Y + 1], lim.a_max[Y:Y + 1]),
+                   1e-3)
+
+
+def assert_raw_continuous(run: Run) -> None:
+    """No step in the raw PID output at a swap: over the first tick of a new config it changes
+    by no more than three times its change over the tick before, plus 0.1 mm (the motion is
+    smooth: that change is a fraction of a millimetre)."""
+    raw = run.raw
+    for k in run.swaps():
+        step, before = abs(raw[k] - raw[k - 1]), abs(raw[k - 1] - raw[k - 2])
+        assert step <= 3 * before + 1e-4, (k, step, before)
+
+
+def test_reload_in_process_keeps_the_old_config_on_failure(tmp_path: Path) -> None:
+    path = tmp_path / "motcomp.toml"
+    path.write_text(BASE)
+    svc = Service(load_config(path), ZenohEndpoints(), config_path=path)
+    with running(svc) as run:
+        path.write_text('profile = "fast"\n' + BASE)  # optimised -> AMIGO gains on the rails
+        r = svc.reload()
+        assert r["ok"] and r["version"] == 2 and svc.config_version == 2, r
+        assert svc.axes.gains[Y] == tune("amigo", RAILS).gains
+        kept = (svc.cfg, svc.axes, svc.params, svc.config_id)
+        for name, (text, reason) in INVALID.items():
+            if reason is None:
+                continue
+            bad = tmp_path / f"bad-{name.replace(' ', '_')}.toml"
+            bad.write_text(text)
+            r = svc.admin("reload", msgpack.packb({"path": str(bad)}))
+            assert r["ok"] is False and reason in r["error"], (name, r)
+            assert (svc.cfg, svc.axes, svc.params, svc.config_id) == kept, name
+            assert svc.config_version == 2 and svc.reloads[-1]["ok"] is False
+        path.write_text('profile = "paper"\n' + BASE)  # -> Ziegler-Nichols
+        assert svc.reload()["ok"] and svc.config_version == 3
+        assert svc.axes.gains[Y] == tune("zn", RAILS).gains
+    assert len(run.swaps()) == 2
+    assert_within_limits(run, svc)
+    assert svc.state.rejected == 0 and svc.state.ticks == len(run.u)
+
+
+def test_reload_in_process_is_bumpless(tmp_path: Path) -> None:
+    path = tmp_path / "motcomp.toml"
+    path.write_text(BASE)
+    svc = Service(load_config(path), ZenohEndpoints(), config_path=path)
+    with running(svc) as run:
+        for profile in ("fast", "paper"):
+            path.write_text(f'profile = "{profile}"\n' + BASE)
+            assert svc.reload()["ok"]
+            run.wait(300)
+    assert len(run.swaps()) == 2
+    assert_within_limits(run, svc)
+    assert_raw_continuous(run)
+
+
+# --- against the running service --------------------------------------------------------------
+@pytest.mark.slow
 def test_reload_valid_and_invalid_and_sighup(tmp_path: Path) -> None:
     import zenoh
 
@@ -131,6 +271,7 @@ def test_reload_valid_and_invalid_and_sighup(tmp_path: Path) -> None:
     assert log.count("hash") >= 2
 
 
+@pytest.mark.slow
 def test_reload_refused_when_admin_is_off(tmp_path: Path) -> None:
     cfg = tmp_path / "motcomp.toml"
     cfg.write_text(f'include = ["{config_file("motcomp.toml")}"]\n')

@@ -1,8 +1,16 @@
-"""Benchmark: compensator tick time for 8 axes: the compiled kernel (production), its Python
-reference (the same per-axis scalar code, bit-identical results) and a numpy-vectorised
-formulation of the same tick, measured in the same run.
+"""Benchmark: the cost of one tick for 8 axes at 1 kHz, in this process, without transport.
 
-Writes the "core" section of docs/BENCHMARKS.md.  Usage: ``python tools/bench_core.py [--ticks N]``
+Times ``Compensator.step`` alone (the control law) and the whole
+:func:`motcomp.core.tick.step` (a valid input frame every tick, encoded beforehand with
+:func:`motcomp.io.wire.encode_input`: parse and check, reference, compensator, saturation
+verdicts), both built from the example config as the service builds them
+(:func:`motcomp.config.new_tick`), plus a numpy-vectorised sketch of the compensator's linear
+arithmetic as a lower bound of what vectorising over 8 axes would cost.  The three run
+interleaved in blocks, each on its own continuous timeline, ``gc.freeze()``-d as the service's
+loop is.
+
+Writes the "core" section of docs/BENCHMARKS.md.
+Usage: ``python tools/bench_core.py [--ticks 60000] [--quick] [--no-write]``
 """
 
 from __future__ import annotations
@@ -11,20 +19,27 @@ import argparse
 import gc
 import math
 import time
+from collections.abc import Callable
 
 import numpy as np
-from _bench import machine, percentiles, write_section
+from _bench import machine, write_section
 
+from motcomp.config import load_config, new_tick
+from motcomp.core.axes import AXES
 from motcomp.core.compensator import Compensator
 from motcomp.core.models import p1d_coefficients
-from motcomp.core.saturation import AxisLimits
-from motcomp.core.tuning import tune
-from motcomp.presets import load_preset
+from motcomp.core.tick import step
+from motcomp.io.wire import encode_input
+from motcomp.resources import config_file
+
+BLOCKS = 12
+"""Blocks each implementation's ticks are cut into; the implementations alternate by block."""
 
 
 class NumpyTick:
-    """The same linear tick vectorised over axes with numpy (no bypass, no catch-up braking:
-    a lower bound on what a numpy kernel costs)."""
+    """The compensator's linear arithmetic (PID, internal model, a velocity and acceleration
+    clip) vectorised over axes with numpy; no bypass, no setpoint weights, no target tracker:
+    it does less than :meth:`Compensator.step`, so its time is a lower bound."""
 
     def __init__(self, comp: Compensator) -> None:
         n = comp.n
@@ -37,18 +52,13 @@ class NumpyTick:
         co = [p1d_coefficients(m, h) for m in comp.models]
         self.phi, self.g0, self.g1 = (np.array([c[i] for c in co]) for i in range(3))
         d = np.array([c[3] for c in co])
-        self.L = 64
+        self.L = 1 << math.ceil(math.log2(int(d.max()) + 2))
         self.base = np.arange(n) * self.L
         self.off0, self.off1 = 1 - d, -d
         self.hist_c = np.zeros(n * self.L)
         self.hist_m = np.zeros(n * self.L)
-        self.xc = np.zeros(n)
-        self.xm = np.zeros(n)
-        self.integ = np.zeros(n)
-        self.deriv = np.zeros(n)
-        self.wp = np.zeros(n)
-        self.u = np.zeros(n)
-        self.v = np.zeros(n)
+        self.xc, self.xm, self.integ, self.deriv, self.wp, self.u, self.v = (
+            np.zeros(n) for _ in range(7))
         lim = comp.limits
         self.pmin, self.pmax, self.vmax = lim.p_min, lim.p_max, lim.v_max
         self.ah = lim.a_max * h
@@ -84,76 +94,103 @@ class NumpyTick:
         return u
 
 
-def build(kernel: str = "c") -> Compensator:
-    rails = load_preset("rails")
-    hexapod = load_preset("hexapod")
-    models = [rails.model] * 2 + [hexapod.model.to_p1d()] * 6
-    gains = [tune("zn", rails.model).gains] * 2 + [tune("amigo", hexapod.model.to_p1d()).gains] * 6
-    lim = AxisLimits(np.concatenate([rails.limits.p_min, hexapod.limits.p_min]),
-                     np.concatenate([rails.limits.p_max, hexapod.limits.p_max]),
-                     np.concatenate([rails.limits.v_max, hexapod.limits.v_max]),
-                     np.concatenate([rails.limits.a_max, hexapod.limits.a_max]))
-    return Compensator(models, gains, lim, 1000.0, kernel=kernel)  # type: ignore[arg-type]
+def references(ticks: int, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """``(ticks, 8)`` sinusoids at 0.3 Hz, a different phase per axis, within half of each
+    axis' position range."""
+    t = np.arange(ticks) / 1000.0
+    amp = 0.5 * (hi - lo) / 2
+    mid = (hi + lo) / 2
+    return np.stack([mid[i] + amp[i] * np.sin(2 * math.pi * 0.3 * t + i)
+                     for i in range(len(AXES))], axis=1)
 
 
-def measure(step, refs: np.ndarray, as_list: bool) -> np.ndarray:  # type: ignore[no-untyped-def]
-    times = np.empty(refs.shape[0])
+def measure(call: Callable[[int], object], ks: range) -> np.ndarray:
+    """Time ``call(k)`` for each ``k`` (us)."""
+    out = np.empty(len(ks))
     clock = time.perf_counter_ns
-    rows = refs.tolist() if as_list else refs
+    for j, k in enumerate(ks):
+        t0 = clock()
+        call(k)
+        out[j] = clock() - t0
+    return out / 1e3
+
+
+def run(ticks: int) -> tuple[dict[str, np.ndarray], dict[str, list[float]], dict[str, object]]:
+    """Per-tick times (us) and block medians of each implementation, and what the tick state
+    ended with."""
+    cfg = load_config(config_file("motcomp.toml"))
+    if cfg.loop.rate_hz != 1000.0:
+        raise SystemExit(f"the example config runs at {cfg.loop.rate_hz:g} Hz, not 1 kHz")
+    _, alone = new_tick(cfg)
+    params, state = new_tick(cfg)
+    comp = alone.comp
+    lim = comp.limits
+    refs = references(ticks, lim.p_min, lim.p_max)
+    rows = refs.tolist()
+    frames = [encode_input(k, k / 1000.0, dict(zip(AXES, row, strict=True)))
+              for k, row in enumerate(rows)]
+    vector = NumpyTick(new_tick(cfg)[1].comp)
+    comp_step = comp.step
+    calls: dict[str, Callable[[int], object]] = {
+        "`Compensator.step`": lambda k: comp_step(rows[k]),
+        "`tick.step` (frame in, `TickOutput` out)":
+            lambda k: step(state, params, k * 1_000_000, frames[k]),
+        "numpy sketch (lower bound)": lambda k: vector.step(refs[k]),
+    }
+    parts: dict[str, list[np.ndarray]] = {name: [] for name in calls}
     gc.collect()
-    gc.disable()
+    gc.freeze()
     try:
-        for i in range(refs.shape[0]):
-            r = rows[i]
-            t0 = clock()
-            step(r)
-            times[i] = clock() - t0
+        for b in np.array_split(np.arange(ticks), BLOCKS):
+            ks = range(int(b[0]), int(b[-1]) + 1)
+            for name, call in calls.items():
+                parts[name].append(measure(call, ks))
     finally:
-        gc.enable()
-    return times / 1e3
+        gc.unfreeze()
+    times = {name: np.concatenate(p) for name, p in parts.items()}
+    blocks = {name: [float(np.median(x)) for x in p] for name, p in parts.items()}
+    check = {"accepted": state.accepted, "rejected": state.rejected, "ticks": state.ticks,
+             "mode": state.mode, "u_max": float(np.max(np.abs(comp.output)))}
+    return times, blocks, check
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--ticks", type=int, default=60000)
-    ap.add_argument("--no-write", action="store_true")
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--ticks", type=int, default=60000, help="ticks per implementation")
+    ap.add_argument("--quick", action="store_true", help="a smoke test: 6000 ticks")
+    ap.add_argument("--no-write", action="store_true", help="print only")
     args = ap.parse_args()
-    t = np.arange(args.ticks) / 1000.0
-    refs = np.stack([0.3 * (1 + i % 3) / 3 * np.sin(2 * math.pi * 0.3 * t + i)
-                     for i in range(8)], axis=1)
-    refs[:, 2:] *= 0.2
-    results = {}
-    # interleave the kernels in blocks so all see the same machine conditions
-    compiled, python, vector = build("c"), build("python"), NumpyTick(build())
-    blocks = 6
-    names = ("compiled C (production)", "Python reference", "numpy-vectorised")
-    parts: dict[str, list[np.ndarray]] = {name: [] for name in names}
-    for b in np.array_split(np.arange(args.ticks), blocks):
-        parts[names[0]].append(measure(compiled.step, refs[b], as_list=True))
-        parts[names[1]].append(measure(python.step, refs[b], as_list=True))
-        parts[names[2]].append(measure(vector.step, refs[b], as_list=False))
-    same = compiled.output.tolist() == python.output.tolist()
-    for name, chunks in parts.items():
-        results[name] = percentiles(np.concatenate(chunks), (50, 99, 99.9))
-    ratio = results[names[1]][50] / results[names[0]][50]
-    ratio_np = results[names[2]][50] / results[names[1]][50]
+    ticks = 6000 if args.quick else args.ticks
+    times, blocks, check = run(ticks)
+    med = {name: float(np.median(t)) for name, t in times.items()}
+    names = list(times)
     lines = [
         f"Machine: {machine()}.",
         "",
-        f"`python tools/bench_core.py --ticks {args.ticks}`: one `Compensator.step` for the 8 axes "
-        "(rails ZN + hexapod AMIGO, 1 kHz, sinusoidal references within the limits), timed with "
-        "`perf_counter_ns` around each call (which adds about 0.1 us), GC disabled during the "
-        "runs, the three kernels interleaved in 6 blocks.",
+        f"`python tools/bench_core.py --ticks {ticks}`: the example config's 8 axes at 1 kHz, "
+        "sinusoidal references within half of each axis' range; each call timed with "
+        "`perf_counter_ns` (which adds about 0.1 us), the three interleaved in "
+        f"{BLOCKS} blocks of {ticks // BLOCKS} ticks, GC frozen as in the service's loop.  "
+        "`tick.step` takes a valid msgpack input frame every tick (parse and check, reference, "
+        "compensator, saturation verdicts; its output is not encoded).",
         "",
-        "| kernel | median (us) | p99 (us) | p99.9 (us) |",
-        "|---|---|---|---|",
+        "| code | median (us) | p99 (us) | p99.9 (us) | block medians (us) |",
+        "|---|---|---|---|---|",
     ]
-    for name, q in results.items():
-        lines.append(f"| {name} | {q[50]:.1f} | {q[99]:.1f} | {q[99.9]:.1f} |")
-    lines += ["", f"Python / compiled median ratio in this run: {ratio:.1f}; the two ended on "
-              f"{'bit-identical' if same else 'DIFFERENT'} commands.  numpy / Python median "
-              f"ratio: {ratio_np:.2f} (the numpy variant does less work: no bypass, no catch-up "
-              "braking).  Target: median <= 20 us."]
+    for name, t in times.items():
+        q = np.percentile(t, (50, 99, 99.9))
+        lines.append(f"| {name} | {q[0]:.1f} | {q[1]:.1f} | {q[2]:.1f} | "
+                     f"{min(blocks[name]):.1f}-{max(blocks[name]):.1f} |")
+    lines += [
+        "",
+        f"The tick beyond the compensator (frame checks, reference, verdicts) costs "
+        f"{med[names[1]] - med[names[0]]:.1f} us at the median; the tick accepted "
+        f"{check['accepted']} of {check['ticks']} frames (rejected {check['rejected']}), mode "
+        f"{check['mode']!r} at the end, largest |command| {check['u_max']:.3g}.  numpy sketch / "
+        f"`Compensator.step` median ratio: {med[names[2]] / med[names[0]]:.2f} (the sketch does "
+        "less work).  Target: `Compensator.step` median <= 20 us.",
+    ]
     text = "\n".join(lines)
     print(text)
     if not args.no_write:

@@ -1,27 +1,34 @@
-"""Benchmark: the service with 8 axes at 1 kHz, three processes on loopback.
+"""Benchmark: the service with 8 axes at 1 kHz, three processes on loopback, each run paired with
+the loop's clock alone.
 
 A publisher process sends setpoints for all 8 axes at 1 kHz (absolute deadlines, ``t`` stamped
 just before ``put``); ``motcomp run`` compensates them; this process receives the outputs and,
 matching each output's ``src_seq`` with the input's publish time, measures the in->out latency.
 The service's own status gives tick compute time and lateness (over the steady part: its status
-window is set 2 s shorter than the run, which leaves the start-ups out) and missed ticks (counted
-from the publisher's first frame; those of the start-ups apart); /proc gives its CPU time and
-RSS.  Run once on the service's clock and once with
-``loop.sync_to_input`` (ticking on input arrival).  Writes the "service" section of
-docs/BENCHMARKS.md.
+window is set 2 s shorter than the run) and missed ticks (counted from the publisher's first
+frame; those of the start-up apart); /proc gives its CPU time and RSS.  Each mode runs on the
+service's clock and with ``loop.sync_to_input`` (ticking on input arrival).
 
-Scheduling modes: the example config as it is (normal scheduling, the loop thread's short
-slice ``loop.slice_us`` and naps of at most ``loop.sleep_max_us``); with ``--plain`` also the
-kernel's default slice and one sleep per tick (what the two buy); with ``--rt`` also SCHED_FIFO
-50 on a pinned core (needs the privilege).  Every run is followed by nothing; then the loop's
-clock alone is timed in each mode (the stalls the machine itself imposes).
+Every service run is paired with a run of the loop's clock alone, as long and with the same loop
+settings (scheduling, slice, naps, spin; a process of its own, no work, no I/O, nothing else of
+the benchmark running), the two in alternating order: the clock's missed ticks are the stalls
+the machine imposes, and the ratio service / clock what the service adds (target <= 1.5).  Once
+per repeat, ``Service.tick`` with in-memory ports is timed in a process of its own, back to back
+and paced at 1 kHz as the loop waits.  Repeats are interleaved; the reading uses medians.
+Writes the "service" section of docs/BENCHMARKS.md.
 
-Usage: ``python tools/bench_service.py [--seconds 60] [--repeats 3] [--plain] [--rt]``
+Scheduling modes: the example config as it is (normal scheduling, the loop thread's short slice
+``loop.slice_us`` and naps of at most ``loop.sleep_max_us``); with ``--plain`` also the kernel's
+default slice and one sleep per tick; with ``--rt`` also SCHED_FIFO 50 on CPU 1 (needs the
+privilege; the service reports whether it got it).
+
+Usage: ``python tools/bench_service.py [--seconds 40] [--repeats 3] [--plain] [--rt] [--quick]``
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import signal
@@ -40,16 +47,18 @@ from motcomp.core.axes import AXES
 from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loopback, open_session
 from motcomp.resources import config_file
 
-SPIN_US: float | None = None
-SCHEDS = {  # scheduling mode -> [loop] settings
+SCHEDS = {  # scheduling mode -> [loop] settings over the example config
     "config": "",
     "plain": "slice_us = 0\nsleep_max_us = 0\n",
     "rt": "realtime_priority = 50\ncpu = 1\n",
-    "pykernel": "",  # the config as it is, with the tick's Python code (MOTCOMP_KERNEL=python)
-    "nowarm": "warm_up = false\n",
 }
+RATIO_MAX = 1.5
+"""Target: missed ticks of the service / missed ticks of the clock alone."""
+PAIR_OVERHEAD_S = 8.0
+"""About what a pair costs beyond its two runs (start-ups, parking, status queries)."""
 
 
+# --- child processes --------------------------------------------------------------------------
 def publisher(port: int, seconds: float) -> None:
     """Child process: 8 axes at 1 kHz on absolute deadlines."""
     from motcomp.runtime.clock import DeadlineClock
@@ -68,112 +77,82 @@ def publisher(port: int, seconds: float) -> None:
         pub.undeclare()
 
 
-def tick_in_process(ticks: int = 20000, gap_s: float = 0.0, kernel: str = "c",
-                    warm: bool = False) -> tuple[float, float]:
-    """(p50, p99) us of ``Service.tick`` with in-memory adapters: the work of a tick without
-    transport or other processes, with the given compensator kernel; in a tight loop, or
-    ``gap_s`` after the last tick, waited as the service's loop waits (naps of 100 us, then a
-    spin of 200 us, the shadow tick first if ``warm``), which shows what waking from a sleep
-    costs and what the warm-up buys back."""
+def schedule_like_loop(loop: Any) -> str:
+    """Schedule the calling thread as the service schedules its loop thread; the same report."""
+    from motcomp.runtime.rt import pin_to_cpu, set_realtime, set_slice
+
+    naps = f"naps of {loop.sleep_max_us:g} us" if loop.sleep_max_us > 0 else "one sleep per tick"
+    return (f"{set_realtime(loop.realtime_priority)}; {set_slice(loop.slice_us)}; {naps}; "
+            f"{pin_to_cpu(loop.cpu)}")
+
+
+def bare_clock(cfg_path: str, seconds: float) -> dict[str, Any]:
+    """Child process: the loop's clock alone with the config's loop settings (sleep, then spin
+    to each deadline, no work, no I/O): the stalls the machine itself imposes."""
     from motcomp.config import load_config
-    from motcomp.io import wire
-    from motcomp.runtime import shaper
-    from motcomp.runtime.service import Service
-
-    old = os.environ.get("MOTCOMP_KERNEL")
-    saved = wire._cwire, shaper._cshaper
-    os.environ["MOTCOMP_KERNEL"] = kernel
-    if kernel == "python":  # all of the tick's code in Python, as MOTCOMP_KERNEL=python at start
-        wire._cwire = shaper._cshaper = None
-    try:
-        svc = Service(load_config(config_file("motcomp.toml")), ZenohEndpoints())
-        return _time_ticks(svc, ticks, gap_s, warm)
-    finally:
-        os.environ.pop("MOTCOMP_KERNEL") if old is None else os.environ.update(
-            MOTCOMP_KERNEL=old)
-        wire._cwire, shaper._cshaper = saved
-
-
-def _time_ticks(svc: Any, ticks: int, gap_s: float, warm: bool) -> tuple[float, float]:
-    from motcomp.io.memory import MemorySink, MemorySource
-    from motcomp.io.wire import encode_input
-
-    src = MemorySource(latest_only=True)
-    svc.attach(src, [MemorySink(keep=1)])
-    frames = [encode_input(k, k / 1000, {a: 0.05 * math.sin(k / 300 + i)
-                                         for i, a in enumerate(AXES)}) for k in range(ticks)]
-    times = np.empty(ticks)
-    if warm:
-        svc._shadow = svc.make_shadow()
-    perf = time.perf_counter_ns
-    for k, f in enumerate(frames):
-        src.push(f)
-        if gap_s:
-            deadline = perf() + int(gap_s * 1e9)
-            while deadline - perf() > 200_000:
-                time.sleep(0.0001)
-            if warm:
-                svc.warm_up()
-            while perf() < deadline:
-                pass
-        t0 = time.perf_counter_ns()
-        svc.tick(k * 1_000_000)
-        times[k] = time.perf_counter_ns() - t0
-    t = times[ticks // 10:] / 1e3
-    return float(np.percentile(t, 50)), float(np.percentile(t, 99))
-
-
-BARE_MODES = (  # (slice_us, sleep_max_us, SCHED_FIFO) of the clock-alone probe
-    (0.0, 0.0, False), (100.0, 0.0, False), (0.0, 100.0, False), (100.0, 100.0, False),
-    (0.0, 0.0, True))
-
-
-def bare_clock(seconds: float, mode: int) -> dict[str, Any]:
-    """Child process: the loop's clock alone (sleep, then spin to each 1 kHz deadline, no work,
-    no I/O) in :data:`BARE_MODES` ``[mode]``: the stalls the machine itself imposes on a thread
-    that sleeps between ticks."""
     from motcomp.runtime.clock import DeadlineClock
-    from motcomp.runtime.rt import set_realtime, set_slice
 
-    slice_us, nap_us, rt = BARE_MODES[mode]
-    report = set_realtime(50) if rt else set_slice(slice_us)
-    report += f"; naps of {nap_us:g} us" if nap_us else "; one sleep"
-    n = int(seconds * 1000)
+    loop = load_config(Path(cfg_path)).loop
+    report = schedule_like_loop(loop)
+    n = int(seconds * loop.rate_hz)
     late = np.empty(n)
-    clock = DeadlineClock(1000.0, 200.0, sleep_max_us=nap_us)
+    clock = DeadlineClock(loop.rate_hz, loop.spin_us, sleep_max_us=loop.sleep_max_us)
     for k in range(n):
         deadline, now = clock.wait()
         late[k] = (now - deadline) / 1e3
-    return {"slice": report, "missed": clock.missed, "late_p999": float(np.percentile(late, 99.9)),
-            "late_max": float(late.max())}
+    return {"realtime": report, "missed": clock.missed,
+            "late_p999": float(np.percentile(late, 99.9)), "late_max": float(late.max())}
 
 
-def bare_runs(seconds: float, repeats: int, rt: bool) -> list[dict[str, Any]]:
-    """:func:`bare_clock` in subprocesses, each mode (SCHED_FIFO only if ``rt``), interleaved;
-    one row per mode: the median over the runs of missed ticks per minute and of lateness p99.9,
-    and the largest lateness of all runs."""
-    import json
+def tick_in_process(cfg_path: str, ticks: int) -> dict[str, list[float]]:
+    """Child process: (p50, p99) us of ``Service.tick`` with in-memory ports (a valid 8-axis
+    frame in every tick, the encoded output out; no transport), back to back and paced at the
+    config's rate as the loop waits (its scheduling, naps and spin); GC frozen as in the loop.
+    The tick instants are the ideal grid in both, so the two do the same work."""
+    import gc
 
-    runs = []
-    for _ in range(repeats):
-        for mode, m in enumerate(BARE_MODES):
-            if m[2] and not rt:
-                continue
-            p = subprocess.run([sys.executable, __file__, "--bare", str(mode), "--seconds",
-                                str(seconds)], env=child_env(), capture_output=True, text=True,
-                               check=True)
-            runs.append(json.loads(p.stdout))
-    out = []
-    for name in dict.fromkeys(r["slice"] for r in runs):
-        mine = [r for r in runs if r["slice"] == name]
-        out.append({"slice": name, "runs": len(mine),
-                    "missed_min": float(np.median([r["missed"] for r in mine])) * 60 / seconds,
-                    "missed_worst": max(r["missed"] for r in mine) * 60 / seconds,
-                    "late_p999": float(np.median([r["late_p999"] for r in mine])),
-                    "late_max": max(r["late_max"] for r in mine)})
+    from motcomp.config import load_config
+    from motcomp.io.memory import MemorySink, MemorySource
+    from motcomp.io.wire import encode_input
+    from motcomp.runtime.clock import DeadlineClock
+    from motcomp.runtime.service import Service
+
+    cfg = load_config(Path(cfg_path))
+    schedule_like_loop(cfg.loop)
+    period_ns = round(1e9 / cfg.loop.rate_hz)
+    settle = round(2 * cfg.loop.rate_hz)  # past the shaper's start-up ramp, untimed
+    frames = [encode_input(k, k * period_ns / 1e9, {a: 0.05 * math.sin(k / 300 + i)
+                                                    for i, a in enumerate(AXES)})
+              for k in range(settle + ticks)]
+    perf = time.perf_counter_ns
+    out = {}
+    for name, paced in (("tight", False), ("paced", True)):
+        svc = Service(cfg, ZenohEndpoints())
+        src = MemorySource(latest_only=True)
+        svc.attach(src, [MemorySink(keep=1)])
+        gc.collect()
+        gc.freeze()
+        times = np.empty(ticks)
+        clock = None
+        for k, frame in enumerate(frames):
+            src.push(frame)
+            if paced and k >= settle:
+                if clock is None:
+                    clock = DeadlineClock(cfg.loop.rate_hz, cfg.loop.spin_us,
+                                          sleep_max_us=cfg.loop.sleep_max_us)
+                clock.wait()
+            t0 = perf()
+            svc.tick(k * period_ns)
+            if k >= settle:
+                times[k - settle] = perf() - t0
+        gc.unfreeze()
+        if svc.state.accepted != len(frames):
+            raise SystemExit(f"the tick accepted {svc.state.accepted} of {len(frames)} frames")
+        out[name] = [float(np.percentile(times, 50)) / 1e3, float(np.percentile(times, 99)) / 1e3]
     return out
 
 
+# --- this process -----------------------------------------------------------------------------
 def proc_cpu_rss(pid: int) -> tuple[float, float]:
     """(user+system CPU seconds, RSS MB) of a process."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -198,18 +177,31 @@ def child_env() -> dict[str, str]:
     return env
 
 
-def run_once(seconds: float, sync: bool, sched: str, tmp: Path) -> dict[str, Any]:
+def child_json(*args: str) -> Any:
+    """Run this script as a child with ``args``; its JSON answer."""
+    p = subprocess.run([sys.executable, __file__, *args], env=child_env(), capture_output=True,
+                       text=True, check=True)
+    return json.loads(p.stdout)
+
+
+def write_config(tmp: Path, sched: str, sync: bool, seconds: float,
+                 spin_us: float | None) -> Path:
+    """The example config with the mode's [loop] settings and a status window over the steady
+    part of a run (the start-up left out)."""
+    cfg = tmp / f"bench-{sched}-{sync}.toml"
+    spin = f"spin_us = {spin_us:g}\n" if spin_us is not None else ""
+    cfg.write_text(f'include = ["{config_file("motcomp.toml")}"]\n[loop]\nsync_to_input = '
+                   f'{"true" if sync else "false"}\n{spin}{SCHEDS[sched]}[status]\nwindow_s = '
+                   f'{max(seconds - 2, 1):g}\n')
+    return cfg
+
+
+def run_service(seconds: float, cfg: Path) -> dict[str, Any]:
+    """One run of ``motcomp run`` with ``cfg``, the publisher and this process as receiver."""
     import zenoh
 
     p_svc, p_me = free_tcp_port(), free_tcp_port()
-    cfg = tmp / f"bench-{sync}-{sched}.toml"
-    spin = (f"spin_us = {SPIN_US:g}\n" if SPIN_US is not None else "") + SCHEDS[sched]
-    cfg.write_text(f'include = ["{config_file("motcomp.toml")}"]\n[loop]\nsync_to_input = '
-                   f'{"true" if sync else "false"}\n{spin}[status]\nwindow_s = '
-                   f'{max(seconds - 2, 1):g}\n')  # the steady part: the start-up out
     env = child_env()
-    if sched == "pykernel":
-        env["MOTCOMP_KERNEL"] = "python"
     svc = subprocess.Popen([sys.executable, "-m", "motcomp", "run", "--config", str(cfg), "-l",
                             loopback(p_svc), "--log-level", "warning"], env=env)
     try:
@@ -236,6 +228,7 @@ def run_once(seconds: float, sync: bool, sched: str, tmp: Path) -> dict[str, Any
             seen: set[int] = set()
             drain_until = math.inf
             start: dict[str, Any] | None = None
+            t_start = 0.0
             while time.monotonic() < drain_until:
                 if drain_until == math.inf and pub.poll() is not None:
                     drain_until = time.monotonic() + 0.5  # the last outputs are in flight
@@ -244,6 +237,7 @@ def run_once(seconds: float, sync: bool, sched: str, tmp: Path) -> dict[str, Any
                     sent[f["seq"]] = f["t"]
                     if start is None:  # the publisher is up: its start-up ends here
                         start = msgpack.unpackb(first_reply(session, "motcomp/status", None, 3.0))
+                        t_start = time.monotonic()
                 while (s := sub_out.try_recv()) is not None:
                     now = time.time()
                     f = msgpack.unpackb(s.payload.to_bytes())
@@ -256,254 +250,253 @@ def run_once(seconds: float, sync: bool, sched: str, tmp: Path) -> dict[str, Any
             cpu1, rss = proc_cpu_rss(svc.pid)
             host = [b - a for a, b in zip(host0, cpu_times(), strict=True)]
             st = msgpack.unpackb(first_reply(session, "motcomp/status", None, 3.0))
+            counted_s = time.monotonic() - t_start
             sub_in.undeclare()
             sub_out.undeclare()
     finally:
         svc.send_signal(signal.SIGTERM)
         svc.wait(timeout=30)
-    if start is None:
-        raise SystemExit("the publisher's frames never arrived")
+    if start is None or not lat:
+        raise SystemExit("the publisher's frames or the service's outputs never arrived")
     lat_ms = np.array(lat) * 1e3
     loop = st["loop"]
+    missed = st["missed_ticks"] - start["missed_ticks"]
     return {
-        "sync": sync, "ticks": st["ticks"] - start["ticks"],
-        "missed": st["missed_ticks"] - start["missed_ticks"], "missed_start": start["missed_ticks"],
+        "ticks": st["ticks"] - start["ticks"], "missed": missed,
+        "missed_start": start["missed_ticks"], "missed_min": missed * 60 / counted_s,
         "compute_p50": loop["compute_p50_us"], "compute_p99": loop["compute_p99_us"],
         "tick_p50": loop["tick_p50_us"], "tick_p99": loop["tick_p99_us"],
-        "io_p50": loop["io_p50_us"], "io_p99": loop["io_p99_us"], "kernel": st["kernel"],
+        "io_p50": loop["io_p50_us"], "io_p99": loop["io_p99_us"],
         "late_p50": loop["late_p50_us"], "late_p99": loop["late_p99_us"],
         "late_p999": loop["late_p999_us"], "late_max": loop["late_max_us"],
         "lat_p50": float(np.percentile(lat_ms, 50)), "lat_p99": float(np.percentile(lat_ms, 99)),
-        "lat_n": lat_ms.size, "cpu": 100 * (cpu1 - cpu0) / wall, "rss": rss,
-        "accepted": st["frames"]["accepted"], "steal": 100 * host[7] / max(sum(host), 1),
-        "sched": sched, "realtime": st.get("realtime", ""),
+        "cpu": 100 * (cpu1 - cpu0) / wall, "rss": rss,
+        "steal": 100 * host[7] / max(sum(host), 1), "realtime": st.get("realtime", ""),
+        "period_ms": 1e3 / st["rate_hz"],
     }
 
 
-TARGETS = (  # (label, row key, bound): a row meets a target when its value <= bound
-    ("compute p99 <= 50 us", "compute_p99", 50.0),
-    ("lateness p99.9 <= 500 us", "late_p999", 500.0),
-    ("0 missed ticks", "missed", 0.0),
-    ("in->out p99 <= 1.5 ms", "lat_p99", 1.5),
-    ("RSS <= 150 MB", "rss", 150.0),
-)
+def run_pair(seconds: float, sync: bool, sched: str, tmp: Path, spin_us: float | None,
+             clock_first: bool) -> dict[str, Any]:
+    """A service run and a clock-alone run of the same length and loop settings."""
+    cfg = write_config(tmp, sched, sync, seconds, spin_us)
+    bare = child_json("--bare", str(cfg), "--seconds", str(seconds)) if clock_first else None
+    row = run_service(seconds, cfg)
+    if bare is None:
+        bare = child_json("--bare", str(cfg), "--seconds", str(seconds))
+    row.update(sync=sync, sched=sched, clock_missed=bare["missed"],
+               clock_missed_min=bare["missed"] * 60 / seconds, clock_late_p999=bare["late_p999"],
+               clock_late_max=bare["late_max"], clock_realtime=bare["realtime"])
+    row["ratio"] = ratio(row["missed_min"], row["clock_missed_min"])
+    return row
 
 
+def ratio(service: float, clock: float) -> float:
+    """service / clock; 1 when both are 0 (the service added nothing), inf when only the clock
+    missed none."""
+    if clock > 0:
+        return service / clock
+    return 1.0 if service == 0 else math.inf
+
+
+# --- the report -------------------------------------------------------------------------------
 def mode_medians(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One row per mode (real-time, sync), the median of each number over that mode's runs."""
+    """One row per mode (scheduling, sync): the median of each number over its runs; the
+    missed-tick ratio is that of the sums over the mode's pairs (runs of equal length)."""
     out = []
     for mode in dict.fromkeys((r["sched"], r["sync"]) for r in rows):
         runs = [r for r in rows if (r["sched"], r["sync"]) == mode]
-        out.append({k: float(np.median([r[k] for r in runs]))
-                    if isinstance(v, int | float) and not isinstance(v, bool) else v
-                    for k, v in runs[0].items()})
+        med = {k: float(np.median([r[k] for r in runs]))
+               if isinstance(v, int | float) and not isinstance(v, bool) else v
+               for k, v in runs[0].items()}
+        med["ratio"] = ratio(sum(r["missed_min"] for r in runs),
+                             sum(r["clock_missed_min"] for r in runs))
+        med["runs"] = len(runs)
+        out.append(med)
     return out
 
 
-def sched_name(r: dict[str, Any]) -> str:
+def sched_name(report: str) -> str:
     """How the loop thread was scheduled, from the service's own report."""
-    parts = [p for p in r["realtime"].split("; ") if p and p != "not pinned"
+    parts = [p for p in report.split("; ") if p and p != "not pinned"
              and not p.startswith(("normal scheduling", "slice not set"))]
     return "; ".join(parts)
 
 
 def mode_name(r: dict[str, Any]) -> str:
-    kernel = ", Python code" if r["kernel"] == "python" else ""
-    warm = ", no warm-up" if r["sched"] == "nowarm" else ""
-    return ("sync to input" if r["sync"] else "own clock") + f", {sched_name(r)}{kernel}{warm}"
+    return ("sync to input" if r["sync"] else "own clock") + f", {sched_name(r['realtime'])}"
+
+
+def targets(r: dict[str, Any]) -> list[tuple[str, float, float]]:
+    """(label, value, bound) per target; a mode meets a target when value <= bound."""
+    return [("compute p99 <= 50 us", r["compute_p99"], 50.0),
+            ("lateness p99.9 <= 500 us", r["late_p999"], 500.0),
+            (f"missed ticks <= {RATIO_MAX:g}x the clock's", r["ratio"], RATIO_MAX),
+            (f"in->out p99 <= {r['period_ms'] + 0.5:g} ms", r["lat_p99"], r["period_ms"] + 0.5),
+            ("RSS <= 150 MB", r["rss"], 150.0)]
 
 
 def verdict(rows: list[dict[str, Any]]) -> str:
     """Which targets each mode meets and misses, from its numbers."""
     out = []
     for r in rows:
-        met = [f"{label} ({r[key]:.4g})" for label, key, bound in TARGETS if r[key] <= bound]
-        unmet = [f"{label} ({r[key]:.4g})" for label, key, bound in TARGETS if r[key] > bound]
+        met = [f"{label} ({v:.4g})" for label, v, bound in targets(r) if v <= bound]
+        unmet = [f"{label} ({v:.4g})" for label, v, bound in targets(r) if not v <= bound]
         out.append(f"{mode_name(r)} meets {', '.join(met) or 'none'}; misses "
                    f"{', '.join(unmet) or 'none'}.")
     return " ".join(out)
 
 
-def missed_reading(rows: list[dict[str, Any]]) -> str:
-    """What the scheduling modes say about the missed ticks (medians per mode, own clock and
-    sync to input)."""
-    by = {sched: [r["missed"] for r in rows if r["sched"] == sched] for sched in SCHEDS}
-
-    def fmt(ms: list[float]) -> str:
-        return " / ".join(f"{m:g}" for m in ms)
-
-    out = []
-    if by["plain"] and by["config"]:
-        out.append(f"Missed ticks (own clock / sync to input) with the config's short slice and "
-                   f"naps: {fmt(by['config'])}; with the kernel's default slice and one sleep "
-                   f"per tick: {fmt(by['plain'])}.")
-    if by["rt"]:
-        out.append(f"With SCHED_FIFO on a pinned core: {fmt(by['rt'])} against "
-                   f"{fmt(by['config'])}.")
-    if not by["rt"]:
-        out.append("Run with --rt to see what SCHED_FIFO on a pinned core changes.")
-    return " ".join(out)
+def plural(n: int, word: str) -> str:
+    return f"{n} {word}{'s' if n != 1 else ''}"
 
 
-def bare_reading(bare: list[dict[str, Any]]) -> str:
-    """What the clock-alone probe says (its rows in :data:`BARE_MODES` order)."""
-    by = {b["slice"]: b for b in bare}
-    plain, config = bare[0], bare[3]
-    out = (f"The clock alone missed a median {plain['missed_min']:.0f} ticks per minute with the "
-           f"kernel's defaults and one sleep, {config['missed_min']:.0f} with the config's "
-           f"slice and naps (slice alone {bare[1]['missed_min']:.0f}, naps alone "
-           f"{bare[2]['missed_min']:.0f}): stalls that no work of the service causes; the "
-           "slice lets the loop preempt other normal-priority work on its core when it wakes, "
-           "the naps keep an idle virtual CPU from being handed back to the host "
-           "(docs/DEPLOYMENT.md).")
-    rt = [b for name, b in by.items() if name.startswith("SCHED_FIFO")]
-    if rt:
-        out += (f"  Under SCHED_FIFO it missed a median {rt[0]['missed_min']:.0f} per minute "
-                f"(worst run {rt[0]['missed_worst']:.0f}): what the host takes, which no "
-                "priority inside the machine removes.")
-    return out
+def fmt_ratio(x: float) -> str:
+    return "inf" if math.isinf(x) else f"{x:.2f}"
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--seconds", type=float, default=60.0)
-    ap.add_argument("--publisher", type=int, help=argparse.SUPPRESS)
-    ap.add_argument("--bare", type=int, help=argparse.SUPPRESS)
-    ap.add_argument("--no-write", action="store_true")
-    ap.add_argument("--repeats", type=int, default=1,
-                    help="runs of each mode, interleaved; the reading uses their medians")
-    ap.add_argument("--spin-us", type=float, help="loop.spin_us of the service (default: config)")
-    ap.add_argument("--plain", action="store_true",
-                    help="also run with the kernel's default slice and one sleep per tick "
-                         "(loop.slice_us = 0, loop.sleep_max_us = 0)")
-    ap.add_argument("--pykernel", action="store_true",
-                    help="also run the config with the compensator's Python kernel "
-                         "(MOTCOMP_KERNEL=python): what the compiled one buys")
-    ap.add_argument("--nowarm", action="store_true",
-                    help="also run the config without the shadow tick (loop.warm_up = false)")
-    ap.add_argument("--rt", action="store_true",
-                    help="also run with SCHED_FIFO 50 and the loop pinned to CPU 1 (needs the "
-                         "privilege; the service reports whether it got it)")
-    args = ap.parse_args()
-    global SPIN_US
-    SPIN_US = args.spin_us
-    if args.publisher:
-        publisher(args.publisher, args.seconds)
-        return
-    if args.bare is not None:
-        import json
-
-        print(json.dumps(bare_clock(args.seconds, args.bare)))
-        return
-    with tempfile.TemporaryDirectory() as tmp:
-        scheds = (["plain"] * args.plain + ["config"] + ["nowarm"] * args.nowarm
-                  + ["pykernel"] * args.pykernel + ["rt"] * args.rt)
-        rows = []
-        for rep in range(args.repeats):  # interleaved, so slow spells of the host spread out
-            for sched in scheds:
-                for sync in (False, True):
-                    rows.append(dict(run_once(args.seconds, sync, sched, Path(tmp)),
-                                     run=rep + 1))
-    rows.sort(key=lambda r: (scheds.index(r["sched"]), r["sync"], r["run"]))
+def report(args: argparse.Namespace, rows: list[dict[str, Any]],
+           ticks: list[dict[str, list[float]]], elapsed_s: float) -> str:
     med = mode_medians(rows)
+    tick = {name: [float(np.median([t[name][i] for t in ticks])) for i in (0, 1)]
+            for name in ticks[0]}
+    opts = (f"--seconds {args.seconds:g} --repeats {args.repeats}"
+            f"{' --plain' if args.plain else ''}{' --rt' if args.rt else ''}"
+            f"{f' --spin-us {args.spin_us:g}' if args.spin_us is not None else ''}")
     lines = [
         f"Machine: {machine()}.",
         "",
-        f"`python tools/bench_service.py --seconds {args.seconds:g} --repeats {args.repeats}"
-        f"{' --plain' if args.plain else ''}{' --nowarm' if args.nowarm else ''}"
-        f"{' --pykernel' if args.pykernel else ''}"
-        f"{' --rt' if args.rt else ''}`: "
-        "`motcomp run` with the example config (8 axes, 1 kHz; no real-time privileges unless "
-        "the mode names SCHED_FIFO; slice and naps are the loop thread's, see "
-        "docs/DEPLOYMENT.md), a publisher process (naps of 100 us) sending "
-        "all 8 axes at 1 kHz, this process receiving the outputs.  Ticks and missed ticks count "
-        "from the publisher's first frame (start-up: the ticks missed before it, while the "
-        "service and the publisher started); tick times are the service's own, over the last "
-        f"{max(args.seconds - 2, 1):g} s (the maxima since the service started); latency = "
-        "output received - input published (same clock); steal = the share of this virtual "
-        "machine's CPU time taken by the host during the run.  Tick times: *compute* is the "
-        "tick's own work (validation, reference, compensator, saturation verdicts, encoding), "
-        "*io* its calls into zenoh (taking the newest input, sending the output), *whole* the "
-        "two together (percentiles of each series apart: they do not add up).",
+        f"`python tools/bench_service.py {opts}` ({elapsed_s / 60:.1f} min): `motcomp run` with "
+        "the example config (8 axes, 1 kHz; no real-time privileges unless the mode names "
+        "SCHED_FIFO; slice and naps are the loop thread's, see docs/DEPLOYMENT.md), a publisher "
+        "process (naps of 100 us) sending all 8 axes at 1 kHz, this process receiving the "
+        f"outputs; {plural(args.repeats, 'run')} of {args.seconds:g} s per mode, interleaved, each "
+        "paired with a run of the loop's clock alone as long and with the same loop settings "
+        "(a process of its own, no work, no I/O, nothing else of the benchmark running; the "
+        "two in alternating order).  Missed ticks count from the publisher's first frame; tick "
+        f"times are the service's own status over the last {max(args.seconds - 2, 1):g} s: "
+        "*compute* is the tick's own work (validation, reference, compensator, saturation "
+        "verdicts, encoding), *io* its calls into zenoh (taking the newest input, sending the "
+        "output), *whole* the two together (percentiles of each series apart: they do not add "
+        "up); latency = output received - input published (same clock); steal = the share of "
+        "this virtual machine's CPU time the host took during the run.",
         "",
-        "| mode | ticks | missed (start-up) | compute p50 / p99 (us) | io p50 / p99 (us) "
-        "| whole tick p50 / p99 (us) "
-        "| lateness p50 / p99 / p99.9 / max (us) | in->out p50 / p99 (ms) | CPU % | RSS (MB) "
-        "| steal % |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "Per mode, medians over the runs; the missed-tick ratio is service / clock alone over "
+        "the sums of the mode's pairs:",
+        "",
+        "| mode | runs | compute p50 / p99 (us) | lateness p99.9 (us) | missed per minute: "
+        "service / clock alone (ratio) | in->out p50 / p99 (ms) | CPU % | RSS (MB) | steal % |",
+        "|---|---|---|---|---|---|---|---|---|",
+        *(f"| {mode_name(r)} | {r['runs']} | {r['compute_p50']:.0f} / {r['compute_p99']:.0f} "
+          f"| {r['late_p999']:.0f} | {r['missed_min']:.1f} / {r['clock_missed_min']:.1f} "
+          f"({fmt_ratio(r['ratio'])}) | {r['lat_p50']:.2f} / {r['lat_p99']:.2f} | "
+          f"{r['cpu']:.0f} | {r['rss']:.0f} | {r['steal']:.1f} |" for r in med),
+        "",
+        "`Service.tick` in a process of its own with in-memory ports (a valid 8-axis frame in, "
+        "the encoded output out; no transport), GC frozen as in the loop, p50 / p99 in us, "
+        f"medians of {plural(len(ticks), 'run')} of {args.ticks} ticks each way:",
+        "",
+        "| back to back | 1 kHz, waiting as the loop waits (its slice, naps and spin) |",
+        "|---|---|",
+        f"| {tick['tight'][0]:.1f} / {tick['tight'][1]:.1f} | "
+        f"{tick['paced'][0]:.1f} / {tick['paced'][1]:.1f} |",
+        "",
+        "Every run (clock alone: the paired run's missed ticks per minute and lateness):",
+        "",
+        "| mode | ticks | missed (start-up) | missed per minute: service / clock alone (ratio) "
+        "| compute p50 / p99 (us) | io p50 / p99 (us) | whole tick p50 / p99 (us) "
+        "| lateness p50 / p99 / p99.9 / max (us) | clock alone lateness p99.9 / max (us) "
+        "| in->out p50 / p99 (ms) | CPU % | RSS (MB) | steal % |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        mode = mode_name(r)
-        if args.repeats > 1:
-            mode += f", run {r['run']}"
         lines.append(
-            f"| {mode} | {r['ticks']} | {r['missed']} ({r['missed_start']}) | "
-            f"{r['compute_p50']:.0f} / "
-            f"{r['compute_p99']:.0f} | {r['io_p50']:.0f} / {r['io_p99']:.0f} | "
-            f"{r['tick_p50']:.0f} / {r['tick_p99']:.0f} | "
-            f"{r['late_p50']:.0f} / {r['late_p99']:.0f} / "
-            f"{r['late_p999']:.0f} / {r['late_max']:.0f} | {r['lat_p50']:.2f} / "
-            f"{r['lat_p99']:.2f} | {r['cpu']:.0f} | {r['rss']:.0f} | {r['steal']:.1f} |")
-    bare = bare_runs(6.0, 4 * args.repeats, args.rt)
+            f"| {mode_name(r)}, run {r['run']} | {r['ticks']} | {r['missed']} "
+            f"({r['missed_start']}) | {r['missed_min']:.1f} / {r['clock_missed_min']:.1f} "
+            f"({fmt_ratio(r['ratio'])}) | {r['compute_p50']:.0f} / {r['compute_p99']:.0f} | "
+            f"{r['io_p50']:.0f} / {r['io_p99']:.0f} | {r['tick_p50']:.0f} / {r['tick_p99']:.0f} "
+            f"| {r['late_p50']:.0f} / {r['late_p99']:.0f} / {r['late_p999']:.0f} / "
+            f"{r['late_max']:.0f} | {r['clock_late_p999']:.0f} / {r['clock_late_max']:.0f} | "
+            f"{r['lat_p50']:.2f} / {r['lat_p99']:.2f} | {r['cpu']:.0f} | {r['rss']:.0f} | "
+            f"{r['steal']:.1f} |")
+    own = next(r for r in med if not r["sync"])
+    cold = tick["paced"][0] / tick["tight"][0]
+    cold_text = " already: a thread that sleeps between ticks resumes on cold caches"
     lines += [
         "",
-        f"The loop's clock alone, in a process of its own while nothing else of the benchmark "
-        f"runs (sleep, then spin to each 1 kHz deadline; no work, no I/O): {bare[0]['runs']} "
-        "runs of 6 s per mode, interleaved; medians over the runs, and the worst run:",
+        f"Targets (2-core machine, no real-time privileges): compute p99 <= 50 us, lateness "
+        f"p99.9 <= 500 us, missed ticks <= {RATIO_MAX:g}x those of the clock alone in the same "
+        "mode, in->out p99 <= period + 0.5 ms (1.5 ms), RSS <= 150 MB.",
         "",
-        "| scheduling | missed per minute: median (worst run) | lateness p99.9: median (us) "
-        "| lateness max (us) |",
-        "|---|---|---|---|",
-        *(f"| {b['slice']} | {b['missed_min']:.0f} ({b['missed_worst']:.0f}) | "
-          f"{b['late_p999']:.0f} | {b['late_max']:.0f} |" for b in bare),
-    ]
-    runs: dict[tuple[str, float, bool], list[tuple[float, float]]] = {}
-    for _ in range(3):  # interleaved; medians
-        for k in ("c", "python"):
-            for gap, warm in ((0.0, False), (0.001, False), (0.001, True)):
-                runs.setdefault((k, gap, warm), []).append(
-                    tick_in_process(20000 if gap == 0 else 5000, gap, k, warm))
-    ticks = {key: (float(np.median([v[0] for v in vals])),
-                   float(np.median([v[1] for v in vals]))) for key, vals in runs.items()}
-
-    def fmt(key: tuple[str, float, bool]) -> str:
-        return f"{ticks[key][0]:.1f} / {ticks[key][1]:.1f}"
-
-    p50 = ticks["c", 0.0, False][0]
-    s50 = ticks["c", 0.001, False][0]
-    lines += [
-        "",
-        "The same tick in this process, in-memory adapters (decode and validate, reference, "
-        "8-axis compensator, flags, encode; no transport), p50 / p99 in us, medians of 3 "
-        "interleaved runs (20 000 ticks back to back, 5 000 one per millisecond):",
-        "",
-        "| code | back to back | 1 ms apart, as the loop waits (naps, spin) | 1 ms apart, "
-        "shadow tick before the spin (`loop.warm_up`) |",
-        "|---|---|---|---|",
-        *(f"| {name} | {fmt((k, 0.0, False))} | {fmt((k, 0.001, False))} | "
-          f"{fmt((k, 0.001, True))} |"
-          for k, name in (("c", "compiled"), ("python", "Python"))),
-        "",
-        "Targets (2-core machine, no real-time privileges): compute p99 <= 50 us, "
-        "lateness p99.9 <= 500 us, 0 missed ticks, in->out p99 <= period + 0.5 ms (1.5 ms), "
-        "RSS <= 150 MB.",
-        "",
-        f"Reading ({'medians of each mode' if args.repeats > 1 else 'each run'}): "
-        f"{verdict(med)}  The service's tick (compute) "
-        f"costs {med[0]['compute_p50'] / p50:.1f}x the same tick in a tight loop, and the "
-        f"in-process tick after a sleep already costs {s50 / p50:.1f}x: on this virtual "
-        "machine a thread that sleeps between ticks resumes on cold caches; zenoh's calls, "
-        "which wake zenoh's own threads on the two cores the three processes share, do the "
-        f"rest.  Missed ticks come from rare stalls of several milliseconds (the maxima). "
-        f"{missed_reading(med)}  {bare_reading(bare)}  Tick on input arrival (sync_to_input) "
-        "when the source runs at the loop rate: it cuts the sampling latency of the own clock.",
+        f"Reading ({'medians of each mode' if args.repeats > 1 else 'one run per mode'}): "
+        f"{verdict(med)}  The service's compute p50 ({own['compute_p50']:.0f} us, "
+        f"{mode_name(own)}) is {own['compute_p50'] / tick['tight'][0]:.1f}x the same tick back "
+        f"to back in a process of its own; paced as the loop waits, that tick costs "
+        f"{cold:.1f}x{cold_text if cold >= 1.5 else ''}.",
     ]
     steal = [r["steal"] for r in rows]
     if max(steal) > 1.0:
         lines[-1] += (f"  The host took {min(steal):.1f}-{max(steal):.1f} % of this virtual "
                       "machine's CPU during these runs (steal): such runs measure the host as "
                       "much as the service: compare runs with little steal.")
-    text = "\n".join(lines)
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seconds", type=float, default=40.0, help="length of each run")
+    ap.add_argument("--repeats", type=int, default=3,
+                    help="runs of each mode, interleaved; the reading uses their medians")
+    ap.add_argument("--ticks", type=int, default=5000,
+                    help="timed ticks of the in-process measurement, each way")
+    ap.add_argument("--quick", action="store_true",
+                    help="a smoke test: runs of 15 s, 1 repeat, 2000 in-process ticks")
+    ap.add_argument("--no-write", action="store_true", help="print only")
+    ap.add_argument("--spin-us", type=float, help="loop.spin_us of the service (default: config)")
+    ap.add_argument("--plain", action="store_true",
+                    help="also run with the kernel's default slice and one sleep per tick "
+                         "(loop.slice_us = 0, loop.sleep_max_us = 0)")
+    ap.add_argument("--rt", action="store_true",
+                    help="also run with SCHED_FIFO 50 and the loop pinned to CPU 1 (needs the "
+                         "privilege; the service reports whether it got it)")
+    ap.add_argument("--publisher", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--bare", help=argparse.SUPPRESS)
+    ap.add_argument("--tick-child", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.publisher:
+        publisher(args.publisher, args.seconds)
+        return
+    if args.bare is not None:
+        print(json.dumps(bare_clock(args.bare, args.seconds)))
+        return
+    if args.tick_child is not None:
+        print(json.dumps(tick_in_process(args.tick_child, args.ticks)))
+        return
+    if args.quick:
+        args.seconds, args.repeats, args.ticks = 15.0, 1, 2000
+    scheds = ["config"] + ["plain"] * args.plain + ["rt"] * args.rt
+    pairs = args.repeats * len(scheds) * 2
+    estimate = pairs * (2 * args.seconds + PAIR_OVERHEAD_S) + args.repeats * (
+        args.ticks / 1000 + 5)
+    print(f"{pairs} paired runs of {args.seconds:g} s: about {estimate / 60:.0f} min",
+          file=sys.stderr)
+    t0 = time.monotonic()
+    rows: list[dict[str, Any]] = []
+    ticks: list[dict[str, list[float]]] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        n = 0
+        for rep in range(args.repeats):  # interleaved, so slow spells of the host spread out
+            ticks.append(child_json("--tick-child", str(write_config(
+                Path(tmp), "config", False, args.seconds, args.spin_us)), "--ticks",
+                str(args.ticks)))
+            for sched in scheds:
+                for sync in (False, True):
+                    rows.append(dict(run_pair(args.seconds, sync, sched, Path(tmp),
+                                              args.spin_us, clock_first=n % 2 == 1), run=rep + 1))
+                    n += 1
+    rows.sort(key=lambda r: (scheds.index(r["sched"]), r["sync"], r["run"]))
+    text = report(args, rows, ticks, time.monotonic() - t0)
     print(text)
     if not args.no_write:
         write_section("service", text)

@@ -1,4 +1,5 @@
-"""``motcomp replay``: replay a recorded session offline (fast, deterministic) or in real time."""
+"""``motcomp replay``: replay recorded sessions offline (the service's tick, deterministic) or
+one in real time."""
 
 from __future__ import annotations
 
@@ -7,26 +8,26 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from motcomp.cli._common import add_log_arg, print_json, setup_logging
 from motcomp.errors import ConfigError
 from motcomp.io.zenoh_io import add_zenoh_args, endpoints_from_args
 
-ORDER = 7
-FEEDBACK_WINDOWS = (12, 40.0)
-"""Feedback is read in this many windows of this length (s) on long recordings: the recorded
-delays are estimated on windows anyway (motcomp.replay.analysis)."""
+if TYPE_CHECKING:
+    from motcomp.replay.offline import FileReplay
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "replay", help="replay a recording through the compensator (offline) or onto zenoh",
-        description="Offline (default): feed the recorded inputs through the compensator with "
-                    "the recorded config (or --config), tick by tick as the service did, as "
-                    "fast as possible; report the apparent delay gained, saturation and the "
-                    "differences from the recorded outputs (docs/REPLAY.md). --realtime: "
-                    "republish the recorded inputs on zenoh at their recorded timing.")
-    p.add_argument("file", type=Path, metavar="FILE.mcap",
+        description="Offline (default): feed the recorded inputs through the service's own "
+                    "tick with the recorded config (or --config), tick by tick as the service "
+                    "did, as fast as possible; report the apparent delay gained, saturation and "
+                    "the differences from the recorded outputs (docs/REPLAY.md). Several files "
+                    "are replayed each on its own. --realtime: republish the recorded inputs of "
+                    "one file on zenoh at their recorded timing.")
+    p.add_argument("files", type=Path, nargs="+", metavar="FILE.mcap",
                    help="a recording (or the name of a rotated one: FILE-0001.mcap...)")
     p.add_argument("--config", type=Path, metavar="FILE",
                    help="replay with this config instead of the recorded one")
@@ -34,9 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="also replay with this config, side by side")
     p.add_argument("--out", type=Path, metavar="DIR", help="write figures here")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
-    p.add_argument("--engine", choices=["fast", "ticks"], default="fast",
-                   help="fast: the offline engine (default); ticks: the service's own tick, "
-                        "one by one (slow, the reference)")
+    p.add_argument("--jobs", "-j", type=int, default=1, metavar="N",
+                   help="replay the (file, config) pairs in N worker processes (default 1); "
+                        "the results are the same, bit for bit")
     p.add_argument("--bypass", choices=["recorded", "config"], default="recorded",
                    help="compensation on/off per axis as the recording shows it (default: "
                         "follows the admin switches) or as the config says")
@@ -64,7 +65,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     setup_logging(args.log_level)
     if args.realtime:
+        if len(args.files) != 1:
+            raise ConfigError(f"--realtime republishes one recording, got {len(args.files)}")
         return _realtime(args)
+    if args.jobs < 1:
+        raise ConfigError(f"--jobs must be at least 1, got {args.jobs}")
     return _offline(args)
 
 
@@ -77,12 +82,13 @@ def _realtime(args: argparse.Namespace) -> int:
     from motcomp.record.mcapio import message_counts
     from motcomp.record.session import session_parts
 
-    parts = session_parts(args.file)
+    (path,) = args.files
+    parts = session_parts(path)
     spans = [c[""] for c in map(message_counts, parts) if c is not None]
     duration = (spans[-1][1] - spans[0][0]) / 1e9 if len(spans) == len(parts) else 0.0
     with Progress("republishing", duration / args.speed, quiet=args.quiet or not duration,
                   unit="s") as bar:
-        stats = republish(args.file, endpoints_from_args(args), args.key, args.timing,
+        stats = republish(path, endpoints_from_args(args), args.key, args.timing,
                           args.speed, args.restamp, args.lead_in,
                           progress=lambda s: bar.update(s / args.speed))
     if args.json:
@@ -94,59 +100,71 @@ def _realtime(args: argparse.Namespace) -> int:
 
 def _offline(args: argparse.Namespace) -> int:
     from motcomp.progress import Progress
-    from motcomp.record.session import read_session
-    from motcomp.replay.analysis import report_text
-    from motcomp.replay.offline import config_for, replay_offline
+    from motcomp.replay.offline import replay_files
 
+    configs = [args.config] + ([args.compare] if args.compare is not None else [])
+    several = len(args.files) > 1
+    summaries = []
     t0 = time.perf_counter()
-    with Progress("reading", 1.0, quiet=args.quiet) as bar:
-        session = read_session(args.file, other_keys=False, acc=False, publish=False,
-                               feedback_windows=FEEDBACK_WINDOWS)
-        bar.update(1.0)
-    t_read = time.perf_counter() - t0
-    configs = [config_for(session, args.config)]
-    if args.compare is not None:
-        configs.append(config_for(session, args.compare))
     with Progress("replaying", 1.0, quiet=args.quiet) as bar:
-        runs = replay_offline(session, configs, args.engine, args.run, args.bypass, bar.update)
-    total = time.perf_counter() - t0
-    base = runs[0]
-    sim_s = base.report.duration_s
-    speed = sim_s / total if total > 0 else math.inf
+        for fr in replay_files(args.files, configs, args.jobs, args.run, args.bypass,
+                               bar.update):
+            summaries.append(_summary(args, fr, several, time.perf_counter() - t0))
+            if not args.json:
+                _print_report(fr, summaries[-1])
+            t0 = time.perf_counter()
+    if args.json:
+        print_json(summaries if several else summaries[0])
+    sys.stdout.flush()
+    return 0
+
+
+def _summary(args: argparse.Namespace, fr: FileReplay, several: bool, wall_s: float
+             ) -> dict[str, Any]:
+    """The JSON summary of one recording's replays (figures written on the way)."""
+    base = fr.runs[0]
     figures = []
     if args.out is not None:
+        from motcomp.replay.offline import read_for_replay
         from motcomp.replay.plots import write_plots
 
-        figures = [str(p) for p in write_plots(args.out, session, runs)]
-    summary = {
-        "file": session.name,
+        session = fr.session if fr.session is not None else read_for_replay(fr.path)
+        out = args.out / fr.path.stem if several else args.out
+        figures = [str(p) for p in write_plots(out, session, fr.runs)]
+    sim_s = base.report.duration_s
+    return {
+        "file": fr.name,
         "session_s": sim_s,
         "ticks": base.report.ticks,
         "method": base.plan.method,
-        "engine": args.engine,
-        "wall_s": total,
-        "read_s": t_read,
-        "speedup": speed,
-        "warnings": session.warnings,
+        "jobs": args.jobs,
+        "wall_s": wall_s,
+        "read_s": fr.read_s,
+        "speedup": sim_s / wall_s if wall_s > 0 else math.inf,
+        "warnings": fr.warnings,
         "notes": base.plan.notes,
-        "rejected_frames": base.plan.rejected,
-        "runs": [dict(r.report.as_dict(), timings=r.timings) for r in runs],
+        "rejected_frames": base.result.rejected,
+        "runs": [dict(r.report.as_dict(), timings=r.timings, rejected_frames=r.result.rejected)
+                 for r in fr.runs],
         "figures": figures,
     }
-    if args.json:
-        print_json(summary)
-        return 0
-    lines = [f"{session.name}: {sim_s:.1f} s, {base.report.ticks} ticks, replayed from "
-             f"{base.plan.method} in {total:.2f} s ({speed:.0f}x real time; reading "
-             f"{t_read:.2f} s)"]
-    if base.plan.rejected:
-        lines.append(f"frames rejected by the config: {base.plan.rejected}")
+
+
+def _print_report(fr: FileReplay, summary: dict[str, Any]) -> None:
+    from motcomp.replay.analysis import report_text
+
+    base = fr.runs[0]
+    lines = [f"{fr.name}: {summary['session_s']:.1f} s, {base.report.ticks} ticks, replayed "
+             f"from {base.plan.method} in {summary['wall_s']:.2f} s ({summary['speedup']:.0f}x "
+             f"real time; reading {fr.read_s:.2f} s)"]
+    for r in fr.runs:
+        if r.result.rejected:
+            lines.append(f"frames rejected by the tick ({r.label}): {r.result.rejected}")
     lines += [f"note: {n}" for n in base.plan.notes]
-    print(report_text([r.report for r in runs], lines))
-    if any(not r.recorded_config for r in runs):
+    print(report_text([r.report for r in fr.runs], lines))
+    if any(not r.recorded_config for r in fr.runs):
         print("\n(differences from the recorded outputs are meaningful for the recorded "
               "config only)")
-    for f in figures:
+    for f in summary["figures"]:
         print(f"figure: {f}")
-    sys.stdout.flush()
-    return 0
+    print()

@@ -48,8 +48,10 @@ Sign convention, used once here and nowhere else: ``error = reference - model_ou
 
     y_c[k]  = xc[k]                                  fed-back model output (M v)
     e[k]    = r[k] - y_c[k]
-    w[k]    = c r[k] - y_c[k]
-    D[k]    = a_d D[k-1] + b_d (w[k] - w[k-1])       a_d = tf/(tf+h), b_d = kd/(tf+h)
+    R[k]    = a_d R[k-1] + (r[k] - r[k-1])/(tf+h)    filtered derivatives of r and y_c,
+    Y[k]    = a_d Y[k-1] + (y_c[k] - y_c[k-1])/(tf+h)  a_d = tf/(tf+h)
+    D[k]    = kd (c R[k] - Y[k])                     (= a_d D[k-1] + kd/(tf+h) (w[k] - w[k-1])
+                                                       with w = c r - y_c, while kd, c hold)
     v[k]    = kp (b r[k] - y_c[k]) + I[k] + D[k]       raw PID output
     u[k]    = SAT(v[k])                              (or SAT(bypass target), see below)
     I[k+1]  = I[k] + ki h e[k]                       forward Euler
@@ -57,7 +59,9 @@ Sign convention, used once here and nowhere else: ``error = reference - model_ou
     xm[k+1] = phi xm[k] + g0 u[k-d+1] + g1 u[k-d]    the platform mirror, fed with u
 
 Forward-Euler integral: ``v[k]`` never depends on ``v[k]`` (no algebraic loop).  Derivative:
-backward difference of a first-order filtered derivative, stable for every ``tf >= 0``.
+backward difference of a first-order filtered derivative, stable for every ``tf >= 0``; the
+reference and the model output are filtered apart, so that a change of ``kd`` or ``c`` takes
+effect without a kick.
 The transfer functions of exactly this algorithm are in :mod:`motcomp.design.frequency`.
 
 Rules for edge cases
@@ -118,7 +122,8 @@ class CompensatorState:
     xm: FloatArray
     integral: FloatArray
     deriv: FloatArray
-    w_prev: FloatArray
+    deriv_r: FloatArray
+    deriv_y: FloatArray
     history_c: FloatArray
     history_m: FloatArray
     u: FloatArray
@@ -189,9 +194,10 @@ class Compensator:
         self._mask = length - 1
         self._limits = limits
         zeros = [0.0] * n
-        (self._r, self._u, self._v, self._xc, self._xm, self._y_last, self._deriv, self._w_prev,
+        (self._r, self._u, self._v, self._xc, self._xm, self._y_last, self._deriv, self._dr,
          self._raw, self._fade_offset, self._fade_progress, self._integral) = (
             [0.0] * n for _ in range(12))
+        self._dy = [0.0] * n
         self.deviation = [0.0] * n
         """Per axis, emitted command minus its target at the last step (0 when feasible)."""
         self._track = zeros * 3  # the limiter's target tracker: (p, v, a) per axis
@@ -264,22 +270,27 @@ class Compensator:
         h = self.dt_s
         params: list[tuple[float, ...]] = []
         for g in gains:
-            params.append((g.kp, g.ki * h, g.tf / (g.tf + h), g.kd / (g.tf + h), g.b, g.c))
+            params.append((g.kp, g.ki * h, g.tf / (g.tf + h), 1.0 / (g.tf + h), g.kd, g.b, g.c))
         self._gain_p = params
         self._gains = tuple(gains)
 
     def set_gains(self, gains: Sequence[PIDGains]) -> None:
         """Change gains between two steps, bumplessly.
 
-        The derivative state is rescaled to the new ``kd`` and the integrator re-seeded so that
-        the raw output at the last sample is what it was.
+        The derivative state is carried over to the new ``kd`` and ``c``
+        (:meth:`_carry_derivative`) and the integrator re-seeded so that the raw output at the
+        last sample is what it was.
         """
         old_raw = self._virtual_raw()
-        old_bd = [p[3] for p in self._gain_p]
         self._set_gains(gains)
-        for i, p in enumerate(self._gain_p):
-            self._deriv[i] = self._deriv[i] * p[3] / old_bd[i] if old_bd[i] != 0 else 0.0
+        self._carry_derivative()
         self._reseed(old_raw)
+
+    def _carry_derivative(self) -> None:
+        """After a gain change: the derivative term from the filtered derivatives of ``r`` and
+        ``y_c`` under the new ``kd`` and ``c``."""
+        for i, g in enumerate(self._gains):
+            self._deriv[i] = g.kd * (g.c * self._dr[i] - self._dy[i])
 
     def set_models(self, models: Sequence[P1D]) -> None:
         """Change internal models between two steps, bumplessly.
@@ -305,11 +316,9 @@ class Compensator:
         if limits is not None and limits.size != self.n:
             raise ConfigError(f"limits for {limits.size} axes, compensator has {self.n}")
         old_raw = self._virtual_raw()
-        old_bd = [p[3] for p in self._gain_p]
         self._set_models(models)
         self._set_gains(gains)
-        for i, p in enumerate(self._gain_p):
-            self._deriv[i] = self._deriv[i] * p[3] / old_bd[i] if old_bd[i] != 0 else 0.0
+        self._carry_derivative()
         self._reseed(old_raw)
         if limits is not None:
             self.set_limits(limits)
@@ -357,7 +366,8 @@ class Compensator:
                             (self._fade_progress, [1.0] * n), (self._integral, zeros),
                             (self.deviation, zeros)):
             buf[:] = values
-        self._w_prev[:] = [gp[5] * pi - xi for gp, pi, xi in zip(self._gain_p, p, xc, strict=True)]
+        self._dr[:] = zeros
+        self._dy[:] = zeros
         self._track[:] = [x for pi in p for x in (pi, 0.0, 0.0)]
         hist = [x for pi in p for x in [pi] * self._hist_len]
         self._hist_c[:] = hist
@@ -367,12 +377,12 @@ class Compensator:
 
     def _virtual_raw(self) -> list[float]:
         """``kp (b r - y) + I + D`` with the latest state (what :meth:`_reseed` preserves)."""
-        return [gp[0] * (gp[4] * r - y) + i + d for gp, r, y, i, d in
+        return [gp[0] * (gp[5] * r - y) + i + d for gp, r, y, i, d in
                 zip(self._gain_p, self._r, self._y_last, self._integral, self._deriv, strict=True)]
 
     def _reseed(self, target: Sequence[float]) -> None:
         """Choose the integrator so that :meth:`_virtual_raw` equals ``target``."""
-        self._integral[:] = [t - gp[0] * (gp[4] * r - y) - d for t, gp, r, y, d in
+        self._integral[:] = [t - gp[0] * (gp[5] * r - y) - d for t, gp, r, y, d in
                              zip(target, self._gain_p, self._r, self._y_last, self._deriv,
                                  strict=True)]
 
@@ -381,7 +391,7 @@ class Compensator:
         return CompensatorState(
             k=self._k, r=np.array(self._r), xc=np.array(self._xc), xm=np.array(self._xm),
             integral=np.array(self._integral), deriv=np.array(self._deriv),
-            w_prev=np.array(self._w_prev),
+            deriv_r=np.array(self._dr), deriv_y=np.array(self._dy),
             history_c=np.array(self._hist_c).reshape(self.n, self._hist_len),
             history_m=np.array(self._hist_m).reshape(self.n, self._hist_len),
             u=np.array(self._u), v=np.array(self._v),
@@ -421,29 +431,32 @@ class Compensator:
             raise ValueError(f"reference has {len(ref)} values for {self.n} axes")
         k = self._k
         mask = self._mask
-        rr, xcs, xms, ys, ints, ds, wps = (self._r, self._xc, self._xm, self._y_last,
-                                           self._integral, self._deriv, self._w_prev)
+        rr, xcs, xms, ys, ints, ds, drs, dys = (self._r, self._xc, self._xm, self._y_last,
+                                                self._integral, self._deriv, self._dr, self._dy)
         us, vs, trk, raws = self._u, self._v, self._track, self._raw
         hcs, hms, hist_len = self._hist_c, self._hist_m, self._hist_len
         bypass = self._bypass
         out = [0.0] * self.n
         flags = [0] * self.n
         dev = self.deviation
-        for i, ((kp, kih, ad, bd, b, c), (phi, g0, g1, off0, off1), lim) in enumerate(zip(
+        for i, ((kp, kih, ad, q, kd, b, c), (phi, g0, g1, off0, off1), lim) in enumerate(zip(
                 self._gain_p, self._model_p, self._lim, strict=True)):
             r = ref[i]
+            r_prev = rr[i]
             if isfinite(r):
                 rr[i] = r
                 fl = 0
             else:
-                r = rr[i]
+                r = r_prev
                 fl = NONFINITE
             y = xcs[i]  # y_m + y_aw = M v
+            dr = ad * drs[i] + q * (r - r_prev)
+            dy = ad * dys[i] + q * (y - ys[i])
+            drs[i] = dr
+            dys[i] = dy
             ys[i] = y
-            w = c * r - y
-            d = ad * ds[i] + bd * (w - wps[i])
+            d = kd * (c * dr - dy)
             ds[i] = d
-            wps[i] = w
             v = kp * (b * r - y) + ints[i] + d  # error = reference - model_output, in b r - y
             if bypass[i]:
                 progress = self._fade_progress[i]  # fade progress, 0 -> 1

@@ -30,7 +30,11 @@ from typing import Any
 
 from motcomp.errors import ConfigError
 
-__all__ = ["PIDGains"]
+__all__ = ["CONFIG_KEYS", "PIDGains"]
+
+CONFIG_KEYS = {"kp": "kp", "ki": "ki_per_s", "kd": "kd_s", "tf": "tf_s", "b": "b", "c": "c"}
+"""The one spelling of the gains outside Python (config, ``design --json``, reports), with
+units in the names, per attribute of :class:`PIDGains`."""
 
 
 @dataclass(frozen=True)
@@ -98,6 +102,27 @@ class PIDGains:
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+    def to_config(self) -> dict[str, float]:
+        """The gains under the service config's keys (:data:`CONFIG_KEYS`): what ``[axes.<name>.
+        gains]`` takes and what ``motcomp design --json`` prints."""
+        return {key: float(getattr(self, name)) for name, key in CONFIG_KEYS.items()}
+
+    @classmethod
+    def from_config(cls, values: dict[str, Any]) -> PIDGains:
+        """From a map with the config's keys (``kp`` required; the rest default).
+
+        Raises
+        ------
+        ConfigError
+            If a key is unknown or a gain is invalid.
+        """
+        names = {key: name for name, key in CONFIG_KEYS.items()}
+        unknown = sorted(set(values) - set(names))
+        if unknown or "kp" not in values:
+            raise ConfigError(f"PID gains need kp and take {', '.join(names)}; got "
+                              f"{', '.join(map(str, values)) or 'nothing'}")
+        return cls(**{names[k]: v for k, v in values.items()})
 
     def tracking_time_s(self) -> float:
         """Back-calculation tracking time ``Tt`` (Astrom & Hagglund): ``sqrt(Ti Td)`` for a PID,

@@ -75,6 +75,10 @@ class ShaperParams:
     min_dt_s: float = 1e-5
     """Two samples of an axis closer than this on the sender's timeline are one sample."""
 
+    def __post_init__(self) -> None:
+        if not self.min_dt_s > 0:
+            raise ValueError(f"min_dt_s must be > 0 s, got {self.min_dt_s!r}")
+
 
 class _Move:
     """Minimum-jerk moves from ``start`` to ``end`` per axis, each with its own duration."""
@@ -155,7 +159,7 @@ class ReferenceShaper:
             if fresh_allowed and 0.0 <= dt < min_dt:  # the same sample again: replace it
                 live[i] = v
                 continue
-            if fresh_allowed and dt <= max_dt:
+            if fresh_allowed and min_dt <= dt <= max_dt:  # not when t goes back
                 slope[i] = (v - live[i]) / dt
                 q = period[i]
                 period[i] = dt if q == 0.0 else q + 0.05 * (dt - q)

@@ -4,6 +4,8 @@ The service (:mod:`motcomp.runtime.service`), the offline and real-time replays
 (:mod:`motcomp.replay`) and the synthetic sessions (:mod:`motcomp.replay.synth`) all call it,
 and nothing else of the tick, so a replay computes with the very code that ran::
 
+     catch-up (skipped deadlines, below; before the frame, which is taken at now_ns)
+        |
      payload (bytes | None, the newest input frame since the last tick)
         |
         v
@@ -12,8 +14,6 @@ and nothing else of the tick, so a replay computes with the very code that ran::
         v
      ReferenceShaper.on_input                   motcomp.core.shaper: start-up, stale, hold,
         |                                       rejoin, parking, linear reconstruction
-     catch-up (skipped deadlines, below)
-        |
      now --> ReferenceShaper.reference --> r --> Compensator.step --> u  (motcomp.core.compensator:
                                                     |                    PID, internal model,
                                                     v                    limiter)
@@ -37,12 +37,14 @@ Rules for edge cases
   as ``superseded`` (a regress of more than a million counts nothing: a restart).
 * Catch-up: when the caller missed deadlines (``skipped`` > 0, a stall of its thread), the
   compensator is first stepped at the ``min(skipped, MAX_CATCH_UP)`` deadlines just before
-  ``now_ns``, with the reference of each and no output, so that its discrete dynamics stay on
-  the real time grid instead of seeing the reference jump several samples at once.  A longer
-  stall is left to the stale-input rules.  One output per call, never a burst.
-* Saturation verdict (flag ``sat:<axis>``, ``limited``): a position or velocity bound acted,
-  or the command departs from its target by more than ``saturation_tolerance`` on a 20 ms
-  exponential average; the limiter absorbing zero-mean jitter is not a saturation.
+  ``now_ns``, with the reference of each (before this tick's frame is taken) and no output, so
+  that its discrete dynamics stay on the real time grid instead of seeing the reference jump
+  several samples at once.  A longer stall is left to the stale-input rules.  One output per
+  call, never a burst.
+* Saturation verdict (flag ``sat:<axis>``, ``limited``): a position or velocity bound acted
+  (holding the end of the range for a target beyond it included), or the command departs from
+  its target by more than ``saturation_tolerance`` on a 20 ms exponential average; the limiter
+  absorbing zero-mean jitter is not a saturation.
 * Flags, in this order: the shaper's mode (``rejoin``, ``stale``, ``parking``) if any, then
   ``sat:<axis>`` per limited axis, then ``bypass:<axis>`` per driven axis in bypass.
 """
@@ -165,12 +167,12 @@ def step(state: TickState, p: TickParams, now_ns: int, payload: bytes | None = N
     docstring; never raises because of ``payload``."""
     now = now_ns / 1e9
     shaper, sp = state.shaper, p.shaper
-    if payload is not None:
-        _take(state, p, now, payload)
-    if skipped > 0:
+    if skipped > 0:  # before the frame: the ticks at those deadlines would not have seen it
         period = p.period_ns
         for j in range(min(skipped, MAX_CATCH_UP), 0, -1):
             state.comp.step(shaper.reference(sp, (now_ns - j * period) / 1e9)[0])
+    if payload is not None:
+        _take(state, p, now, payload)
     ref, mode = shaper.reference(sp, now)
     comp = state.comp
     u = comp.step(ref)
@@ -181,10 +183,12 @@ def step(state: TickState, p: TickParams, now_ns: int, payload: bytes | None = N
     alpha = p.verdict_alpha
     keep = 1.0 - alpha
     for i, f in enumerate(comp.flags):
-        if not f and lp[i] == 0.0:  # the common case: nothing to average
+        d = dev[i]
+        if not f and d == 0.0 and lp[i] == 0.0:  # the common case: nothing to average
             continue
-        lp[i] = alpha * dev[i] + keep * lp[i]
-        if f & _HARD_BITS or (f and abs(lp[i]) > tol):
+        lp[i] = alpha * d + keep * lp[i]
+        # no flag but a deviation: the target lay beyond the range, the command holds its end
+        if f & _HARD_BITS or (f and abs(lp[i]) > tol) or (not f and d != 0.0):
             sat[i] += 1
             limited[i] = True
             flags.append(_SAT_FLAGS[i])
@@ -204,13 +208,13 @@ def _take(state: TickState, p: TickParams, now: float, payload: bytes) -> None:
         last = state.last_seq
         if last is not None and seq <= last and not shaper.is_stale(sp, now):
             raise FrameError("duplicate" if seq == last else "old", f"seq {seq} after {last}")
+        shaper.on_input(sp, pos, now, t)
     except FrameError as exc:
         state._reject(exc.reason, str(exc))
         return
     except Exception as exc:  # a bug must not stop the loop: count it
         state._reject("internal", f"{type(exc).__name__}: {str(exc)[:MAX_ERROR_CHARS]}")
         return
-    shaper.on_input(sp, pos, now, t)
     state.last_seq = seq
     state.accepted += 1
     gap = seq - state.src_seq - 1

@@ -45,7 +45,7 @@ class ParetoPoint:
 
     def as_dict(self) -> dict[str, Any]:
         d = asdict(self)
-        d["gains"] = self.gains.as_dict()
+        d["gains"] = self.gains.to_config()
         return d
 
 

@@ -109,7 +109,7 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
         "rate_hz": rate_hz,
         "rule": rule,
         "rule_name": RULE_NAMES.get(rule, OPTIMAL_NAME if rule == OPTIMAL else rule),
-        "gains": {"kp": gains.kp, "ki": gains.ki, "kd": gains.kd, "tf": gains.tf},
+        "gains": gains.to_config(),
         "standard_form": {k: (v if math.isfinite(v) else None) for k, v in std.items()},
         "uncorrected": {
             "phase_delay_ms": ev.uncorrected_phase_delay_ms,
@@ -120,8 +120,6 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
         "continuous": _corrected_json(ev_c),
         "warnings": warnings,
     }
-    if gains.b != 1.0 or gains.c != 1.0:
-        out["gains"].update(b=gains.b, c=gains.c)
     if design is not None:
         out["optimal"] = design.summary()
     if not isinstance(plant, P1D) or plant != internal:
@@ -148,8 +146,7 @@ def evaluation_report(plant: ProcessModel, rule: str, limits: AxisLimits, rate_h
     """Design report plus time-domain runs on a 0.1-3 Hz swept sine and on the slalom."""
     internal = model or plant.to_p1d()
     report = design_report(plant, rule, rate_hz, filter_n, gains, internal, options, progress)
-    g = PIDGains(**{k: report["gains"][k] for k in ("kp", "ki", "kd", "tf")},
-                 b=report["gains"].get("b", 1.0), c=report["gains"].get("c", 1.0))
+    g = PIDGains.from_config(report["gains"])
     amp = _sweep_amplitude(limits, 3.0, sweep_amplitude)
     _, r_sweep = swept_sine(rate_hz, 0.1, 3.0, 60.0, amp)
     _, r_slalom = slalom(rate_hz)
@@ -182,9 +179,9 @@ def markdown(report: dict[str, Any]) -> str:
     if "plant_spec" in report:
         lines.append(f"Platform: `{report['plant_spec']}`")
     g = report["gains"]
-    weights = f", b = {g['b']:.6g}, c = {g['c']:.6g}" if "b" in g else ""
-    lines += ["", f"Gains (parallel): kp = {g['kp']:.6g}, ki = {g['ki']:.6g} 1/s, "
-              f"kd = {g['kd']:.6g} s, tf = {g['tf']:.6g} s{weights}", ""]
+    weights = f", b = {g['b']:.6g}, c = {g['c']:.6g}" if (g["b"], g["c"]) != (1.0, 1.0) else ""
+    lines += ["", f"Gains (parallel): kp = {g['kp']:.6g}, ki_per_s = {g['ki_per_s']:.6g} 1/s, "
+              f"kd_s = {g['kd_s']:.6g} s, tf_s = {g['tf_s']:.6g} s{weights}", ""]
     lines += ["| phase delay (ms) | " + " | ".join(f"{k} Hz" for k in
                                                   report["uncorrected"]["phase_delay_ms"]) + " |",
               "|---|" + "---|" * len(report["uncorrected"]["phase_delay_ms"])]
@@ -272,7 +269,7 @@ def write_figures(report: dict[str, Any], runs: dict[str, SimulationResult], pla
     out_dir.mkdir(parents=True, exist_ok=True)
     rate = float(report["rate_hz"])
     g = report["gains"]
-    gains = PIDGains(g["kp"], g["ki"], g["kd"], g["tf"], g.get("b", 1.0), g.get("c", 1.0))
+    gains = PIDGains.from_config(g)
     model = P1D(**{k: report["model"][k] for k in ("K", "Td", "Tp1")})
     f = default_grid(rate)
     f = f[(f >= 0.05) & (f <= min(100.0, rate / 2 * 0.99))]

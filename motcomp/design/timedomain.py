@@ -32,6 +32,7 @@ from numpy.typing import ArrayLike
 
 from motcomp.core.compensator import Compensator
 from motcomp.core.lti import FloatArray
+from motcomp.core.minjerk import min_jerk
 from motcomp.core.models import P1D, ProcessModel, simulate_axis
 from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import AxisLimits
@@ -53,8 +54,7 @@ def minimum_jerk(p: ArrayLike) -> FloatArray:
     """0 -> 1 over ``p`` in [0, 1] with zero velocity and acceleration at both ends:
     ``10 p^3 - 15 p^4 + 6 p^5`` (a raised cosine has acceleration steps at its ends, which a
     high-gain compensator turns into command spikes)."""
-    x = np.clip(np.asarray(p, dtype=float), 0.0, 1.0)
-    return np.asarray(x**3 * (10.0 - 15.0 * x + 6.0 * x * x))
+    return np.asarray(min_jerk(np.clip(np.asarray(p, dtype=float), 0.0, 1.0)))
 
 
 def fade_envelope(n: int, n_fade: int) -> FloatArray:

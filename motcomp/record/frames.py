@@ -414,7 +414,7 @@ class InputColumns(Extractor):
             return
         self.seq[row] = seq
         t = obj.get("t")
-        if _is_number(t):
+        if isinstance(t, int | float) and not isinstance(t, bool):
             self.t[row] = float(t)
         for a, v in pos.items():
             if a.__class__ is str and a in AXIS_INDEX and _is_number(v):

@@ -290,7 +290,7 @@ class _Collector:
             ex += [mb.payload(i) for i in range(m)]
         else:
             if self.role == "input":
-                mv = memoryview(mb.buf)
+                mv = memoryview(mb.buf.data)
                 self.data.append(b"".join([mv[o:o + n] for o, n in zip(
                     mb.offset.tolist(), mb.length.tolist(), strict=True)]))
                 self.lengths.append(mb.length.astype(np.int64))

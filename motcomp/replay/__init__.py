@@ -2,9 +2,8 @@
 
 ``motcomp.replay.plan``
     What the service did, tick by tick, rebuilt from a recording (:class:`TickPlan`).
-``motcomp.replay.reference``, ``motcomp.replay.engine``
-    The compensator over a plan: the service's own tick (the reference) or the offline engine
-    (vectorised reference, ``lfilter`` on the linear PID loop, exact limiter where it acts).
+``motcomp.replay.engine``
+    The service's own tick (:func:`motcomp.core.tick.step`) over a plan, on the recorded bytes.
 ``motcomp.replay.analysis``, ``motcomp.replay.plots``, ``motcomp.replay.offline``
     Delays, saturation and differences from the recording; figures; the whole offline run.
 ``motcomp.replay.realtime``

@@ -8,14 +8,15 @@ above :data:`MIN_MOTION`) and the compensation state does not change, at most
 
 * *simulated*: the config's platform model (``plants``, the full models, not the compensator's
   P1D) driven by the replayed commands (``on``, windows where the replay compensated the axis)
-  and by the reference through the limiter alone (``off``: no compensation);
+  and by the reference through the limiter alone (``off``: no compensation,
+  :func:`motcomp.core.saturation.limit_axis`, the compensator's own limiter);
 * *recorded*: the recorded feedback position behind the recorded input (both on the
   recorder's receive times), on windows where the service had compensation on, resp. off
   (from the bypass flags of the recorded outputs).
 
-Saturation follows the service's rule (a position or velocity limit acted, or the command left
-its target by more than ``status.saturation_tolerance``), counted in samples and in events
-(runs of saturated samples).
+Saturation is the replayed tick's own verdict (``TickOutput.limited``: the ``sat:<axis>``
+flag), counted in samples and in events (runs of saturated samples).  At catch-up steps nothing
+is sent: the platform, and the figures, hold the last command and reference sent.
 """
 
 from __future__ import annotations
@@ -28,13 +29,15 @@ import numpy as np
 
 from motcomp.config import ResolvedAxes, ServiceConfig
 from motcomp.core.axes import AXES
+from motcomp.core.saturation import axis_constants, limit_axis
 from motcomp.errors import ConfigError
 from motcomp.record.frames import FLAG_BITS
 from motcomp.record.session import Session
-from motcomp.replay.engine import EngineResult, saturated
+from motcomp.replay.engine import EngineResult
 from motcomp.replay.plan import TickPlan
 
-__all__ = ["MAX_WINDOWS", "MIN_MOTION", "WINDOW_S", "AxisReport", "analyse", "held_commands"]
+__all__ = ["MAX_WINDOWS", "MIN_MOTION", "WINDOW_S", "AxisReport", "analyse", "held_commands",
+           "limiter_alone"]
 
 WINDOW_S = 30.0
 MIN_WINDOW_S = 3.0
@@ -101,10 +104,22 @@ def _finite(obj: Any) -> Any:
 
 
 def held_commands(plan: TickPlan, u: np.ndarray) -> np.ndarray:
-    """The command the platform holds at each row: the last *emitted* one (catch-up steps send
-    nothing)."""
+    """The value (command, reference...) in force at each row: the last *emitted* one
+    (catch-up steps send nothing)."""
     last = np.maximum.accumulate(np.where(plan.emit, np.arange(plan.rows), 0))
     return u[last]
+
+
+def limiter_alone(ref: np.ndarray, lim: tuple[float, ...], p0: float) -> np.ndarray:
+    """``ref`` through the compensator's limiter alone (one axis, constants of
+    :func:`~motcomp.core.saturation.axis_constants`), from rest at ``p0``: the command
+    without compensation."""
+    out = np.empty(ref.size)
+    u, v, sp, sv, sa = p0, 0.0, p0, 0.0, 0.0
+    for k, x in enumerate(ref.tolist()):
+        u, v, sp, sv, sa, _ = limit_axis(x, u, v, sp, sv, sa, lim)
+        out[k] = u
+    return out
 
 
 def _windows(mask: np.ndarray, rate_hz: float) -> list[slice]:
@@ -166,19 +181,15 @@ def _grid_rows(plan: TickPlan) -> np.ndarray:
 def analyse(session: Session, plan: TickPlan, res: EngineResult, cfg: ServiceConfig,
             axes: ResolvedAxes, label: str, recorded_config: bool = True) -> ReplayReport:
     """The report of one replay (see the module docstring)."""
-    from motcomp.replay.engine import _limit, _params, _State
     from motcomp.sim.platform import simulate_axis
 
     rate = 1e9 / plan.period_ns
     pre = int(PREROLL_S * rate)
     emit = plan.emit
-    sat_e = saturated(res, cfg.status.saturation_tolerance, cfg.loop.rate_hz)
-    if not emit.all():
-        sat_e = sat_e[emit]
+    sat_e = res.limited[emit]
     held = np.maximum.accumulate(np.where(emit, np.arange(plan.rows), 0))
-    gi = _grid_rows(plan)  # grid point -> row
-    identity = gi.size == plan.rows
-    prms = _params(cfg, axes)
+    gi = held[_grid_rows(plan)]  # grid point -> the row whose output is in force
+    lims = axis_constants(axes.limits, plan.period_ns / 1e9)
     rec_rows = np.flatnonzero(plan.output >= 0)
     out = session.outputs
     compared: np.ndarray | None = rec_rows
@@ -199,11 +210,8 @@ def analyse(session: Session, plan: TickPlan, res: EngineResult, cfg: ServiceCon
         rep = AxisReport(name, compensated=bool((~res.bypass[:, a]).any()))
         rep.saturated_samples = int(np.count_nonzero(sat_e[:, a]))
         rep.saturation_events = _events(sat_e[:, a])
-        ref = res.ref[:, a] if identity else res.ref[gi, a]
-        if not rep.compensated:
-            mask = np.ones(gi.size, bool)
-        else:
-            mask = ~(res.bypass[:, a] if identity else res.bypass[gi, a])
+        ref = res.ref[gi, a]
+        mask = ~res.bypass[gi, a] if rep.compensated else np.ones(gi.size, bool)
         on_d, off_d = [], []
         for w in _windows(mask, rate):
             if np.ptp(ref[w]) < MIN_MOTION:
@@ -211,11 +219,10 @@ def analyse(session: Session, plan: TickPlan, res: EngineResult, cfg: ServiceCon
             lo = max(w.start - pre, 0)
             rows = gi[lo:w.stop]
             cut = w.start - lo
-            cmd_on = res.u[held[rows], a]
+            cmd_on = res.u[rows, a]
             lim_lo, lim_hi = float(axes.limits.p_min[a]), float(axes.limits.p_max[a])
-            st = _State(min(max(float(res.ref[rows[0], a]), lim_lo), lim_hi), prms[a])
-            cmd_off, _ = _limit(res.ref[rows, a], st, prms[a].lim)
-            cmd_off = _hold(cmd_off, emit[rows])
+            cmd_off = limiter_alone(res.ref[rows, a], lims[a],
+                                    min(max(float(res.ref[rows[0], a]), lim_lo), lim_hi))
             d_on = _estimate(ref[w], simulate_axis(axes.plants[a], cmd_on, rate)[cut:], rate)
             d_off = _estimate(ref[w], simulate_axis(axes.plants[a], cmd_off, rate)[cut:], rate)
             if d_on is not None and d_off is not None:
@@ -238,14 +245,6 @@ def analyse(session: Session, plan: TickPlan, res: EngineResult, cfg: ServiceCon
     n_cmp = 0 if out_idx is None else int(out_idx.size)
     return ReplayReport(label, reports, int(np.count_nonzero(emit)), plan.rows,
                         float(plan.t_s[-1]) if plan.rows else 0.0, n_cmp, recorded_config)
-
-
-def _hold(cmd: np.ndarray, emit: np.ndarray) -> np.ndarray:
-    """Commands of catch-up steps are not sent: the platform holds the last one sent."""
-    if emit.all():
-        return cmd
-    last = np.maximum.accumulate(np.where(emit, np.arange(emit.size), 0))
-    return cmd[last]
 
 
 def _recorded_delays(session: Session, reports: list[AxisReport], rate: float) -> None:
@@ -283,7 +282,7 @@ def _recorded_delays(session: Session, reports: list[AxisReport], rate: float) -
                 g = np.arange(t_ref[w.start], t_ref[w.stop - 1], 1.0 / rate)
                 if g.size < MIN_WINDOW_S * rate / 2:
                     continue
-                r = _interp_valid(g, t_in, inp.pos[:, a], inp.reason == 0)
+                r = _interp_valid(g, t_in, inp.pos[:, a], inp.decoded)
                 y = _interp_valid(g, t_fb, fb.pos[:, a], fb.valid)
                 d = None if r is None or y is None else _estimate(r, y, rate)
                 if d is not None:

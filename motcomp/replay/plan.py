@@ -3,7 +3,8 @@
 A plan has one row per compensator step: its instant ``now_ns`` (the loop's own clock), the
 input frame the tick read (if any), whether it emitted an output (a tick) or was a catch-up
 step after a stall (computed by the following tick: :func:`motcomp.core.tick.step` with
-``skipped``), and the bypass changes and the parking request between steps.  It is rebuilt from a recording in one of three ways (docs/REPLAY.md):
+``skipped``), and the bypass changes and the parking request between steps.  It is rebuilt
+from a recording in one of three ways (docs/REPLAY.md):
 
 ``outputs+clock``
     Recorded outputs and a status frame carrying the loop's ``clock``: each output's ``t`` is
@@ -37,7 +38,7 @@ import numpy as np
 from motcomp.config import ResolvedAxes, ServiceConfig, tick_params
 from motcomp.core.axes import AXES
 from motcomp.core.tick import MAX_CATCH_UP, TickParams, parse_input
-from motcomp.errors import DataError, FrameError
+from motcomp.errors import DataError
 from motcomp.record.frames import FLAG_BITS
 from motcomp.record.session import InputStream, Session
 
@@ -95,7 +96,7 @@ def first_position(inp: InputStream, frame: int, params: TickParams
     try:
         return parse_input(inp.payload(frame), sp.reach_lo, sp.reach_hi,
                            params.max_frame_bytes)[2]
-    except FrameError:
+    except Exception:  # FrameError; anything else the tick rejects too ("internal")
         return None
 
 
@@ -140,11 +141,11 @@ def build_plan(session: Session, cfg: ServiceConfig, axes: ResolvedAxes, run: in
     inp = session.inputs
     if inp is None or not len(inp):
         raise DataError(f"{session.name}: no input frames on {session.keys['input']!r}")
-    reason = validate_frames(session, cfg, axes)
+    params = tick_params(cfg, axes)
     out = session.outputs
     if use_outputs and out is not None and out.valid.any():
-        return _from_outputs(session, cfg, reason, run)
-    return _from_inputs(session, cfg, reason)
+        return _from_outputs(session, cfg, params, run)
+    return _from_inputs(session, cfg, params)
 
 
 def _frame_lookup(session: Session) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -154,7 +155,7 @@ def _frame_lookup(session: Session) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return order, inp.seq[order], inp.log_ns[order]
 
 
-def _from_outputs(session: Session, cfg: ServiceConfig, reason: np.ndarray, run: int
+def _from_outputs(session: Session, cfg: ServiceConfig, params: TickParams, run: int
                   ) -> TickPlan:
     out = session.outputs
     inp = session.inputs
@@ -291,18 +292,10 @@ def _from_outputs(session: Session, cfg: ServiceConfig, reason: np.ndarray, run:
     parked = np.flatnonzero(flags_rows & _PARK)
     if parked.size and parked[0] > 0:
         prev_tick = int(rec_rows[parked[0] - 1])
-        park = (prev_tick + 1, float(now_ns[prev_tick]) / 1e9)
-    # frames the replay's config rejects are not consumed
-    consumed = np.flatnonzero(frame >= 0)
-    bad = consumed[reason[frame[consumed]] != 0]
-    rejected = _count(reason, frame[bad])
-    frame[bad] = -1
+        park = (prev_tick + 1, int(now_ns[prev_tick]))
     if warm:
-        first = np.flatnonzero(frame >= 0)
-        if not first.size:
-            raise DataError(f"{session.name}: no usable input frame in the recording")
-        keep = slice(int(first[0]), None)
-        shift = int(first[0])
+        shift = _warm_start(inp, frame, params, session.name)
+        keep = slice(shift, None)
         now_ns, frame, output, emit = now_ns[keep], frame[keep], output[keep], emit[keep]
         events = [(r - shift, m) for r, m in events if r > shift]
         bypass0 = mask_of(int(np.searchsorted(rec_rows, shift))) if rec_rows.size else bypass0
@@ -312,7 +305,7 @@ def _from_outputs(session: Session, cfg: ServiceConfig, reason: np.ndarray, run:
     rec_driven = [st["driven"] for _, st in session.status if isinstance(st.get("driven"), list)]
     by_axes = np.array([a in rec_driven[-1] for a in AXES]) if rec_driven else None
     return TickPlan(now_ns, frame, output, emit, bypass0, events, park, warm, method, period,
-                    rejected, missing_frames, notes, by_axes)
+                    missing_frames, notes, by_axes)
 
 
 def _assign_by_arrival(frame: np.ndarray, now_ns: np.ndarray, rows: np.ndarray,
@@ -330,7 +323,7 @@ def _assign_by_arrival(frame: np.ndarray, now_ns: np.ndarray, rows: np.ndarray,
             last = int(seq[cand[-1]])
 
 
-def _from_inputs(session: Session, cfg: ServiceConfig, reason: np.ndarray) -> TickPlan:
+def _from_inputs(session: Session, cfg: ServiceConfig, params: TickParams) -> TickPlan:
     inp = session.inputs
     assert inp is not None
     period = round(1e9 / cfg.loop.rate_hz)
@@ -342,34 +335,8 @@ def _from_inputs(session: Session, cfg: ServiceConfig, reason: np.ndarray) -> Ti
     last = np.flatnonzero(np.diff(tick_of, append=tick_of[-1] + 1) != 0)
     frame = np.full(n_rows, -1, dtype=np.int64)
     frame[tick_of[last]] = last
-    consumed = np.flatnonzero(frame >= 0)
-    bad = consumed[reason[frame[consumed]] != 0]
-    rejected = _count(reason, frame[bad])
-    frame[bad] = -1
-    # sequence rule: a frame must be newer than the last accepted one, unless input was stale
-    consumed = np.flatnonzero(frame >= 0)
-    s = inp.seq[frame[consumed]]
-    if s.size > 1 and np.any(np.diff(s) <= 0):
-        stale_ns = cfg.loop.stale_after_s * 1e9
-        last_seq, last_t = None, None
-        n_old = n_dup = 0
-        for r in consumed.tolist():
-            q = int(inp.seq[frame[r]])
-            after_stale = last_t is not None and now_ns[r] - last_t > stale_ns
-            if last_seq is not None and not after_stale and q <= last_seq:
-                n_dup += q == last_seq
-                n_old += q < last_seq
-                frame[r] = -1
-                continue
-            last_seq, last_t = q, now_ns[r]
-        for name, n in (("duplicate", n_dup), ("old", n_old)):
-            if n:
-                rejected[name] = rejected.get(name, 0) + n
-    first = np.flatnonzero(frame >= 0)
-    if not first.size:
-        raise DataError(f"{session.name}: no usable input frame in the recording")
-    keep = slice(int(first[0]), None)
+    keep = slice(_warm_start(inp, frame, params, session.name), None)
     return TickPlan(now_ns[keep], frame[keep], np.full(n_rows, -1)[keep],
                     np.ones(n_rows, bool)[keep], None, [], None, True, "inputs", period,
-                    rejected, 0, ["no outputs recorded: ticks at the config's rate from the "
-                                  "input arrival times, warm start at the first input"])
+                    0, ["no outputs recorded: ticks at the config's rate from the input arrival "
+                        "times, warm start at the first input"])

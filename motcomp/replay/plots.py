@@ -33,25 +33,26 @@ def write_plots(out_dir: Path, session: Session, runs: list[ReplayRun]) -> list[
     out_dir.mkdir(parents=True, exist_ok=True)
     base = runs[0]
     plan, res = base.plan, base.result
+    ref = held_commands(plan, res.ref)  # catch-up rows: the reference last sent
     t = plan.t_s
     rate = 1e9 / plan.period_ns
     paths = []
     rec = session.outputs
     rec_rows = np.flatnonzero(plan.output >= 0)
     for a, name in enumerate(AXES):
-        if not base.axes.driven[a] or np.ptp(res.ref[:, a]) < MIN_MOTION:
+        if not base.axes.driven[a] or np.ptp(ref[:, a]) < MIN_MOTION:
             continue
         n_zoom = int(ZOOM_S * rate)
         if t.size > n_zoom:
             step = max(n_zoom // 4, 1)
             starts = np.arange(0, t.size - n_zoom, step)
-            act = [np.ptp(res.ref[s:s + n_zoom, a]) for s in starts]
+            act = [np.ptp(ref[s:s + n_zoom, a]) for s in starts]
             s0 = int(starts[int(np.argmax(act))])
         else:
             s0 = 0
         z = slice(s0, min(s0 + n_zoom, t.size))
         fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(12, 7.5))
-        ax1.plot(t[z], res.ref[z, a], "k", lw=1.2, label="reference")
+        ax1.plot(t[z], ref[z, a], "k", lw=1.2, label="reference")
         if rec is not None and rec_rows.size:
             rz = rec_rows[(rec_rows >= z.start) & (rec_rows < z.stop)]
             ax1.plot(t[rz], rec.pos[plan.output[rz], a], color="0.6", ls="--", lw=1,
@@ -83,8 +84,8 @@ def write_plots(out_dir: Path, session: Session, runs: list[ReplayRun]) -> list[
             ax2.set_ylabel(f"max |replayed - recorded| ({unit(name)})")
         else:
             bins = max(1, t.size // 4000)
-            ax2.plot(t[::bins], res.ref[::bins, a], "k", lw=1, label="reference")
-            ax2.plot(t[::bins], res.u[::bins, a], "C0", lw=1, label="command")
+            ax2.plot(t[::bins], ref[::bins, a], "k", lw=1, label="reference")
+            ax2.plot(t[::bins], held_commands(plan, res.u)[::bins, a], "C0", lw=1, label="command")
             ax2.legend(loc="upper right", fontsize=7)
             ax2.set_ylabel(unit(name))
         ax2.set_xlabel("time (s)")
