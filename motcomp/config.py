@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,15 +40,20 @@ from motcomp.limits_config import LimitsConfig
 __all__ = [
     "RESTART_KEYS",
     "AxisConfig",
+    "CommentedInclude",
+    "ConfigSources",
+    "Override",
     "ProfileConfig",
     "ResolvedAxes",
     "ServiceConfig",
     "config_hash",
+    "config_sources",
     "load_config",
     "merge",
     "parse_config",
     "read_toml",
     "resolve_axes",
+    "source_report",
 ]
 
 _STRICT = ConfigDict(extra="forbid", frozen=True)
@@ -408,51 +414,331 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> ServiceConfi
     return cfg
 
 
-def merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
-    """Deep merge: tables merge key by key, anything else in ``over`` replaces ``base``."""
+# --- includes and provenance ----------------------------------------------------------------
+
+_WHOLE = frozenset({"gains"})
+"""Tables that a higher file replaces as a whole instead of key by key: a gain set is one design,
+and a site's ``gains = { kp, ki_per_s, kd_s, tf_s }`` must not keep an included file's b and c."""
+_EITHER = {"rule": "gains", "gains": "rule"}
+"""Keys that exclude each other in one table: a higher file's ``rule`` displaces a lower file's
+``gains``, and the reverse."""
+_FRAGMENT_KEYS = frozenset({"axes"})
+"""A file whose own keys are only these is a *fragment* (what ``motcomp identify`` and ``motcomp
+design --out`` write): a value of it that another file overrides is reported as lost."""
+_REPORTED_AXIS_KEYS = ("model", "gains", "rule", "bypass")
+_COMMENTED_INCLUDE = re.compile(r"^\s*#+\s*include\s*=(.*)$")
+
+KeyPath = tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Override:
+    """A value of a lower file that a higher one replaces (dotted keys, e.g.
+    ``axes.rails_y.model``; ``upper_key`` differs from ``key`` when a ``rule`` displaces
+    ``gains`` or the reverse)."""
+
+    key: str
+    lower: Path
+    lower_value: Any
+    upper_key: str
+    upper: Path
+    upper_value: Any
+
+
+@dataclass(frozen=True)
+class CommentedInclude:
+    """A ``# include = [...]`` line: ``names`` are the files it would include (empty if the
+    rest of the line is not TOML)."""
+
+    file: Path
+    line: int
+    text: str
+    names: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class ConfigSources:
+    """Where the values of a config file come from once its includes are merged.
+
+    ``files`` lists every file read, lowest precedence first (the file itself last), ``own``
+    each one's own values; ``sources`` maps the dotted key of every effective value to its file
+    (a ``gains`` table is one value); ``parents`` maps an included file to the file that
+    includes it.
+    """
+
+    path: Path
+    files: tuple[Path, ...]
+    own: dict[Path, dict[str, Any]]
+    parents: dict[Path, Path]
+    fragments: frozenset[Path]
+    sources: dict[str, Path]
+    overrides: tuple[Override, ...]
+    commented_includes: tuple[CommentedInclude, ...]
+
+
+class _Trace:
+    """The provenance of one merge of ``over`` onto ``base``: the entries of ``base_src`` whose
+    values ``over`` replaces are removed (the caller then adds ``over_src``) and recorded in
+    ``overrides`` when the value changes."""
+
+    def __init__(self, base_src: dict[KeyPath, Path], over_src: dict[KeyPath, Path],
+                 overrides: list[Override]) -> None:
+        self.base_src, self.over_src, self.overrides = base_src, over_src, overrides
+
+    def lose(self, lost: KeyPath, by: KeyPath, old: Any, new: Any) -> None:
+        n = len(lost)
+        gone = {k: f for k, f in self.base_src.items() if k[:n] == lost}
+        upper = self.over_src.get(by) or next(
+            (f for k, f in self.over_src.items() if k[:len(by)] == by), None)
+        for k in gone:
+            del self.base_src[k]
+        if upper is None or (lost == by and old == new):
+            return
+        for lower in dict.fromkeys(gone.values()):
+            self.overrides.append(Override(".".join(lost), lower, old, ".".join(by), upper, new))
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any], trace: _Trace | None,
+           prefix: KeyPath = ()) -> dict[str, Any]:
     out = dict(base)
     for key, value in over.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = merge(out[key], value)
+        path = (*prefix, key)
+        rival = _EITHER.get(key)
+        if rival is not None and rival in out and rival not in over:
+            if trace is not None:
+                trace.lose((*prefix, rival), path, out[rival], value)
+            del out[rival]
+        if isinstance(value, dict) and isinstance(out.get(key), dict) and key not in _WHOLE:
+            out[key] = _merge(out[key], value, trace, path)
         else:
+            if key in out and trace is not None:
+                trace.lose(path, path, out[key], value)
             out[key] = value
     return out
+
+
+def merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """Deep merge: tables merge key by key, anything else in ``over`` replaces ``base``; a
+    ``gains`` table is replaced as a whole, and ``rule`` and ``gains`` displace each other (a
+    table takes one of them, from the higher file)."""
+    return _merge(base, over, None)
+
+
+def _leaves(data: dict[str, Any], prefix: KeyPath = ()) -> list[KeyPath]:
+    out: list[KeyPath] = []
+    for key, value in data.items():
+        path = (*prefix, key)
+        if isinstance(value, dict) and key not in _WHOLE:
+            out += _leaves(value, path)
+        else:
+            out.append(path)
+    return out
+
+
+def _commented_includes(path: Path, text: str) -> list[CommentedInclude]:
+    found = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        m = _COMMENTED_INCLUDE.match(line)
+        if m is None:
+            continue
+        try:
+            value = tomllib.loads(f"include ={m.group(1)}")["include"]
+        except tomllib.TOMLDecodeError:
+            value = []
+        names = [value] if isinstance(value, str) else value if isinstance(value, list) else []
+        found.append(CommentedInclude(path, number, line.strip(),
+                                      tuple(n for n in names if isinstance(n, str))))
+    return found
+
+
+class _Reader:
+    """Reads a file with its includes, keeping the provenance of every value."""
+
+    def __init__(self) -> None:
+        self.files: list[Path] = []
+        self.own: dict[Path, dict[str, Any]] = {}
+        self.parents: dict[Path, Path] = {}
+        self.fragments: set[Path] = set()
+        self.overrides: list[Override] = []
+        self.commented: list[CommentedInclude] = []
+
+    def read(self, p: Path, seen: tuple[Path, ...]) -> tuple[dict[str, Any], dict[KeyPath, Path]]:
+        if p in seen:
+            chain = " -> ".join(str(s) for s in (*seen, p))
+            raise ConfigError(f"{p}: include cycle ({chain})")
+        try:
+            text = p.read_text()
+        except OSError as exc:
+            raise ConfigError(f"{p}: cannot read: {exc.strerror}") from None
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+        self.commented += _commented_includes(p, text)
+        inc = data.pop("include", [])
+        if isinstance(inc, str):
+            inc = [inc]
+        if not isinstance(inc, list) or not all(isinstance(i, str) for i in inc):
+            raise ConfigError(f"{p}: include: must be a file name or a list of them, got {inc!r}")
+        merged: dict[str, Any] = {}
+        src: dict[KeyPath, Path] = {}
+        for name in inc:
+            child = (p.parent / name).resolve()
+            self.parents.setdefault(child, p)
+            data_i, src_i = self.read(child, (*seen, p))
+            merged = _merge(merged, data_i, _Trace(src, src_i, self.overrides))
+            src.update(src_i)
+        if seen and data and set(data) <= _FRAGMENT_KEYS:
+            self.fragments.add(p)
+        own = dict.fromkeys(_leaves(data), p)
+        merged = _merge(merged, data, _Trace(src, own, self.overrides))
+        src.update(own)
+        self.files.append(p)
+        self.own[p] = data
+        return merged, src
 
 
 def read_toml(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     """A TOML file with its ``include`` files merged underneath it.
 
     ``include = ["a.toml", ...]`` (paths relative to the including file) are read first, in
-    order, each merged over the previous; the including file is merged last, so its keys win.
-    This is how an identification result (a fragment with ``[axes.<name>] model = ...``) is
-    combined with a site config.
+    order, each merged over the previous (:func:`merge`); the including file is merged last, so
+    its keys win.  This is how an identification result or a design (a fragment with
+    ``[axes.<name>]`` tables) is combined with a site config; :func:`config_sources` tells which
+    file each value comes from.
 
     Raises
     ------
     ConfigError
         Naming the file: unreadable, not TOML, an include cycle or a bad ``include`` value.
     """
-    p = Path(path).resolve()
-    if p in _seen:
-        chain = " -> ".join(str(s) for s in (*_seen, p))
-        raise ConfigError(f"{p}: include cycle ({chain})")
-    try:
-        text = p.read_text()
-    except OSError as exc:
-        raise ConfigError(f"{p}: cannot read: {exc.strerror}") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
-    inc = data.pop("include", [])
-    if isinstance(inc, str):
-        inc = [inc]
-    if not isinstance(inc, list) or not all(isinstance(i, str) for i in inc):
-        raise ConfigError(f"{p}: include: must be a file name or a list of them, got {inc!r}")
-    merged: dict[str, Any] = {}
-    for name in inc:
-        merged = merge(merged, read_toml(p.parent / name, (*_seen, p)))
-    return merge(merged, data)
+    return _Reader().read(Path(path).resolve(), tuple(_seen))[0]
+
+
+def config_sources(path: str | Path) -> ConfigSources:
+    """Read ``path`` as :func:`read_toml` does and say where each value comes from: the file of
+    every effective key, the values overridden by a higher file, the commented-out ``include``
+    lines.
+
+    Raises
+    ------
+    ConfigError
+        As :func:`read_toml`.
+    """
+    reader = _Reader()
+    top = Path(path).resolve()
+    _, src = reader.read(top, ())
+    return ConfigSources(top, tuple(reader.files), reader.own, reader.parents,
+                         frozenset(reader.fragments),
+                         {".".join(k): f for k, f in src.items()}, tuple(reader.overrides),
+                         tuple(reader.commented))
+
+
+def _same_value(key: str, a: Any, b: Any) -> bool:
+    if key.split(".")[-1] == "model" and isinstance(a, str) and isinstance(b, str):
+        try:
+            return parse_model(a).spec() == parse_model(b).spec()
+        except ConfigError:
+            return False
+    return bool(a == b)
+
+
+def _shown(p: Path, top: Path) -> str:
+    return str(p.relative_to(top.parent)) if p.is_relative_to(top.parent) else str(p)
+
+
+def _brief(value: Any) -> str:
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{k} = {v!r}" for k, v in value.items()) + " }"
+    return json.dumps(value) if isinstance(value, str | bool) else repr(value)
+
+
+def source_report(path: str | Path, cfg: ServiceConfig | None = None
+                  ) -> tuple[list[str], list[str]]:
+    """What ``motcomp config check`` says about where the axes' values come from.
+
+    Returns ``(lines, warnings)``: one line per driven axis naming the file of its ``model``
+    and of its tuning (``gains`` or ``rule``, through ``[defaults]`` and the active profile as
+    :func:`resolve_axes` takes them); a warning for each value of a fragment (a file of only
+    ``[axes.*]`` tables, as ``motcomp identify`` and ``motcomp design --out`` write) that a
+    higher file overrides with another value (both files and the key named), and for each
+    commented-out ``include`` line in ``path`` (or naming a file that exists): the usual ways an
+    identified model or a designed tuning is silently lost.
+
+    Raises
+    ------
+    ConfigError
+        As :func:`load_config`.
+    """
+    top = Path(path).resolve()
+    srcs = config_sources(top)
+    cfg = cfg if cfg is not None else load_config(path)
+
+    def name(p: Path) -> str:
+        return _shown(p, top)
+
+    lines = [f"sources: {', '.join(name(f) for f in srcs.files)} (lowest first)"]
+    warnings = []
+    bypassed = dict(zip(AXES, resolve_axes(cfg).bypass, strict=True))
+    for axis in (a for a in AXES if a in cfg.axes):
+        model_key = next((k for k in (f"axes.{axis}.model", "defaults.model")
+                          if k in srcs.sources), None)
+        layers = [f"axes.{axis}", "defaults"]
+        if cfg.profile is not None:
+            layers[:0] = [f"profiles.{cfg.profile}.axes.{axis}", f"profiles.{cfg.profile}"]
+        tuning_key = next((f"{layer}.{k}" for layer in layers for k in ("gains", "rule")
+                           if f"{layer}.{k}" in srcs.sources), None)
+        bypass_key = next((f"{layer}.bypass" for layer in layers
+                           if f"{layer}.bypass" in srcs.sources), None)
+        model_file = srcs.sources[model_key] if model_key else None
+        parts = [f"model from {name(model_file)}" if model_file else "no model"]
+        if bypassed[axis]:
+            parts.append(f"BYPASS from {name(srcs.sources[bypass_key])}" if bypass_key
+                         else "not compensated")
+        elif tuning_key is None:
+            parts.append("rule zn (built-in default)")
+        else:
+            kind = tuning_key.rsplit(".", 1)[1]
+            tuning_file = srcs.sources[tuning_key]
+            parts.append(f"{kind} from {name(tuning_file)}"
+                         + ("" if tuning_key.startswith("axes.") else f" ({tuning_key})"))
+            designed_for = srcs.own[tuning_file].get("axes", {}).get(axis, {}).get("model")
+            effective = cfg.axes[axis].model or cfg.defaults.model
+            if (kind == "gains" and model_file in srcs.fragments and tuning_file != model_file
+                    and not _same_value("model", designed_for, effective)):
+                warnings.append(
+                    f"warning: axes.{axis}: the model comes from {name(model_file)} but the gains "
+                    f"({tuning_key}) from {name(tuning_file)}: gains designed for another model; "
+                    f"`motcomp design --plant {name(model_file)} --axis {axis} --out FILE` "
+                    "designs them for this one (include FILE after it)")
+        lines.append(f"  {axis:<10} {', '.join(parts)}")
+    for o in srcs.overrides:
+        key_parts = o.key.split(".")
+        if (o.lower not in srcs.fragments or len(key_parts) != 3 or key_parts[0] != "axes"
+                or key_parts[2] not in _REPORTED_AXIS_KEYS
+                or (o.key == o.upper_key and _same_value(o.key, o.lower_value, o.upper_value))):
+            continue
+        ancestors = []
+        p = o.lower
+        while p in srcs.parents:
+            p = srcs.parents[p]
+            ancestors.append(p)
+        fix = (f"delete {o.upper_key} from {name(o.upper)}" if o.upper in ancestors
+               else f"include {name(o.lower)} after {name(o.upper)}")
+        by = "" if o.key == o.upper_key else f"{o.upper_key} in "
+        warnings.append(f"warning: {o.key} from {name(o.lower)} ({_brief(o.lower_value)}) is "
+                        f"overridden by {by}{name(o.upper)} ({_brief(o.upper_value)}) and not "
+                        f"used; to use it, {fix}")
+    for c in srcs.commented_includes:
+        existing = [n for n in c.names if (c.file.parent / n).is_file()]
+        if c.file != top and not existing:
+            continue
+        what = ", ".join(c.names) or "the files it names"
+        state = f" ({', '.join(existing)} exists)" if existing else ""
+        warnings.append(f"warning: {name(c.file)}:{c.line}: include is commented out "
+                        f"({c.text}): {what} is not read{state}, so no model or gains of it "
+                        "are used")
+    return lines, warnings
 
 
 def load_config(path: str | Path) -> ServiceConfig:

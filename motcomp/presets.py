@@ -1,8 +1,13 @@
-"""Plant presets shipped in ``config/plants/``: a model and typical limits for an axis group.
+"""Plant presets shipped in ``config/plants/``: a model and typical limits for an axis group;
+and :func:`plant_source`, what a command's ``--plant`` / ``--model`` / ``--axis`` designate.
 
 A preset file holds ``description``, ``model`` (the compact spec of
 :func:`motcomp.core.models.parse_model`), ``axes`` and ``limits`` (one table for all its axes, or
 one table per axis), with the unit in every limit key (:mod:`motcomp.limits_config`).
+
+``--plant`` also takes a config fragment (``[axes.<name>]`` tables, as ``motcomp identify``
+writes ``<axis>.toml``) or a whole service config: the axis' ``model`` (or ``[defaults]``
+``model``) and, if given, its limits, in the config's own keys.
 """
 
 from __future__ import annotations
@@ -13,14 +18,17 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from motcomp.core.axes import AXIS_INDEX
+from motcomp.core.axes import AXES, AXIS_INDEX
 from motcomp.core.models import ProcessModel, parse_model
 from motcomp.core.saturation import AxisLimits
 from motcomp.errors import ConfigError
 from motcomp.limits_config import LimitsConfig, axis_limits
 from motcomp.resources import config_dir
 
-__all__ = ["Preset", "list_presets", "load_preset"]
+__all__ = ["DEFAULT_AXIS", "PlantSource", "Preset", "list_presets", "load_preset", "plant_source"]
+
+DEFAULT_AXIS = "rails_y"
+"""The axis a design is for when nothing names one (a model spec, or a preset that has it)."""
 
 
 class _PresetFile(BaseModel):
@@ -51,6 +59,13 @@ class Preset:
                           lim.a_max[i:i + 1], (axis,))
 
 
+def _message(path: Path, prefix: str, exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    where = (prefix + ".".join(str(p) for p in err["loc"])).rstrip(".") or "<top>"
+    msg = err["msg"].removeprefix("Value error, ")
+    return f"{path}: {where}: {msg} (got {err.get('input')!r})"
+
+
 def list_presets() -> list[str]:
     """Names of the shipped presets."""
     return sorted(p.stem for p in (config_dir() / "plants").glob("*.toml"))
@@ -77,9 +92,7 @@ def load_preset(name_or_path: str) -> Preset:
     try:
         doc = _PresetFile.model_validate(raw)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        where = ".".join(str(p) for p in err["loc"])
-        raise ConfigError(f"{path}: {where}: {err['msg']} (got {err.get('input')!r})") from None
+        raise ConfigError(_message(path, "", exc)) from None
     unknown = [a for a in doc.axes if a not in AXIS_INDEX]
     if unknown:
         raise ConfigError(f"{path}: axes: unknown axis {unknown[0]!r}")
@@ -97,3 +110,91 @@ def load_preset(name_or_path: str) -> Preset:
         raise ConfigError(f"{path}: {exc}") from None
     return Preset(name=path.stem, description=doc.description, model=model,
                   axes=tuple(doc.axes), limits=limits)
+
+
+@dataclass(frozen=True)
+class PlantSource:
+    """A platform model and the config axis it is for.
+
+    ``limits`` are the axis' limits (a one-axis :class:`AxisLimits`) when the source gives
+    them; ``label`` names the source in reports (``rails preset``, ``rails_y.toml``...).
+    """
+
+    model: ProcessModel
+    axis: str
+    limits: AxisLimits | None
+    label: str
+
+
+def plant_source(plant: str | None = None, model: str | None = None,
+                 axis: str | None = None) -> PlantSource:
+    """What ``--plant NAME|FILE``, ``--model SPEC`` and ``--axis NAME`` designate.
+
+    * a preset name or preset file: its model; the axis is ``axis`` (one of the preset's),
+      else :data:`DEFAULT_AXIS` if the preset has it, else its first; its limits;
+    * a ``.toml`` file with ``[axes.<name>]`` tables (the fragment ``motcomp identify`` writes,
+      or a service config, includes merged): the ``model`` of ``[axes.<axis>]`` (or of
+      ``[defaults]``) and its limits if it sets them; ``axis`` may be omitted when the file
+      holds one axis;
+    * a model spec: that model, for ``axis`` or :data:`DEFAULT_AXIS`, without limits.
+
+    Raises
+    ------
+    ConfigError
+        Naming the file and key: unknown preset or axis, several axes and no ``axis``, no model
+        for the axis, a bad value.
+    """
+    if axis is not None and axis not in AXIS_INDEX:
+        raise ConfigError(f"--axis: unknown axis {axis!r}; axes: {', '.join(AXES)}")
+    if plant:
+        path = Path(plant)
+        if path.suffix == ".toml":
+            from motcomp.config import read_toml
+
+            raw = read_toml(path)
+            if isinstance(raw.get("axes"), dict):
+                return _fragment_source(path, raw, axis)
+        preset = load_preset(plant)
+        axis = axis or (DEFAULT_AXIS if DEFAULT_AXIS in preset.axes else preset.axes[0])
+        return PlantSource(preset.model, axis, preset.axis_limits(axis),
+                           f"{preset.name} preset")
+    if model:
+        return PlantSource(parse_model(model), axis or DEFAULT_AXIS, None, f"model {model}")
+    raise ConfigError("give --plant NAME|FILE or --model SPEC")
+
+
+def _fragment_source(path: Path, raw: dict[str, object], axis: str | None) -> PlantSource:
+    from motcomp.config import AxisConfig
+
+    tables = raw["axes"]
+    assert isinstance(tables, dict)
+    if axis is None:
+        if len(tables) != 1:
+            found = ", ".join(tables) or "none"
+            raise ConfigError(f"{path}: axes: holds {found}; choose one with --axis NAME")
+        axis = next(iter(tables))
+        if axis not in AXIS_INDEX:
+            raise ConfigError(f"{path}: axes.{axis}: unknown axis; axes: {', '.join(AXES)}")
+    if axis not in tables:
+        raise ConfigError(f"{path}: axes.{axis}: no such table; axes in the file: "
+                          f"{', '.join(tables) or 'none'}")
+    checked = []
+    for where, table in ((f"axes.{axis}", tables[axis]), ("defaults", raw.get("defaults", {}))):
+        try:
+            checked.append(AxisConfig.model_validate(table))
+        except ValidationError as exc:
+            raise ConfigError(_message(path, f"{where}.", exc)) from None
+    cfg, base = checked
+    spec = cfg.model or base.model
+    if spec is None:
+        raise ConfigError(f"{path}: axes.{axis}.model: missing (no model for {axis} in the file "
+                          "nor in its [defaults])")
+    given = {k: v for k, v in cfg.model_dump(exclude_none=True).items()
+             if k in LimitsConfig.model_fields}
+    limits = None
+    if given:
+        try:
+            limits = axis_limits({axis: LimitsConfig(**given)})
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: axes.{axis}: {exc}") from None
+    return PlantSource(parse_model(spec), axis, limits, path.name)

@@ -1,7 +1,8 @@
 """A minimal progress bar on stderr for long offline jobs (no dependency).
 
 Shown only when stderr is a terminal or ``force`` is set; silent with ``quiet``.  Redraws at most
-ten times a second.
+ten times a second.  With ``every_s`` > 0, a stream that is not a terminal (a log file, journald)
+gets a plain line at most every ``every_s`` seconds instead.
 """
 
 from __future__ import annotations
@@ -18,15 +19,17 @@ class Progress:
     """``with Progress("fitting", total=4) as p: ... p.advance()``."""
 
     def __init__(self, label: str, total: float, quiet: bool = False, force: bool = False,
-                 stream: TextIO | None = None, unit: str = "") -> None:
+                 stream: TextIO | None = None, unit: str = "", every_s: float = 0.0) -> None:
         self.label = label
         self.total = max(float(total), 1e-12)
         self.done = 0.0
         self.unit = unit
         self.stream = stream or sys.stderr
         self.enabled = not quiet and (force or self.stream.isatty())
+        self.every_s = every_s if not quiet and not self.enabled else 0.0
         self._last = 0.0
         self._t0 = time.monotonic()
+        self._last_line = self._t0
 
     def __enter__(self) -> Progress:
         self._draw(force=True)
@@ -47,6 +50,8 @@ class Progress:
         self._draw(note=note)
 
     def _draw(self, force: bool = False, final: bool = False, note: str = "") -> None:
+        if self.every_s > 0:
+            self._line(final, note)
         if not self.enabled:
             return
         now = time.monotonic()
@@ -62,4 +67,15 @@ class Progress:
         self.stream.write(text[:120].ljust(100))
         if final:
             self.stream.write("\n")
+        self.stream.flush()
+
+    def _line(self, final: bool, note: str) -> None:
+        now = time.monotonic()
+        if final or now - self._last_line < self.every_s:
+            return
+        self._last_line = now
+        unit = f" {self.unit}" if self.unit else ""
+        self.stream.write(f"{self.label}: {self.done:.1f} of {self.total:.1f}{unit} "
+                          f"({self.done / self.total * 100:.0f} %) after {now - self._t0:.0f} s"
+                          f"{' ' + note if note else ''}\n")
         self.stream.flush()

@@ -31,6 +31,7 @@ def test_design_json_schema() -> None:
         assert isinstance(c[key], float)
     assert c["stable"] is True and out["warnings"] == []
     assert c["phase_delay_ms"]["0.2"] < 10
+    assert out["recommendation"] == "compensate"
 
 
 def test_design_gains_paste_into_the_config(tmp_path: Path) -> None:
@@ -57,6 +58,7 @@ def test_design_with_model_spec_and_hexapod_warning() -> None:
     assert p.returncode == 0
     out = json.loads(p.stdout)
     assert any("lag-dominated" in w for w in out["warnings"])
+    assert out["recommendation"] == "bypass"
     assert "WARNING" in p.stderr
     p = run("design", "--plant", "hexapod", "--rule", "zn")
     assert p.returncode == 0 and "WARNING" in p.stderr and "bypass" in p.stderr
@@ -66,6 +68,11 @@ def test_design_with_model_spec_and_hexapod_warning() -> None:
     (("--model", "p1d:K=1,Td=0.01"), "missing parameter"),
     (("--plant", "nonesuch"), "unknown plant preset 'nonesuch'"),
     (("--model", "p1d:K=1,Td=0.01,Tp1=0.1", "--rate", "-5"), "positive"),
+    (("--plant", "rails", "--axis", "hex_x"), "preset rails has no axis hex_x"),
+    (("--plant", "rails", "--axis", "rails_z"), "--axis: unknown axis 'rails_z'"),
+    (("--plant", "nonesuch.toml"), "nonesuch.toml: cannot read"),
+    (("--plant", "rails", "--out", "/nonexistent/dir/design.toml"),
+     "/nonexistent/dir/design.toml: cannot write"),
 ])
 def test_bad_input_exit_2(args: tuple[str, ...], msg: str) -> None:
     p = run("design", *args)

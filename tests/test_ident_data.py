@@ -15,6 +15,7 @@ from motcomp.core.models import P1D
 from motcomp.errors import DataError
 from motcomp.ident.data import (
     FEEDBACK_KEY,
+    OUTPUT_KEY,
     SETPOINT_KEY,
     load_recording,
     write_recording_csv,
@@ -75,43 +76,61 @@ def test_irregular_time_is_resampled_onto_a_uniform_grid(tmp_path: Path) -> None
 
 
 def write_mcap(path: Path, t: np.ndarray, cmd: np.ndarray, acc: np.ndarray,
-               latency_s: float = 0.0) -> None:
+               latency_s: float = 0.0, inputs: np.ndarray | None = None) -> None:
+    """A session as the stack records it: the service's outputs (rails_y bypassed) and the
+    platform's feedback; ``inputs``, if given, on the input key (what identify must not take
+    as the command)."""
     from mcap.writer import Writer
 
+    from motcomp.core.axes import AXES
+    from motcomp.io.wire import encode_output
+
     t0 = 1_700_000_000.0
+    j = AXES.index("rails_y")
     with open(path, "wb") as fh:
         w = Writer(fh)
         w.start()
         sp = w.register_channel(SETPOINT_KEY, "msgpack", 0)
+        out = w.register_channel(OUTPUT_KEY, "msgpack", 0)
         fb = w.register_channel(FEEDBACK_KEY, "msgpack", 0)
         for k in range(t.size):
             ts = int((t0 + t[k]) * 1e9)
-            w.add_message(sp, log_time=ts, publish_time=ts, data=msgpack.packb(
-                {"seq": k, "t": float(t[k]), "pos": {"rails_y": float(cmd[k]), "hex_z": 0.0}}))
+            if inputs is not None:
+                w.add_message(sp, log_time=ts, publish_time=ts, data=msgpack.packb(
+                    {"seq": k, "t": t0 + float(t[k]), "pos": {"rails_y": float(inputs[k])}}))
+            pos = [0.0] * len(AXES)
+            pos[j] = float(cmd[k])
+            w.add_message(out, log_time=ts, publish_time=ts, data=encode_output(
+                k, t0 + float(t[k]), k, pos, ["bypass:rails_y"]))
             tf = int((t0 + t[k] + latency_s) * 1e9)
             w.add_message(fb, log_time=tf, publish_time=tf, data=msgpack.packb(
-                {"t": float(t[k]), "pos": {"rails_y": 0.0},
+                {"t": t0 + float(t[k]), "pos": {"rails_y": 0.0},
                  "acc": {"rails_y": float(acc[k]), "hex_z": 0.0}}))
         w.finish()
 
 
 def test_mcap_session_recording(tmp_path: Path, base: tuple[np.ndarray, ...]) -> None:
     t, cmd, acc = base
-    write_mcap(tmp_path / "s.mcap", t, cmd, acc, latency_s=0.3e-3)
+    # the inputs are not what the platform received: a compensator scaled them
+    write_mcap(tmp_path / "s.mcap", t, cmd, acc, latency_s=0.3e-3, inputs=cmd / 3)
     rec = load_recording(tmp_path / "s.mcap")
-    # the axis that moves is found; log times are one clock, the feedback arrives 0.3 ms late
-    assert rec.axis == "rails_y" and rec.rate_hz == 1000.0
-    assert rec.n >= t.size - 1
-    rec_f = load_recording(tmp_path / "s.mcap", clock="frame")
-    assert not rec_f.resampled and np.allclose(rec_f.acc, acc) and np.allclose(rec_f.cmd, cmd)
+    # the axis whose output moves is found; the frames' t are one clock; the command is the
+    # output in force at each feedback sample
+    assert rec.axis == "rails_y" and rec.rate_hz == 1000.0 and not rec.resampled
+    assert np.allclose(rec.acc, acc) and np.allclose(rec.cmd, cmd)
+    assert rec.window is not None and rec.window.samples == t.size
+    assert rec.gaps.count == 0 and not rec.warnings
     from motcomp.ident.fit import FitOptions, identify
 
-    fit_log = identify(rec, FitOptions(models=("p1d",))).fits["p1d"].model
-    fit_frame = identify(rec_f, FitOptions(models=("p1d",))).fits["p1d"].model
+    fit_frame = identify(rec, FitOptions(models=("p1d",))).fits["p1d"].model
     assert fit_frame.pure_delay_s == pytest.approx(0.020, abs=2e-4)
-    # the recorder's clock sees the feedback's transport latency as extra delay
-    assert fit_log.pure_delay_s - fit_frame.pure_delay_s == pytest.approx(0.3e-3, abs=1.5e-4)
-    with pytest.raises(DataError, match=r"no message carries pos\.hex_y"):
+    # the recorder's clock: each feedback sample, received 0.3 ms late, still pairs with the
+    # output in force (received less than a period before it)
+    rec_log = load_recording(tmp_path / "s.mcap", clock="log")
+    assert np.allclose(rec_log.cmd, cmd)
+    fit_log = identify(rec_log, FitOptions(models=("p1d",))).fits["p1d"].model
+    assert fit_log.pure_delay_s == pytest.approx(fit_frame.pure_delay_s, abs=1.5e-4)
+    with pytest.raises(DataError, match=r"platform/feedback: no message carries acc\.hex_y"):
         load_recording(tmp_path / "s.mcap", axis="hex_y")
 
 
@@ -125,10 +144,12 @@ def test_mcap_missing_channel(tmp_path: Path) -> None:
         w.add_message(ch, log_time=1, publish_time=1,
                       data=msgpack.packb({"seq": 0, "t": 0.0, "pos": {"rails_y": 0.0}}))
         w.finish()
-    with pytest.raises(DataError, match="no messages on channel platform/feedback"):
+    # the inputs alone do not say what the platform received
+    with pytest.raises(DataError, match="no messages on channel platform/setpoint: the command "
+                                        "identified against is the service's output in force"):
         load_recording(tmp_path / "e.mcap")
     (tmp_path / "bad.mcap").write_bytes(b"not an mcap file at all")
-    with pytest.raises(DataError, match="not a readable MCAP file"):
+    with pytest.raises(DataError, match=r"bad\.mcap"):
         load_recording(tmp_path / "bad.mcap")
 
 
@@ -240,17 +261,22 @@ def test_mcap_with_two_axes_identified_together(tmp_path: Path,
         data[axis] = record_identification(truth, exc.cmd, 1000.0,
                                            Accelerometer(noise_std=0.01), seed=i + 50)
     t = data["rails_x"][0]
+    from motcomp.core.axes import AXES
+    from motcomp.io.wire import encode_output
+
     with open(tmp_path / "two.mcap", "wb") as fh:
         w = Writer(fh)
         w.start()
-        sp = w.register_channel(SETPOINT_KEY, "msgpack", 0)
+        out = w.register_channel(OUTPUT_KEY, "msgpack", 0)
         fb = w.register_channel(FEEDBACK_KEY, "msgpack", 0)
         for k in range(t.size):
             ts = int((100.0 + t[k]) * 1e9)
-            w.add_message(sp, log_time=ts, publish_time=ts, data=msgpack.packb(
-                {"seq": k, "t": float(t[k]), "pos": {a: float(d[1][k]) for a, d in data.items()}}))
+            pos = [float(data[a][1][k]) if a in data else 0.0 for a in AXES]
+            w.add_message(out, log_time=ts, publish_time=ts, data=encode_output(
+                k, 100.0 + float(t[k]), k, pos, [f"bypass:{a}" for a in data]))
             w.add_message(fb, log_time=ts, publish_time=ts, data=msgpack.packb(
-                {"t": float(t[k]), "pos": {}, "acc": {a: float(d[2][k]) for a, d in data.items()}}))
+                {"t": 100.0 + float(t[k]), "pos": {},
+                 "acc": {a: float(d[2][k]) for a, d in data.items()}}))
         w.finish()
     code = main(["identify", str(tmp_path / "two.mcap"), "--axis", "all", "--models", "p1d",
                  "--out", str(tmp_path / "out"), "--no-figures", "--json"])

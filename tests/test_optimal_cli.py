@@ -36,6 +36,39 @@ def test_design_optimal_json_keeps_the_schema_and_adds_its_block() -> None:
     assert "robust" not in opt
 
 
+def test_design_optimal_fragment_is_the_example_configs_rails_tuning(tmp_path: Path) -> None:
+    """``--out`` writes the gains in the config's keys, exactly; the example config's rails
+    gains are this design (to its 8 digits)."""
+    import re
+    import tomllib
+
+    import pytest
+
+    from motcomp.config import load_config, resolve_axes
+    from motcomp.core.pid import PIDGains
+    from motcomp.resources import config_file
+
+    frag = tmp_path / "design.toml"
+    p = run("design", "--plant", "rails", "--rule", "optimal", "--json", "--quiet", "--out",
+            str(frag))
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    text = frag.read_text()
+    assert re.match(r"# motcomp design: optimal, rails preset, 1000 Hz: residual 0\.\d\d ms, "
+                    r"peak \+8\.0 dB \(generated\)\n", text), text
+    axis = tomllib.loads(text)["axes"]["rails_y"]
+    assert axis == {"model": "p1d:K=1,Td=0.0175,Tp1=0.1857683128", "bypass": False,
+                    "gains": out["gains"]}
+    site = tmp_path / "site.toml"
+    site.write_text(f'include = ["{config_file("motcomp.toml")}", "design.toml"]\n')
+    assert run("config", "check", str(site)).returncode == 0
+    axes = resolve_axes(load_config(site))
+    designed = axes.gains[axes.names.index("rails_y")]
+    assert designed == PIDGains.from_config(out["gains"])
+    example = axes.gains[axes.names.index("rails_x")]  # from the example, untouched
+    assert designed.as_dict() == pytest.approx(example.as_dict(), rel=1e-6)
+
+
 def test_design_optimal_options_reach_the_optimiser() -> None:
     p = run("design", "--plant", "rails", "--rule", "optimal", "--peak-db", "6", "--plain-pid",
             "--band", "0.1", "1.5", "--max-command", "40", "--json", "--quiet")

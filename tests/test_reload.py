@@ -282,3 +282,21 @@ def test_reload_refused_when_admin_is_off(tmp_path: Path) -> None:
         r = reload_cmd(p_svc)
         assert r.returncode == 1
         assert "no reply" in r.stderr
+
+
+def test_bypass_off_without_axes_keeps_the_config_bypass(tmp_path: Path) -> None:
+    """``motcomp bypass off`` with no axes re-enables only the axes the running config
+    compensates: the hexapod, bypassed by the example config, stays bypassed."""
+    path = tmp_path / "motcomp.toml"
+    path.write_text(BASE)
+    svc = Service(load_config(path), ZenohEndpoints(), config_path=path)
+    hexapod = [a for a, b in zip(AXES, svc.axes.bypass, strict=True) if b]
+    assert hexapod and "rails_y" not in hexapod
+    with running(svc) as run:
+        assert sorted(svc.request_bypass(True)) == sorted(
+            a for a, d in zip(AXES, svc.axes.driven, strict=True) if d)
+        assert sorted(svc.request_bypass(False)) == sorted(hexapod)
+        assert svc.request_bypass(False, ["hex_z"]) == [a for a in hexapod if a != "hex_z"]
+        run.wait(10)
+    reply = svc.admin("bypass", msgpack.packb({"on": False, "axes": ["rails_q"]}))
+    assert reply["ok"] is False and "rails_q" in reply["error"]

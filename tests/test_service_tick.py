@@ -275,3 +275,37 @@ def test_tick_times_its_transport_calls_apart() -> None:
     svc.tick(MS)
     whole = time.perf_counter_ns() - t0
     assert 0 <= svc.io_ns <= whole  # no sink: only the input take
+
+
+def test_mode_switches_are_logged_with_their_reason(caplog: pytest.LogCaptureFixture) -> None:
+    """The main thread's ModeLog says each switch of the loop's mode (the loop never logs)."""
+    from motcomp.runtime.service import ModeLog
+
+    svc, src, _ = make_service(stale_after_s=0.05, hold_s=0.1, startup_s=0.2, rejoin_s=0.2)
+    seen = ModeLog(svc.state)
+    k = 0
+
+    def run(n: int, frames: bool) -> None:
+        nonlocal k
+        for _ in range(n):
+            if frames:
+                src.push(encode_input(k, k / 1000, {"rails_y": 0.1}))
+            svc.tick(k * MS)
+            k += 1
+            if k % 20 == 0:  # the main thread's poll
+                seen.update(svc.state, svc.params)
+
+    with caplog.at_level("INFO", logger="motcomp.service"):
+        run(100, True)   # start-up blend
+        run(400, True)   # live
+        run(300, False)  # stale: hold, ramp
+        run(400, True)   # rejoin, live
+        from motcomp.core.tick import park
+        park(svc.state, svc.params, k * MS)
+        run(40, False)
+    text = "\n".join(r.getMessage() for r in caplog.records)
+    assert "input started: blending to the live input over 0.20 s" in text
+    assert "input stale: no valid frame for 0.050 s" in text and "holding 0.10 s" in text
+    assert "input resumed: blending to the live input over 0.20 s" in text
+    assert text.count("running on live input") == 2  # after the start-up blend, after the rejoin
+    assert "stop requested: parking" in text

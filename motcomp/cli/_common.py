@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
+from collections.abc import Callable
 from typing import Any
 
 from motcomp.core.models import ProcessModel, parse_model
@@ -21,13 +23,58 @@ def add_plant_args(p: argparse.ArgumentParser, required: bool = True) -> None:
                        help="model spec, e.g. p1d:K=1,Td=0.0175,Tp1=0.1858")
 
 
-def rate_arg(text: str) -> float:
+def _number(text: str, kind: Callable[[str], float], what: str) -> float:
     try:
-        value = float(text)
+        value = kind(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"rate must be a number of Hz, got {text!r}") from None
-    if not value > 0 or value != value or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"rate must be a positive finite number, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+    return value
+
+
+def rate_arg(text: str) -> float:
+    """A rate in Hz: a positive finite number."""
+    value = _number(text, float, "a rate in Hz (a positive number)")
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"rate must be a positive number of Hz, got {text!r}")
+    return value
+
+
+def finite_float(text: str) -> float:
+    """Any finite number (argparse ``type``)."""
+    return _number(text, float, "a finite number")
+
+
+def positive_float(text: str) -> float:
+    """A finite number > 0 (argparse ``type``)."""
+    value = _number(text, float, "a positive number")
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
+
+
+def non_negative_float(text: str) -> float:
+    """A finite number >= 0 (argparse ``type``)."""
+    value = _number(text, float, "a number >= 0")
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1 (argparse ``type``)."""
+    value = int(_number(text, int, "a whole number >= 1"))
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    """An integer >= 0 (argparse ``type``)."""
+    value = int(_number(text, int, "a whole number >= 0"))
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
     return value
 
 

@@ -4,14 +4,23 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
 import msgpack
 
-from motcomp.cli._common import print_json
+from motcomp.cli._common import positive_float, print_json
+from motcomp.core.axes import AXES
 from motcomp.errors import ServiceError
-from motcomp.io.zenoh_io import add_zenoh_args, endpoints_from_args, first_reply, open_session
+from motcomp.io.zenoh_io import (
+    NoPeerError,
+    ZenohEndpoints,
+    add_zenoh_args,
+    endpoints_from_args,
+    open_session,
+    query,
+)
 
 ORDER = 2
 
@@ -19,21 +28,31 @@ ORDER = 2
 def _service_args(p: argparse.ArgumentParser, key: str, timeout: float) -> None:
     """The key of the service endpoint, a timeout and zenoh's flags."""
     p.add_argument("--key", default=key, help=f"endpoint key (default: {key})")
-    p.add_argument("--timeout", type=float, default=timeout, metavar="S")
+    p.add_argument("--timeout", type=positive_float, default=timeout, metavar="S",
+                   help=f"wait this long for the service's reply (default {timeout:g} s); "
+                        "exit 3 if none came")
     add_zenoh_args(p)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser("status", help="query a running service's status",
-                       description="Query the service's status endpoint and print it.")
-    s.add_argument("--json", action="store_true")
+                       description="Query the service's status endpoint and print it as a "
+                                   "table (mode, config, loop timing, frames, per-axis state). "
+                                   "Exit 3 if the service does not answer within --timeout.")
+    s.add_argument("--json", action="store_true", help="print the raw status map as JSON")
+    s.add_argument("--watch", nargs="?", type=positive_float, const=1.0, default=None,
+                   metavar="SECONDS",
+                   help="refresh every SECONDS (default 1) until Ctrl-C")
     _service_args(s, "motcomp/status", 3.0)
     s.set_defaults(func=run_status)
 
     b = sub.add_parser("bypass", help="turn compensation off (on) or back on (off), bumplessly",
                        description="Admin command (needs [admin] enabled = true).")
-    b.add_argument("state", choices=["on", "off"])
-    b.add_argument("--axes", nargs="+", metavar="AXIS", help="default: all driven axes")
+    b.add_argument("state", choices=["on", "off"],
+                   help="on: compensation off (the reference passes through); off: back on")
+    b.add_argument("--axes", nargs="+", metavar="AXIS",
+                   help="default: 'on' every driven axis; 'off' the driven axes the running "
+                        "config compensates (an axis it bypasses stays bypassed)")
     _service_args(b, "motcomp/admin", 3.0)
     b.set_defaults(func=run_bypass)
 
@@ -55,13 +74,42 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.set_defaults(func=run_reload)
 
 
+def _ask(session: Any, ep: ZenohEndpoints, key: str, payload: bytes | None,
+         timeout_s: float) -> dict[str, Any]:
+    """The service's reply on ``key``, asked until one comes or ``timeout_s`` has passed.
+
+    A query that no queryable matches returns at once with no reply (nobody connected yet, or
+    an endpoint that is down): it is asked again until the timeout, so that a service still
+    starting is waited for and the message below is said after the full wait.
+
+    Raises
+    ------
+    NoPeerError
+        No reply within ``timeout_s`` (naming the endpoints, the key and whether any zenoh
+        peer was connected).
+    """
+    t_end = time.monotonic() + timeout_s
+    while True:
+        remaining = t_end - time.monotonic()
+        if remaining <= 0:
+            break
+        replies = query(session, key, payload, remaining)
+        if replies:
+            out = msgpack.unpackb(replies[0])
+            if not isinstance(out, dict):
+                raise ServiceError(f"unexpected reply from {key}")
+            return out
+        time.sleep(min(0.1, max(0.0, t_end - time.monotonic())))
+    peers = list(session.info.peers_zid()) + list(session.info.routers_zid())
+    raise NoPeerError(f"no reply from the service at {ep.describe()} (key {key}) within "
+                      f"{timeout_s:g} s" + ("" if peers else "; no zenoh peer was reachable"))
+
+
 def _request(args: argparse.Namespace, key: str, body: dict[str, Any] | None) -> dict[str, Any]:
-    with open_session(endpoints_from_args(args)) as session:
+    ep = endpoints_from_args(args)
+    with open_session(ep) as session:
         payload = msgpack.packb(body) if body is not None else None
-        out = msgpack.unpackb(first_reply(session, key, payload, args.timeout))
-    if not isinstance(out, dict):
-        raise ServiceError(f"unexpected reply from {key}")
-    return out
+        return _ask(session, ep, key, payload, args.timeout)
 
 
 def _command(args: argparse.Namespace, name: str, body: dict[str, Any]) -> dict[str, Any] | None:
@@ -73,28 +121,107 @@ def _command(args: argparse.Namespace, name: str, body: dict[str, Any]) -> dict[
     return out
 
 
+def _unreachable(command: str, exc: NoPeerError) -> int:
+    print(f"motcomp {command}: {exc}", file=sys.stderr)
+    return 3
+
+
 def run_status(args: argparse.Namespace) -> int:
-    st = _request(args, args.key, None)
+    if args.watch is None:
+        try:
+            st = _request(args, args.key, None)
+        except NoPeerError as exc:
+            return _unreachable("status", exc)
+        _show(args, st)
+        return 0
+    ep = endpoints_from_args(args)
+    clear = sys.stdout.isatty() and not args.json
+    try:
+        with open_session(ep) as session:
+            while True:
+                t_next = time.monotonic() + args.watch
+                try:
+                    st = _ask(session, ep, args.key, None, args.timeout)
+                except NoPeerError as exc:
+                    print(f"{time.strftime('%H:%M:%S')} {exc}", flush=True)
+                else:
+                    if clear:
+                        sys.stdout.write("\x1b[H\x1b[2J")
+                    elif not args.json:
+                        print(f"--- {time.strftime('%H:%M:%S')}")
+                    _show(args, st)
+                    sys.stdout.flush()
+                time.sleep(max(0.0, t_next - time.monotonic()))
+    except KeyboardInterrupt:
+        return 0
+
+
+def _show(args: argparse.Namespace, st: dict[str, Any]) -> None:
     if args.json:
         print_json(st)
-        return 0
-    loop = st.get("loop", {})
-    fr = st["frames"]
-    print(f"mode {st['mode']}  config {st['config']['hash']} v{st['config']['version']}  "
-          f"{st['rate_hz']:g} Hz  ticks {st['ticks']}  missed {st['missed_ticks']}")
-    if loop:
-        print(f"compute p50 {loop['compute_p50_us']:.1f} us  p99 {loop['compute_p99_us']:.1f} us"
-              f"  (whole tick with transport calls p99 {loop.get('tick_p99_us', 0.0):.1f} us)"
-              f"  lateness p99.9 {loop['late_p999_us']:.1f} us  max {loop['late_max_us']:.0f} us")
-    print(f"frames received {fr['received']} accepted {fr['accepted']} rejected "
-          f"{fr['rejected']} {fr['rejected_by_reason']}")
-    print(f"stale {st['stale_s']:.2f} s (total {st['stale_total_s']:.2f} s)  "
-          f"bypass {st['bypass']}  saturation {st['saturation']}")
-    return 0
+    else:
+        print(format_status(st))
+
+
+def _yes(flag: bool) -> str:
+    return "yes" if flag else "no"
+
+
+def format_status(st: dict[str, Any]) -> str:
+    """The service's status map (``motcomp/status``) as a table for people."""
+    cfg = st.get("config") or {}
+    lines = [
+        f"mode        {st.get('mode', '?')}",
+        f"config      hash {cfg.get('hash', '?')}  version {cfg.get('version', '?')}  profile "
+        f"{st.get('profile') or 'none'}" + (f"  ({cfg['path']})" if cfg.get("path") else ""),
+        f"service     motcomp {st.get('version', '?')}",
+        f"loop        {st.get('rate_hz', 0):g} Hz  ticks {st.get('ticks', 0)}  missed "
+        f"{st.get('missed_ticks', 0)}" + ("  (ticks on input)" if st.get("sync_to_input")
+                                          else ""),
+    ]
+    loop = st.get("loop") or {}
+    series = [k[:-len("_p50_us")] for k in loop if k.endswith("_p50_us")]
+    if series:
+        window = st.get("loop_window_s")
+        head = f"loop times (us{f', last {window:g} s' if window else ''})"
+        lines.append(f"  {head:<24}" + "".join(f"{q:>9}" for q in ("p50", "p99", "p99.9",
+                                                                   "max")))
+        for name in series:
+            vals = [float(loop.get(f"{name}_{q}_us", float("nan")))
+                    for q in ("p50", "p99", "p999", "max")]
+            lines.append(f"    {name:<22}" + "".join(f"{v:9.1f}" for v in vals))
+    fr = st.get("frames") or {}
+    reasons = fr.get("rejected_by_reason") or {}
+    why = ", ".join(f"{k} {v}" for k, v in sorted(reasons.items()))
+    lines.append(f"frames      received {fr.get('received', 0)}  accepted {fr.get('accepted', 0)}"
+                 f"  rejected {fr.get('rejected', 0)}" + (f" ({why})" if why else "")
+                 + f"  superseded {fr.get('superseded', 0)}")
+    if fr.get("last_reject"):
+        lines.append(f"            last rejection: {fr['last_reject']}")
+    lines.append(f"stale       now {st.get('stale_s', 0.0):.2f} s  total "
+                 f"{st.get('stale_total_s', 0.0):.2f} s  episodes {st.get('stale_episodes', 0)}")
+    can = st.get("can")
+    if can:
+        lines.append(f"can         sent {can.get('sent', 0)}  errors {can.get('errors', 0)}")
+    if st.get("realtime"):
+        lines.append(f"scheduling  {st['realtime']}")
+    driven = set(st.get("driven") or [])
+    bypass = set(st.get("bypass") or [])
+    sat = st.get("saturation") or {}
+    lines.append(f"{'axis':<12}{'driven':<8}{'bypass':<8}saturation")
+    for axis in [a for a in AXES if a in driven or a in sat] + sorted(
+            set(sat) - set(AXES)):
+        on = axis in driven
+        lines.append(f"{axis:<12}{_yes(on):<8}{(_yes(axis in bypass) if on else '-'):<8}"
+                     f"{sat.get(axis, 0)}")
+    return "\n".join(lines)
 
 
 def run_bypass(args: argparse.Namespace) -> int:
-    out = _command(args, "bypass", {"on": args.state == "on", "axes": args.axes})
+    try:
+        out = _command(args, "bypass", {"on": args.state == "on", "axes": args.axes})
+    except NoPeerError as exc:
+        return _unreachable("bypass", exc)
     if out is None:
         return 1
     print(f"bypassed axes: {', '.join(out['bypass']) or 'none'}")
@@ -103,7 +230,10 @@ def run_bypass(args: argparse.Namespace) -> int:
 
 def run_reload(args: argparse.Namespace) -> int:
     body = {"path": str(args.config.resolve())} if args.config else {}
-    out = _command(args, "reload", body)
+    try:
+        out = _command(args, "reload", body)
+    except NoPeerError as exc:
+        return _unreachable("reload", exc)
     if out is None:
         return 1
     print(f"reloaded: {out.get('path')} (hash {out.get('hash')}, version {out.get('version')})")
@@ -112,7 +242,10 @@ def run_reload(args: argparse.Namespace) -> int:
 
 def run_profile(args: argparse.Namespace) -> int:
     name = None if args.name == "none" else args.name
-    out = _command(args, "profile", {"name": name})
+    try:
+        out = _command(args, "profile", {"name": name})
+    except NoPeerError as exc:
+        return _unreachable("profile", exc)
     if out is None:
         return 1
     print(f"profile {out.get('profile')} active (config hash {out.get('hash')}, version "

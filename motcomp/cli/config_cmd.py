@@ -1,4 +1,6 @@
-"""``motcomp config check FILE``: validate a service config and print the effective one."""
+"""``motcomp config check FILE``: validate a service config and print the effective one;
+``motcomp config example [NAME]``: print a file shipped with the package (the documented
+example config by default)."""
 
 from __future__ import annotations
 
@@ -8,12 +10,13 @@ import sys
 from pathlib import Path
 
 from motcomp.config import RESTART_KEYS, config_hash, load_config, new_tick, resolve_axes
+from motcomp.errors import ConfigError
 
 ORDER = 5
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("config", help="check a service config file",
+    p = sub.add_parser("config", help="check a service config; print the shipped example",
                        description="Configuration tools.")
     cs = p.add_subparsers(dest="config_command", metavar="ACTION")
     cs.required = True
@@ -22,9 +25,21 @@ def register(sub: argparse._SubParsersAction) -> None:
                                   "gains checked for stability) and print the effective "
                                   "values; errors name the file, the key and the value "
                                   "(exit 2).")
-    c.add_argument("file", type=Path)
+    c.add_argument("file", type=Path, help="the service config (TOML)")
     c.add_argument("--json", action="store_true", help="print the effective config as JSON")
     c.set_defaults(func=run_check)
+    e = cs.add_parser("example", help="print the documented example config (or another "
+                                      "shipped file)",
+                      description="Print a file shipped with motcomp to stdout: by default the "
+                                  "example service config, every key documented "
+                                  "(`motcomp config example > site.toml`). --list names the "
+                                  "others (plant presets, the CAN DBC, the zenoh access-control "
+                                  "example, the systemd unit).")
+    e.add_argument("name", nargs="?", default="motcomp.toml", metavar="NAME",
+                   help="shipped file to print, as --list names it (default: motcomp.toml)")
+    e.add_argument("--list", action="store_true",
+                   help="list the shipped files and where they are, print none")
+    e.set_defaults(func=run_example)
 
 
 def run_check(args: argparse.Namespace) -> int:
@@ -55,4 +70,39 @@ def run_check(args: argparse.Namespace) -> int:
         print(f"restart-only keys: {', '.join(RESTART_KEYS)}; everything else can be reloaded")
     for w in axes.warnings:
         print(w, file=sys.stderr)
+    return 0
+
+
+_ABOUT = {
+    "motcomp.toml": "example service config, every key documented",
+    "demo.toml": "the config `motcomp demo` runs",
+    "motcomp.dbc": "CAN frame definitions (output.can)",
+    "motcomp.service": "systemd unit",
+    "zenoh-acl.json5": "zenoh access control and authentication example",
+    "plants/rails.toml": "plant preset: X-Y rails (P1D)",
+    "plants/hexapod.toml": "plant preset: hexapod (P2UZD)",
+}
+
+
+def shipped_files() -> list[str]:
+    """The files shipped in motcomp's config directory, relative to it."""
+    from motcomp.resources import config_dir
+
+    root = config_dir()
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*")
+                  if p.is_file() and "__pycache__" not in p.parts)
+
+
+def run_example(args: argparse.Namespace) -> int:
+    from motcomp.resources import config_dir, config_file
+
+    names = shipped_files()
+    if args.list:
+        print(f"shipped files in {config_dir()} (`motcomp config example NAME` prints one):")
+        for name in names:
+            print(f"  {name:<22} {_ABOUT.get(name, '')}".rstrip())
+        return 0
+    if args.name not in names:
+        raise ConfigError(f"no shipped file {args.name!r}; shipped: {', '.join(names)}")
+    sys.stdout.write(config_file(*Path(args.name).parts).read_text())
     return 0

@@ -1,9 +1,14 @@
 """``motcomp design``, ``motcomp evaluate`` and ``motcomp pareto``: tune the compensator, measure
-the result, and map the delay / over-amplification trade-off."""
+the result, and map the delay / over-amplification trade-off.
+
+``--plant`` takes a preset, a preset file or a config fragment (``motcomp identify``'s
+``<axis>.toml``), ``--axis`` the axis (:func:`motcomp.presets.plant_source`); ``design`` prints
+and with ``--out`` writes the ``[axes.<axis>]`` table for the service config."""
 
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import sys
 import tempfile
@@ -11,12 +16,13 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from motcomp.cli._common import add_plant_args, print_json, rate_arg, resolve_plant
+from motcomp.cli._common import add_plant_args, print_json, rate_arg
 from motcomp.core.models import P1D, parse_model
 from motcomp.design.optimal import Constraints, OptimalOptions, Uncertainty
 from motcomp.design.report import DESIGN_RULES, OPTIMAL
 from motcomp.design.timedomain import limits_for
 from motcomp.errors import ConfigError
+from motcomp.presets import DEFAULT_AXIS, PlantSource, plant_source
 from motcomp.progress import Progress
 
 ORDER = 10
@@ -58,8 +64,14 @@ def _add_optimal(p: argparse.ArgumentParser) -> None:
     g.add_argument("--quiet", action="store_true", help="no progress bar on stderr")
 
 
+_AXIS_HELP = (f"the axis: which [axes.NAME] of a --plant fragment to read (needed when it holds "
+              f"several), and the section the design is for (default: the fragment's axis, else "
+              f"{DEFAULT_AXIS} if the preset has it, else the preset's first)")
+
+
 def _add_common(p: argparse.ArgumentParser) -> None:
     add_plant_args(p)
+    p.add_argument("--axis", default=None, metavar="NAME", help=_AXIS_HELP)
     p.add_argument("--rule", choices=DESIGN_RULES, default="zn",
                    help="tuning rule (default: zn, the paper's Ziegler-Nichols; optimal: "
                         "numerical optimisation, see docs/TUNING.md)")
@@ -80,6 +92,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "optimisation) and print the gains and the frequency-domain "
                                    "metrics of the corrected response.")
     _add_common(p)
+    p.add_argument("--out", type=Path, metavar="FILE",
+                   help="write the design as a config fragment ([axes.NAME] with model and "
+                        "gains, or bypass) to FILE, to include in the site config")
     p.set_defaults(func=run_design)
 
     e = sub.add_parser("evaluate", help="design + time-domain runs, figures and a report",
@@ -88,10 +103,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "report.json and report.md to --out.")
     _add_common(e)
     e.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory")
-    e.add_argument("--axis", default=None,
-                   help="axis whose limits apply (default: the preset's lateral axis)")
     e.add_argument("--limits", nargs=3, type=float, metavar=("POS", "VEL", "ACC"),
-                   help="symmetric limits when no preset is given (default 2.6 2.0 6.0)")
+                   help="symmetric limits when --plant gives none (default 2.6 2.0 6.0)")
     e.set_defaults(func=run_evaluate)
 
     r = sub.add_parser("pareto", help="residual delay vs peak-gain bound, with the rules",
@@ -99,6 +112,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "setpoint weights), place ZN, CC, AMIGO and SIMC on the same "
                                    "axes; write pareto.png, pareto.md and pareto.json to --out.")
     add_plant_args(r)
+    r.add_argument("--axis", default=None, metavar="NAME", help=_AXIS_HELP)
     r.add_argument("--rate", type=rate_arg, default=1000.0, metavar="HZ",
                    help="loop rate (default: 1000)")
     r.add_argument("--internal", metavar="SPEC", help="internal P1D model (default: the plant's)")
@@ -108,6 +122,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--json", action="store_true", help="print one JSON object")
     _add_optimal(r)
     r.set_defaults(func=run_pareto)
+
+
+def _source(args: argparse.Namespace) -> PlantSource:
+    return plant_source(args.plant, args.model, args.axis)
 
 
 def _internal(args: argparse.Namespace) -> P1D | None:
@@ -146,19 +164,49 @@ def _progress(args: argparse.Namespace, label: str
 
 
 def run_design(args: argparse.Namespace) -> int:
-    from motcomp.design.report import design_report, markdown
+    from motcomp.design.report import config_fragment, design_report, fragment_markdown, markdown
 
-    plant, _ = resolve_plant(args)
+    source = _source(args)
     with _progress(args, "optimal tuning") as progress:
-        report = design_report(plant, args.rule, args.rate, args.filter_n, model=_internal(args),
-                               options=_options(args), progress=progress)
+        report = design_report(source.model, args.rule, args.rate, args.filter_n,
+                               model=_internal(args), options=_options(args), progress=progress)
+    fragment = config_fragment(report, source.axis, source.label)
+    if args.out is not None:
+        _write_file_atomically(args.out, fragment)
     if args.json:
         print_json(report)
     else:
         sys.stdout.write(markdown(report))
+        sys.stdout.write(fragment_markdown(fragment, str(args.out) if args.out else None))
     for w in report["warnings"]:
         print(w, file=sys.stderr)
+    if args.out is not None and args.json:
+        print(f"wrote {args.out}", file=sys.stderr)
     return 0
+
+
+def _write_file_atomically(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file beside it (never half-written).
+
+    Raises
+    ------
+    ConfigError
+        If the file cannot be written.
+    """
+    tmp: str | None = None
+    try:
+        with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=f".{path.name}.",
+                                         delete=False) as f:
+            tmp = f.name
+            f.write(text)
+        umask = os.umask(0o022)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # as open() would create it, not mkstemp's 0600
+        os.replace(tmp, path)
+    except OSError as exc:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        raise ConfigError(f"{path}: cannot write: {exc.strerror or exc}") from None
 
 
 def _write_atomically(out: Path, write: Callable[[Path], list[Path]]) -> list[Path]:
@@ -174,13 +222,12 @@ def _write_atomically(out: Path, write: Callable[[Path], list[Path]]) -> list[Pa
 def run_evaluate(args: argparse.Namespace) -> int:
     from motcomp.design.report import evaluation_report, markdown, write_figures, write_report
 
-    plant, preset = resolve_plant(args)
-    if preset is not None:
-        axis = args.axis or ("rails_y" if "rails_y" in preset.axes else preset.axes[0])
-        limits = preset.axis_limits(axis)
-    else:
+    source = _source(args)
+    plant = source.model
+    limits = source.limits
+    if limits is None:
         pos, vel, acc = args.limits or (2.6, 2.0, 6.0)
-        limits = limits_for(pos, vel, acc, (args.axis or "axis",))
+        limits = limits_for(pos, vel, acc, (source.axis,))
     with _progress(args, "optimal tuning") as progress:
         report, runs = evaluation_report(plant, args.rule, limits, args.rate, args.filter_n,
                                          model=_internal(args), options=_options(args),
@@ -200,7 +247,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
 def run_pareto(args: argparse.Namespace) -> int:
     from motcomp.design.pareto import pareto, pareto_figure, pareto_json, pareto_markdown
 
-    plant, _ = resolve_plant(args)
+    plant = _source(args).model
     options = _options(args)
     with _progress(args, "pareto frontier") as progress:
         result = pareto(plant, _internal(args), args.rate, tuple(args.bounds),

@@ -7,7 +7,14 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from motcomp.cli._common import print_json, rate_arg
+from motcomp.cli._common import (
+    finite_float,
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    print_json,
+    rate_arg,
+)
 from motcomp.core.axes import AXIS_INDEX
 from motcomp.errors import ConfigError
 
@@ -15,16 +22,6 @@ if TYPE_CHECKING:
     from motcomp.ident.excitation import AxisRange
 
 ORDER = 4
-
-
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
-    return value
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -38,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--axis", required=True, metavar="NAME", help="axis, e.g. rails_y or hex_z")
     p.add_argument("--kind", choices=("noise", "sweep", "multisine"), default="noise",
                    help="signal kind (default: noise, low-pass pseudo-white)")
-    p.add_argument("--duration", type=_positive, default=60.0, metavar="S",
+    p.add_argument("--duration", type=positive_float, default=60.0, metavar="S",
                    help="total duration including holds and fades (default: 60)")
     p.add_argument("--rate", type=rate_arg, default=1000.0, metavar="HZ",
                    help="sample rate (default: 1000)")
@@ -48,27 +45,27 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="sweep/multisine lowest frequency (default: 0.1)")
     p.add_argument("--f-max", type=rate_arg, default=None, metavar="HZ",
                    help="sweep/multisine highest frequency (default: the band)")
-    p.add_argument("--period", type=_positive, default=None, metavar="S",
+    p.add_argument("--period", type=positive_float, default=None, metavar="S",
                    help="multisine period (default: 1/f-min)")
-    p.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
-    p.add_argument("--usage", type=float, default=0.9, metavar="FRACTION",
+    p.add_argument("--seed", type=non_negative_int, default=0, help="noise seed (default: 0)")
+    p.add_argument("--usage", type=positive_float, default=0.9, metavar="FRACTION",
                    help="fraction of the tightest limit to reach (default: 0.9)")
-    p.add_argument("--fade", type=float, default=2.0, metavar="S",
+    p.add_argument("--fade", type=non_negative_float, default=2.0, metavar="S",
                    help="raised-cosine fade in and out (default: 2)")
-    p.add_argument("--hold", type=float, default=0.5, metavar="S",
+    p.add_argument("--hold", type=non_negative_float, default=0.5, metavar="S",
                    help="neutral hold at both ends (default: 0.5)")
     p.add_argument("--plant", metavar="NAME",
                    help="preset whose limits apply (default: rails for rails_*, hexapod for hex_*)")
-    p.add_argument("--limits", nargs=3, type=float, metavar=("POS", "VEL", "ACC"),
+    p.add_argument("--limits", nargs=3, type=positive_float, metavar=("POS", "VEL", "ACC"),
                    help="symmetric limits instead of a preset's")
     p.add_argument("--out", type=Path, required=True, metavar="STEM",
                    help="output path without suffix")
     p.add_argument("--simulate", metavar="SPEC|PRESET",
                    help="also write STEM.sim.csv: this model's response as an accelerometer "
                         "records it")
-    p.add_argument("--snr", type=float, default=10.0, metavar="DB",
+    p.add_argument("--snr", type=finite_float, default=10.0, metavar="DB",
                    help="with --simulate: signal-to-disturbance ratio, noise + tremor (default 10)")
-    p.add_argument("--jitter-ms", type=float, default=0.0, metavar="MS",
+    p.add_argument("--jitter-ms", type=non_negative_float, default=0.0, metavar="MS",
                    help="with --simulate: time-stamp jitter (default: 0)")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     p.set_defaults(func=run_excite)

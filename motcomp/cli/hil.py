@@ -6,7 +6,14 @@ import argparse
 
 import numpy as np
 
-from motcomp.cli._common import add_log_arg, rate_arg, setup_logging
+from motcomp.cli._common import (
+    add_log_arg,
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    rate_arg,
+    setup_logging,
+)
 from motcomp.core.axes import AXES
 from motcomp.core.models import parse_model
 from motcomp.errors import ConfigError
@@ -20,20 +27,27 @@ def register(sub: argparse._SubParsersAction) -> None:
         "hil", help="simulated platform: setpoints in, feedback out",
         description="Simulate the platform: consume corrected setpoints (zenoh or CAN), apply "
                     "true per-axis dynamics (default: the rails and hexapod presets), enforce "
-                    "hard limits, publish feedback with accelerometer noise.")
-    p.add_argument("--rate", type=rate_arg, default=1000.0, metavar="HZ")
+                    "hard limits, publish feedback with accelerometer noise. Logs its set-up "
+                    "at start and a summary of its counters at exit (SIGTERM/SIGINT).")
+    p.add_argument("--rate", type=rate_arg, default=1000.0, metavar="HZ",
+                   help="simulation and feedback rate (default 1000 Hz)")
     p.add_argument("--truth", action="append", default=[], metavar="AXIS=SPEC",
                    help="true dynamics of an axis, e.g. rails_y=p1d:K=1,Td=0.02,Tp1=0.2")
-    p.add_argument("--margin", type=float, default=0.1,
+    p.add_argument("--margin", type=non_negative_float, default=0.1, metavar="FRACTION",
                    help="hard limits = preset limits widened by this fraction (default 0.1)")
-    p.add_argument("--transport", choices=["zenoh", "can"], default="zenoh")
-    p.add_argument("--can-interface", default="udp_multicast")
-    p.add_argument("--can-channel", default="239.74.163.2")
+    p.add_argument("--transport", choices=["zenoh", "can"], default="zenoh",
+                   help="where the setpoints come from (default zenoh: platform/setpoint)")
+    p.add_argument("--can-interface", default="udp_multicast", metavar="NAME",
+                   help="python-can interface with --transport can (default udp_multicast)")
+    p.add_argument("--can-channel", default="239.74.163.2", metavar="CHANNEL",
+                   help="python-can channel with --transport can (default 239.74.163.2)")
     p.add_argument("--dbc", default="", help="DBC file (default: the shipped motcomp.dbc)")
     p.add_argument("--quiet-sensor", action="store_true",
                    help="no accelerometer noise, tremor, bias or quantisation")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--duration", type=float, default=float("inf"), metavar="S")
+    p.add_argument("--seed", type=non_negative_int, default=0,
+                   help="seed of the accelerometer noise (default 0)")
+    p.add_argument("--duration", type=positive_float, default=float("inf"), metavar="S",
+                   help="stop after S seconds (default: until SIGTERM/SIGINT)")
     add_zenoh_args(p)
     add_log_arg(p)
     p.set_defaults(func=run)

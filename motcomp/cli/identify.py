@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import logging
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 from motcomp.cli._common import print_json, rate_arg
 from motcomp.core.axes import AXIS_INDEX
-from motcomp.errors import ConfigError
+from motcomp.errors import ConfigError, MotcompError
+from motcomp.ident.data import DEFAULT_MAX_GAP_S
 
 ORDER = 5
 
@@ -26,10 +30,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Fit P1D, P2D, P2UZD and OE models (delay included) to a recording of the "
                     "command and the measured acceleration; print the paper's Table 1 row and "
                     "the model comparison; write report.json, report.md, figures and the config "
-                    "fragment <axis>.toml into --out.")
+                    "fragment <axis>.toml into --out.  From an MCAP recording of the stack, the "
+                    "command is the service's output in force at each feedback sample (what "
+                    "the platform received, platform/setpoint) and the measurement the "
+                    "feedback's acceleration, on the longest stretch where the axis is bypassed "
+                    "and not limited (or --window).")
     p.add_argument("data", type=Path, metavar="DATA",
                    help="CSV with columns t,cmd,acc (s, m or rad, m/s^2 or rad/s^2) or an MCAP "
-                        "session recording")
+                        "session recording (motcomp record)")
     p.add_argument("--axis", metavar="NAME",
                    help="axis name (default: from the data, else rails_y); for a recording of "
                         "several axes, a comma-separated list or 'all'")
@@ -49,8 +57,23 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="validation fit %% points a simpler model may trail by (default: 1)")
     p.add_argument("--rate", type=rate_arg, default=None, metavar="HZ",
                    help="resampling rate for irregular time stamps (default: the mean rate)")
-    p.add_argument("--clock", choices=("log", "frame"), default="log",
-                   help="MCAP time stamps: the recorder's log time or the frames' t")
+    p.add_argument("--window", nargs=2, type=float, default=None, metavar=("START", "END"),
+                   help="identify this stretch, in seconds from the recording's start (default: "
+                        "an MCAP recording's longest stretch, of 5 s or more, with the axis "
+                        "bypassed and not limited, else the whole data); compensation or "
+                        "limiting inside it is warned about")
+    p.add_argument("--max-gap", type=float, default=DEFAULT_MAX_GAP_S, metavar="SECONDS",
+                   help="bridge gaps in the data up to this long by linear interpolation "
+                        "(counted in the report); a longer gap ends the automatic window, or "
+                        f"is an error inside --window or a CSV (default: {DEFAULT_MAX_GAP_S:g})")
+    p.add_argument("--clock", choices=("frame", "log"), default="frame",
+                   help="MCAP time stamps used to find the output in force at each feedback "
+                        "sample: 'frame' (default), the frames' own t (the service's tick "
+                        "time, the platform's measurement time): right when the service and "
+                        "the platform share a clock (one host, or PTP/NTP); 'log', the "
+                        "recorder's receive times, only when those clocks are not synchronised: "
+                        "the recorder's delivery then shifts and blurs the pairing.  The command "
+                        "is always the output in force, never the service's input")
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
                    help="output directory (default: DATA without suffix + '_ident')")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
@@ -97,17 +120,25 @@ def run_identify(args: argparse.Namespace) -> int:
                          oe_order=args.oe_order, oe_pade=args.oe_pade, cutoff_hz=args.cutoff,
                          notch=not args.no_notch, select_tolerance=args.select_tolerance)
     idents: dict[str, Identification] = {}
+    data_warnings: list[str] = []  # the reader's, once; the windows', per axis
     stages = len(axes) * (1 + 4 * len(options.models))
     # every axis is identified before anything is written
-    with Progress("identify", total=stages, quiet=args.quiet or args.json) as bar:
-        for name in axes:
-            rec = load_recording(args.data, axis=name, rate_hz=args.rate, clock=args.clock)
-            axis = name or rec.axis or "rails_y"
-            prefix = f"{axis}: " if len(axes) > 1 else ""
+    try:
+        with _reader_log_muted(), \
+                Progress("identify", total=stages, quiet=args.quiet or args.json) as bar:
+            for name in axes:
+                rec = load_recording(args.data, axis=name, rate_hz=args.rate, clock=args.clock,
+                                     window=args.window, max_gap_s=args.max_gap)
+                axis = name or rec.axis or "rails_y"
+                prefix = f"{axis}: " if len(axes) > 1 else ""
+                data_warnings += rec.warnings  # the file's, and the window's naming the axis
 
-            def note(msg: str, prefix: str = prefix) -> None:
-                bar.advance(note=prefix + msg)
-            idents[axis] = identify(rec, options, progress=note)
+                def note(msg: str, prefix: str = prefix) -> None:
+                    bar.advance(note=prefix + msg)
+                idents[axis] = identify(rec, options, progress=note)
+    except MotcompError:
+        _print_warnings(data_warnings)
+        raise
     out = args.out or args.data.with_name(args.data.stem + "_ident")
     try:
         if len(idents) == 1:
@@ -133,6 +164,7 @@ def run_identify(args: argparse.Namespace) -> int:
     else:
         sys.stdout.write(text)
         print(f"wrote {', '.join(str(p) for p in written)}")
+    _print_warnings(data_warnings)
     for axis, ident in idents.items():
         where = f"{axis}: " if len(idents) > 1 else ""
         for kind, msg in ident.errors.items():
@@ -140,3 +172,23 @@ def run_identify(args: argparse.Namespace) -> int:
         for msg in ident.warnings:
             print(f"warning: {where}{msg}", file=sys.stderr)
     return 0
+
+
+def _print_warnings(warnings: list[str]) -> None:
+    for msg in dict.fromkeys(warnings):
+        print(f"warning: {msg}", file=sys.stderr)
+
+
+@contextlib.contextmanager
+def _reader_log_muted() -> Iterator[None]:
+    """The recording reader logs a file cut short; identify prints that warning itself, once,
+    with the others."""
+    log = logging.getLogger("motcomp.record")
+    null, propagate = logging.NullHandler(), log.propagate
+    log.addHandler(null)
+    log.propagate = False
+    try:
+        yield
+    finally:
+        log.removeHandler(null)
+        log.propagate = propagate

@@ -5,8 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from motcomp.cli._common import add_log_arg, setup_logging
-from motcomp.errors import ConfigError
+from motcomp.cli._common import add_log_arg, non_negative_float, positive_int, setup_logging
 from motcomp.io.zenoh_io import add_zenoh_args, endpoints_from_args
 
 ORDER = 6
@@ -18,26 +17,27 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Subscribe to the input, output, feedback and status keys and write every "
                     "message as received to an MCAP file (docs/RECORDING.md). Runs until "
                     "SIGTERM/SIGINT or --duration; the file is finished cleanly either way.")
-    p.add_argument("-o", "--output", required=True, type=Path, metavar="FILE.mcap")
+    p.add_argument("-o", "--output", required=True, type=Path, metavar="FILE.mcap",
+                   help="the recording to write")
     p.add_argument("--keys", action="append", default=[], metavar="KEY[,KEY...]",
                    help="keys to record (repeatable or comma-separated; zenoh wildcards allowed)"
                         "; default: the input, output, feedback and status keys")
     p.add_argument("--config", type=Path, metavar="FILE",
                    help="take the four default keys from this service config")
-    p.add_argument("--duration", type=float, default=0.0, metavar="S",
+    p.add_argument("--duration", type=non_negative_float, default=0.0, metavar="S",
                    help="stop after S seconds (default: until SIGTERM/SIGINT)")
-    p.add_argument("--rotate-mb", type=float, default=0.0, metavar="N",
+    p.add_argument("--rotate-mb", type=non_negative_float, default=0.0, metavar="N",
                    help="start a new part FILE-0001.mcap, -0002... every N MB")
-    p.add_argument("--rotate-s", type=float, default=0.0, metavar="S",
+    p.add_argument("--rotate-s", type=non_negative_float, default=0.0, metavar="S",
                    help="start a new part every S seconds")
     p.add_argument("--compression", choices=["zstd", "lz4", "none"],
                    help="chunk compression (default: zstd if available, else lz4, else none)")
-    p.add_argument("--chunk-kb", type=int, default=1024, metavar="KB",
+    p.add_argument("--chunk-kb", type=positive_int, default=1024, metavar="KB",
                    help="chunk size (default 1024 KiB); a chunk is also closed every --flush-s")
-    p.add_argument("--flush-s", type=float, default=1.0, metavar="S",
+    p.add_argument("--flush-s", type=non_negative_float, default=1.0, metavar="S",
                    help="close the open chunk and fsync at least this often (default 1 s): what "
                         "a crash can lose")
-    p.add_argument("--status-timeout", type=float, default=0.5, metavar="S",
+    p.add_argument("--status-timeout", type=non_negative_float, default=0.5, metavar="S",
                    help="wait this long for the service's status at start (0: do not ask)")
     add_zenoh_args(p)
     add_log_arg(p)
@@ -57,13 +57,6 @@ def run(args: argparse.Namespace) -> int:
         keys = {"input": cfg.input.key, "output": cfg.output.key,
                 "feedback": cfg.feedback.key, "status": cfg.status.key}
     chosen = [k.strip() for item in args.keys for k in item.split(",") if k.strip()]
-    for name, value in (("--duration", args.duration), ("--rotate-mb", args.rotate_mb),
-                        ("--rotate-s", args.rotate_s), ("--status-timeout", args.status_timeout),
-                        ("--flush-s", args.flush_s)):
-        if not value >= 0 or value == float("inf"):
-            raise ConfigError(f"{name} must be a finite number >= 0, got {value}")
-    if args.chunk_kb <= 0:
-        raise ConfigError(f"--chunk-kb must be > 0, got {args.chunk_kb}")
     opts = RecordOptions(out=args.output, keys=chosen or list(keys.values()),
                          duration_s=args.duration, rotate_mb=args.rotate_mb,
                          rotate_s=args.rotate_s, compression=args.compression,

@@ -10,9 +10,17 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from motcomp.cli._common import add_log_arg, print_json, setup_logging
+from motcomp.cli._common import (
+    add_log_arg,
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    print_json,
+    setup_logging,
+)
 from motcomp.errors import ConfigError
-from motcomp.io.zenoh_io import add_zenoh_args, endpoints_from_args
+from motcomp.io.zenoh_io import NoPeerError, add_zenoh_args, endpoints_from_args
 
 if TYPE_CHECKING:
     from motcomp.replay.offline import FileReplay
@@ -35,28 +43,32 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="also replay with this config, side by side")
     p.add_argument("--out", type=Path, metavar="DIR", help="write figures here")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
-    p.add_argument("--jobs", "-j", type=int, default=1, metavar="N",
+    p.add_argument("--jobs", "-j", type=positive_int, default=1, metavar="N",
                    help="replay the (file, config) pairs in N worker processes (default 1); "
                         "the results are the same, bit for bit")
     p.add_argument("--bypass", choices=["recorded", "config"], default="recorded",
                    help="compensation on/off per axis as the recording shows it (default: "
                         "follows the admin switches) or as the config says")
-    p.add_argument("--run", type=int, default=0, metavar="N",
+    p.add_argument("--run", type=non_negative_int, default=0, metavar="N",
                    help="which service run of the recording (the service restarted: output "
                         "seq starts again); default 0")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress bar (or lines)")
     g = p.add_argument_group("real time")
     g.add_argument("--realtime", action="store_true",
                    help="republish the recorded inputs on zenoh on their recorded schedule")
     g.add_argument("--timing", choices=["publish", "log"], default="publish",
                    help="schedule from the frames' own t (publish, default) or from the "
                         "recorder's receive times (log)")
-    g.add_argument("--speed", type=float, default=1.0, help="time scale (2: twice as fast)")
+    g.add_argument("--speed", type=positive_float, default=1.0, metavar="FACTOR",
+                   help="time scale (2: twice as fast; default 1)")
     g.add_argument("--restamp", action="store_true",
                    help="shift each frame's t to the present (the payload is re-encoded)")
     g.add_argument("--key", help="key to republish (default: the recording's input key)")
-    g.add_argument("--lead-in", type=float, default=0.5, metavar="S",
-                   help="wait after opening zenoh before the first frame (default 0.5 s)")
+    g.add_argument("--lead-in", type=non_negative_float, default=0.5, metavar="S",
+                   help="wait after a subscriber is found before the first frame (default 0.5 s)")
+    g.add_argument("--wait-peer", type=non_negative_float, default=5.0, metavar="S",
+                   help="wait up to S seconds for a subscriber of the key, exit 3 if none "
+                        "(default 5; 0: send without checking)")
     add_zenoh_args(p)
     add_log_arg(p)
     p.set_defaults(func=run)
@@ -75,22 +87,29 @@ def run(args: argparse.Namespace) -> int:
 
 def _realtime(args: argparse.Namespace) -> int:
     from motcomp.progress import Progress
-    from motcomp.replay.realtime import republish
-
-    if not (args.speed > 0 and math.isfinite(args.speed)):
-        raise ConfigError(f"--speed must be a positive number, got {args.speed}")
     from motcomp.record.mcapio import message_counts
     from motcomp.record.session import session_parts
+    from motcomp.replay.realtime import republish
 
     (path,) = args.files
     parts = session_parts(path)
     spans = [c[""] for c in map(message_counts, parts) if c is not None]
     duration = (spans[-1][1] - spans[0][0]) / 1e9 if len(spans) == len(parts) else 0.0
-    with Progress("republishing", duration / args.speed, quiet=args.quiet or not duration,
-                  unit="s") as bar:
-        stats = republish(path, endpoints_from_args(args), args.key, args.timing,
-                          args.speed, args.restamp, args.lead_in,
-                          progress=lambda s: bar.update(s / args.speed))
+    ep = endpoints_from_args(args)
+    if not args.quiet:
+        print(f"motcomp replay: republishing {path}"
+              + (f" ({duration:.1f} s recorded)" if duration else "")
+              + f" at {args.speed:g}x ({ep.describe()})", file=sys.stderr, flush=True)
+    try:
+        with Progress("republishing", duration / args.speed, quiet=args.quiet or not duration,
+                      unit="s", every_s=5.0) as bar:
+            stats = republish(path, ep, args.key, args.timing, args.speed, args.restamp,
+                              args.lead_in, progress=lambda s: bar.update(s / args.speed),
+                              wait_peer_s=args.wait_peer)
+    except NoPeerError as exc:
+        print(f"motcomp replay: {exc}; is the service running and its endpoint right?",
+              file=sys.stderr)
+        return 3
     if args.json:
         print_json(stats.__dict__)
     else:

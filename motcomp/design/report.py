@@ -1,8 +1,10 @@
-"""Design and evaluation reports: the JSON object, a markdown summary, and the figures.
+"""Design and evaluation reports: the JSON object, a markdown summary, the config fragment and
+the figures.
 
-:func:`design_report` is what ``motcomp design`` prints; :func:`evaluation_report` adds the
-time-domain runs (swept sine, slalom) that ``motcomp evaluate`` writes with its figures.
-matplotlib is imported only inside the plotting functions.
+:func:`design_report` is what ``motcomp design`` prints; :func:`config_fragment` the
+``[axes.<name>]`` table it writes with ``--out``, in the service config's own keys;
+:func:`evaluation_report` adds the time-domain runs (swept sine, slalom) that ``motcomp
+evaluate`` writes with its figures.  matplotlib is imported only inside the plotting functions.
 """
 
 from __future__ import annotations
@@ -15,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from motcomp.core.models import P1D, ProcessModel
+from motcomp.core.models import P1D, ProcessModel, parse_model
 from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import AxisLimits
-from motcomp.core.tuning import RULE_NAMES, RULES, tune
+from motcomp.core.tuning import RULE_NAMES, RULES, check_lag, tune
 from motcomp.design import optimal as opt
 from motcomp.design.frequency import (
     Evaluation,
@@ -32,9 +34,10 @@ from motcomp.design.timedomain import (
     slalom,
     swept_sine,
 )
+from motcomp.errors import ConfigError
 
-__all__ = ["DESIGN_RULES", "OPTIMAL", "design_report", "evaluation_report", "markdown",
-           "write_figures"]
+__all__ = ["DESIGN_RULES", "OPTIMAL", "config_fragment", "design_report", "evaluation_report",
+           "fragment_markdown", "markdown", "write_figures"]
 
 
 def _model_json(model: ProcessModel) -> dict[str, Any]:
@@ -74,6 +77,9 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
     approximation.  ``gains`` overrides the rule's gains (``rule`` is then only a label).
     ``rule = "optimal"`` runs :func:`motcomp.design.optimal.optimise` with ``options`` (and
     ``progress``) and adds its block under ``"optimal"``; ``filter_n`` does not apply to it.
+    ``recommendation`` is ``"bypass"`` or ``"compensate"``: the optimiser's verdict, and for the
+    rules the same criteria (worse than uncompensated, a gain under ``min_gain_ms``, a
+    delay-dominated model, a low-frequency lag above the plant's).
     """
     internal = model or plant.to_p1d()
     warnings: list[str] = []
@@ -98,6 +104,13 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
     ev_c = evaluate(gains, internal, plant, rate_hz=None, band_hz=band)
     warnings += ev.notes
     worse = ev.max_residual_delay_ms > ev.uncorrected_max_delay_ms
+    if design is not None:
+        bypass = design.recommend_bypass
+    else:
+        min_gain_ms = (options or opt.OptimalOptions()).min_gain_ms
+        bypass = (worse or ev.uncorrected_max_delay_ms - ev.max_residual_delay_ms < min_gain_ms
+                  or internal.Tp1 < opt.DELAY_DOMINATED_RATIO * internal.Td
+                  or check_lag(gains, internal) is not None)
     if worse:
         warnings.append(
             f"WARNING: the corrected response lags MORE than the uncorrected one over the band "
@@ -119,6 +132,7 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
         "corrected": _corrected_json(ev),
         "continuous": _corrected_json(ev_c),
         "warnings": warnings,
+        "recommendation": "bypass" if bypass else "compensate",
     }
     if design is not None:
         out["optimal"] = design.summary()
@@ -127,6 +141,73 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
         out["plant_spec"] = plant.spec()
     out["model_spec"] = internal.spec()
     return out
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value)  # round-trips exactly
+    return json.dumps(value)
+
+
+def config_fragment(report: dict[str, Any], axis: str, source: str = "") -> str:
+    """The ``[axes.<axis>]`` table of a design, in the service config's keys.
+
+    ``model`` is the spec the service reduces (``to_p1d()``) to the internal model the gains
+    were designed for: the platform's if it reduces to it, else the internal model; then
+    ``bypass = false`` and ``gains`` (:meth:`PIDGains.to_config`, exact), or ``bypass = true``
+    alone when the design recommends bypass.  Comments give the design and its metrics.  The
+    fragment is meant to be included after the base config (``include = ["motcomp.toml",
+    "design.toml"]``); ``motcomp config check`` then shows where each value comes from.
+
+    Examples
+    --------
+    The rails preset with ZN gives (numbers abridged)::
+
+        # motcomp design: zn, rails preset, 1000 Hz: residual 4.08 ms, peak +11.6 dB (generated)
+        [axes.rails_y]
+        model = "p1d:K=1,Td=0.0175,Tp1=0.1857683128"
+        bypass = false
+        gains = { kp = 12.7..., ki_per_s = 364..., kd_s = 0.111..., tf_s = ..., b = 1.0, c = 1.0 }
+    """
+    c = report["corrected"]
+    rule = report["rule"]
+    if rule == OPTIMAL and "robust" in report.get("optimal", {}):
+        rule = "optimal (robust)"
+    where = f", {source}" if source else ""
+    lines = [f"# motcomp design: {rule}{where}, {report['rate_hz']:g} Hz: residual "
+             f"{c['max_residual_delay_ms']:.2f} ms, peak {c['peak_gain_db']:+.1f} dB (generated)",
+             f"# Gains for loop.rate_hz = {report['rate_hz']:g}.  Include this file after the base "
+             "config;", "# `motcomp config check` shows which file each value comes from."]
+    model_spec = report["model_spec"]
+    plant_spec = report.get("plant_spec")
+    if plant_spec is not None:
+        try:
+            reduced = parse_model(plant_spec).to_p1d().spec()
+        except ConfigError:
+            reduced = None
+        if reduced == model_spec:
+            model_spec = plant_spec
+        else:
+            lines.append(f"# Designed on the platform {plant_spec} with this internal model.")
+    bypass = report.get("recommendation") == "bypass"
+    if bypass:
+        lines.append("# Recommendation: bypass (see the design's warnings); no gains.")
+    lines += [f"[axes.{axis}]", f"model = {_toml_value(model_spec)}",
+              f"bypass = {_toml_value(bypass)}"]
+    if not bypass:
+        gains = ", ".join(f"{k} = {_toml_value(float(v))}" for k, v in report["gains"].items())
+        lines.append(f"gains = {{ {gains} }}")
+    return "\n".join(lines) + "\n"
+
+
+def fragment_markdown(fragment: str, written: str | None = None) -> str:
+    """The fragment as a paste-able block for the end of the human output."""
+    how = (f"Written to `{written}`: include it in the site config after the base config"
+           if written else "Paste it into the site config, or write it with `--out FILE` and "
+           "include that after the base config")
+    return (f"\n## Config fragment\n\n{how} (docs/TUNING.md):\n\n```toml\n{fragment}```\n")
 
 
 def _sweep_amplitude(limits: AxisLimits, f1_hz: float, requested: float | None) -> float:

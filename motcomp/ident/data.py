@@ -11,27 +11,44 @@ function decorated with :func:`register_loader`:
     (measured cabin acceleration, m/s^2 or rad/s^2); other columns are ignored.  Lines starting
     with ``#`` before the header are comments; ``# axis: NAME`` names the axis.
 ``.mcap``
-    A session recording of the service: one channel per zenoh key, msgpack messages.  The
-    command comes from ``sim/motion/setpoint`` frames ``{"seq", "t", "pos": {axis: value}}``, the
-    acceleration from ``platform/feedback`` frames ``{"t", "pos": {...}, "acc": {...}}``.  Time
-    stamps are the recorder's log times (one clock for both) unless ``clock="frame"`` asks for
-    the frames' own ``t``.
+    A session recording of the stack (``motcomp record``), read with
+    :func:`motcomp.record.read_session` (rotated parts; a file cut short up to its last complete
+    chunk, with a warning).  What the platform received against what it did: at each
+    ``platform/feedback`` sample, the command is the service's output in force
+    (``platform/setpoint``, :meth:`~motcomp.record.Session.identification_columns`) and the
+    measurement the feedback's acceleration; each sample also says whether the axis was
+    bypassed (``bypass:<axis>``) and whether the limiter acted (``sat:<axis>``).  Time stamps
+    are the frames' own ``t`` (``clock="frame"``: the service's tick time and the platform's
+    measurement time) or the recorder's receive times (``clock="log"``).
+
+Window (:func:`select_window`)
+------------------------------
+Time is counted from the recording's start.  A window given as ``(start_s, end_s)`` is used as
+is, with a warning if the axis was compensated or limited in it.  Otherwise a recording with
+bypass and limiter flags (MCAP) is identified on the longest stretch where the axis is
+bypassed and not limited (at least :data:`MIN_WINDOW_S`); a recording without them (CSV) whole.
+
+Gaps
+----
+An interval longer than twice the median period is a gap.  Up to ``max_gap_s`` it is bridged
+by the linear interpolation of the resampling and counted (:class:`Gaps`); a longer one ends a
+stretch (automatic window) or is an error naming it.
 
 Checks (each a :class:`~motcomp.errors.DataError` naming the place and the value)
 ---------------------------------------------------------------------------------
 missing or misnamed columns; a value that is not a number, NaN or infinite (line and column);
-time going backwards or repeated (line); a gap of more than 5 median periods; fewer than
-:data:`MIN_SAMPLES` samples; a constant command (nothing excited); a measurement sitting at its
-extreme value for several samples in a row (sensor saturated or clipped).
+time going backwards or repeated (line); a gap longer than ``max_gap_s`` in the window; fewer
+than :data:`MIN_SAMPLES` samples; a constant command (nothing excited); a measurement sitting
+at its extreme value for several samples in a row (sensor saturated or clipped).
 
 Resampling
 ----------
-A recording whose periods vary by more than 0.1 % is resampled onto the uniform grid
-``t0 + k / rate`` (``rate`` = the mean sample rate, rounded to whole hertz when within 0.1 %,
-unless given) by linear interpolation of both columns.  Linear interpolation suits both: the
-command's samples are points of the setpoint sequence that the platform holds, and holding a
-sequence of points lags it by half a period *whatever the grid*, a lag the fit's
-zero-order-hold model adds back.
+A recording whose periods vary by more than 0.1 % (or has gaps) is resampled onto the uniform
+grid ``t0 + k / rate`` (``rate`` = the mean sample rate outside the gaps, rounded to whole
+hertz when within 0.1 %, unless given) by linear interpolation of both columns.  Linear
+interpolation suits both: the command's samples are points of the setpoint sequence that the
+platform holds, and holding a sequence of points lags it by half a period *whatever the grid*,
+a lag the fit's zero-order-hold model adds back.
 
 The accelerometer's bias is not removed here: the fit estimates it as a free constant (see
 :mod:`motcomp.ident.fit`).
@@ -40,12 +57,13 @@ The accelerometer's bias is not removed here: the fit estimates it as a free con
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -53,33 +71,50 @@ from motcomp.core.axes import AXIS_INDEX
 from motcomp.core.lti import FloatArray
 from motcomp.errors import DataError
 
+if TYPE_CHECKING:
+    from motcomp.record.session import Session
+
 __all__ = [
+    "DEFAULT_MAX_GAP_S",
     "FEEDBACK_KEY",
     "LOADERS",
     "MIN_SAMPLES",
+    "MIN_WINDOW_S",
+    "OUTPUT_KEY",
     "SETPOINT_KEY",
+    "Gaps",
     "RawRecording",
     "Recording",
+    "Window",
     "check_and_resample",
     "list_axes",
     "load_recording",
     "register_loader",
+    "select_window",
     "write_recording_csv",
 ]
 
 MIN_SAMPLES = 1000
 """Fewest samples accepted (1 s at 1 kHz): the fit needs many periods of the slowest dynamics."""
+MIN_WINDOW_S = 5.0
+"""Shortest stretch (s) the automatic window accepts."""
+DEFAULT_MAX_GAP_S = 0.05
+"""Longest gap (s) bridged by interpolation unless told otherwise."""
 
 SETPOINT_KEY = "sim/motion/setpoint"
+OUTPUT_KEY = "platform/setpoint"
 FEEDBACK_KEY = "platform/feedback"
 
 
 @dataclass(frozen=True)
 class RawRecording:
-    """A recording as read: its own time stamps, possibly irregular.
+    """A recording as read: its own time stamps (s from the recording's start), possibly
+    irregular.
 
-    ``t_cmd`` may differ from ``t_acc`` (two streams, e.g. setpoints and feedback); ``rows``
-    maps each sample to the place it came from (a line number, a message index) for messages.
+    ``t_cmd`` may differ from ``t_acc`` (two streams, e.g. setpoints and feedback); the places
+    name each sample's origin (a line number, a message index) for messages.  ``bypassed`` and
+    ``limited`` (per ``t_acc`` sample, or None when the format does not say) tell whether the
+    axis was in bypass and whether the limiter acted; ``warnings`` are the reader's.
     """
 
     source: str
@@ -90,11 +125,46 @@ class RawRecording:
     axis: str | None = None
     acc_place: Callable[[int], str] = field(default=lambda i: f"sample {i}")
     cmd_place: Callable[[int], str] = field(default=lambda i: f"sample {i}")
+    bypassed: np.ndarray | None = None
+    limited: np.ndarray | None = None
+    warnings: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Window:
+    """The stretch of a recording identified: ``[start_s, end_s]`` from its start."""
+
+    start_s: float
+    end_s: float
+    samples: int
+    """Recorded samples (of the measurement) in it."""
+    how: str
+    """``"given"``, ``"whole recording"`` or ``"longest stretch bypassed and not limited"``."""
+
+
+@dataclass(frozen=True)
+class Gaps:
+    """Gaps bridged by interpolation: intervals longer than twice the median period and not
+    longer than ``max_gap_s``."""
+
+    max_gap_s: float = DEFAULT_MAX_GAP_S
+    count: int = 0
+    longest_s: float = 0.0
+    total_s: float = 0.0
+    """Time without data, summed over the gaps."""
+    first: tuple[tuple[float, float], ...] = ()
+    """``(start_s, length_s)`` of the first few, from the recording's start."""
+
+    def to_json(self) -> dict[str, Any]:
+        return {"count": self.count, "longest_ms": self.longest_s * 1e3,
+                "total_ms": self.total_s * 1e3, "max_gap_s": self.max_gap_s,
+                "first": [{"start_s": a, "length_ms": b * 1e3} for a, b in self.first]}
 
 
 @dataclass(frozen=True)
 class Recording:
-    """One axis on a uniform grid: ``t[k] = k / rate_hz`` (starting at 0)."""
+    """One axis on a uniform grid: ``t[k] = k / rate_hz`` (starting at 0, which is
+    ``start_s`` in the recording)."""
 
     t: FloatArray
     cmd: FloatArray
@@ -104,7 +174,12 @@ class Recording:
     source: str
     resampled: bool = False
     period_jitter_s: float = 0.0
-    """Standard deviation of the recorded periods (0 for a regular record)."""
+    """Standard deviation of the recorded periods outside gaps (0 for a regular record)."""
+    start_s: float = 0.0
+    window: Window | None = None
+    gaps: Gaps = field(default_factory=Gaps)
+    warnings: tuple[str, ...] = ()
+    """The reader's and the window's (a file cut short, compensation in a given window...)."""
 
     @property
     def n(self) -> int:
@@ -129,28 +204,33 @@ def register_loader(*suffixes: str) -> Callable[[Loader], Loader]:
 
 
 def load_recording(path: str | Path, axis: str | None = None, rate_hz: float | None = None,
-                   clock: str = "log") -> Recording:
-    """Read, check and (if irregular) resample a recording.
+                   clock: str = "frame", window: tuple[float, float] | None = None,
+                   max_gap_s: float = DEFAULT_MAX_GAP_S) -> Recording:
+    """Read, check, window and (if irregular) resample a recording.
+
+    ``window`` is ``(start_s, end_s)`` from the recording's start (default: see the module
+    notes); ``max_gap_s`` the longest gap bridged by interpolation.
 
     Raises
     ------
     DataError
-        For an unreadable file, an unknown suffix or any failed check (see the module notes).
+        For an unreadable file, an unknown suffix, no usable window or any failed check (see
+        the module notes).
     """
     p = Path(path)
     loader = LOADERS.get(p.suffix.lower())
     if loader is None:
         raise DataError(f"{p}: unknown data format {p.suffix or '(no suffix)'!r}; readable: "
                         f"{', '.join(sorted(LOADERS))}")
-    if not p.is_file():
+    if not p.is_file() and p.suffix.lower() not in AXIS_LISTERS:  # rotated parts of a session
         raise DataError(f"{p}: no such file")
     if axis is not None and axis not in AXIS_INDEX:
         raise DataError(f"unknown axis {axis!r}; axes are {', '.join(AXIS_INDEX)}")
     raw = loader(p, axis, clock)
-    return check_and_resample(raw, rate_hz)
+    return check_and_resample(raw, rate_hz, max_gap_s=max_gap_s, window=window)
 
 
-# --- checks and resampling ----------------------------------------------------------------------
+# --- checks, window and resampling --------------------------------------------------------------
 
 def _check_time(t: FloatArray, place: Callable[[int], str], src: str, what: str) -> None:
     d = np.diff(t)
@@ -162,13 +242,21 @@ def _check_time(t: FloatArray, place: Callable[[int], str], src: str, what: str)
                             f"(same as the previous {what})")
         raise DataError(f"{src}: {place(i)}: column t: time goes backwards ({t[i]:.9g} s after "
                         f"{t[i - 1]:.9g} s)")
-    if d.size:
-        med = float(np.median(d))
-        gaps = np.nonzero(d > 5.0 * med)[0]
-        if gaps.size:
-            i = int(gaps[0]) + 1
-            raise DataError(f"{src}: {place(i)}: column t: gap of {d[i - 1]:.6g} s without data "
-                            f"(median period {med:.6g} s)")
+
+
+def _gap_threshold(t: FloatArray) -> float:
+    """Intervals longer than this are gaps: twice the median period."""
+    return 2.0 * float(np.median(np.diff(t))) if t.size > 1 else math.inf
+
+
+def _long_gap_error(t: FloatArray, i: int, place: Callable[[int], str], src: str,
+                    max_gap_s: float) -> DataError:
+    """The gap between samples ``i`` and ``i + 1``, longer than ``max_gap_s``."""
+    d = float(t[i + 1] - t[i])
+    med = float(np.median(np.diff(t)))
+    return DataError(f"{src}: {place(i + 1)}: column t: gap of {d:.6g} s without data at "
+                     f"{t[i]:.6g} s (median period {med:.6g} s; longer than --max-gap "
+                     f"{max_gap_s:g} s)")
 
 
 def _check_finite(x: FloatArray, col: str, place: Callable[[int], str], src: str) -> None:
@@ -197,8 +285,124 @@ def _check_clipped(x: FloatArray, col: str, place: Callable[[int], str], src: st
                 f"({int(at.sum())} in all)")
 
 
-def check_and_resample(raw: RawRecording, rate_hz: float | None = None) -> Recording:
-    """Check a raw recording and put it on a uniform grid.
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """``[start, end)`` of every run of True."""
+    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist(),
+                    strict=True))
+
+
+def select_window(raw: RawRecording, window: tuple[float, float] | None = None,
+                  max_gap_s: float = DEFAULT_MAX_GAP_S
+                  ) -> tuple[int, int, Window, list[str]]:
+    """The samples ``[i0, i1)`` of ``raw.t_acc`` to identify, the :class:`Window` and warnings
+    (see the module notes).
+
+    Raises
+    ------
+    DataError
+        For a window outside the recording, a gap longer than ``max_gap_s`` in a given window
+        or a recording without flags, or (automatic window) no stretch of :data:`MIN_WINDOW_S`
+        with the axis bypassed and not limited: the message says what the recording shows.
+    """
+    src, t, place = raw.source, raw.t_acc, raw.acc_place
+    n = t.size
+    if n < 2:
+        raise DataError(f"{src}: only {n} samples; at least {MIN_SAMPLES} are needed")
+    long_gap = np.diff(t) > max(_gap_threshold(t), max_gap_s)  # after sample i
+    axis = raw.axis or "the axis"
+    flagged = raw.bypassed is not None and raw.limited is not None
+    if window is not None:
+        start, end = (float(x) for x in window)
+        if not (math.isfinite(start) and math.isfinite(end) and start < end):
+            raise DataError(f"--window: START must be below END, got {start:g} {end:g}")
+        i0 = int(np.searchsorted(t, start, side="left"))
+        i1 = int(np.searchsorted(t, end, side="right"))
+        if i1 - i0 < 2:
+            raise DataError(f"{src}: window {start:g}-{end:g} s holds no data; the recording "
+                            f"spans {t[0]:.3f}-{t[-1]:.3f} s")
+        bad = np.flatnonzero(long_gap[i0:i1 - 1])
+        if bad.size:
+            raise _long_gap_error(t, i0 + int(bad[0]), place, src, max_gap_s)
+        warnings = []
+        if flagged:
+            assert raw.bypassed is not None and raw.limited is not None
+            comp = np.flatnonzero(~raw.bypassed[i0:i1])
+            lim = np.flatnonzero(raw.limited[i0:i1])
+            where = f"the window {t[i0]:.2f}-{t[i1 - 1]:.2f} s"
+            if comp.size:
+                warnings.append(
+                    f"{axis} was compensated (no bypass:{axis} flag in the outputs) on "
+                    f"{comp.size} of {i1 - i0} samples of {where} (first at "
+                    f"{t[i0 + int(comp[0])]:.2f} s): the command is still what the platform "
+                    "received, but no longer the excitation as played")
+            if lim.size:
+                warnings.append(
+                    f"{axis} was limited (sat:{axis}) on {lim.size} samples of {where} (first "
+                    f"at {t[i0 + int(lim[0])]:.2f} s): the limiter changed the command there")
+        return i0, i1, Window(float(t[i0]), float(t[i1 - 1]), i1 - i0, "given"), warnings
+    if not flagged:
+        bad = np.flatnonzero(long_gap)
+        if bad.size:
+            raise _long_gap_error(t, int(bad[0]), place, src, max_gap_s)
+        return 0, n, Window(float(t[0]), float(t[-1]), n, "whole recording"), []
+    assert raw.bypassed is not None and raw.limited is not None
+    good = raw.bypassed & ~raw.limited
+    stretches = []
+    for a, b in _runs(good):
+        cuts = [a, *(np.flatnonzero(long_gap[a:b - 1]) + a + 1).tolist(), b]
+        stretches += [(c0, c1) for c0, c1 in itertools.pairwise(cuts) if c1 > c0]
+    best = max(stretches, key=lambda r: t[r[1] - 1] - t[r[0]], default=None)
+    length = float(t[best[1] - 1] - t[best[0]]) if best else 0.0
+    if best is None or length < MIN_WINDOW_S:
+        period = float(np.median(np.diff(t)))
+        found = []
+        comp = int(np.count_nonzero(~raw.bypassed))
+        if comp:
+            found.append(f"compensated (no bypass:{axis} flag in the outputs) during "
+                         f"{comp * period:.1f} s of {t[-1] - t[0]:.1f} s")
+        lim = int(np.count_nonzero(raw.limited))
+        if lim:
+            found.append(f"limited (sat:{axis}) on {lim} samples")
+        gaps = int(np.count_nonzero(long_gap))
+        if gaps:
+            found.append(f"{gaps} gaps longer than --max-gap {max_gap_s:g} s")
+        found.append(f"the longest stretch bypassed and not limited is {length:.2f} s "
+                     f"({t[best[0]]:.2f}-{t[best[1] - 1]:.2f} s)" if best else
+                     "no sample with the axis bypassed and not limited")
+        raise DataError(f"{src}: {axis}: no stretch of {MIN_WINDOW_S:g} s or more with the axis "
+                        f"bypassed and not limited: {'; '.join(found)}; record the excitation "
+                        f"with the axis bypassed (motcomp bypass on --axes {axis}) or choose a "
+                        "window with --window START END")
+    i0, i1 = best
+    return i0, i1, Window(float(t[i0]), float(t[i1 - 1]), i1 - i0,
+                          "longest stretch bypassed and not limited"), []
+
+
+def _bridged(t: FloatArray, max_gap_s: float) -> tuple[Gaps, np.ndarray]:
+    """The gaps of ``t`` (none longer than ``max_gap_s`` by now) and the mask of the intervals
+    that are not gaps."""
+    d = np.diff(t)
+    is_gap = d > _gap_threshold(t)
+    idx = np.flatnonzero(is_gap)
+    gaps = Gaps(max_gap_s=max_gap_s, count=int(idx.size),
+                longest_s=float(d[idx].max()) if idx.size else 0.0,
+                total_s=float(d[idx].sum()) if idx.size else 0.0,
+                first=tuple((float(t[i]), float(d[i])) for i in idx[:5].tolist()))
+    return gaps, ~is_gap
+
+
+def _merge(a: Gaps, b: Gaps) -> Gaps:
+    return Gaps(max_gap_s=a.max_gap_s, count=a.count + b.count,
+                longest_s=max(a.longest_s, b.longest_s), total_s=a.total_s + b.total_s,
+                first=tuple(sorted(a.first + b.first))[:5])
+
+
+def check_and_resample(raw: RawRecording, rate_hz: float | None = None,
+                       max_gap_s: float = DEFAULT_MAX_GAP_S,
+                       window: tuple[float, float] | None = None) -> Recording:
+    """Check a raw recording, choose its window (:func:`select_window`) and put it on a
+    uniform grid.
 
     Raises
     ------
@@ -206,6 +410,8 @@ def check_and_resample(raw: RawRecording, rate_hz: float | None = None) -> Recor
         Naming the problem, the place (line or message) and the value.
     """
     src = raw.source
+    if not (math.isfinite(max_gap_s) and max_gap_s > 0):
+        raise DataError(f"--max-gap must be a positive number of seconds, got {max_gap_s!r}")
     for x, col, place in ((raw.t_acc, "t", raw.acc_place), (raw.acc, "acc", raw.acc_place),
                           (raw.t_cmd, "t", raw.cmd_place), (raw.cmd, "cmd", raw.cmd_place)):
         _check_finite(x, col, place, src)
@@ -213,22 +419,41 @@ def check_and_resample(raw: RawRecording, rate_hz: float | None = None) -> Recor
     if n < MIN_SAMPLES:
         raise DataError(f"{src}: only {n} samples; at least {MIN_SAMPLES} are needed")
     _check_time(raw.t_acc, raw.acc_place, src, "sample")
-    if raw.t_cmd is not raw.t_acc:
+    same = raw.t_cmd is raw.t_acc
+    if not same:
         _check_time(raw.t_cmd, raw.cmd_place, src, "setpoint")
-    span = float(np.ptp(raw.cmd))
-    scale = max(float(np.max(np.abs(raw.cmd))), 1.0)
+    i0, i1, win, warnings = select_window(raw, window, max_gap_s)
+    t_acc, acc = raw.t_acc[i0:i1], raw.acc[i0:i1]
+    if same:
+        t_cmd, cmd = t_acc, raw.cmd[i0:i1]
+    else:  # the command samples covering the window, one either side for the interpolation
+        j0 = max(int(np.searchsorted(raw.t_cmd, t_acc[0], side="right")) - 1, 0)
+        j1 = min(int(np.searchsorted(raw.t_cmd, t_acc[-1], side="left")) + 1, raw.t_cmd.size)
+        t_cmd, cmd = raw.t_cmd[j0:j1], raw.cmd[j0:j1]
+        long_gap = np.flatnonzero(np.diff(t_cmd) > max(_gap_threshold(t_cmd), max_gap_s))
+        if long_gap.size:
+            raise _long_gap_error(raw.t_cmd, j0 + int(long_gap[0]), raw.cmd_place, src,
+                                  max_gap_s)
+    n = min(t_acc.size, t_cmd.size)
+    if n < MIN_SAMPLES:
+        raise DataError(f"{src}: only {n} samples in the window {win.start_s:.3f}-"
+                        f"{win.end_s:.3f} s; at least {MIN_SAMPLES} are needed")
+    span = float(np.ptp(cmd))
+    scale = max(float(np.max(np.abs(cmd))), 1.0)
     if span <= 1e-12 * scale:
-        raise DataError(f"{src}: column cmd: the command is constant ({raw.cmd[0]:.6g} on every "
+        raise DataError(f"{src}: column cmd: the command is constant ({cmd[0]:.6g} on every "
                         "sample): nothing was excited")
-    _check_clipped(raw.acc, "acc", raw.acc_place, src)
+    _check_clipped(acc, "acc", lambda i: raw.acc_place(i0 + i), src)
+    gaps, steady = _bridged(t_acc, max_gap_s)
+    if not same:
+        gaps = _merge(gaps, _bridged(t_cmd, max_gap_s)[0])
 
-    d = np.diff(raw.t_acc)
+    d = np.diff(t_acc)
     med = float(np.median(d))
-    jitter = float(np.std(d))
+    jitter = float(np.std(d[steady]))
     if rate_hz is None:
-        rate = (raw.t_acc.size - 1) / float(raw.t_acc[-1] - raw.t_acc[0])  # the mean rate
+        rate = float(np.count_nonzero(steady) / np.sum(d[steady]))  # the mean rate, gaps aside
         # 1000.07 Hz from jittered stamps is 1 kHz; a regular record keeps its own rate
-        same = raw.t_cmd is raw.t_acc
         tol = 1e-6 if same and float(np.max(np.abs(d - med))) <= 1e-3 * med else 1e-3
         if abs(rate - round(rate)) <= tol * rate:
             rate = float(round(rate))
@@ -236,26 +461,25 @@ def check_and_resample(raw: RawRecording, rate_hz: float | None = None) -> Recor
         rate = float(rate_hz)
     if not (math.isfinite(rate) and rate > 0):
         raise DataError(f"{src}: resampling rate must be a positive number, got {rate!r}")
-    same_grid = raw.t_cmd is raw.t_acc or (
-        raw.t_cmd.size == raw.t_acc.size and bool(np.all(raw.t_cmd == raw.t_acc)))
+    same_grid = same or (t_cmd.size == t_acc.size and bool(np.all(t_cmd == t_acc)))
     regular = same_grid and float(np.max(np.abs(d - med))) <= 1e-3 * med and (
         abs(rate * med - 1.0) < 1e-6)
     # (a regular record: every period within 0.1 % of the median, and the rate its own)
+    common: dict[str, Any] = dict(rate_hz=rate, axis=raw.axis, source=src, window=win,
+                                  gaps=gaps, warnings=(*raw.warnings, *warnings),
+                                  period_jitter_s=jitter)
     if regular:
-        t = raw.t_acc - raw.t_acc[0]
-        return Recording(t=t, cmd=raw.cmd.copy(), acc=raw.acc.copy(), rate_hz=rate,
-                         axis=raw.axis, source=src, resampled=False, period_jitter_s=jitter)
-    t0 = max(float(raw.t_acc[0]), float(raw.t_cmd[0]))
-    t1 = min(float(raw.t_acc[-1]), float(raw.t_cmd[-1]))
+        return Recording(t=t_acc - t_acc[0], cmd=cmd.copy(), acc=acc.copy(), resampled=False,
+                         start_s=float(t_acc[0]), **common)
+    t0 = max(float(t_acc[0]), float(t_cmd[0]))
+    t1 = min(float(t_acc[-1]), float(t_cmd[-1]))
     n_new = math.floor((t1 - t0) * rate + 1e-9) + 1
     if n_new < MIN_SAMPLES:
         raise DataError(f"{src}: only {n_new} samples after resampling at {rate:.6g} Hz over the "
                         f"common span {t1 - t0:.6g} s; at least {MIN_SAMPLES} are needed")
     grid = t0 + np.arange(n_new) / rate
-    cmd = np.interp(grid, raw.t_cmd, raw.cmd)
-    acc = np.interp(grid, raw.t_acc, raw.acc)
-    return Recording(t=grid - t0, cmd=cmd, acc=acc, rate_hz=rate, axis=raw.axis, source=src,
-                     resampled=True, period_jitter_s=jitter)
+    return Recording(t=grid - t0, cmd=np.interp(grid, t_cmd, cmd),
+                     acc=np.interp(grid, t_acc, acc), resampled=True, start_s=t0, **common)
 
 
 # --- CSV ----------------------------------------------------------------------------------------
@@ -350,70 +574,43 @@ def write_recording_csv(path: str | Path, t: FloatArray, cmd: FloatArray, acc: F
 
 # --- MCAP session recordings --------------------------------------------------------------------
 
-Rows = list[tuple[float, dict[str, Any], int]]
-_MCAP_CACHE: dict[tuple[str, int, str], tuple[Rows, Rows]] = {}
+_SESSION_CACHE: dict[tuple[Any, ...], Session] = {}
 
 
-def _read_mcap(path: Path, clock: str) -> tuple[Rows, Rows]:
-    """``(setpoints, feedback)`` as ``(time, frame, message index)``; the last file read is
-    kept, so that several axes of one recording are read once."""
-    import msgpack
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
+def _session(path: Path) -> Session:
+    """The recording (or its rotated parts), read once for several axes: the last one read is
+    kept."""
+    from motcomp.record.session import read_session, session_parts
 
-    src = str(path)
-    if clock not in ("log", "frame"):
-        raise DataError(f"clock must be 'log' or 'frame', got {clock!r}")
-    key = (str(path.resolve()), path.stat().st_mtime_ns, clock)
-    if key in _MCAP_CACHE:
-        return _MCAP_CACHE[key]
-    sp: Rows = []
-    fb: Rows = []
-    try:
-        with open(path, "rb") as fh:
-            reader = make_reader(fh)
-            for _schema, channel, message in reader.iter_messages(
-                    topics=[SETPOINT_KEY, FEEDBACK_KEY]):
-                target = sp if channel.topic == SETPOINT_KEY else fb
-                index = len(target)
-                where = f"{channel.topic} message {index}"
-                if channel.message_encoding != "msgpack":
-                    raise DataError(f"{src}: channel {channel.topic}: message encoding "
-                                    f"{channel.message_encoding!r}, expected 'msgpack'")
-                try:
-                    obj = msgpack.unpackb(message.data, raw=False)
-                except (ValueError, msgpack.UnpackException) as exc:
-                    raise DataError(f"{src}: {where}: not msgpack ({exc})") from None
-                if not isinstance(obj, dict):
-                    raise DataError(f"{src}: {where}: not a map")
-                if clock == "log":
-                    stamp = message.log_time * 1e-9
-                else:
-                    frame_t = obj.get("t")
-                    if not isinstance(frame_t, int | float) or isinstance(frame_t, bool):
-                        raise DataError(f"{src}: {where}: t is {frame_t!r}, not a number")
-                    stamp = float(frame_t)
-                target.append((float(stamp), obj, index))
-    except (McapError, OSError, EOFError) as exc:
-        raise DataError(f"{src}: not a readable MCAP file ({exc})") from None
-    for name, got in ((SETPOINT_KEY, sp), (FEEDBACK_KEY, fb)):
-        if not got:
-            raise DataError(f"{src}: no messages on channel {name}")
-    _MCAP_CACHE.clear()
-    _MCAP_CACHE[key] = (sp, fb)
-    return sp, fb
+    parts = session_parts(path)
+    key = tuple((str(p.resolve()), p.stat().st_mtime_ns, p.stat().st_size) for p in parts)
+    if key not in _SESSION_CACHE:
+        session = read_session(parts, other_keys=False, publish=False)
+        _SESSION_CACHE.clear()
+        _SESSION_CACHE[key] = session
+    return _SESSION_CACHE[key]
 
 
-def _moving_axes(sp: Rows) -> dict[str, float]:
-    """Span of the command of every known axis in the setpoint frames."""
-    spans: dict[str, list[float]] = {}
-    for _, obj, _ in sp:
-        pos = obj.get("pos")
-        if isinstance(pos, dict):
-            for name, value in pos.items():
-                if isinstance(value, int | float) and not isinstance(value, bool):
-                    spans.setdefault(name, []).append(float(value))
-    return {a: float(np.ptp(v)) for a, v in spans.items() if a in AXIS_INDEX}
+def _output_spans(session: Session) -> dict[str, float]:
+    """Span of the output command of every axis."""
+    out = session.outputs
+    if out is None or not len(out):
+        return {}
+    spans = {}
+    for a, i in AXIS_INDEX.items():
+        x = out.pos[out.valid, i]
+        x = x[np.isfinite(x)]
+        if x.size:
+            spans[a] = float(np.ptp(x))
+    return spans
+
+
+def _no_outputs(session: Session) -> DataError:
+    key = session.keys.get("output", OUTPUT_KEY)
+    return DataError(f"{session.name}: no messages on channel {key}: the command identified "
+                     "against is the service's output in force (what the platform received), "
+                     f"so the recording must hold {key} (motcomp record records it by default); "
+                     "for other data, write a CSV t,cmd,acc")
 
 
 AxisLister = Callable[[Path, str], list[str]]
@@ -421,20 +618,22 @@ AXIS_LISTERS: dict[str, AxisLister] = {}
 """Per suffix, ``func(path, clock) -> axes that move``, for formats holding several axes."""
 
 
-def list_axes(path: str | Path, clock: str = "log") -> list[str]:
-    """The axes a recording excites (in the order of :data:`motcomp.core.axes.AXES`); a format
+def list_axes(path: str | Path, clock: str = "frame") -> list[str]:
+    """The axes a recording moves (in the order of :data:`motcomp.core.axes.AXES`); a format
     holding one axis (CSV) gives ``[]``: the caller names it."""
     p = Path(path)
     lister = AXIS_LISTERS.get(p.suffix.lower())
-    if lister is None or not p.is_file():
+    if lister is None:
         return []
     return lister(p, clock)
 
 
 def _list_mcap(path: Path, clock: str) -> list[str]:
-    sp, _ = _read_mcap(path, clock)
-    moving = _moving_axes(sp)
-    return [a for a in AXIS_INDEX if moving.get(a, 0.0) > 0.0]
+    session = _session(path)
+    spans = _output_spans(session)
+    if not spans:
+        raise _no_outputs(session)
+    return [a for a in AXIS_INDEX if spans.get(a, 0.0) > 0.0]
 
 
 AXIS_LISTERS[".mcap"] = _list_mcap
@@ -442,37 +641,27 @@ AXIS_LISTERS[".mcap"] = _list_mcap
 
 @register_loader(".mcap")
 def _load_mcap(path: Path, axis: str | None, clock: str) -> RawRecording:
-    src = str(path)
-    sp, fb = _read_mcap(path, clock)
-    # the axis: given, or the one whose command moves most
-    if axis is None:
-        moving = _moving_axes(sp)
-        if not moving:
-            raise DataError(f"{src}: {SETPOINT_KEY}: no frame has a pos map with a known axis")
-        axis = max(moving, key=lambda a: moving[a])
+    session = _session(path)
+    src = session.name
+    spans = _output_spans(session)
+    if not spans:
+        raise _no_outputs(session)
+    if axis is None:  # the one whose command moves most
+        axis = max(spans, key=lambda a: spans[a])
+    cols = session.identification_columns(axis, clock)
+    fb_key = session.keys.get("feedback", FEEDBACK_KEY)
+    if not cols.t.size:
+        raise DataError(f"{src}: {fb_key}: no message carries acc.{axis} (with a time stamp) "
+                        "after the first output")
+    warnings = list(session.warnings)
+    if cols.unknown:
+        warnings.append(f"{cols.unknown} {fb_key} samples left out: the recording lost the "
+                        "outputs in force then")
+    index = cols.feedback_index
+    t = cols.t - cols.start_s
 
-    def column(rows: Rows, key: str, topic: str) -> tuple[FloatArray, FloatArray, list[int]]:
-        ts, vs, idx = [], [], []
-        for stamp, obj, index in rows:
-            block = obj.get(key)
-            if not isinstance(block, dict):
-                raise DataError(f"{src}: {topic} message {index}: no {key!r} map")
-            if axis not in block:
-                continue  # a frame that does not command this axis
-            value = block[axis]
-            if not isinstance(value, int | float) or isinstance(value, bool):
-                raise DataError(f"{src}: {topic} message {index}: {key}.{axis} is {value!r}")
-            ts.append(stamp)
-            vs.append(float(value))
-            idx.append(index)
-        if not ts:
-            raise DataError(f"{src}: {topic}: no message carries {key}.{axis}")
-        return np.asarray(ts), np.asarray(vs), idx
-
-    t_cmd, cmd, i_cmd = column(sp, "pos", SETPOINT_KEY)
-    t_acc, acc, i_acc = column(fb, "acc", FEEDBACK_KEY)
-    t0 = min(float(t_cmd[0]), float(t_acc[0]))
-    return RawRecording(
-        source=src, t_acc=t_acc - t0, acc=acc, t_cmd=t_cmd - t0, cmd=cmd, axis=axis,
-        acc_place=lambda i: f"{FEEDBACK_KEY} message {i_acc[i] if i < len(i_acc) else i}",
-        cmd_place=lambda i: f"{SETPOINT_KEY} message {i_cmd[i] if i < len(i_cmd) else i}")
+    def place(i: int) -> str:
+        return f"{fb_key} message {int(index[i]) if 0 <= i < index.size else i}"
+    return RawRecording(source=src, t_acc=t, acc=cols.acc, t_cmd=t, cmd=cols.cmd, axis=axis,
+                        acc_place=place, cmd_place=place, bypassed=cols.bypassed,
+                        limited=cols.limited, warnings=tuple(warnings))

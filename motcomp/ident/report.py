@@ -24,6 +24,7 @@ import numpy as np
 
 from motcomp.core.models import ProcessModel
 from motcomp.errors import ConfigError
+from motcomp.ident.data import Recording
 from motcomp.ident.fit import Identification, ModelFit
 
 __all__ = ["config_fragment", "markdown", "report_json", "table1", "table1_markdown",
@@ -59,10 +60,11 @@ def report_json(ident: Identification, axis: str | None = None) -> dict[str, Any
     """The ``motcomp identify --json`` object (finite numbers or null only)."""
     sel = ident.best
     t1 = table1(ident, axis)
+    rec = ident.prep.recording
     out: dict[str, Any] = {
         "axis": t1["axis"],
-        "source": ident.prep.recording.source,
-        "data": ident.prep.summary(),
+        "source": rec.source,
+        "data": {**ident.prep.summary(), **_window_json(rec)},
         "delay_search": {
             "range_ms": [ident.options.delay_min_s * 1e3, ident.options.delay_max_s * 1e3],
             "bracket_ms": [ident.bracket.lo_s * 1e3, ident.bracket.hi_s * 1e3],
@@ -80,10 +82,31 @@ def report_json(ident: Identification, axis: str | None = None) -> dict[str, Any
         "phase_delay_0p2hz_ms_stderr": t1["phase_delay_0p2hz_ms_stderr"],
         "bandwidth_hz": t1["bandwidth_hz"],
         "table1": t1,
-        "warnings": list(ident.warnings),
+        "warnings": [*rec.warnings, *ident.warnings],
         "seconds": ident.seconds,
     }
     return _finite(out)
+
+
+def _window_json(rec: Recording) -> dict[str, Any]:
+    """Where in the recording the data come from, and the gaps bridged."""
+    w = rec.window
+    return {"window": None if w is None else {"start_s": w.start_s, "end_s": w.end_s,
+                                               "samples": w.samples, "how": w.how},
+            "gaps": rec.gaps.to_json()}
+
+
+def _window_text(d: dict[str, Any]) -> str:
+    w, g = d["window"], d["gaps"]
+    text = "" if w is None else (f"Window {w['start_s']:.2f}-{w['end_s']:.2f} s of the recording "
+                                 f"({w['samples']} samples; {w['how']}). ")
+    if g["count"]:
+        text += (f"{g['count']} gap(s) without data bridged by linear interpolation (longest "
+                 f"{g['longest_ms']:.1f} ms, {g['total_ms']:.1f} ms in all; at most "
+                 f"{g['max_gap_s'] * 1e3:.0f} ms bridged).")
+    else:
+        text += "No gaps in the data."
+    return text
 
 
 def _finite(obj: Any) -> Any:
@@ -133,6 +156,7 @@ def markdown(ident: Identification, axis: str | None = None) -> str:
         f"({d['duration_s']:.1f} s)" + (", resampled from irregular time stamps "
                                         f"(period jitter {d['period_jitter_ms']:.3g} ms)"
                                         if d["resampled"] else "") + ".",
+        _window_text(d),
         f"Compared in the acceleration domain after a zero-phase prefilter at "
         f"{d['prefilter_cutoff_hz']:.3g} Hz (excitation band ~{d['excitation_band_hz']:.3g} Hz)"
         + (f", notches at {', '.join(f'{f:.2f}' for f in d['notches_hz'])} Hz (tremor)"

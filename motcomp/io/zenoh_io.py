@@ -13,6 +13,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
+import threading
+import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -23,13 +26,20 @@ from motcomp.errors import ConfigError, TransportError
 from motcomp.io.wire import encode_output
 
 __all__ = [
+    "NoPeerError",
     "ZenohEndpoints",
     "ZenohSink",
     "ZenohSource",
     "add_zenoh_args",
     "endpoints_from_args",
     "open_session",
+    "wait_for_subscriber",
 ]
+
+
+class NoPeerError(TransportError):
+    """Nobody was reachable: no subscriber matched a publisher, or no service answered a
+    query, within the time allowed (the message names the key and the endpoints tried)."""
 
 
 @dataclass(frozen=True)
@@ -43,6 +53,21 @@ class ZenohEndpoints:
     multicast_scouting: bool | None = False
     mode: str = "peer"
     extra: dict[str, Any] = field(default_factory=dict)
+
+    def describe(self) -> str:
+        """The endpoints in words, for messages (``connect tcp/...; listen tcp/...``)."""
+        parts = []
+        if self.connect:
+            parts.append("connect " + ", ".join(self.connect))
+        if self.listen:
+            parts.append("listen " + ", ".join(self.listen))
+        if self.config_file:
+            parts.append(f"zenoh config {self.config_file}")
+        if self.multicast_scouting:
+            parts.append("multicast scouting")
+        if not parts:
+            return "no endpoint (give -e/--connect ENDPOINT; multicast scouting is off)"
+        return "; ".join(parts)
 
 
 def add_zenoh_args(p: argparse.ArgumentParser) -> None:
@@ -70,13 +95,38 @@ def endpoints_from_args(args: argparse.Namespace, base: ZenohEndpoints | None = 
     )
 
 
+def zenoh_text(exc: BaseException) -> str:
+    """A zenoh error's message without the Rust source locations and wrappers it carries."""
+    text = str(exc)
+    m = re.search(r'msg: "(.*?)"(?:, location|\s*})', text, re.S)
+    if m:
+        text = m.group(1)
+    text = re.sub(r"\s+at /\S+?\.rs:\d+\.?", "", text)
+    text = re.sub(r"\[([^\[\]]*)\]\s*$", r"\1", text.strip())
+    return text.rstrip(".")
+
+
+def _bad_endpoint(ep: ZenohEndpoints) -> str:
+    """The first endpoint zenoh refuses, in words (empty if each is accepted alone)."""
+    import zenoh
+
+    for flag, path, endpoints in (("-e/--connect", "connect/endpoints", ep.connect),
+                                  ("-l/--listen", "listen/endpoints", ep.listen)):
+        for e in endpoints:
+            try:
+                zenoh.Config().insert_json5(path, json.dumps([e]))
+            except Exception as exc:
+                return f"endpoint {e!r} ({flag}): {zenoh_text(exc)}"
+    return ""
+
+
 def _config(ep: ZenohEndpoints) -> Any:
     import zenoh
 
     try:
         cfg = zenoh.Config.from_file(ep.config_file) if ep.config_file else zenoh.Config()
     except Exception as exc:  # zenoh raises its own ZError
-        raise ConfigError(f"zenoh config {ep.config_file}: {exc}") from None
+        raise ConfigError(f"zenoh config {ep.config_file}: {zenoh_text(exc)}") from None
     try:
         cfg.insert_json5("mode", json.dumps(ep.mode))
         if ep.connect:
@@ -88,7 +138,8 @@ def _config(ep: ZenohEndpoints) -> Any:
         for key, value in ep.extra.items():
             cfg.insert_json5(key, json.dumps(value))
     except Exception as exc:
-        raise ConfigError(f"zenoh endpoints {ep}: {exc}") from None
+        raise ConfigError(f"zenoh: {_bad_endpoint(ep) or f'{zenoh_text(exc)} ({ep.describe()})'}"
+                          ) from None
     return cfg
 
 
@@ -101,8 +152,8 @@ def open_session(ep: ZenohEndpoints) -> Iterator[Any]:
     try:
         session = zenoh.open(cfg)
     except Exception as exc:
-        raise TransportError(f"cannot open zenoh session (listen {list(ep.listen)}, connect "
-                             f"{list(ep.connect)}): {exc}") from exc
+        raise TransportError(f"cannot open a zenoh session ({ep.describe()}): "
+                             f"{zenoh_text(exc)}") from exc
     try:
         yield session
     finally:
@@ -179,6 +230,24 @@ def first_reply(session: Any, key: str, payload: bytes | None = None, timeout_s:
     if not replies:
         raise TransportError(f"no reply to query {key} within {timeout_s} s")
     return replies[0]
+
+
+def wait_for_subscriber(session: Any, key: str, timeout_s: float,
+                        stop: threading.Event | None = None) -> bool:
+    """Wait up to ``timeout_s`` for a subscriber matching ``key`` to be reachable (a
+    publisher's matching status, zenoh 1.x); True as soon as one is, False on timeout or
+    ``stop``."""
+    pub = session.declare_publisher(key)
+    try:
+        t_end = time.monotonic() + timeout_s
+        while True:
+            if pub.matching_status.matching:
+                return True
+            if time.monotonic() >= t_end or (stop is not None and stop.is_set()):
+                return False
+            time.sleep(0.02)
+    finally:
+        pub.undeclare()
 
 
 def free_tcp_port() -> int:

@@ -18,7 +18,9 @@ stream             fields
 
 Axis columns are in :data:`motcomp.core.axes.AXES` order.  For identification,
 :meth:`Session.identification_data` gives ``(t, cmd, acc)`` of one axis: the feedback times,
-the command in force at each (the last output sent before it) and the measured acceleration.
+the command in force at each (the last output sent before it) and the measured acceleration;
+:meth:`Session.identification_columns` adds, per sample, whether the axis was bypassed or
+limited.
 """
 
 from __future__ import annotations
@@ -38,12 +40,19 @@ import numpy as np
 
 from motcomp.core.axes import AXIS_INDEX
 from motcomp.errors import DataError
-from motcomp.record.frames import FeedbackColumns, InputColumns, OutputColumns, decode_rows
+from motcomp.record.frames import (
+    FLAG_BITS,
+    FeedbackColumns,
+    InputColumns,
+    OutputColumns,
+    decode_rows,
+)
 from motcomp.record.mcapio import MessageBatch, ScanResult, message_counts, metadata_dict, scan
 
 __all__ = [
     "DEFAULT_KEYS",
     "FeedbackStream",
+    "IdentificationColumns",
     "InputStream",
     "OutputStream",
     "RawStream",
@@ -155,32 +164,103 @@ class Session:
             return 0.0
         return float((max(int(t[-1]) for t in times) - min(int(t[0]) for t in times)) / 1e9)
 
+    def identification_columns(self, axis: str, clock: str = "frame") -> IdentificationColumns:
+        """What the platform received and what it did, per feedback sample of ``axis``.
+
+        At each feedback time, the command in force is the last output whose time is not after
+        it; the flags say whether that output had the axis in bypass, and whether any output
+        since the previous feedback sample limited it.  ``clock`` is ``"frame"`` (the outputs'
+        tick time ``t`` and the feedback's ``t``) or ``"log"`` (the recorder's receive times).
+        Feedback without a finite time, before the first output, or whose command in force is
+        unknown (outputs the recorder lost: a jump in the outputs' ``seq``) is left out
+        (counted in :attr:`IdentificationColumns.unknown`).
+
+        Raises
+        ------
+        DataError
+            If the session lacks outputs or feedback, the axis or the clock is unknown.
+        """
+        if axis not in AXIS_INDEX:
+            raise DataError(f"unknown axis {axis!r}")
+        if clock not in ("frame", "log"):
+            raise DataError(f"clock must be 'frame' or 'log', got {clock!r}")
+        if self.outputs is None or self.feedback is None or not len(self.outputs) or \
+                not len(self.feedback):
+            missing = [f"{role} ({self.keys.get(role, DEFAULT_KEYS[role])})"
+                       for role, s in (("output", self.outputs), ("feedback", self.feedback))
+                       if s is None or not len(s)]
+            raise DataError(f"{self.name}: identification needs recorded outputs and feedback; "
+                            f"no messages on {' and '.join(missing)}")
+        i = AXIS_INDEX[axis]
+        out, fb = self.outputs, self.feedback
+        t_out = out.t if clock == "frame" else out.log_ns / 1e9
+        t_fb = fb.t if clock == "frame" else fb.log_ns / 1e9
+        ok_o = out.valid & np.isfinite(out.pos[:, i]) & np.isfinite(t_out)
+        ok_f = fb.valid & np.isfinite(fb.acc[:, i]) & np.isfinite(t_fb)
+        to, cmd, flags, seq = t_out[ok_o], out.pos[ok_o, i], out.flags[ok_o], out.seq[ok_o]
+        order = np.argsort(to, kind="stable")
+        to, cmd, flags, seq = to[order], cmd[order], flags[order], seq[order]
+        fb_index = np.flatnonzero(ok_f)
+        tf, acc = t_fb[ok_f], fb.acc[ok_f, i]
+        k = np.searchsorted(to, tf, side="right") - 1
+        known = k >= 0
+        # outputs lost between j and j + 1 (seq jumps by n > 1): from the estimated time of the
+        # first lost one, the command in force is unknown
+        ds = np.diff(seq)
+        lost = np.flatnonzero(ds > 1)
+        if lost.size:
+            next_t = np.full(to.size, np.inf)
+            next_t[lost] = to[lost] + (to[lost + 1] - to[lost]) / ds[lost]
+            known &= tf < next_t[np.maximum(k, 0)]
+        unknown = int(np.count_nonzero(~known & (k >= 0)))
+        k, tf, acc, fb_index = k[known], tf[known], acc[known], fb_index[known]
+        sat_bit, bypass_bit = FLAG_BITS[f"sat:{axis}"], FLAG_BITS[f"bypass:{axis}"]
+        sat_count = np.concatenate([[0], np.cumsum((flags & sat_bit) != 0)])
+        # outputs (k_prev, k], and at least k itself
+        k_prev = np.concatenate([k[:1] - 1, k[:-1]])
+        limited = sat_count[k + 1] - sat_count[np.minimum(k_prev + 1, k)] > 0
+        bypassed = (flags[k] & bypass_bit) != 0
+        start = min(float(to[0]), float(tf[0])) if tf.size else float(to[0])
+        return IdentificationColumns(axis=axis, clock=clock, t=tf, cmd=cmd[k], acc=acc,
+                                     bypassed=bypassed, limited=limited, feedback_index=fb_index,
+                                     start_s=start, unknown=unknown)
+
     def identification_data(self, axis: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(t, cmd, acc)`` of ``axis``: feedback times (s), the output position in force at
         each (the last output whose tick time ``t`` is not after it) and the feedback
-        acceleration.  Feedback before the first output is dropped.
+        acceleration; see :meth:`identification_columns` (frame clock) for what is left out.
 
         Raises
         ------
         DataError
             If the session lacks outputs or feedback, or the axis is unknown.
         """
-        if axis not in AXIS_INDEX:
-            raise DataError(f"unknown axis {axis!r}")
-        if self.outputs is None or self.feedback is None or not len(self.outputs) or \
-                not len(self.feedback):
-            raise DataError(f"{self.name}: identification needs recorded outputs and feedback")
-        i = AXIS_INDEX[axis]
-        out, fb = self.outputs, self.feedback
-        ok_o = out.valid & np.isfinite(out.pos[:, i])
-        ok_f = fb.valid & np.isfinite(fb.acc[:, i])
-        to, cmd = out.t[ok_o], out.pos[ok_o, i]
-        order = np.argsort(to, kind="stable")
-        to, cmd = to[order], cmd[order]
-        tf, acc = fb.t[ok_f], fb.acc[ok_f, i]
-        k = np.searchsorted(to, tf, side="right") - 1
-        keep = k >= 0
-        return tf[keep], cmd[k[keep]], acc[keep]
+        c = self.identification_columns(axis)
+        return c.t, c.cmd, c.acc
+
+
+@dataclass(frozen=True)
+class IdentificationColumns:
+    """One axis per feedback sample (:meth:`Session.identification_columns`)."""
+
+    axis: str
+    clock: str
+    t: np.ndarray
+    """Feedback time (s, on ``clock``)."""
+    cmd: np.ndarray
+    """Output position in force (m or rad)."""
+    acc: np.ndarray
+    """Measured acceleration (m/s^2 or rad/s^2)."""
+    bypassed: np.ndarray
+    """The output in force carries ``bypass:<axis>`` (compensation off)."""
+    limited: np.ndarray
+    """An output since the previous feedback sample carries ``sat:<axis>``."""
+    feedback_index: np.ndarray
+    """Index of each sample's message in :attr:`Session.feedback`."""
+    start_s: float
+    """Earliest output or feedback time (s, on ``clock``): the recording's start."""
+    unknown: int
+    """Feedback samples left out because the command in force was lost."""
 
 
 def session_parts(path: str | Path) -> list[Path]:

@@ -7,7 +7,8 @@ where ``T`` is the message's recorded publish time (the sender's own ``t``; defa
 (when the recorder received it).  Waiting is sleep-then-spin, as the service's loop does, so
 the schedule does not drift and late frames do not accumulate lateness.  Payloads go out as
 recorded; with ``restamp`` their ``t`` is shifted by the time elapsed since the recording, so
-that the service sees current sender times.
+that the service sees current sender times.  Nothing is sent until a subscriber of the key is
+reachable (``wait_peer_s``).
 """
 
 from __future__ import annotations
@@ -21,7 +22,13 @@ from typing import Any
 
 import msgpack
 
-from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, open_session
+from motcomp.io.zenoh_io import (
+    NoPeerError,
+    ZenohEndpoints,
+    ZenohSink,
+    open_session,
+    wait_for_subscriber,
+)
 from motcomp.record.mcapio import ScanResult, iter_messages, metadata_dict, scan
 from motcomp.record.session import DEFAULT_KEYS, session_parts
 
@@ -37,10 +44,13 @@ class RepublishStats:
     late_max_us: float
     late_p99_us: float
     key: str
+    stopped: bool = False
+    """Stopped by SIGTERM/SIGINT (or ``stop``) before the last frame."""
 
     def text(self) -> str:
         return (f"republished {self.sent} frames on {self.key!r} in {self.duration_s:.1f} s; "
-                f"lateness p99 {self.late_p99_us:.0f} us, max {self.late_max_us:.0f} us")
+                f"lateness p99 {self.late_p99_us:.0f} us, max {self.late_max_us:.0f} us"
+                + ("; stopped by a signal before the end" if self.stopped else ""))
 
 
 def input_key(path: Path) -> str:
@@ -87,9 +97,16 @@ def _restamped(payload: bytes, shift_s: float) -> bytes:
 def republish(path: str | Path, endpoints: ZenohEndpoints, key: str | None = None,
               timing: str = "publish", speed: float = 1.0, restamp: bool = False,
               lead_in_s: float = 0.5, stop: threading.Event | None = None,
-              progress: Any = None) -> RepublishStats:
+              progress: Any = None, wait_peer_s: float = 0.0) -> RepublishStats:
     """Send the recorded frames of ``key`` (default: the recording's input key) on the same
-    key, on their recorded schedule (see the module docstring)."""
+    key, on their recorded schedule (see the module docstring); ``progress`` is called with
+    the recorded seconds sent so far.
+
+    Raises
+    ------
+    NoPeerError
+        If ``wait_peer_s`` > 0 and no subscriber of the key was reachable within it.
+    """
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
@@ -100,9 +117,14 @@ def republish(path: str | Path, endpoints: ZenohEndpoints, key: str | None = Non
     sent = 0
     t_start = time.monotonic()
     with open_session(endpoints) as session:
+        if wait_peer_s > 0 and not wait_for_subscriber(session, key, wait_peer_s, stop):
+            if not stop.is_set():
+                raise NoPeerError(f"no subscriber of {key} reachable within {wait_peer_s:g} s "
+                                  f"({endpoints.describe()})")
+            return RepublishStats(0, time.monotonic() - t_start, 0.0, 0.0, key, True)
         sink = ZenohSink(session, key)
         try:
-            time.sleep(lead_in_s)
+            stop.wait(lead_in_s)
             start = time.perf_counter_ns()
             t0: int | None = None
             wall_shift = 0.0
@@ -126,4 +148,4 @@ def republish(path: str | Path, endpoints: ZenohEndpoints, key: str | None = Non
     late.sort()
     p99 = late[min(len(late) - 1, int(0.99 * len(late)))] / 1e3 if late else 0.0
     return RepublishStats(sent, time.monotonic() - t_start, (late[-1] / 1e3 if late else 0.0),
-                          p99, key)
+                          p99, key, stop.is_set())

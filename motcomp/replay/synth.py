@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -65,6 +66,13 @@ class SynthOptions:
     status: bool = True
     clock_in_status: bool = True
     feedback: bool = True
+    excite: list[tuple[str, str, float, float]] = field(default_factory=list)
+    """``(axis, kind, start_s, length_s)``: the axis plays an identification excitation
+    (:func:`motcomp.ident.excitation.excitation`, ``noise``, ``sweep`` or ``multisine``, seeded,
+    within 80 % of the config's limits of the axis, neutral at both ends) instead of
+    :func:`motion`."""
+    feedback_gaps: list[tuple[float, float]] = field(default_factory=list)
+    """``(start_s, length_s)``: the platform sends no feedback."""
 
 
 def motion(t: np.ndarray, axis: str, amplitude: float = 1.0) -> np.ndarray:
@@ -87,6 +95,8 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
     for start, length in opts.gaps:
         keep &= ~((t_src >= start) & (t_src < start + length))
     sig = {a: motion(t_src, a, opts.amplitude) for a in opts.axes}
+    if opts.excite:
+        _excite(sig, t_src, cfg, opts)
     for ts, axis, size in opts.steps:
         sig[axis] = sig[axis] + size * (t_src >= ts)
     # sender times (its own drifting clock) and arrival at the service (loop clock, ns)
@@ -155,7 +165,7 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
         if j not in lost:
             msgs.append((wall_ns(dl) + 150_000, DEFAULT_KEYS["output"], payload))
     if opts.feedback and out_msgs:
-        msgs += _feedback(cfg, out_msgs, wall_ns)
+        msgs += _feedback(cfg, out_msgs, wall_ns, opts.feedback_gaps)
     if opts.status:
         axes = resolve_axes(cfg)
         st: dict[str, object] = {
@@ -184,8 +194,26 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
             "deadlines": deadlines[:n_out]}
 
 
-def _feedback(cfg: ServiceConfig, out_msgs: list[tuple[int, bytes]], wall_ns: object
-              ) -> list[tuple[int, str, bytes]]:
+def _excite(sig: dict[str, np.ndarray], t_src: np.ndarray, cfg: ServiceConfig,
+            opts: SynthOptions) -> None:
+    from motcomp.ident.excitation import AxisRange, excitation
+
+    lim = resolve_axes(cfg).limits
+    for axis, *_ in opts.excite:
+        sig[axis] = np.zeros_like(t_src)
+    for n, (axis, kind, start, length) in enumerate(opts.excite):
+        i = AXIS_INDEX[axis]
+        exc = excitation(kind, axis, AxisRange(float(lim.p_min[i]), float(lim.p_max[i]),
+                                               float(lim.v_max[i]), float(lim.a_max[i])),
+                         duration_s=length, rate_hz=opts.source_hz, seed=opts.seed + n,
+                         usage=0.8)
+        k0 = round(start * opts.source_hz)
+        k1 = min(k0 + exc.cmd.size, t_src.size)
+        sig[axis][k0:k1] += exc.cmd[:k1 - k0]
+
+
+def _feedback(cfg: ServiceConfig, out_msgs: list[tuple[int, bytes]], wall_ns: object,
+              gaps: Sequence[tuple[float, float]] = ()) -> list[tuple[int, str, bytes]]:
     from motcomp.core.models import simulate_axis
     from motcomp.io.wire import decode_output
 
@@ -193,12 +221,17 @@ def _feedback(cfg: ServiceConfig, out_msgs: list[tuple[int, bytes]], wall_ns: ob
     u = np.array([[decode_output(p)["pos"][a] for a in AXES] for _, p in out_msgs])
     y = np.column_stack([simulate_axis(axes.plants[i], u[:, i], cfg.loop.rate_hz)
                          for i in range(len(AXES))])
+    # y[j] is the position at tick j; the acceleration is measured there too (the central
+    # second difference), as motcomp hil does
     acc = np.zeros_like(y)
     h = 1.0 / cfg.loop.rate_hz
-    acc[2:] = (y[2:] - 2 * y[1:-1] + y[:-2]) / (h * h)
+    acc[1:-1] = (y[2:] - 2 * y[1:-1] + y[:-2]) / (h * h)
     out = []
     yl, al = y.tolist(), acc.tolist()
     for j, (dl, _) in enumerate(out_msgs):
+        t_rel = (dl - MONO0_NS) / 1e9 - 0.2
+        if any(start <= t_rel < start + length for start, length in gaps):
+            continue
         t = WALL0 + (dl - MONO0_NS) / 1e9 + 3e-4
         out.append((wall_ns(dl) + 400_000, DEFAULT_KEYS["feedback"],  # type: ignore[operator]
                     encode_feedback(t, dict(zip(AXES, yl[j], strict=True)),

@@ -40,7 +40,15 @@ import msgpack
 from motcomp import __version__
 from motcomp.config import ServiceConfig, config_hash, new_tick, resolve_axes
 from motcomp.core.axes import AXES
-from motcomp.core.tick import MAX_ERROR_CHARS, TickParams, is_parked, park, set_bypass, step
+from motcomp.core.tick import (
+    MAX_ERROR_CHARS,
+    TickParams,
+    TickState,
+    is_parked,
+    park,
+    set_bypass,
+    step,
+)
 from motcomp.errors import ConfigError, MotcompError, ServiceError
 from motcomp.io.ports import InputPort, OutputPort
 from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, ZenohSource, open_session
@@ -60,6 +68,38 @@ STAT_SERIES = ("tick", "compute", "io", "late")
 tick; ``io`` the part of it spent in transport calls (taking the newest input, sending the
 outputs); ``compute`` the rest (commands, catch-up steps, validation, reference, compensator,
 saturation verdicts, encoding); ``late`` waking after the deadline."""
+
+
+class ModeLog:
+    """Logs the loop's mode switches (start-up, running, stale, rejoin, parking) with their
+    reasons, from the main thread: the loop itself counts and never logs.  Polled every 20 ms;
+    switches between two polls are counted (``stale_episodes``), and said at the next one."""
+
+    def __init__(self, state: TickState) -> None:
+        self.mode = state.mode
+        self.episodes = state.shaper.stale_episodes
+
+    def update(self, state: TickState, p: TickParams) -> None:
+        mode, episodes = state.mode, state.shaper.stale_episodes
+        if mode == self.mode and episodes == self.episodes:
+            return
+        if episodes > self.episodes and mode != "stale":
+            log.warning("input was stale %d time(s) briefly (no valid frame for %.3f s)",
+                        episodes - self.episodes, p.shaper.stale_after_s)
+        if mode == "stale":
+            log.warning("input stale: no valid frame for %.3f s (%d received, %d rejected, "
+                        "last rejection: %s); holding %.2f s, then ramping to neutral",
+                        p.shaper.stale_after_s, state.received, state.rejected,
+                        state.last_reject or "none", p.shaper.hold_s)
+        elif mode == "rejoin":
+            log.info("input %s: blending to the live input over %.2f s",
+                     "started" if self.mode == "startup" else "resumed",
+                     p.shaper.startup_s if self.mode == "startup" else p.shaper.rejoin_s)
+        elif mode == "parking":
+            log.info("stop requested: parking (ramping every axis to neutral)")
+        elif mode == "running" and self.mode != "startup":
+            log.info("running on live input")
+        self.mode, self.episodes = mode, episodes
 
 
 class Service:
@@ -187,10 +227,13 @@ class Service:
 
     # --- configuration changes (main thread builds, loop thread swaps) ---------------------
     def request_bypass(self, on: bool, axes: list[str] | None = None) -> list[str]:
-        """Queue a bumpless bypass change for the given driven axes (all when None); returns the
-        axes in bypass once the loop applied it."""
+        """Queue a bumpless bypass change for the given driven axes; returns the axes in bypass
+        once the loop applied it.  Without ``axes``: bypass on for every driven axis, bypass off
+        (compensation back on) only for the driven axes that the running config compensates --
+        an axis the config bypasses on purpose (e.g. a delay-dominated one) stays bypassed."""
         names = list(axes) if axes is not None else [
-            a for a, d in zip(AXES, self.axes.driven, strict=True) if d]
+            a for a, d, b in zip(AXES, self.axes.driven, self.axes.bypass, strict=True)
+            if d and (on or not b)]
         unknown = [a for a in names if a not in AXES]
         if unknown:
             raise ConfigError(f"unknown axis {str(unknown[0])[:40]!r}; axes: {', '.join(AXES)}")
@@ -427,9 +470,11 @@ class Service:
         next_dog = 0.0
         dog_every = (self.notifier.watchdog_usec / 2e6) if self.notifier.watchdog_usec else 1.0
         ready = False
+        seen = ModeLog(self.state)
         while not self.loop_done.is_set():
             self.loop_done.wait(0.02)
             now = time.monotonic()
+            seen.update(self.state, self.params)
             healthy = self.state.ticks > 0 and now - self.last_tick_mono < 0.25
             if healthy and not ready:
                 ready = True

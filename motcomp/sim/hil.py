@@ -6,7 +6,8 @@ dynamics per axis, which may differ from the compensator's model) at its own fix
 time (periods its loop missed are simulated afterwards: see :class:`HilPlatform`), enforces its
 own hard limits (violations are counted, logged and published), and publishes feedback
 ``{"t", "pos", "acc"}`` with accelerometer imperfections on ``platform/feedback``.  Its counters
-go to ``platform/status`` at 1 Hz.
+go to ``platform/status`` at 1 Hz.  It logs its start-up (endpoints, the true model and hard
+limits of each axis, the input transport) and, when stopped, a summary of its counters.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from motcomp.presets import load_preset
 from motcomp.runtime.clock import DeadlineClock
 from motcomp.sim.platform import Accelerometer, PlatformSimulator
 
-__all__ = ["HilConfig", "HilPlatform", "default_truth", "run_hil"]
+__all__ = ["HilConfig", "HilPlatform", "default_truth", "run_hil", "summary_text"]
 
 log = logging.getLogger("motcomp.hil")
 
@@ -186,6 +187,7 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
         receiver = CanSetpointReceiver(open_bus(cfg.can_interface, cfg.can_channel),
                                        cfg.dbc or config_file("motcomp.dbc"))
     with open_session(endpoints) as session:
+        _log_startup(cfg, endpoints, plat)
         # every frame, in order (a ring: never blocks zenoh, keeps the newest 4096)
         source = (session.declare_subscriber(cfg.setpoint_key, zenoh.handlers.RingChannel(4096))
                   if cfg.transport == "zenoh" else None)
@@ -225,7 +227,9 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
                     reported = sim.violations.copy()
                     status_pub.put(msgpack.packb(_status(plat, clock, receiver)))
         finally:
-            status_pub.put(msgpack.packb(_status(plat, clock, receiver)))
+            final = _status(plat, clock, receiver)
+            status_pub.put(msgpack.packb(final))
+            log.info("%s", summary_text(final, "stopped" if stop.is_set() else "finished"))
             status_pub.undeclare()
             feedback.close()
             if source is not None:
@@ -233,6 +237,37 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
             if receiver is not None:
                 receiver.close()
     return 0
+
+
+def _log_startup(cfg: HilConfig, endpoints: ZenohEndpoints, plat: HilPlatform) -> None:
+    where = (f"CAN {cfg.can_interface} {cfg.can_channel} (DBC {cfg.dbc or 'shipped'})"
+             if cfg.transport == "can" else f"zenoh {cfg.setpoint_key}")
+    log.info("simulated platform at %g Hz; zenoh %s; setpoints from %s; feedback on %s, "
+             "counters on %s at 1 Hz", cfg.rate_hz, endpoints.describe(), where,
+             cfg.feedback_key, cfg.status_key)
+    v_hard = plat.v_hard
+    for i, axis in enumerate(AXES):
+        log.info("  %-9s truth %s; hard limits [%g, %g]%s", axis, cfg.models[i],
+                 cfg.p_min[i], cfg.p_max[i],
+                 "" if v_hard is None else f", |v| <= {v_hard[i]:g}")
+    a = cfg.accelerometer
+    log.info("accelerometer: %s", f"noise {a.noise_std:g}, bias {a.bias:g}, tremor {a.tremor_amp:g}"
+             f" at {a.tremor_hz:g} Hz, quantum {a.lsb:g}" if (a.noise_std or a.bias or a.tremor_amp
+                                                              or a.lsb) else "ideal")
+
+
+def summary_text(status: dict[str, Any], how: str = "stopped") -> str:
+    """One line of the platform's counters (from :func:`_status`'s map), said at exit."""
+    viol = {a: n for a, n in status.get("violations", {}).items() if n}
+    text = (f"{how}: {status['ticks']} ticks, {status['missed_ticks']} missed, "
+            f"{status['caught_up']} periods caught up; setpoint frames received "
+            f"{status['frames']} ({status['bad_frames']} bad)")
+    can = status.get("can")
+    if can is not None:
+        text += (f"; CAN frames {can['received']} (CRC errors {can['crc_errors']}, alive "
+                 f"errors {can['alive_errors']}, unknown {can['unknown']})")
+    return text + "; hard-limit violations: " + (
+        ", ".join(f"{a} {n}" for a, n in viol.items()) if viol else "none")
 
 
 def _status(plat: HilPlatform, clock: DeadlineClock, receiver: Any) -> dict[str, Any]:

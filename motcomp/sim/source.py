@@ -13,6 +13,7 @@ import math
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,10 +24,16 @@ from motcomp.core.axes import AXES, AXIS_INDEX
 from motcomp.design.timedomain import fade_envelope, slalom, swept_sine
 from motcomp.errors import DataError
 from motcomp.io.wire import encode_input
-from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, open_session
+from motcomp.io.zenoh_io import (
+    NoPeerError,
+    ZenohEndpoints,
+    ZenohSink,
+    open_session,
+    wait_for_subscriber,
+)
 from motcomp.runtime.clock import DeadlineClock
 
-__all__ = ["Trajectory", "builtin", "load_trajectory", "publish"]
+__all__ = ["PublishStats", "Trajectory", "builtin", "load_trajectory", "publish"]
 
 SIGNALS = ("demo", "slalom", "sweep")
 
@@ -135,14 +142,53 @@ def load_trajectory(path: Path, rate_hz: float, axis: str | None = None) -> Traj
     return Trajectory(rate_hz, {a: np.interp(grid, t, v) for a, v in cols.items()}, str(path))
 
 
+@dataclass(frozen=True)
+class PublishStats:
+    """What :func:`publish` did."""
+
+    key: str
+    seq_start: int
+    next_seq: int
+    samples: int
+    """Samples of the whole run (the trajectory times ``repeat``)."""
+    skipped: int
+    """Samples not sent because their instants passed while the loop was stalled."""
+    stopped: bool
+    """Stopped (SIGTERM/SIGINT or ``stop``) before the end."""
+    duration_s: float
+
+    @property
+    def sent(self) -> int:
+        return self.next_seq - self.seq_start
+
+    def text(self) -> str:
+        out = (f"published {self.sent} frames (seq {self.seq_start}-{self.next_seq - 1}) of "
+               f"{self.samples} samples on {self.key} in {self.duration_s:.1f} s")
+        if self.skipped:
+            out += (f"; {self.skipped} not sent: their instants passed while this process was "
+                    "stalled")
+        if self.stopped:
+            left = self.samples - self.sent - self.skipped
+            out += f"; stopped by a signal with {left} samples still to send"
+        return out
+
+
 def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/setpoint",
             seq_start: int = 0, repeat: int = 1, stop: threading.Event | None = None,
-            spin_us: float = 100.0, lead_in_s: float = 0.0) -> int:
-    """Publish the trajectory (``repeat`` times) on absolute deadlines; returns the next seq.
+            spin_us: float = 100.0, lead_in_s: float = 0.0, wait_peer_s: float = 0.0,
+            progress: Callable[[float], None] | None = None) -> PublishStats:
+    """Publish the trajectory (``repeat`` times) on absolute deadlines.
 
     The motion stays on wall time, as a vehicle model's does: samples whose instants pass while
     this loop is stalled are dropped, not published late (that would stretch the motion in
-    time).  ``seq`` counts the frames sent, so it stays consecutive.
+    time).  ``seq`` counts the frames sent, so it stays consecutive.  With ``wait_peer_s`` > 0
+    nothing is sent until a subscriber of ``key`` is reachable; ``progress`` is called with the
+    seconds of motion sent so far, about ten times a second.
+
+    Raises
+    ------
+    NoPeerError
+        If no subscriber of ``key`` was reachable within ``wait_peer_s``.
     """
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():
@@ -152,17 +198,28 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
     columns = [traj.pos[a].tolist() for a in axes]
     seq = seq_start
     total = traj.samples * repeat
+    skipped = 0
+    every = max(1, round(traj.rate_hz / 10))
+    t_start = time.monotonic()
     with open_session(endpoints) as session:
+        if wait_peer_s > 0 and not wait_for_subscriber(session, key, wait_peer_s, stop):
+            if not stop.is_set():
+                raise NoPeerError(f"no subscriber of {key} reachable within {wait_peer_s:g} s "
+                                  f"({endpoints.describe()})")
+            return PublishStats(key, seq_start, seq, total, 0, True,
+                                time.monotonic() - t_start)
         sink = ZenohSink(session, key)
         if lead_in_s > 0:
-            time.sleep(lead_in_s)
+            stop.wait(lead_in_s)
         clock = DeadlineClock(traj.rate_hz, spin_us)
         t_wall0, t_mono0 = time.time(), time.perf_counter_ns()
         k = 0  # the sample due at the next deadline
         try:
             while not stop.is_set():
                 deadline, _ = clock.wait()
-                k += clock.skipped
+                if clock.skipped:
+                    skipped += min(clock.skipped, max(0, total - k))
+                    k += clock.skipped
                 if k >= total:
                     break
                 t = t_wall0 + (deadline - t_mono0) / 1e9  # the sample's nominal time
@@ -171,6 +228,9 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
                                                zip(axes, columns, strict=True)}))
                 seq += 1
                 k += 1
+                if progress is not None and k % every == 0:
+                    progress(k / traj.rate_hz)
         finally:
             sink.close()
-    return seq
+    return PublishStats(key, seq_start, seq, total, skipped, stop.is_set() and k < total,
+                        time.monotonic() - t_start)

@@ -1,0 +1,199 @@
+"""``motcomp info FILE.mcap``: what a recording holds, without replaying it.
+
+Duration, the keys with their message counts, rates and gaps, the recorded config's hash, and
+the mode switches the service's output flags show (bypass per axis on/off, stale, rejoin and
+parking episodes, saturated outputs per axis); a warning if the file is unfinished.  Times are
+seconds from the first message of the recording (the recorder's receive times).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from motcomp.cli._common import positive_float, print_json
+from motcomp.core.axes import AXES
+
+ORDER = 7
+
+MIN_GAP_S = 0.02
+GAP_PERIODS = 5
+"""A gap is an interval between two messages of a key longer than ``GAP_PERIODS`` times the
+key's median interval (and at least ``MIN_GAP_S``), unless ``--gap-s`` says otherwise."""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "info", help="summarise a recording (keys, rates, gaps, mode switches)",
+        description="Summarise a recording without replaying it: duration, keys with message "
+                    "counts and rates, gaps per key, the config hash, and the mode switches seen "
+                    "in the service's output flags (bypass per axis, stale/rejoin/parking "
+                    "episodes, saturation).  Times are seconds from the recording's first "
+                    "message.")
+    p.add_argument("files", type=Path, nargs="+", metavar="FILE.mcap",
+                   help="a recording (or the name of a rotated one: FILE-0001.mcap...)")
+    p.add_argument("--gap-s", type=positive_float, default=None, metavar="S",
+                   help=f"count intervals longer than S seconds as gaps (default: "
+                        f"{GAP_PERIODS} times the key's median interval, at least "
+                        f"{MIN_GAP_S:g} s)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    summaries = [summarise(f, args.gap_s) for f in args.files]
+    if args.json:
+        print_json(summaries if len(summaries) > 1 else summaries[0])
+    else:
+        print("\n\n".join(format_info(s) for s in summaries))
+    return 0
+
+
+def _gaps(log_ns: np.ndarray, t0_ns: int, gap_s: float | None) -> dict[str, Any]:
+    if log_ns.size < 2:
+        return {"count": 0, "longest_s": 0.0, "longest_at_s": None, "threshold_s": gap_s}
+    d = np.diff(np.sort(log_ns)) / 1e9
+    limit = gap_s if gap_s is not None else max(MIN_GAP_S, GAP_PERIODS * float(np.median(d)))
+    big = np.flatnonzero(d > limit)
+    if not big.size:
+        return {"count": 0, "longest_s": 0.0, "longest_at_s": None, "threshold_s": limit}
+    k = int(big[np.argmax(d[big])])
+    return {"count": int(big.size), "longest_s": float(d[k]),
+            "longest_at_s": float((np.sort(log_ns)[k] - t0_ns) / 1e9), "threshold_s": limit}
+
+
+def _intervals(on: np.ndarray, t_s: np.ndarray) -> list[list[float | None]]:
+    """``[start, end]`` of each run of ``on`` (``end`` None: still on at the end)."""
+    if not on.size:
+        return []
+    edges = np.diff(np.concatenate([[0], on.astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    return [[float(t_s[s]), float(t_s[e]) if e < t_s.size else None]
+            for s, e in zip(starts.tolist(), ends.tolist(), strict=True)]
+
+
+def summarise(path: Path, gap_s: float | None = None) -> dict[str, Any]:
+    """The summary of one recording (see the module docstring) as a JSON-ready dict.
+
+    Raises
+    ------
+    DataError
+        If the file cannot be read or is not MCAP.
+    """
+    from motcomp.record.frames import FLAG_BITS
+    from motcomp.record.session import read_session
+
+    s = read_session(path, acc=False, publish=False)
+    streams: dict[str, tuple[str, np.ndarray]] = {}
+    for role, st in (("input", s.inputs), ("output", s.outputs), ("feedback", s.feedback)):
+        if st is not None:
+            streams[st.key] = (role, st.log_ns)
+    if s.status:
+        streams[s.keys["status"]] = ("status", np.array([n for n, _ in s.status], np.int64))
+    for key, raw in s.other.items():
+        streams[key] = ("", raw.log_ns)
+    firsts = [int(ns.min()) for _, ns in streams.values() if ns.size]
+    lasts = [int(ns.max()) for _, ns in streams.values() if ns.size]
+    t0 = min(firsts) if firsts else 0
+    duration = (max(lasts) - t0) / 1e9 if lasts else 0.0
+    keys = []
+    order = {"input": 0, "output": 1, "feedback": 2, "status": 3}
+    for key, (role, ns) in sorted(streams.items(), key=lambda kv: (order.get(kv[1][0], 4),
+                                                                   kv[0])):
+        span = (int(ns.max()) - int(ns.min())) / 1e9 if ns.size > 1 else 0.0
+        median = float(np.median(np.diff(np.sort(ns)))) / 1e9 if ns.size > 1 else 0.0
+        keys.append({"key": key, "role": role, "messages": int(ns.size),
+                     "rate_hz": 1.0 / median if median > 0 else 0.0,
+                     "mean_rate_hz": (ns.size - 1) / span if span > 0 else 0.0,
+                     "first_s": (int(ns.min()) - t0) / 1e9 if ns.size else None,
+                     "last_s": (int(ns.max()) - t0) / 1e9 if ns.size else None,
+                     "gaps": _gaps(ns, t0, gap_s)})
+    modes: dict[str, Any] = {"bypass": {}, "stale": [], "rejoin": [], "parking": [],
+                             "saturated_outputs": {}}
+    out = s.outputs
+    if out is not None and len(out):
+        ok = out.valid
+        flags, t_s = out.flags[ok], (out.log_ns[ok] - t0) / 1e9
+        order = np.argsort(t_s, kind="stable")
+        flags, t_s = flags[order], t_s[order]
+        for axis in AXES:
+            runs = _intervals((flags & FLAG_BITS[f"bypass:{axis}"]) != 0, t_s)
+            if runs:
+                modes["bypass"][axis] = runs
+            n_sat = int(np.count_nonzero(flags & FLAG_BITS[f"sat:{axis}"]))
+            if n_sat:
+                modes["saturated_outputs"][axis] = n_sat
+        for mode in ("stale", "rejoin", "parking"):
+            modes[mode] = _intervals((flags & FLAG_BITS[mode]) != 0, t_s)
+    meta = s.metadata
+    return {
+        "file": s.name,
+        "duration_s": duration,
+        "messages": s.messages,
+        "config_hash": meta.get("config_hash") or _status_hash(s.status),
+        "recorded_config": s.config_json is not None,
+        "metadata": meta,
+        "keys": keys,
+        "modes": modes,
+        "truncated": s.truncated,
+        "warnings": list(s.warnings),
+    }
+
+
+def _status_hash(status: list[tuple[int, dict[str, Any]]]) -> str | None:
+    for _, st in status:
+        cfg = st.get("config")
+        if isinstance(cfg, dict) and isinstance(cfg.get("hash"), str):
+            return str(cfg["hash"])
+    return None
+
+
+def _span(run: list[float | None]) -> str:
+    start, end = run
+    assert start is not None
+    return f"{start:.2f}-{end:.2f} s" if end is not None else f"{start:.2f} s-end"
+
+
+def format_info(info: dict[str, Any]) -> str:
+    """:func:`summarise`'s dict as text."""
+    meta = info["metadata"]
+    head = f"{info['file']}: {info['duration_s']:.1f} s, {info['messages']} messages"
+    if meta.get("version"):
+        head += f" (motcomp {meta['version']}"
+        head += f", started {meta['started']})" if meta.get("started") else ")"
+    lines = [head, f"config hash {info['config_hash'] or 'unknown'}"
+             + ("" if info["recorded_config"] else " (no config recorded)")]
+    lines.append(f"{'key':<28}{'role':<10}{'messages':>9}{'rate Hz':>10}{'gaps':>6}  longest gap")
+    # (rate: one over the median interval; mean_rate_hz in the JSON counts the gaps in)
+    for k in info["keys"]:
+        g = k["gaps"]
+        longest = (f"{g['longest_s']:.3f} s at {g['longest_at_s']:.2f} s" if g["count"] else "-")
+        rate = f"{k['rate_hz']:.1f}" if math.isfinite(k["rate_hz"]) else "-"
+        lines.append(f"{k['key']:<28}{k['role'] or '-':<10}{k['messages']:>9}{rate:>10}"
+                     f"{g['count']:>6}  {longest}")
+    modes = info["modes"]
+    lines.append("mode switches (output flags):")
+    groups: dict[str, list[str]] = {}  # axes with the same switches on one line
+    for axis, runs in modes["bypass"].items():
+        text = ", ".join(f"on {'from the start' if r[0] == 0 else f'at {r[0]:.2f} s'}"
+                         + ("" if r[1] is None else f", off at {r[1]:.2f} s") for r in runs)
+        groups.setdefault(text, []).append(axis)
+    for text, axes in groups.items():
+        lines.append(f"  bypass     {', '.join(axes)}: {text}")
+    if not groups:
+        lines.append("  bypass     none")
+    for mode in ("stale", "rejoin", "parking"):
+        runs = modes[mode]
+        lines.append(f"  {mode:<10} " + (f"{len(runs)}: " + ", ".join(_span(r) for r in runs[:8])
+                                         + (", ..." if len(runs) > 8 else "") if runs else "none"))
+    sat = modes["saturated_outputs"]
+    lines.append("saturated outputs: " + (", ".join(f"{a} {n}" for a, n in sat.items())
+                                          if sat else "none"))
+    if info["truncated"]:
+        lines.append("warning: unfinished recording (read up to its last complete chunk)")
+    lines += [f"warning: {w}" for w in info["warnings"]]
+    return "\n".join(lines)

@@ -1,0 +1,368 @@
+"""The operator's side of the commands, as a new user meets it: help on every option, bad numbers
+refused by argparse, unreachable peers named and answered with exit 3 after the wait, progress
+and an honest summary from ``source``, ``hil``'s start-up and exit logs, ``status`` as a table,
+the shipped example config, ``info`` on a recording.  Processes run as subprocesses on real
+zenoh sessions over loopback (multicast scouting off, a free port each)."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import signal
+import socket
+import subprocess
+import time
+import tomllib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from motcomp.cli import build_parser
+from motcomp.cli._common import (
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    positive_int,
+)
+from motcomp.cli.admin import format_status
+from motcomp.config import config_hash, load_config, parse_config
+from motcomp.core.axes import AXES
+from motcomp.io.wire import encode_output
+from motcomp.io.zenoh_io import ZenohEndpoints, free_tcp_port, loopback, open_session
+from motcomp.replay.synth import SynthOptions, synthesize
+from motcomp.resources import config_file
+from tests.conftest import motcomp_cmd, subprocess_env
+
+
+def cli(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(motcomp_cmd(*args), capture_output=True, text=True,
+                          env=subprocess_env(), timeout=timeout)
+
+
+def dead_endpoint() -> str:
+    """A loopback endpoint nobody listens on."""
+    return loopback(free_tcp_port())
+
+
+@contextlib.contextmanager
+def spawn(args: list[str], log: Path) -> Iterator[subprocess.Popen[bytes]]:
+    with log.open("wb") as fh:
+        p = subprocess.Popen(motcomp_cmd(*args), stdout=fh, stderr=subprocess.STDOUT,
+                             env=subprocess_env())
+        try:
+            yield p
+        finally:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+
+
+def wait_for_text(log: Path, text: str, proc: subprocess.Popen[bytes],
+                  timeout: float = 30.0) -> str:
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        content = log.read_text(errors="replace")
+        if text in content:
+            return content
+        if proc.poll() is not None:
+            break
+        time.sleep(0.1)
+    raise AssertionError(f"{text!r} not in {log}:\n{log.read_text(errors='replace')}")
+
+
+# --- the parser ---------------------------------------------------------------------------
+def _subparsers(parser: argparse.ArgumentParser, path: str = "motcomp"
+                ) -> Iterator[tuple[str, argparse.ArgumentParser]]:
+    yield path, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _subparsers(sub, f"{path} {name}")
+
+
+def test_every_option_of_every_command_has_help() -> None:
+    missing = []
+    for path, parser in _subparsers(build_parser()):
+        for action in parser._actions:
+            if isinstance(action, argparse._HelpAction):
+                continue
+            if isinstance(action, argparse._SubParsersAction):
+                missing += [f"{path} {c.dest}" for c in action._choices_actions
+                            if not (c.help or "").strip()]
+                continue
+            if not (action.help or "").strip():
+                missing.append(f"{path} {'/'.join(action.option_strings) or action.dest}")
+    assert not missing, missing
+
+
+@pytest.mark.parametrize(("helper", "good", "bad"), [
+    (positive_float, {"2.5": 2.5, "1e-3": 1e-3}, ["0", "-1", "nan", "inf", "x", ""]),
+    (non_negative_float, {"0": 0.0, "3": 3.0}, ["-0.1", "nan", "-inf", "x"]),
+    (positive_int, {"1": 1, "12": 12}, ["0", "-3", "1.5", "x"]),
+    (non_negative_int, {"0": 0, "7": 7}, ["-1", "2.0", "x"]),
+])
+def test_number_types_accept_and_refuse(helper: Any, good: dict[str, float],
+                                        bad: list[str]) -> None:
+    for text, value in good.items():
+        assert helper(text) == value
+    for text in bad:
+        with pytest.raises(argparse.ArgumentTypeError, match=repr(text).replace("'", ".")):
+            helper(text)
+
+
+@pytest.mark.parametrize("argv", [
+    ["status", "--timeout", "-1"],
+    ["status", "--watch", "0"],
+    ["bypass", "on", "--timeout", "nan"],
+    ["reload", "--timeout", "0"],
+    ["source", "--signal", "slalom", "--rate", "0"],
+    ["source", "--signal", "slalom", "--repeat", "0"],
+    ["source", "--signal", "slalom", "--wait-peer", "-2"],
+    ["source", "--signal", "slalom", "--seq-start", "-1"],
+    ["hil", "--duration", "-1"],
+    ["hil", "--margin", "-0.1"],
+    ["hil", "--seed", "-4"],
+    ["record", "-o", "x.mcap", "--flush-s", "inf"],
+    ["record", "-o", "x.mcap", "--chunk-kb", "0"],
+    ["replay", "x.mcap", "--speed", "0"],
+    ["replay", "x.mcap", "--jobs", "0"],
+    ["replay", "x.mcap", "--realtime", "--lead-in", "-1"],
+    ["excite", "--axis", "rails_x", "--out", "x", "--fade", "-1"],
+    ["excite", "--axis", "rails_x", "--out", "x", "--limits", "1", "-1", "2"],
+    ["info", "x.mcap", "--gap-s", "0"],
+])
+def test_bad_numbers_are_usage_errors(argv: list[str], capsys: pytest.CaptureFixture[str]
+                                      ) -> None:
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert f"motcomp {argv[0]}: error: argument" in err, err
+
+
+def test_negative_timeout_is_a_usage_error_not_a_traceback() -> None:
+    p = cli("status", "--timeout", "-1")
+    assert p.returncode == 2
+    assert "argument --timeout: expected a positive number, got '-1'" in p.stderr
+    assert "Traceback" not in p.stderr
+
+
+# --- unreachable peers --------------------------------------------------------------------
+def test_status_waits_the_full_timeout_and_names_the_endpoint() -> None:
+    dead = dead_endpoint()
+    t0 = time.monotonic()
+    p = cli("status", "-e", dead, "--timeout", "1")
+    assert time.monotonic() - t0 >= 1.0
+    assert p.returncode == 3, p.stderr
+    assert f"no reply from the service at connect {dead} (key motcomp/status) within 1 s" \
+        in p.stderr
+    assert "Traceback" not in p.stderr
+
+
+def test_bad_endpoints_are_named() -> None:
+    p = cli("status", "-e", "nonsense", "--timeout", "1")
+    assert p.returncode == 2 and "endpoint 'nonsense' (-e/--connect)" in p.stderr, p.stderr
+    assert ".rs:" not in p.stderr and "Traceback" not in p.stderr
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        taken = loopback(busy.getsockname()[1])
+        p = cli("source", "--signal", "slalom", "-l", taken, "--wait-peer", "1")
+    assert p.returncode == 1, p.stderr
+    assert f"cannot open a zenoh session (listen {taken})" in p.stderr
+    assert "Address already in use" in p.stderr and ".rs:" not in p.stderr
+
+
+def test_source_without_a_subscriber_exits_3_naming_the_endpoint() -> None:
+    dead = dead_endpoint()
+    t0 = time.monotonic()
+    p = cli("source", "--signal", "slalom", "-e", dead, "--wait-peer", "1")
+    assert p.returncode == 3, (p.stdout, p.stderr)
+    assert time.monotonic() - t0 < 10
+    assert f"no subscriber of sim/motion/setpoint reachable within 1 s (connect {dead})" \
+        in p.stderr
+    assert "published" not in p.stdout
+
+
+def test_realtime_replay_without_a_subscriber_exits_3(tmp_path: Path) -> None:
+    path = tmp_path / "s.mcap"
+    synthesize(path, load_config(config_file("motcomp.toml")),
+               SynthOptions(duration_s=1.0, feedback=False, status=False))
+    dead = dead_endpoint()
+    p = cli("replay", str(path), "--realtime", "-e", dead, "--wait-peer", "1", "--quiet")
+    assert p.returncode == 3, (p.stdout, p.stderr)
+    assert f"no subscriber of sim/motion/setpoint reachable within 1 s (connect {dead})" \
+        in p.stderr
+    assert "republished" not in p.stdout
+
+
+@pytest.mark.slow
+def test_source_shows_progress_and_says_it_was_stopped(tmp_path: Path) -> None:
+    import zenoh
+
+    port = free_tcp_port()
+    with open_session(ZenohEndpoints(listen=(loopback(port),))) as session:
+        sub = session.declare_subscriber("sim/motion/setpoint", zenoh.handlers.RingChannel(1))
+        log = tmp_path / "source.log"
+        with spawn(["source", "--signal", "sweep", "-e", loopback(port), "--lead-in", "0"],
+                   log) as src:
+            wait_for_text(log, "source: 5.0 of 60.0 s", src, timeout=20)
+            assert sub.try_recv() is not None
+            src.send_signal(signal.SIGTERM)
+            assert src.wait(timeout=10) == 0
+        text = log.read_text()
+        sub.undeclare()
+    assert "0.1-3 Hz swept sine on rails_x: 60000 samples at 1000 Hz (60.0 s)" in text
+    assert "stopped by a signal with" in text, text
+    assert "published" in text and "Traceback" not in text
+
+
+# --- hil ----------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_hil_logs_its_setup_and_a_summary_at_exit(tmp_path: Path) -> None:
+    port = free_tcp_port()
+    log = tmp_path / "hil.log"
+    with spawn(["hil", "-l", loopback(port), "--quiet-sensor"], log) as hil:
+        text = wait_for_text(log, "accelerometer: ideal", hil)
+        assert f"zenoh listen {loopback(port)}" in text and "setpoints from zenoh " \
+            "platform/setpoint" in text
+        assert "rails_y   truth p1d:K=1,Td=0.0175,Tp1=0.1857683128; hard limits" in text
+        assert "hex_yaw   truth p2uzd:" in text
+        with open_session(ZenohEndpoints(connect=(loopback(port),))) as session:
+            pub = session.declare_publisher("platform/setpoint")
+            t_end = time.monotonic() + 10
+            while not pub.matching_status.matching and time.monotonic() < t_end:
+                time.sleep(0.02)
+            for k in range(20):
+                pub.put(encode_output(k, time.time(), k, [0.0] * len(AXES), []))
+                time.sleep(0.005)
+            time.sleep(0.3)
+            pub.undeclare()
+        hil.send_signal(signal.SIGTERM)
+        assert hil.wait(timeout=20) == 0
+    text = log.read_text()
+    line = next((ln for ln in text.splitlines() if "stopped: " in ln), "")
+    assert " ticks, " in line and " missed, " in line and "periods caught up" in line, text
+    assert "setpoint frames received 20 (0 bad)" in line, line
+    assert line.endswith("hard-limit violations: none"), line
+
+
+# --- status -------------------------------------------------------------------------------
+def test_status_table_from_a_status_map() -> None:
+    st = {"mode": "running", "version": "9.9", "rate_hz": 1000.0, "ticks": 1234,
+          "missed_ticks": 2, "config": {"hash": "abc123", "version": 3, "path": "/etc/m.toml"},
+          "profile": "fast", "loop": {"compute_p50_us": 10.0, "compute_p99_us": 20.0,
+                                      "compute_p999_us": 30.0, "compute_max_us": 40.0,
+                                      "late_p50_us": 1.0, "late_p99_us": 2.0,
+                                      "late_p999_us": 3.0, "late_max_us": 4.0},
+          "loop_window_s": 10.0,
+          "frames": {"received": 100, "accepted": 97, "rejected": 3, "superseded": 1,
+                     "rejected_by_reason": {"range": 2, "decode": 1}, "last_reject": "x"},
+          "stale_s": 0.0, "stale_total_s": 1.5, "stale_episodes": 2,
+          "saturation": dict.fromkeys(AXES, 0) | {"rails_y": 7},
+          "bypass": ["hex_z"], "driven": ["rails_x", "rails_y", "hex_z"]}
+    text = format_status(st)
+    assert "{" not in text and "[" not in text  # no Python reprs
+    assert "hash abc123  version 3  profile fast" in text
+    assert "1000 Hz  ticks 1234  missed 2" in text
+    assert "received 100  accepted 97  rejected 3 (decode 1, range 2)  superseded 1" in text
+    assert "now 0.00 s  total 1.50 s  episodes 2" in text
+    rows = {ln.split()[0]: ln.split()[1:] for ln in text.splitlines()}
+    assert rows["compute"] == ["10.0", "20.0", "30.0", "40.0"]
+    assert rows["rails_y"] == ["yes", "no", "7"]
+    assert rows["hex_z"] == ["yes", "yes", "0"]
+    assert rows["hex_yaw"] == ["no", "-", "0"]
+
+
+@pytest.mark.slow
+def test_status_of_a_running_service_as_table_json_and_watch(tmp_path: Path) -> None:
+    port = free_tcp_port()
+    ep = loopback(port)
+    with spawn(["run", "--config", str(config_file("motcomp.toml")), "-l", ep],
+               tmp_path / "svc.log"):
+        p = cli("status", "-e", ep, "--timeout", "20")  # waits for the service to come up
+        assert p.returncode == 0, p.stderr
+        lines = p.stdout.splitlines()
+        assert lines[0].split() == ["mode", "startup"] or lines[0].startswith("mode")
+        header = next(ln for ln in lines if ln.startswith("axis"))
+        assert header.split() == ["axis", "driven", "bypass", "saturation"]
+        rows = {ln.split()[0]: ln.split()[1:] for ln in lines[lines.index(header) + 1:]}
+        assert set(rows) == set(AXES)
+        assert rows["rails_x"][0] == "yes" and rows["rails_x"][2].isdigit()
+        assert "loop times (us" in p.stdout and "{" not in p.stdout
+        p = cli("status", "-e", ep, "--json")
+        assert p.returncode == 0 and json.loads(p.stdout)["ticks"] > 0
+        w = subprocess.Popen(motcomp_cmd("status", "-e", ep, "--watch", "0.5"),
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             env=subprocess_env())
+        time.sleep(3.0)
+        w.send_signal(signal.SIGINT)
+        out, err = w.communicate(timeout=10)
+        assert w.returncode == 0, err
+        assert out.count("\naxis ") >= 2 and out.count("--- ") >= 2, out
+
+
+# --- config example -----------------------------------------------------------------------
+def test_config_example_is_the_documented_config_and_lists_the_others() -> None:
+    p = cli("config", "example")
+    assert p.returncode == 0, p.stderr
+    assert p.stdout == config_file("motcomp.toml").read_text()
+    parse_config(tomllib.loads(p.stdout), "motcomp config example")
+    p = cli("config", "example", "--list")
+    assert p.returncode == 0
+    for name in ("motcomp.toml", "plants/rails.toml", "plants/hexapod.toml", "motcomp.dbc",
+                 "zenoh-acl.json5", "motcomp.service"):
+        assert f"  {name} " in p.stdout, p.stdout
+    p = cli("config", "example", "plants/rails.toml")
+    assert p.returncode == 0 and p.stdout == config_file("plants", "rails.toml").read_text()
+    p = cli("config", "example", "nope.toml")
+    assert p.returncode == 2 and "no shipped file 'nope.toml'" in p.stderr
+
+
+# --- info ---------------------------------------------------------------------------------
+def test_info_summarises_a_recording(tmp_path: Path) -> None:
+    path = tmp_path / "s.mcap"
+    cfg = load_config(config_file("motcomp.toml"))
+    facts = synthesize(path, cfg, SynthOptions(
+        duration_s=3.0, bypass=[(1.0, True, ("rails_x",)), (2.0, False, ("rails_x",))],
+        gaps=[(1.5, 0.3)], lose_outputs=[(0.5, 100)]))
+    p = cli("info", str(path), "--json")
+    assert p.returncode == 0, p.stderr
+    info = json.loads(p.stdout)
+    keys = {k["key"]: k for k in info["keys"]}
+    assert keys["sim/motion/setpoint"]["messages"] == facts["frames"] == 3000 - 300
+    assert keys["platform/setpoint"]["messages"] == facts["ticks"] - 100
+    assert keys["motcomp/status"]["messages"] == 4
+    assert keys["sim/motion/setpoint"]["rate_hz"] == pytest.approx(1000, rel=0.02)
+    gaps = keys["sim/motion/setpoint"]["gaps"]
+    # the source was silent 1.5-1.8 s of its own time (recorded from 0.2 s on)
+    assert gaps["count"] == 1 and gaps["longest_s"] == pytest.approx(0.301, abs=0.002)
+    assert gaps["longest_at_s"] == pytest.approx(1.7, abs=0.01)
+    out_gaps = keys["platform/setpoint"]["gaps"]
+    assert out_gaps["count"] == 1 and out_gaps["longest_s"] == pytest.approx(0.101, abs=0.002)
+    assert keys["platform/feedback"]["gaps"]["count"] == 0
+    assert info["config_hash"] == config_hash(cfg) and info["recorded_config"]
+    (run,) = info["modes"]["bypass"]["rails_x"]
+    assert run[0] == pytest.approx(1.2, abs=0.01) and run[1] == pytest.approx(2.2, abs=0.01)
+    assert "rails_y" not in info["modes"]["bypass"]
+    stale = info["modes"]["stale"]
+    assert any(abs(s - 1.75) < 0.01 for s, _ in stale)  # 50 ms into the gap
+    assert not info["truncated"] and info["modes"]["parking"] == []
+    p = cli("info", str(path))
+    assert p.returncode == 0
+    assert "bypass     rails_x: on at 1.20 s, off at 2.20 s" in p.stdout, p.stdout
+    assert "sim/motion/setpoint" in p.stdout and "0.301 s at 1.70 s" in p.stdout
+
+
+def test_info_warns_about_an_unfinished_recording(tmp_path: Path) -> None:
+    path = tmp_path / "s.mcap"
+    synthesize(path, load_config(config_file("motcomp.toml")), SynthOptions(duration_s=2.0))
+    cut = tmp_path / "cut.mcap"
+    data = path.read_bytes()
+    cut.write_bytes(data[:len(data) * 2 // 3])
+    p = cli("info", str(cut))
+    assert p.returncode == 0, p.stderr
+    assert "warning: unfinished recording" in p.stdout and "Traceback" not in p.stderr

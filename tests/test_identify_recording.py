@@ -1,0 +1,175 @@
+"""``motcomp identify`` on recordings of the stack (issue 15): what the platform received (the
+service's output in force) against what it did (the feedback's acceleration), on the stretch
+where the axis is bypassed and not limited, with feedback gaps bridged and counted, and files
+cut short read up to the cut.
+
+Sessions are synthesized through the service's own tick (:mod:`motcomp.replay.synth`) with the
+example config, whose rails plant is P1D ``Td = 17.5 ms, Tp1 = 185.8 ms``; the platform's
+feedback is that plant's exact response to the outputs.  Time in a recording counts from its
+first output, 0.2 s before the synthesizer's time origin (hence :data:`T0`).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from motcomp.cli import main
+from motcomp.config import load_config
+from motcomp.errors import DataError
+from motcomp.ident.data import load_recording
+from motcomp.record import read_session
+from motcomp.replay.synth import SynthOptions, synthesize
+from motcomp.resources import config_file
+from tests.conftest import RAILS, motcomp_cmd, subprocess_env
+
+CFG = load_config(config_file("motcomp.toml"))
+T0 = 0.199  # recording time of the synthesizer's t = 0
+BYPASS_AT = 10.0
+FEEDBACK_GAPS = [(15.0, 0.008), (20.0, 0.015), (25.0, 0.02)]  # 9, 16 and 21 ms without data
+LOST_OUTPUTS = (18.0, 5)  # the recorder misses 5 outputs: their feedback is left out (6 ms)
+
+
+@pytest.fixture(scope="module")
+def mixed(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """rails_y compensated (the config's choice) and excited for 8 s, then bypassed from 10 s
+    and excited again for 24 s, with feedback gaps and outputs the recorder lost."""
+    path = tmp_path_factory.mktemp("ident_rec") / "mixed.mcap"
+    synthesize(path, CFG, SynthOptions(
+        duration_s=36.0, seed=3, bypass=[(BYPASS_AT, True, ("rails_y",))],
+        excite=[("rails_y", "noise", 1.0, 8.0), ("rails_y", "noise", 11.0, 24.0)],
+        feedback_gaps=FEEDBACK_GAPS, lose_outputs=[LOST_OUTPUTS]))
+    return path
+
+
+@pytest.fixture(scope="module")
+def compensated(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """rails_y excited, compensated throughout."""
+    path = tmp_path_factory.mktemp("ident_rec") / "compensated.mcap"
+    synthesize(path, CFG, SynthOptions(duration_s=12.0, seed=4,
+                                       excite=[("rails_y", "noise", 1.0, 10.0)]))
+    return path
+
+
+def identify_json(path: Path, out: Path, *extra: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(motcomp_cmd("identify", str(path), "--axis", "rails_y", "--out",
+                                      str(out), "--no-figures", "--json", "--quiet", *extra),
+                          capture_output=True, text=True, env=subprocess_env(), timeout=600)
+
+
+def test_identifies_the_bypassed_stretch_as_a_user_runs_it(mixed: Path, tmp_path: Path) -> None:
+    p = identify_json(mixed, tmp_path / "out")
+    assert p.returncode == 0, p.stderr
+    rep = json.loads(p.stdout)
+    # the longest stretch bypassed and not limited: from the bypass switch to the end
+    win = rep["data"]["window"]
+    assert win["how"] == "longest stretch bypassed and not limited"
+    assert win["start_s"] == pytest.approx(BYPASS_AT + T0, abs=0.05)
+    assert win["end_s"] > 36.0 and win["samples"] > 26_000
+    # the plant: P1D chosen, Td within 1 ms, Tp1 within 5 %
+    assert rep["selected"] == "p1d", rep["reason"]
+    params = rep["models"]["p1d"]["params"]
+    assert params["Td"] == pytest.approx(RAILS.Td, abs=1e-3)
+    assert params["Tp1"] == pytest.approx(RAILS.Tp1, rel=0.05)
+    assert rep["phase_delay_0p2hz_ms"] == pytest.approx(200.0, abs=3.0)
+    # the gaps: three without feedback and one where the outputs were lost, bridged
+    gaps = rep["data"]["gaps"]
+    assert gaps["count"] == 4 and gaps["longest_ms"] == pytest.approx(21.0, abs=0.5)
+    assert [round(g["start_s"] - T0) for g in gaps["first"]] == [15, 18, 20, 25]
+    assert any("left out: the recording lost the outputs in force" in w for w in rep["warnings"])
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert f"Window {win['start_s']:.2f}-{win['end_s']:.2f} s of the recording" in md
+    assert "4 gap(s) without data bridged by linear interpolation (longest 21.0 ms" in md
+
+
+def test_refuses_an_axis_that_was_compensated(compensated: Path, tmp_path: Path) -> None:
+    p = identify_json(compensated, tmp_path / "out")
+    assert p.returncode == 2, p.stderr
+    err = p.stderr.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert "rails_y: no stretch of 5 s or more with the axis bypassed and not limited" in err
+    assert "compensated (no bypass:rails_y flag in the outputs) during 12." in err
+    assert "--window START END" in err
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_a_given_window_with_compensation_is_used_with_a_warning(compensated: Path) -> None:
+    rec = load_recording(compensated, axis="rails_y", window=(2.0, 9.0))
+    assert rec.window is not None and rec.window.how == "given"
+    assert rec.window.start_s == pytest.approx(2.0, abs=2e-3)
+    assert rec.window.end_s == pytest.approx(9.0, abs=2e-3)
+    assert rec.window.samples == pytest.approx(7000, abs=2)
+    assert any(w.startswith("rails_y was compensated (no bypass:rails_y flag in the outputs) on "
+                            "7001 of 7001 samples") for w in rec.warnings), rec.warnings
+
+
+def test_refuses_an_axis_the_limiter_kept_acting_on(tmp_path: Path) -> None:
+    # bypassed throughout, but a position step every 4 s that the limiter must absorb
+    path = tmp_path / "limited.mcap"
+    synthesize(path, CFG, SynthOptions(
+        duration_s=14.0, seed=5, bypass=[(-1.0, True, ("rails_y",))],
+        steps=[(2.0, "rails_y", 0.4), (6.0, "rails_y", -0.4), (10.0, "rails_y", 0.4)]))
+    cols = read_session(path).identification_columns("rails_y")
+    assert cols.bypassed.all() and cols.limited.any()
+    with pytest.raises(DataError, match=r"rails_y: no stretch of 5 s or more with the axis "
+                                        r"bypassed and not limited: limited \(sat:rails_y\) on "
+                                        r"\d+ samples; the longest stretch bypassed and not "
+                                        r"limited is [34]\.\d\d s"):
+        load_recording(path, axis="rails_y")
+    # chosen anyway: a warning names the limiting
+    rec = load_recording(path, axis="rails_y", window=(0.5, 13.0))
+    assert any(w.startswith("rails_y was limited (sat:rails_y) on ") for w in rec.warnings)
+
+
+def test_a_gap_longer_than_max_gap_ends_the_window_or_is_named(mixed: Path) -> None:
+    # 10 ms bridged at most: the 16 ms gap at 20 s and the 21 ms one at 25 s split the bypassed
+    # stretch; the longest piece is the last
+    rec = load_recording(mixed, axis="rails_y", max_gap_s=0.01)
+    assert rec.window is not None
+    assert rec.window.start_s == pytest.approx(25.02 + T0, abs=2e-3)
+    assert rec.gaps.count == 0 and rec.gaps.max_gap_s == 0.01
+    with pytest.raises(DataError, match=r"platform/feedback message \d+: column t: gap of "
+                                        r"0\.016 s without data at 20\.\d+ s \(median period "
+                                        r"0\.001 s; longer than --max-gap 0\.01 s\)"):
+        load_recording(mixed, axis="rails_y", max_gap_s=0.01, window=(11.0, 30.0))
+
+
+def test_gaps_of_a_few_milliseconds_are_bridged(mixed: Path) -> None:
+    rec = load_recording(mixed, axis="rails_y", window=(14.0, 16.0 + T0))
+    # one gap, 9 ms; the grid goes on through it at 1 kHz
+    assert rec.gaps.count == 1 and rec.gaps.longest_s == pytest.approx(0.009, abs=1e-6)
+    assert rec.resampled and rec.rate_hz == 1000.0
+    assert np.allclose(np.diff(rec.t), 1e-3)
+    assert rec.period_jitter_s < 1e-6  # the gap is not jitter
+
+
+def test_a_recording_cut_short_is_identified_with_a_warning(
+        mixed: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cut = tmp_path / "cut.mcap"
+    data = mixed.read_bytes()
+    cut.write_bytes(data[:int(len(data) * 0.8)])
+    code = main(["identify", str(cut), "--axis", "rails_y", "--models", "p1d", "--out",
+                 str(tmp_path / "out"), "--no-figures", "--json", "--quiet"])
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    rep = json.loads(cap.out)
+    warned = [line for line in cap.err.splitlines() if "unfinished recording" in line]
+    assert len(warned) == 1 and warned[0].startswith(f"warning: {cut}: unfinished recording")
+    assert any("unfinished recording" in w for w in rep["warnings"])
+    assert rep["data"]["window"]["end_s"] < 32.0
+    assert rep["models"]["p1d"]["params"]["Td"] == pytest.approx(RAILS.Td, abs=1e-3)
+
+
+def test_the_inputs_are_not_the_command(mixed: Path) -> None:
+    # what the service received differs from what it sent while compensating; identify takes
+    # what it sent, the output in force at each feedback sample (Session.identification_data)
+    s = read_session(mixed)
+    t, cmd, acc = s.identification_data("rails_y")
+    rec = load_recording(mixed, axis="rails_y", window=(float(t[0] - t[0]), 9.0))
+    cols = s.identification_columns("rails_y")
+    k = np.searchsorted(cols.t - cols.start_s, rec.start_s)
+    assert np.allclose(rec.cmd[:100], cols.cmd[k:k + 100])
