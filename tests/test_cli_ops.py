@@ -131,7 +131,7 @@ def test_number_types_accept_and_refuse(helper: Any, good: dict[str, float],
     ["replay", "x.mcap", "--jobs", "0"],
     ["replay", "x.mcap", "--realtime", "--lead-in", "-1"],
     ["excite", "--axis", "rails_x", "--out", "x", "--fade", "-1"],
-    ["excite", "--axis", "rails_x", "--out", "x", "--limits", "1", "-1", "2"],
+    ["excite", "--axis", "rails_x", "--out", "x", "--limits", "1", "nan", "2"],
     ["info", "x.mcap", "--gap-s", "0"],
 ])
 def test_bad_numbers_are_usage_errors(argv: list[str], capsys: pytest.CaptureFixture[str]
@@ -164,7 +164,8 @@ def test_status_waits_the_full_timeout_and_names_the_endpoint() -> None:
 
 def test_bad_endpoints_are_named() -> None:
     p = cli("status", "-e", "nonsense", "--timeout", "1")
-    assert p.returncode == 2 and "endpoint 'nonsense' (-e/--connect)" in p.stderr, p.stderr
+    assert p.returncode == 2, p.stderr
+    assert "zenoh: connect endpoint 'nonsense': Endpoints must be" in p.stderr
     assert ".rs:" not in p.stderr and "Traceback" not in p.stderr
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
@@ -209,7 +210,7 @@ def test_source_shows_progress_and_says_it_was_stopped(tmp_path: Path) -> None:
         log = tmp_path / "source.log"
         with spawn(["source", "--signal", "sweep", "-e", loopback(port), "--lead-in", "0"],
                    log) as src:
-            wait_for_text(log, "source: 5.0 of 60.0 s", src, timeout=20)
+            wait_for_text(log, " of 60.0 s (", src, timeout=20)  # a progress line
             assert sub.try_recv() is not None
             src.send_signal(signal.SIGTERM)
             assert src.wait(timeout=10) == 0
@@ -221,7 +222,6 @@ def test_source_shows_progress_and_says_it_was_stopped(tmp_path: Path) -> None:
 
 
 # --- hil ----------------------------------------------------------------------------------
-@pytest.mark.slow
 def test_hil_logs_its_setup_and_a_summary_at_exit(tmp_path: Path) -> None:
     port = free_tcp_port()
     log = tmp_path / "hil.log"
@@ -286,7 +286,7 @@ def test_status_of_a_running_service_as_table_json_and_watch(tmp_path: Path) -> 
         p = cli("status", "-e", ep, "--timeout", "20")  # waits for the service to come up
         assert p.returncode == 0, p.stderr
         lines = p.stdout.splitlines()
-        assert lines[0].split() == ["mode", "startup"] or lines[0].startswith("mode")
+        assert lines[0].startswith("mode ")
         header = next(ln for ln in lines if ln.startswith("axis"))
         assert header.split() == ["axis", "driven", "bypass", "saturation"]
         rows = {ln.split()[0]: ln.split()[1:] for ln in lines[lines.index(header) + 1:]}

@@ -38,6 +38,8 @@ FRAGMENT = f"""# Identified by motcomp identify from session.mcap
 model = "{IDENTIFIED}"
 """
 
+LIMITS = "pos_min_m = -1.5\npos_max_m = 1.5\nvel_max_m_s = 1.0\nacc_max_m_s2 = 4.0\n"
+
 
 def run(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
     return subprocess.run(motcomp_cmd(*args), capture_output=True, text=True,
@@ -100,13 +102,11 @@ def test_site_config_including_example_and_design_runs_the_designed_gains(
 
 def test_design_fragment_shadowed_by_the_including_file_is_reported(
         designed: tuple[Path, dict]) -> None:
-    """The example copied as the site config, its ``# include`` line uncommented: the copy's own
+    """The example copied as the site config with the design included at its top: the copy's own
     ``model`` and ``gains`` lines win over the design (includes are merged underneath)."""
     d, _ = designed
     site = d / "site.toml"
-    text = EXAMPLE.read_text()
-    assert '# include = ["identified.toml"]' in text
-    site.write_text(text.replace('# include = ["identified.toml"]', 'include = ["design.toml"]'))
+    site.write_text('include = ["design.toml"]\n' + EXAMPLE.read_text())
     assert run("config", "check", str(site)).returncode == 0
     assert axis_gains(site, "rails_y") == axis_gains(EXAMPLE, "rails_y")
     _, warnings = source_report(site)
@@ -142,12 +142,15 @@ def test_identified_model_with_the_examples_gains_is_reported(tmp_path: Path) ->
 
 def test_commented_out_include_is_reported(tmp_path: Path) -> None:
     site = tmp_path / "site.toml"
-    site.write_text(EXAMPLE.read_text())
+    site.write_text('# include = ["identified.toml"]  # the identified model\n'
+                    + EXAMPLE.read_text())
     _, warnings = source_report(site)
     assert warnings == [
-        'warning: site.toml:6: include is commented out (# include = ["identified.toml"]  # merge '
-        "other files underneath this one (e.g. the [axes.*] model): identified.toml is not read, "
-        "so no model or gains of it are used"]
+        'warning: site.toml:1: include is commented out (# include = ["identified.toml"]  # the '
+        "identified model): identified.toml is not read, so no model or gains of it are used"]
+    # the example itself says how to include, without a commented-out include line
+    site.write_text(EXAMPLE.read_text())
+    assert source_report(site)[1] == []
     # the example included (not copied): its commented line is documentation, unless the file
     # it names exists
     site.write_text(f'include = ["{EXAMPLE}"]\n')
@@ -178,13 +181,12 @@ def test_bypass_recommendation_writes_bypass_without_gains(tmp_path: Path) -> No
 
 def test_human_output_ends_with_the_fragment(tmp_path: Path) -> None:
     (tmp_path / "rails_y.toml").write_text(FRAGMENT)
-    p = run("design", "--plant", "rails_y.toml", "--rule", "amigo", "--axis", "rails_x",
-            cwd=tmp_path)
+    p = run("design", "--plant", "rails_y.toml", "--rule", "amigo", cwd=tmp_path)
     assert p.returncode == 0, p.stderr
     m = re.search(r"```toml\n(.*)```\n\Z", p.stdout, re.S)
     assert m is not None, p.stdout[-500:]
     table = tomllib.loads(m.group(1))
-    assert list(table["axes"]) == ["rails_x"] and table["axes"]["rails_x"]["model"] == IDENTIFIED
+    assert list(table["axes"]) == ["rails_y"] and table["axes"]["rails_y"]["model"] == IDENTIFIED
     assert not (tmp_path / "design.toml").exists()
 
 
@@ -221,8 +223,7 @@ def test_fragment_limits_reach_evaluate(tmp_path: Path) -> None:
     from motcomp.presets import plant_source
 
     frag = tmp_path / "f.toml"
-    frag.write_text(FRAGMENT + "pos_min_m = -1.5\npos_max_m = 1.5\nvel_max_m_s = 1.0\n"
-                               "acc_max_m_s2 = 4.0\n")
+    frag.write_text(FRAGMENT + LIMITS)
     src = plant_source(str(frag))
     assert (src.axis, src.label, src.model) == ("rails_y", "f.toml", parse_model(IDENTIFIED))
     assert src.limits is not None and src.limits.names == ("rails_y",)
@@ -242,11 +243,12 @@ def test_gains_table_is_replaced_whole() -> None:
 
 
 def test_rule_and_gains_displace_each_other(tmp_path: Path) -> None:
-    (tmp_path / "base.toml").write_text(FRAGMENT + "gains = { kp = 10.0 }\n")
+    (tmp_path / "base.toml").write_text(FRAGMENT + "gains = { kp = 10.0 }\n" + LIMITS)
     site = tmp_path / "site.toml"
     site.write_text('include = ["base.toml"]\n[axes.rails_y]\nrule = "amigo"\n')
     data = read_toml(site)
-    assert data["axes"]["rails_y"] == {"model": IDENTIFIED, "rule": "amigo"}
+    assert data["axes"]["rails_y"] == {"model": IDENTIFIED, "rule": "amigo",
+                                       **tomllib.loads(LIMITS)}
     src = config_sources(site)
     assert src.sources["axes.rails_y.rule"] == site.resolve()
     assert src.sources["axes.rails_y.model"] == (tmp_path / "base.toml").resolve()

@@ -75,6 +75,34 @@ def test_irregular_time_is_resampled_onto_a_uniform_grid(tmp_path: Path) -> None
     assert np.max(np.abs(rec.cmd - f(grid))) < (2 * np.pi * 1.3 * 1.6e-3) ** 2 / 8
 
 
+def test_short_gaps_are_bridged_and_counted_a_long_one_named(tmp_path: Path,
+                                                             base: tuple[np.ndarray, ...]) -> None:
+    t, cmd, acc = base
+    keep = np.ones(t.size, bool)
+    keep[5000:5010] = False  # 11 ms between two samples
+    keep[12000:12020] = False  # 21 ms
+    path = write_csv(tmp_path / "g.csv", rows_of(t[keep], cmd[keep], acc[keep]))
+    rec = load_recording(path)
+    assert rec.gaps.count == 2 and rec.gaps.longest_s == pytest.approx(0.021, abs=1e-9)
+    assert rec.gaps.total_s == pytest.approx(0.032, abs=1e-9)
+    assert [round(a, 3) for a, _ in rec.gaps.first] == [4.999, 11.999]
+    # the grid goes on through the gaps at the rate outside them; no jitter from the gaps
+    assert rec.resampled and rec.rate_hz == 1000.0 and rec.n == t.size
+    assert rec.period_jitter_s < 1e-9
+    assert rec.window is not None and rec.window.how == "whole recording"
+    # linear interpolation across the 21 ms: the command's error is below (w d)^2 / 8 of it
+    assert np.allclose(rec.cmd, cmd, atol=0.021 ** 2 * np.max(np.abs(np.diff(cmd, 2))) / 8e-6)
+    with pytest.raises(DataError, match=r"g\.csv: line 11992: column t: gap of 0\.021 s without "
+                                        r"data at 11\.999 s \(median period 0\.001 s; longer "
+                                        r"than --max-gap 0\.015 s\)"):
+        load_recording(path, max_gap_s=0.015)
+    # a window of the data, in seconds from its start, leaving the long gap out
+    rec = load_recording(path, max_gap_s=0.015, window=(1.0, 11.0))
+    assert rec.window is not None and rec.window.how == "given"
+    assert rec.window.samples == 10001 - 10 and rec.gaps.count == 1
+    assert rec.start_s == 1.0 and rec.n == 10001
+
+
 def write_mcap(path: Path, t: np.ndarray, cmd: np.ndarray, acc: np.ndarray,
                latency_s: float = 0.0, inputs: np.ndarray | None = None) -> None:
     """A session as the stack records it: the service's outputs (rails_y bypassed) and the
@@ -116,8 +144,10 @@ def test_mcap_session_recording(tmp_path: Path, base: tuple[np.ndarray, ...]) ->
     rec = load_recording(tmp_path / "s.mcap")
     # the axis whose output moves is found; the frames' t are one clock; the command is the
     # output in force at each feedback sample
-    assert rec.axis == "rails_y" and rec.rate_hz == 1000.0 and not rec.resampled
-    assert np.allclose(rec.acc, acc) and np.allclose(rec.cmd, cmd)
+    # (resampled: the time stamps since the epoch vary by their resolution, 0.24 us)
+    assert rec.axis == "rails_y" and rec.rate_hz == 1000.0 and rec.n == t.size
+    assert np.allclose(rec.cmd, cmd, rtol=0, atol=1e-3 * np.ptp(cmd))
+    assert np.allclose(rec.acc, acc, rtol=0, atol=1e-3 * np.ptp(acc))
     assert rec.window is not None and rec.window.samples == t.size
     assert rec.gaps.count == 0 and not rec.warnings
     from motcomp.ident.fit import FitOptions, identify
@@ -127,7 +157,7 @@ def test_mcap_session_recording(tmp_path: Path, base: tuple[np.ndarray, ...]) ->
     # the recorder's clock: each feedback sample, received 0.3 ms late, still pairs with the
     # output in force (received less than a period before it)
     rec_log = load_recording(tmp_path / "s.mcap", clock="log")
-    assert np.allclose(rec_log.cmd, cmd)
+    assert np.allclose(rec_log.cmd, cmd, rtol=0, atol=1e-3 * np.ptp(cmd))
     fit_log = identify(rec_log, FitOptions(models=("p1d",))).fits["p1d"].model
     assert fit_log.pure_delay_s == pytest.approx(fit_frame.pure_delay_s, abs=1.5e-4)
     with pytest.raises(DataError, match=r"platform/feedback: no message carries acc\.hex_y"):

@@ -65,6 +65,11 @@ def test_json_schema(rails_report: tuple[dict, Path]) -> None:
     assert set(rep["bandwidth_hz"]) == {"-3dB", "-6dB"}
     assert rep["axis"] == "rails_y"
     assert rep["data"]["samples"] == 60000 and rep["data"]["rate_hz"] == 1000.0
+    # a CSV: the whole data, no gaps
+    assert rep["data"]["window"] == {"start_s": 0.0, "end_s": pytest.approx(59.999),
+                                     "samples": 60000, "how": "whole recording"}
+    assert rep["data"]["gaps"] == {"count": 0, "longest_ms": 0.0, "total_ms": 0.0,
+                                   "max_gap_s": 0.05, "first": []}
     assert any(abs(f - 14.0) < 0.3 for f in rep["data"]["notches_hz"]) or \
         rep["data"]["prefilter_cutoff_hz"] < 7.0
     assert sorted(Path(f).name for f in rep["files"]) == sorted(
@@ -103,6 +108,8 @@ def test_markdown_and_figures(rails_report: tuple[dict, Path]) -> None:
             "bandwidth (-6 dB) |") in md
     assert "| rails_y | p1d | 17." in md
     assert "| p1d (selected) |" in md and "Selected **p1d**" in md
+    assert ("Window 0.00-60.00 s of the recording (60000 samples; whole recording). No gaps in "
+            "the data.") in md
     for name in ("identification.png", "bode.png", "delay_profile.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert (out / name).stat().st_size > 20000

@@ -100,9 +100,12 @@ def _ask(session: Any, ep: ZenohEndpoints, key: str, payload: bytes | None,
                 raise ServiceError(f"unexpected reply from {key}")
             return out
         time.sleep(min(0.1, max(0.0, t_end - time.monotonic())))
-    peers = list(session.info.peers_zid()) + list(session.info.routers_zid())
-    raise NoPeerError(f"no reply from the service at {ep.describe()} (key {key}) within "
-                      f"{timeout_s:g} s" + ("" if peers else "; no zenoh peer was reachable"))
+    peers = len(list(session.info.peers_zid())) + len(list(session.info.routers_zid()))
+    raise NoPeerError(
+        f"no reply from the service at {ep.describe()} (key {key}) within {timeout_s:g} s; "
+        + (f"{peers} zenoh peer(s) connected, but none answers on this key (another service, "
+           "admin off, or an access-control rule that drops the query?)" if peers
+           else "no zenoh peer was reachable"))
 
 
 def _request(args: argparse.Namespace, key: str, body: dict[str, Any] | None) -> dict[str, Any]:
@@ -192,7 +195,7 @@ def format_status(st: dict[str, Any]) -> str:
             lines.append(f"    {name:<22}" + "".join(f"{v:9.1f}" for v in vals))
     fr = st.get("frames") or {}
     reasons = fr.get("rejected_by_reason") or {}
-    why = ", ".join(f"{k} {v}" for k, v in sorted(reasons.items()))
+    why = ", ".join(f"{k} {v}" for k, v in sorted(reasons.items()) if v)
     lines.append(f"frames      received {fr.get('received', 0)}  accepted {fr.get('accepted', 0)}"
                  f"  rejected {fr.get('rejected', 0)}" + (f" ({why})" if why else "")
                  + f"  superseded {fr.get('superseded', 0)}")

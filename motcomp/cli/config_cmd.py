@@ -9,7 +9,14 @@ import json
 import sys
 from pathlib import Path
 
-from motcomp.config import RESTART_KEYS, config_hash, load_config, new_tick, resolve_axes
+from motcomp.config import (
+    RESTART_KEYS,
+    config_hash,
+    load_config,
+    new_tick,
+    resolve_axes,
+    source_report,
+)
 from motcomp.errors import ConfigError
 
 ORDER = 5
@@ -68,6 +75,11 @@ def run_check(args: argparse.Namespace) -> int:
                   f"tf={g.tf:.4g}; pos [{lim.p_min[i]:g}, {lim.p_max[i]:g}] vel "
                   f"{lim.v_max[i]:g} acc {lim.a_max[i]:g}")
         print(f"restart-only keys: {', '.join(RESTART_KEYS)}; everything else can be reloaded")
+    notes, source_warnings = source_report(args.file, cfg)
+    if not args.json:
+        print("\n".join(notes))
+    for w in source_warnings:
+        print(w, file=sys.stderr)
     for w in axes.warnings:
         print(w, file=sys.stderr)
     return 0

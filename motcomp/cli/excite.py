@@ -56,7 +56,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="neutral hold at both ends (default: 0.5)")
     p.add_argument("--plant", metavar="NAME",
                    help="preset whose limits apply (default: rails for rails_*, hexapod for hex_*)")
-    p.add_argument("--limits", nargs=3, type=positive_float, metavar=("POS", "VEL", "ACC"),
+    p.add_argument("--limits", nargs=3, type=finite_float, metavar=("POS", "VEL", "ACC"),
                    help="symmetric limits instead of a preset's")
     p.add_argument("--out", type=Path, required=True, metavar="STEM",
                    help="output path without suffix")

@@ -9,10 +9,11 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
-from motcomp.cli._common import print_json, rate_arg
+from motcomp.cli._common import positive_float, print_json, rate_arg
 from motcomp.core.axes import AXIS_INDEX
-from motcomp.errors import ConfigError, MotcompError
+from motcomp.errors import ConfigError, DataError, MotcompError
 from motcomp.ident.data import DEFAULT_MAX_GAP_S
+from motcomp.io.zenoh_io import add_zenoh_args, endpoints_from_args
 
 ORDER = 5
 
@@ -37,10 +38,28 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "and not limited (or --window).")
     p.add_argument("data", type=Path, metavar="DATA",
                    help="CSV with columns t,cmd,acc (s, m or rad, m/s^2 or rad/s^2) or an MCAP "
-                        "session recording (motcomp record)")
+                        "session recording (motcomp record); with --live, the recording to "
+                        "write (MCAP)")
+    live = p.add_argument_group(
+        "identification run through the running stack (--live; docs/IDENTIFICATION.md)")
+    live.add_argument("--live", action="store_true",
+                      help="bypass --axis on the running service (its admin endpoints must be "
+                           "enabled; no other motion source may publish), play an excitation "
+                           "on its input, record to DATA, restore the axis' mode, identify")
+    live.add_argument("--excite", choices=("multisine", "noise", "sweep"), default="multisine",
+                      help="excitation kind (default: multisine)")
+    live.add_argument("--excite-s", type=positive_float, default=40.0, metavar="S",
+                      help="excitation length, fades and holds included (default: 40)")
+    live.add_argument("--usage", type=positive_float, default=0.5, metavar="FRACTION",
+                      help="fraction of the axis' tightest limit the excitation reaches "
+                           "(default: 0.5, which the service's limiter leaves alone)")
+    live.add_argument("--admin-key", default="motcomp/admin", metavar="KEY",
+                      help="the service's admin key (default: motcomp/admin)")
+    add_zenoh_args(p)
     p.add_argument("--axis", metavar="NAME",
                    help="axis name (default: from the data, else rails_y); for a recording of "
-                        "several axes, a comma-separated list or 'all'")
+                        "several axes, a comma-separated list or 'all' (every axis whose "
+                        "command moves; those without usable data are left out with a warning)")
     p.add_argument("--models", type=_models, default=("p1d", "p2d", "p2uzd", "oe"),
                    metavar="LIST", help="models to fit (default: p1d,p2d,p2uzd,oe)")
     p.add_argument("--delay-range", nargs=2, type=float, default=(0.0, 250.0),
@@ -114,6 +133,8 @@ def run_identify(args: argparse.Namespace) -> int:
     )
     from motcomp.progress import Progress
 
+    if args.live:
+        _run_live(args)
     axes = _axes(args)
     lo_ms, hi_ms = args.delay_range
     options = FitOptions(models=args.models, delay_min_s=lo_ms * 1e-3, delay_max_s=hi_ms * 1e-3,
@@ -121,14 +142,24 @@ def run_identify(args: argparse.Namespace) -> int:
                          notch=not args.no_notch, select_tolerance=args.select_tolerance)
     idents: dict[str, Identification] = {}
     data_warnings: list[str] = []  # the reader's, once; the windows', per axis
+    refused: list[str] = []
     stages = len(axes) * (1 + 4 * len(options.models))
     # every axis is identified before anything is written
     try:
         with _reader_log_muted(), \
                 Progress("identify", total=stages, quiet=args.quiet or args.json) as bar:
             for name in axes:
-                rec = load_recording(args.data, axis=name, rate_hz=args.rate, clock=args.clock,
-                                     window=args.window, max_gap_s=args.max_gap)
+                try:
+                    rec = load_recording(args.data, axis=name, rate_hz=args.rate,
+                                         clock=args.clock, window=args.window,
+                                         max_gap_s=args.max_gap)
+                except DataError as exc:
+                    if args.axis != "all" or len(axes) == 1:
+                        raise
+                    # 'all': an axis without usable data is left out, with the reason
+                    refused.append(str(exc))
+                    bar.advance(1 + 4 * len(options.models), note=f"{name}: left out")
+                    continue
                 axis = name or rec.axis or "rails_y"
                 prefix = f"{axis}: " if len(axes) > 1 else ""
                 data_warnings += rec.warnings  # the file's, and the window's naming the axis
@@ -139,6 +170,9 @@ def run_identify(args: argparse.Namespace) -> int:
     except MotcompError:
         _print_warnings(data_warnings)
         raise
+    if not idents:
+        raise DataError(f"no axis of {args.data} can be identified: {'; '.join(refused)}")
+    data_warnings += [f"left out: {msg}" for msg in refused]
     out = args.out or args.data.with_name(args.data.stem + "_ident")
     try:
         if len(idents) == 1:
@@ -172,6 +206,32 @@ def run_identify(args: argparse.Namespace) -> int:
         for msg in ident.warnings:
             print(f"warning: {where}{msg}", file=sys.stderr)
     return 0
+
+
+def _run_live(args: argparse.Namespace) -> None:
+    """``--live``: the identification run (:mod:`motcomp.ident.live`); then ``args`` points at
+    the recording and the excitation's window, and says whether the limiter acted in it."""
+    from motcomp.ident.live import LiveOptions, run_live
+    from motcomp.record.session import read_session
+
+    if args.axis is None or args.axis not in AXIS_INDEX:
+        raise ConfigError("--live needs --axis NAME (one axis)")
+    if args.window is not None:
+        raise ConfigError("--live chooses the window itself (the excitation's): drop --window")
+    run = run_live(LiveOptions(axis=args.axis, out=args.data, kind=args.excite,
+                               duration_s=args.excite_s, usage=args.usage,
+                               admin_key=args.admin_key), endpoints_from_args(args))
+    cols = read_session(run.path).identification_columns(args.axis, "frame")
+    t0, t1 = (t - cols.start_s for t in run.window_unix_s)
+    inside = (cols.t - cols.start_s >= t0) & (cols.t - cols.start_s <= t1)
+    limited = int(cols.limited[inside].sum())
+    compensated = int((~cols.bypassed[inside]).sum())
+    print(f"live: {run.frames_sent} excitation frames on {args.axis} "
+          f"({run.excitation['kind']}, {args.usage:g} of its limits) recorded to {run.path}; "
+          f"window {t0:.2f}-{t1:.2f} s; limiter acted on {limited} of {int(inside.sum())} "
+          f"feedback samples, compensation on at {compensated}; axis "
+          f"{'left bypassed' if run.was_bypassed else 'compensated again'}", file=sys.stderr)
+    args.window = (t0, t1)
 
 
 def _print_warnings(warnings: list[str]) -> None:

@@ -118,8 +118,8 @@ def summarise(path: Path, gap_s: float | None = None) -> dict[str, Any]:
     if out is not None and len(out):
         ok = out.valid
         flags, t_s = out.flags[ok], (out.log_ns[ok] - t0) / 1e9
-        order = np.argsort(t_s, kind="stable")
-        flags, t_s = flags[order], t_s[order]
+        by_time = np.argsort(t_s, kind="stable")
+        flags, t_s = flags[by_time], t_s[by_time]
         for axis in AXES:
             runs = _intervals((flags & FLAG_BITS[f"bypass:{axis}"]) != 0, t_s)
             if runs:

@@ -31,7 +31,9 @@ bypassed and not limited (at least :data:`MIN_WINDOW_S`); a recording without th
 Gaps
 ----
 An interval longer than twice the median period is a gap.  Up to ``max_gap_s`` it is bridged
-by the linear interpolation of the resampling and counted (:class:`Gaps`); a longer one ends a
+and counted (:class:`Gaps`): the measurement by the linear interpolation of the resampling, the
+command by its known values at the missing samples when the loader knows them
+(:attr:`RawRecording.cmd_at`: the outputs in force), else linearly too.  A longer gap ends a
 stretch (automatic window) or is an error naming it.
 
 Checks (each a :class:`~motcomp.errors.DataError` naming the place and the value)
@@ -114,7 +116,8 @@ class RawRecording:
     ``t_cmd`` may differ from ``t_acc`` (two streams, e.g. setpoints and feedback); the places
     name each sample's origin (a line number, a message index) for messages.  ``bypassed`` and
     ``limited`` (per ``t_acc`` sample, or None when the format does not say) tell whether the
-    axis was in bypass and whether the limiter acted; ``warnings`` are the reader's.
+    axis was in bypass and whether the limiter acted; ``warnings`` are the reader's.  Without
+    ``cmd_at``, the command is interpolated linearly between its samples.
     """
 
     source: str
@@ -128,6 +131,10 @@ class RawRecording:
     bypassed: np.ndarray | None = None
     limited: np.ndarray | None = None
     warnings: tuple[str, ...] = ()
+    cmd_at: Callable[[FloatArray], tuple[FloatArray, np.ndarray]] | None = None
+    """The command at any times (the output in force) and whether it is known there: fills
+    the measurement's gaps, where the command is known (when the samples share one time
+    array), instead of interpolating it across them."""
 
 
 @dataclass(frozen=True)
@@ -254,8 +261,8 @@ def _long_gap_error(t: FloatArray, i: int, place: Callable[[int], str], src: str
     """The gap between samples ``i`` and ``i + 1``, longer than ``max_gap_s``."""
     d = float(t[i + 1] - t[i])
     med = float(np.median(np.diff(t)))
-    return DataError(f"{src}: {place(i + 1)}: column t: gap of {d:.6g} s without data at "
-                     f"{t[i]:.6g} s (median period {med:.6g} s; longer than --max-gap "
+    return DataError(f"{src}: {place(i + 1)}: column t: gap of {d:.4g} s without data at "
+                     f"{t[i]:.6g} s (median period {med:.3g} s; longer than --max-gap "
                      f"{max_gap_s:g} s)")
 
 
@@ -357,13 +364,13 @@ def select_window(raw: RawRecording, window: tuple[float, float] | None = None,
     if best is None or length < MIN_WINDOW_S:
         period = float(np.median(np.diff(t)))
         found = []
-        comp = int(np.count_nonzero(~raw.bypassed))
-        if comp:
+        n_comp = int(np.count_nonzero(~raw.bypassed))
+        if n_comp:
             found.append(f"compensated (no bypass:{axis} flag in the outputs) during "
-                         f"{comp * period:.1f} s of {t[-1] - t[0]:.1f} s")
-        lim = int(np.count_nonzero(raw.limited))
-        if lim:
-            found.append(f"limited (sat:{axis}) on {lim} samples")
+                         f"{n_comp * period:.1f} s of {t[-1] - t[0]:.1f} s")
+        n_lim = int(np.count_nonzero(raw.limited))
+        if n_lim:
+            found.append(f"limited (sat:{axis}) on {n_lim} samples")
         gaps = int(np.count_nonzero(long_gap))
         if gaps:
             found.append(f"{gaps} gaps longer than --max-gap {max_gap_s:g} s")
@@ -478,8 +485,29 @@ def check_and_resample(raw: RawRecording, rate_hz: float | None = None,
         raise DataError(f"{src}: only {n_new} samples after resampling at {rate:.6g} Hz over the "
                         f"common span {t1 - t0:.6g} s; at least {MIN_SAMPLES} are needed")
     grid = t0 + np.arange(n_new) / rate
+    if raw.cmd_at is not None and gaps.count:
+        t_cmd, cmd = _fill_command(t_cmd, cmd, raw.cmd_at)
     return Recording(t=grid - t0, cmd=np.interp(grid, t_cmd, cmd),
                      acc=np.interp(grid, t_acc, acc), resampled=True, start_s=t0, **common)
+
+
+def _fill_command(t: FloatArray, cmd: FloatArray,
+                  cmd_at: Callable[[FloatArray], tuple[FloatArray, np.ndarray]]
+                  ) -> tuple[FloatArray, FloatArray]:
+    """The command with, in every gap, the samples that would have been there (evenly spaced at
+    about the median period) where ``cmd_at`` knows it: a gap in the measurement is not one in
+    the command."""
+    d = np.diff(t)
+    med = float(np.median(d))
+    idx = np.flatnonzero(d > 2.0 * med)
+    fill = [t[i] + np.arange(1, m) * (d[i] / m)
+            for i, m in zip(idx.tolist(), np.rint(d[idx] / med).astype(int).tolist(),
+                            strict=True)]
+    times = np.concatenate(fill) if fill else np.zeros(0)
+    values, known = cmd_at(times)
+    t_all = np.concatenate([t, times[known]])
+    order = np.argsort(t_all, kind="stable")
+    return t_all[order], np.concatenate([cmd, values[known]])[order]
 
 
 # --- CSV ----------------------------------------------------------------------------------------
@@ -662,6 +690,9 @@ def _load_mcap(path: Path, axis: str | None, clock: str) -> RawRecording:
 
     def place(i: int) -> str:
         return f"{fb_key} message {int(index[i]) if 0 <= i < index.size else i}"
+
+    def cmd_at(times: FloatArray) -> tuple[FloatArray, np.ndarray]:
+        return session.command_in_force(axis, times + cols.start_s, clock)
     return RawRecording(source=src, t_acc=t, acc=cols.acc, t_cmd=t, cmd=cols.cmd, axis=axis,
                         acc_place=place, cmd_place=place, bypassed=cols.bypassed,
-                        limited=cols.limited, warnings=tuple(warnings))
+                        limited=cols.limited, warnings=tuple(warnings), cmd_at=cmd_at)

@@ -110,13 +110,12 @@ def _bad_endpoint(ep: ZenohEndpoints) -> str:
     """The first endpoint zenoh refuses, in words (empty if each is accepted alone)."""
     import zenoh
 
-    for flag, path, endpoints in (("-e/--connect", "connect/endpoints", ep.connect),
-                                  ("-l/--listen", "listen/endpoints", ep.listen)):
+    for role, endpoints in (("connect", ep.connect), ("listen", ep.listen)):
         for e in endpoints:
             try:
-                zenoh.Config().insert_json5(path, json.dumps([e]))
+                zenoh.Config().insert_json5(f"{role}/endpoints", json.dumps([e]))
             except Exception as exc:
-                return f"endpoint {e!r} ({flag}): {zenoh_text(exc)}"
+                return f"{role} endpoint {e!r}: {zenoh_text(exc)}"
     return ""
 
 

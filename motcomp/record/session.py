@@ -164,6 +164,59 @@ class Session:
             return 0.0
         return float((max(int(t[-1]) for t in times) - min(int(t[0]) for t in times)) / 1e9)
 
+    def _outputs_of(self, axis: str, clock: str
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(t, cmd, flags, lost_from)`` of the valid outputs of ``axis`` in time order;
+        ``lost_from[j]`` is the estimated time of the first output the recorder lost after
+        output ``j`` (a jump in ``seq``), else infinity."""
+        if axis not in AXIS_INDEX:
+            raise DataError(f"unknown axis {axis!r}")
+        if clock not in ("frame", "log"):
+            raise DataError(f"clock must be 'frame' or 'log', got {clock!r}")
+        if self.outputs is None or self.feedback is None or not len(self.outputs) or \
+                not len(self.feedback):
+            missing = [f"{role} ({self.keys.get(role, DEFAULT_KEYS[role])})"
+                       for role, s in (("output", self.outputs), ("feedback", self.feedback))
+                       if s is None or not len(s)]
+            raise DataError(f"{self.name}: identification needs recorded outputs and feedback; "
+                            f"no messages on {' and '.join(missing)}")
+        i = AXIS_INDEX[axis]
+        out = self.outputs
+        t_out = out.t if clock == "frame" else out.log_ns / 1e9
+        ok = out.valid & np.isfinite(out.pos[:, i]) & np.isfinite(t_out)
+        to, cmd, flags, seq = t_out[ok], out.pos[ok, i], out.flags[ok], out.seq[ok]
+        order = np.argsort(to, kind="stable")
+        to, cmd, flags, seq = to[order], cmd[order], flags[order], seq[order]
+        lost_from = np.full(to.size, np.inf)
+        ds = np.diff(seq)
+        lost = np.flatnonzero(ds > 1)
+        lost_from[lost] = to[lost] + (to[lost + 1] - to[lost]) / ds[lost]
+        return to, cmd, flags, lost_from
+
+    @staticmethod
+    def _in_force(to: np.ndarray, lost_from: np.ndarray, times: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """Index of the output in force at each time (the last one not after it), and whether
+        it is known (not before the first output, not where the recorder lost outputs)."""
+        k = np.searchsorted(to, times, side="right") - 1
+        known = (k >= 0) & (times < lost_from[np.maximum(k, 0)])
+        return k, known
+
+    def command_in_force(self, axis: str, times: np.ndarray, clock: str = "frame"
+                         ) -> tuple[np.ndarray, np.ndarray]:
+        """``(cmd, known)``: the output position of ``axis`` in force at each of ``times`` (s
+        on ``clock``, see :meth:`identification_columns`), and whether it is known (NaN where
+        not: before the first output, or where the recorder lost outputs).
+
+        Raises
+        ------
+        DataError
+            If the session lacks outputs or feedback, the axis or the clock is unknown.
+        """
+        to, cmd, _, lost_from = self._outputs_of(axis, clock)
+        k, known = self._in_force(to, lost_from, np.asarray(times, dtype=float))
+        return np.where(known, cmd[np.maximum(k, 0)], np.nan), known
+
     def identification_columns(self, axis: str, clock: str = "frame") -> IdentificationColumns:
         """What the platform received and what it did, per feedback sample of ``axis``.
 
@@ -180,38 +233,15 @@ class Session:
         DataError
             If the session lacks outputs or feedback, the axis or the clock is unknown.
         """
-        if axis not in AXIS_INDEX:
-            raise DataError(f"unknown axis {axis!r}")
-        if clock not in ("frame", "log"):
-            raise DataError(f"clock must be 'frame' or 'log', got {clock!r}")
-        if self.outputs is None or self.feedback is None or not len(self.outputs) or \
-                not len(self.feedback):
-            missing = [f"{role} ({self.keys.get(role, DEFAULT_KEYS[role])})"
-                       for role, s in (("output", self.outputs), ("feedback", self.feedback))
-                       if s is None or not len(s)]
-            raise DataError(f"{self.name}: identification needs recorded outputs and feedback; "
-                            f"no messages on {' and '.join(missing)}")
+        to, cmd, flags, lost_from = self._outputs_of(axis, clock)
         i = AXIS_INDEX[axis]
-        out, fb = self.outputs, self.feedback
-        t_out = out.t if clock == "frame" else out.log_ns / 1e9
+        fb = self.feedback
+        assert fb is not None
         t_fb = fb.t if clock == "frame" else fb.log_ns / 1e9
-        ok_o = out.valid & np.isfinite(out.pos[:, i]) & np.isfinite(t_out)
         ok_f = fb.valid & np.isfinite(fb.acc[:, i]) & np.isfinite(t_fb)
-        to, cmd, flags, seq = t_out[ok_o], out.pos[ok_o, i], out.flags[ok_o], out.seq[ok_o]
-        order = np.argsort(to, kind="stable")
-        to, cmd, flags, seq = to[order], cmd[order], flags[order], seq[order]
         fb_index = np.flatnonzero(ok_f)
         tf, acc = t_fb[ok_f], fb.acc[ok_f, i]
-        k = np.searchsorted(to, tf, side="right") - 1
-        known = k >= 0
-        # outputs lost between j and j + 1 (seq jumps by n > 1): from the estimated time of the
-        # first lost one, the command in force is unknown
-        ds = np.diff(seq)
-        lost = np.flatnonzero(ds > 1)
-        if lost.size:
-            next_t = np.full(to.size, np.inf)
-            next_t[lost] = to[lost] + (to[lost + 1] - to[lost]) / ds[lost]
-            known &= tf < next_t[np.maximum(k, 0)]
+        k, known = self._in_force(to, lost_from, tf)
         unknown = int(np.count_nonzero(~known & (k >= 0)))
         k, tf, acc, fb_index = k[known], tf[known], acc[known], fb_index[known]
         sat_bit, bypass_bit = FLAG_BITS[f"sat:{axis}"], FLAG_BITS[f"bypass:{axis}"]

@@ -1,0 +1,161 @@
+"""An identification run through the running stack: ``motcomp identify --live``.
+
+Steps, each on the real processes (the service must run with ``[admin] enabled = true``, and no
+other motion source may publish meanwhile)::
+
+    1  ask the service's status: which axes it drives and bypasses, which config it runs
+    2  bypass the axis (compensation off): the platform receives the excitation itself
+    3  record inputs, outputs, feedback and status (motcomp.record.recorder) to an MCAP file
+    4  play the excitation (motcomp.ident.excitation, a multisine by default) on the service's
+       input at 1 kHz on wall time, at a fraction of the axis' limits the limiter leaves alone
+    5  restore the axis' previous mode (bypass off again if it was compensated), whatever
+       happened in 3-4
+    6  identify from the recording (the service's output in force against the feedback), over
+       the window the excitation played in; the report counts the ticks the limiter acted on
+
+Why a fraction of the limits (default 0.5): the excitation's samples meet the limits, but the
+service reconstructs its input between frames (docs/WIRE.md) and a sender's timing jitter adds
+acceleration of the order of the signal's own; at 0.9 of the limits the limiter acted on most
+ticks, at 0.5 on none (docs/IDENTIFICATION.md).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from motcomp.core.axes import AXES
+from motcomp.errors import ServiceError
+from motcomp.ident.excitation import AxisRange, excitation
+from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, open_session
+from motcomp.record.recorder import RecordOptions, record
+from motcomp.record.session import DEFAULT_KEYS
+
+__all__ = ["LiveOptions", "LiveRun", "run_live"]
+
+log = logging.getLogger("motcomp.ident")
+
+
+@dataclass
+class LiveOptions:
+    """What :func:`run_live` plays and records."""
+
+    axis: str
+    out: Path
+    """The recording (MCAP)."""
+    kind: str = "multisine"
+    duration_s: float = 40.0
+    usage: float = 0.5
+    """Fraction of the tightest limit the excitation reaches."""
+    band_hz: float | None = None
+    seed: int = 0
+    admin_key: str = "motcomp/admin"
+    status_key: str = DEFAULT_KEYS["status"]
+    input_key: str = DEFAULT_KEYS["input"]
+    keys: list[str] = field(default_factory=lambda: list(DEFAULT_KEYS.values()))
+    timeout_s: float = 3.0
+
+
+@dataclass
+class LiveRun:
+    """What happened: the recording, the excitation's window and the limiter's activity."""
+
+    path: Path
+    window_unix_s: tuple[float, float]
+    """Start and end of the excitation (wall clock, s since the epoch)."""
+    was_bypassed: bool
+    excitation: dict[str, Any]
+    frames_sent: int
+
+
+def _ask(session: Any, key: str, body: dict[str, Any] | None, timeout_s: float) -> Any:
+    raw = first_reply(session, key, msgpack.packb(body) if body is not None else None,
+                      timeout_s)
+    return msgpack.unpackb(raw, raw=False)
+
+
+def _limits(status: dict[str, Any], axis: str) -> AxisRange:
+    """The axis' limits from the config the service runs (its file), else the preset's."""
+    from motcomp.config import load_config, resolve_axes
+
+    path = (status.get("config") or {}).get("path")
+    if isinstance(path, str) and Path(path).is_file():
+        lim = resolve_axes(load_config(path)).limits
+        i = AXES.index(axis)
+        return AxisRange(float(lim.p_min[i]), float(lim.p_max[i]), float(lim.v_max[i]),
+                         float(lim.a_max[i]))
+    from motcomp.presets import load_preset
+
+    lim = load_preset("rails" if axis.startswith("rails") else "hexapod").limits
+    return AxisRange(float(lim.p_min[0]), float(lim.p_max[0]), float(lim.v_max[0]),
+                     float(lim.a_max[0]))
+
+
+def run_live(opts: LiveOptions, endpoints: ZenohEndpoints) -> LiveRun:
+    """Steps 1-5 of the module docstring; returns the recording to identify (step 6).
+
+    Raises
+    ------
+    ServiceError
+        If the service does not answer, does not drive the axis, or refuses the bypass.
+    """
+    from motcomp.sim.source import Trajectory, publish
+
+    with open_session(endpoints) as session:
+        status = _ask(session, opts.status_key, None, opts.timeout_s)
+        if opts.axis not in status.get("driven", []):
+            raise ServiceError(f"the service does not drive {opts.axis} (driven: "
+                               f"{', '.join(status.get('driven', [])) or 'none'})")
+        was_bypassed = opts.axis in status.get("bypass", [])
+        limits = _limits(status, opts.axis)
+        exc = excitation(opts.kind, opts.axis, limits, duration_s=opts.duration_s,
+                         band_hz=opts.band_hz, seed=opts.seed, usage=opts.usage)
+        if not was_bypassed:
+            reply = _ask(session, f"{opts.admin_key}/bypass", {"on": True, "axes": [opts.axis]},
+                         opts.timeout_s)
+            if not reply.get("ok"):
+                raise ServiceError(f"the service refused to bypass {opts.axis}: "
+                                   f"{reply.get('error')} (is [admin] enabled?)")
+            log.info("%s bypassed for the identification run", opts.axis)
+        stop = threading.Event()
+        rec_opts = RecordOptions(out=opts.out, keys=opts.keys, status_key=opts.status_key,
+                                 status_timeout_s=opts.timeout_s)
+        result: dict[str, Any] = {}
+
+        def recorder() -> None:
+            try:
+                result["summary"] = record(rec_opts, endpoints, stop)
+            except BaseException as e:  # reported below
+                result["error"] = e
+
+        thread = threading.Thread(target=recorder, name="motcomp-live-record", daemon=True)
+        try:
+            time.sleep(0.5)  # the bypass fade (loop.bypass_fade_s) before the recording
+            thread.start()
+            time.sleep(1.0)  # the recorder's subscriptions reach the peers
+            traj = Trajectory(rate_hz=exc.rate_hz, pos={opts.axis: np.asarray(exc.cmd)})
+            t0 = time.time()
+            stats = publish(traj, endpoints, opts.input_key, wait_peer_s=opts.timeout_s)
+            t1 = time.time()
+            time.sleep(0.5)  # the platform's last response and its feedback
+        finally:
+            stop.set()
+            thread.join(timeout=30)
+            if not was_bypassed:
+                reply = _ask(session, f"{opts.admin_key}/bypass",
+                             {"on": False, "axes": [opts.axis]}, opts.timeout_s)
+                if reply.get("ok"):
+                    log.info("%s compensated again", opts.axis)
+                else:
+                    log.error("could not restore compensation on %s: %s", opts.axis,
+                              reply.get("error"))
+    if "error" in result:
+        raise ServiceError(f"recording failed: {result['error']}") from result["error"]
+    return LiveRun(opts.out, (t0, t1), was_bypassed, exc.summary(), stats.sent)

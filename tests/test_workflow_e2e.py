@@ -1,0 +1,126 @@
+"""The lab's workflow end to end on the real processes, each step one command, no number edited
+by hand: an unknown (simulated) platform -> ``identify --live`` through the running service ->
+``design --plant <fragment> --out`` -> ``config check`` -> ``reload`` -> the slalom's apparent
+delay measured on the platform's feedback.
+
+Opt-in (``pytest -m e2e``, about 70 s): it does not yet hold its targets reliably.  In three runs
+the P1D fit's Td was within 0.8 ms of the drawn 29.2 ms each time, its Tp1 within 4 %, 4 % and
+5.3 % of 293 ms, and the slalom's apparent delay after the reload 8 ms against the 5 ms asked;
+the identification selects a second-order model on the simulated platform's data (a second pole
+of 14-18 ms that the drawn P1D does not have), whose P1D reduction the compensator then uses."""
+
+from __future__ import annotations
+
+import json
+import re
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from motcomp.config import load_config
+from motcomp.core.models import parse_model
+from motcomp.design.timedomain import estimate_delay
+from motcomp.io.zenoh_io import free_tcp_port, loopback
+from motcomp.record.session import read_session
+from motcomp.resources import config_file
+from tests.conftest import motcomp_cmd, subprocess_env
+from tests.test_service_process import process
+
+pytestmark = [pytest.mark.slow, pytest.mark.e2e]
+
+PRESET_TD, PRESET_TP1 = 0.0175, 0.1858
+
+
+def draw_plant(seed: int = 20261124) -> tuple[float, float]:
+    """A rails platform unlike the preset: Td 10-30 ms, Tp1 100-300 ms, at least 3 ms and 15 %
+    away from the preset's."""
+    rng = np.random.default_rng(seed)
+    while True:
+        td = round(float(rng.uniform(0.010, 0.030)), 4)
+        tp1 = round(float(rng.uniform(0.10, 0.30)), 3)
+        if abs(td - PRESET_TD) >= 0.003 and abs(tp1 / PRESET_TP1 - 1) >= 0.15:
+            return td, tp1
+
+
+def cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(motcomp_cmd(*args), capture_output=True, text=True,
+                          env=subprocess_env(), timeout=timeout)
+
+
+def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path) -> None:
+    td, tp1 = draw_plant()
+    truth = f"p1d:K=1,Td={td},Tp1={tp1}"
+    p_svc, p_hil = free_tcp_port(), free_tcp_port()
+    svc_ep, hil_ep = loopback(p_svc), loopback(p_hil)
+    site = tmp_path / "site.toml"
+    admin = "[admin]\nenabled = true\n"
+    site.write_text(f'include = ["{config_file("motcomp.toml")}"]\n{admin}')
+    with process(["hil", "-l", hil_ep, "--truth", f"rails_y={truth}", "--log-level", "warning"],
+                 tmp_path / "hil.log"), \
+            process(["run", "--config", str(site), "-l", svc_ep, "-e", hil_ep],
+                    tmp_path / "svc.log") as svc:
+        time.sleep(2.0)
+        # 1. identification through the stack
+        ident = tmp_path / "ident"
+        p = cli("identify", "--live", "--axis", "rails_y", str(tmp_path / "live.mcap"),
+                "--excite-s", "30", "--out", str(ident), "--json", "--quiet", "--no-figures",
+                "-e", svc_ep, "-e", hil_ep)
+        assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+        m = re.search(r"limiter acted on (\d+) of (\d+) feedback samples, compensation on at "
+                      r"(\d+)", p.stderr)
+        # the axis was bypassed over the whole window and compensated again after it; the
+        # report says how often the limiter acted (the fit uses the command the platform
+        # received, limited or not)
+        assert m and int(m.group(2)) > 20000 and int(m.group(3)) == 0, p.stderr
+        assert "compensated again" in p.stderr
+        fragment = ident / "rails_y.toml"
+        model = parse_model(re.search(r'model = "([^"]+)"', fragment.read_text()).group(1))
+        # the P1D fit against the drawn truth (the selected model may add the accelerometer's
+        # own lag as a second pole: the fragment says which and why)
+        p1d = json.loads(p.stdout)["models"]["p1d"]["params"]
+        assert abs(p1d["Td"] - td) <= 1e-3, (p1d, truth, fragment.read_text())
+        assert abs(p1d["Tp1"] / tp1 - 1) <= 0.05, (p1d, truth, fragment.read_text())
+        # 2. design from the fragment, written as a fragment of the config
+        design = tmp_path / "design.toml"
+        p = cli("design", "--plant", str(fragment), "--rule", "optimal", "--out", str(design),
+                "--quiet")
+        assert p.returncode == 0, p.stderr
+        # 3. the site config includes both; config check accepts it
+        site.write_text(f'include = ["{config_file("motcomp.toml")}", "{fragment}", '
+                        f'"{design}"]\n{admin}')
+        p = cli("config", "check", str(site))
+        assert p.returncode == 0, p.stderr
+        assert "  rails_y    model from design.toml, gains from design.toml" in p.stdout
+        eff = load_config(site).axes["rails_y"]
+        assert parse_model(eff.model) == model and eff.gains is not None
+        # 4. reload into the running service
+        p = cli("reload", "-e", svc_ep)
+        assert p.returncode == 0, p.stdout + p.stderr
+        # 5. the slalom, measured on the platform's feedback
+        rec = tmp_path / "slalom.mcap"
+        with process(["record", "-o", str(rec), "-e", svc_ep, "-e", hil_ep],
+                     tmp_path / "rec.log") as recorder:
+            time.sleep(1.5)
+            p = cli("source", "--signal", "slalom", "--quiet", "-e", svc_ep)
+            assert p.returncode == 0, p.stderr
+            time.sleep(1.0)
+            recorder.send_signal(signal.SIGTERM)
+            assert recorder.wait(timeout=30) == 0
+        svc.send_signal(signal.SIGTERM)
+        assert svc.wait(timeout=30) == 0
+    s = read_session(rec)
+    assert s.inputs is not None and s.feedback is not None
+    y_axis = 1  # rails_y
+    ti, ri = s.inputs.t, s.inputs.pos[:, y_axis]
+    tf, yf = s.feedback.t, s.feedback.pos[:, y_axis]
+    ok = np.isfinite(ri)
+    ti, ri = ti[ok], ri[ok]
+    grid = np.arange(max(ti[0], tf[0]) + 0.5, min(ti[-1], tf[-1]) - 0.5, 1e-3)
+    delay = estimate_delay(np.interp(grid, ti, ri), np.interp(grid, tf, yf), 1000.0,
+                           min_lag_s=-0.1, max_lag_s=0.5)
+    # the drawn platform lags about 320 ms; the issue asks for < 5 ms once compensated
+    assert delay < 5e-3, f"apparent slalom delay {delay * 1e3:.1f} ms with {truth}"
