@@ -7,7 +7,6 @@ zenoh sessions over loopback (multicast scouting off, a free port each)."""
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import signal
 import socket
@@ -35,6 +34,7 @@ from motcomp.io.zenoh_io import ZenohEndpoints, free_tcp_port, loopback, open_se
 from motcomp.replay.synth import SynthOptions, synthesize
 from motcomp.resources import config_file
 from tests.conftest import motcomp_cmd, subprocess_env
+from tests.test_service_process import process
 
 
 def cli(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
@@ -45,19 +45,6 @@ def cli(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
 def dead_endpoint() -> str:
     """A loopback endpoint nobody listens on."""
     return loopback(free_tcp_port())
-
-
-@contextlib.contextmanager
-def spawn(args: list[str], log: Path) -> Iterator[subprocess.Popen[bytes]]:
-    with log.open("wb") as fh:
-        p = subprocess.Popen(motcomp_cmd(*args), stdout=fh, stderr=subprocess.STDOUT,
-                             env=subprocess_env())
-        try:
-            yield p
-        finally:
-            if p.poll() is None:
-                p.kill()
-                p.wait()
 
 
 def wait_for_text(log: Path, text: str, proc: subprocess.Popen[bytes],
@@ -208,7 +195,7 @@ def test_source_shows_progress_and_says_it_was_stopped(tmp_path: Path) -> None:
     with open_session(ZenohEndpoints(listen=(loopback(port),))) as session:
         sub = session.declare_subscriber("sim/motion/setpoint", zenoh.handlers.RingChannel(1))
         log = tmp_path / "source.log"
-        with spawn(["source", "--signal", "sweep", "-e", loopback(port), "--lead-in", "0"],
+        with process(["source", "--signal", "sweep", "-e", loopback(port), "--lead-in", "0"],
                    log) as src:
             wait_for_text(log, " of 60.0 s (", src, timeout=20)  # a progress line
             assert sub.try_recv() is not None
@@ -225,7 +212,7 @@ def test_source_shows_progress_and_says_it_was_stopped(tmp_path: Path) -> None:
 def test_hil_logs_its_setup_and_a_summary_at_exit(tmp_path: Path) -> None:
     port = free_tcp_port()
     log = tmp_path / "hil.log"
-    with spawn(["hil", "-l", loopback(port), "--quiet-sensor"], log) as hil:
+    with process(["hil", "-l", loopback(port), "--quiet-sensor"], log) as hil:
         text = wait_for_text(log, "accelerometer: ideal", hil)
         assert f"zenoh listen {loopback(port)}" in text and "setpoints from zenoh " \
             "platform/setpoint" in text
@@ -281,7 +268,7 @@ def test_status_table_from_a_status_map() -> None:
 def test_status_of_a_running_service_as_table_json_and_watch(tmp_path: Path) -> None:
     port = free_tcp_port()
     ep = loopback(port)
-    with spawn(["run", "--config", str(config_file("motcomp.toml")), "-l", ep],
+    with process(["run", "--config", str(config_file("motcomp.toml")), "-l", ep],
                tmp_path / "svc.log"):
         p = cli("status", "-e", ep, "--timeout", "20")  # waits for the service to come up
         assert p.returncode == 0, p.stderr

@@ -35,10 +35,7 @@ def _number(text: str, kind: Callable[[str], float], what: str) -> float:
 
 def rate_arg(text: str) -> float:
     """A rate in Hz: a positive finite number."""
-    value = _number(text, float, "a rate in Hz (a positive number)")
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"rate must be a positive number of Hz, got {text!r}")
-    return value
+    return _positive(text, "a rate in Hz (a positive number)")
 
 
 def finite_float(text: str) -> float:
@@ -48,9 +45,13 @@ def finite_float(text: str) -> float:
 
 def positive_float(text: str) -> float:
     """A finite number > 0 (argparse ``type``)."""
-    value = _number(text, float, "a positive number")
+    return _positive(text, "a positive number")
+
+
+def _positive(text: str, what: str) -> float:
+    value = _number(text, float, what)
     if not value > 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
     return value
 
 
