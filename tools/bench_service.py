@@ -381,7 +381,7 @@ def report(args: argparse.Namespace, rows: list[dict[str, Any]],
         "two in alternating order).  Missed ticks count from the publisher's first frame; tick "
         f"times are the service's own status over the last {max(args.seconds - 2, 1):g} s: "
         "*compute* is the tick's own work (validation, reference, compensator, saturation "
-        "verdicts, encoding), *io* its calls into zenoh (taking the newest input, sending the "
+        "verdicts), *io* its ports' (taking the newest input; encoding and sending the "
         "output), *whole* the two together (percentiles of each series apart: they do not add "
         "up); latency = output received (stamped as zenoh delivers it) - input published "
         "(same clock); steal = the share of this virtual machine's CPU time the host took "

@@ -65,9 +65,9 @@ log = logging.getLogger("motcomp.service")
 
 STAT_SERIES = ("tick", "compute", "io", "late")
 """What the loop times, per tick (us): ``tick`` from waking at the deadline to the end of the
-tick; ``io`` the part of it spent in transport calls (taking the newest input, sending the
-outputs); ``compute`` the rest (commands, catch-up steps, validation, reference, compensator,
-saturation verdicts, encoding); ``late`` waking after the deadline."""
+tick; ``io`` the part of it spent in the ports (taking the newest input; encoding and sending
+the outputs); ``compute`` the rest (commands, :func:`motcomp.core.tick.step`: catch-up steps,
+validation, reference, compensator, saturation verdicts); ``late`` waking after the deadline."""
 
 
 class ModeLog:
