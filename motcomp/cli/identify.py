@@ -232,6 +232,10 @@ def _run_live(args: argparse.Namespace) -> None:
           f"feedback samples, compensation on at {compensated}; axis "
           f"{'left bypassed' if run.was_bypassed else 'compensated again'}", file=sys.stderr)
     args.window = (t0, t1)
+    if args.cutoff is None:  # the fit sees the band the excitation covers, not the limiter's
+        from motcomp.ident.excitation import default_band_hz  # chatter above it
+
+        args.cutoff = 2.0 * default_band_hz(args.axis)
 
 
 def _print_warnings(warnings: list[str]) -> None:
