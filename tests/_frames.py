@@ -1,10 +1,28 @@
-"""Checks on output frames received over the wire."""
+"""Checks on output frames received over the wire, and strategies for hostile input frames."""
 
 from __future__ import annotations
 
 from typing import Any
 
 import numpy as np
+from hypothesis import strategies as st
+
+from motcomp.core.axes import AXES
+
+ints = st.integers(-(2**63), 2**64 - 1)  # what msgpack can carry
+scalars = st.none() | st.booleans() | ints | st.floats() | st.text(max_size=8) \
+    | st.binary(max_size=8)
+anything = st.recursive(
+    scalars, lambda c: st.lists(c, max_size=4) | st.dictionaries(scalars, c, max_size=4),
+    max_leaves=12)
+"""Any msgpack-able object."""
+seqs = st.integers(0, 3000) | ints
+frame_like = st.fixed_dictionaries(
+    {}, optional={"seq": anything | seqs, "t": anything | st.floats(),
+                  "pos": anything | st.dictionaries(st.sampled_from([*AXES, "rails_z"]),
+                                                    anything | st.floats(), max_size=4),
+                  "other": anything})
+"""Maps shaped like input frames, with anything in their fields."""
 
 
 def assert_frames_within_limits(frames: list[dict[str, Any]], axis: str, v_max: float,

@@ -37,6 +37,7 @@ from motcomp.core.tick import (
     step,
 )
 from motcomp.io.wire import encode_input
+from tests._frames import anything, frame_like, seqs
 from tests.test_saturation import check_sequence
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -124,18 +125,6 @@ def same_output(a: TickOutput, b: TickOutput) -> bool:
 
 
 # --- any payload -----------------------------------------------------------------------------
-ints = st.integers(-(2**63), 2**64 - 1)  # what msgpack can carry
-scalars = st.none() | st.booleans() | ints | st.floats() | st.text(max_size=8) \
-    | st.binary(max_size=8)
-anything = st.recursive(
-    scalars, lambda c: st.lists(c, max_size=4) | st.dictionaries(scalars, c, max_size=4),
-    max_leaves=12)
-seqs = st.integers(0, 3000) | ints
-frame_like = st.fixed_dictionaries(
-    {}, optional={"seq": anything | seqs, "t": anything | st.floats(),
-                  "pos": anything | st.dictionaries(st.sampled_from([*AXES, "rails_z"]),
-                                                    anything | st.floats(), max_size=4),
-                  "other": anything})
 well_formed = st.builds(
     encode_input, seqs, st.none() | st.floats(-10, 10) | st.floats(),
     st.dictionaries(st.sampled_from(AXES), st.floats(-0.5, 0.5) | st.floats(-5, 5), min_size=1))

@@ -24,6 +24,7 @@ from motcomp.io.wire import (
     encode_input,
     encode_output,
 )
+from tests._frames import anything, frame_like, ints
 
 LIMITS = [-2.6] * 2 + [-0.25] * 6, [2.6] * 2 + [0.25] * 6
 REACH = tuple(lo - 0.25 * (hi - lo) for lo, hi in zip(*LIMITS, strict=True)), \
@@ -53,7 +54,6 @@ def test_output_and_feedback_round_trip(seq: int, t: float, pos: list[float],
     assert fb["pos"]["rails_x"] == 1.0
 
 
-ints = st.integers(-(2**63), 2**64 - 1)  # what msgpack can carry
 
 
 @settings(max_examples=200)
@@ -78,16 +78,6 @@ def test_output_rejects_wrong_arguments() -> None:
         encode_output(2**64, 0.0, 0, [0.0] * 8, [])
 
 
-anything = st.recursive(
-    st.none() | st.booleans() | ints | st.floats() | st.text(max_size=8)
-    | st.binary(max_size=8),
-    lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=8), c, max_size=4),
-    max_leaves=12)
-frame_like = st.fixed_dictionaries(
-    {}, optional={"seq": anything | ints, "t": anything | st.floats(),
-                  "pos": anything | st.dictionaries(st.sampled_from([*AXES, "rails_z"]),
-                                                    anything | st.floats(), max_size=4),
-                  "other": anything})
 float32_frame = st.builds(
     lambda seq, pos: b"\x82\xa3seq" + msgpack.packb(seq) + b"\xa3pos"
     + bytes([0x80 | len(pos)]) + b"".join(msgpack.packb(a) + msgpack.packb(x, use_single_float=True)

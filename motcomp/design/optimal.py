@@ -77,6 +77,7 @@ __all__ = [
     "OptimalDesign",
     "OptimalOptions",
     "Uncertainty",
+    "bypass_recommended",
     "member_table",
     "optimise",
     "perturb",
@@ -460,6 +461,17 @@ class _Problem:
         return self.gains(res.x), int(res.status), int(res.nit)
 
 
+def bypass_recommended(residual_ms: float, uncompensated_ms: float, internal: P1D,
+                       min_gain_ms: float, worse: bool = False) -> bool:
+    """The one bypass rule: compensation is not worth it when the residual delay over the band
+    is no better than the uncompensated one, or gains less than ``min_gain_ms``, or the
+    platform is delay-dominated (``Tp1 < DELAY_DOMINATED_RATIO * Td``), or ``worse`` (a
+    caller's further reason: a gain error, an unstable lag)."""
+    return (worse or residual_ms > uncompensated_ms
+            or uncompensated_ms - residual_ms < min_gain_ms
+            or internal.Tp1 < DELAY_DOMINATED_RATIO * internal.Td)
+
+
 def _blocks(n: int, size: int) -> int:
     return max(1, n // size)
 
@@ -666,7 +678,8 @@ def optimise(plant: ProcessModel, model: P1D | None = None, rate_hz: float = 100
     worse = (nominal.max_residual_delay_ms > uncomp_ms
              or nominal.gain_error_db > max(gain_limit, nominal.uncorrected_gain_error_db))
     delay_dominated = internal.Tp1 < DELAY_DOMINATED_RATIO * internal.Td
-    bypass = worse or gain_ms < min_gain_ms or delay_dominated
+    bypass = bypass_recommended(nominal.max_residual_delay_ms, uncomp_ms, internal, min_gain_ms,
+                                worse)
     warnings: list[str] = []
     if violations:
         warnings.append("WARNING: no design meets every bound; best compromise violates: "

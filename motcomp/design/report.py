@@ -107,10 +107,9 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
     if design is not None:
         bypass = design.recommend_bypass
     else:
-        min_gain_ms = (options or opt.OptimalOptions()).min_gain_ms
-        bypass = (worse or ev.uncorrected_max_delay_ms - ev.max_residual_delay_ms < min_gain_ms
-                  or internal.Tp1 < opt.DELAY_DOMINATED_RATIO * internal.Td
-                  or check_lag(gains, internal) is not None)
+        bypass = opt.bypass_recommended(
+            ev.max_residual_delay_ms, ev.uncorrected_max_delay_ms, internal,
+            (options or opt.OptimalOptions()).min_gain_ms, check_lag(gains, internal) is not None)
     if worse:
         warnings.append(
             f"WARNING: the corrected response lags MORE than the uncorrected one over the band "
