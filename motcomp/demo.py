@@ -30,7 +30,7 @@ import msgpack
 import numpy as np
 
 from motcomp.core.axes import AXES
-from motcomp.design.timedomain import estimate_delay
+from motcomp.core.quality import estimate_delay
 from motcomp.errors import ServiceError
 from motcomp.io.zenoh_io import (
     ZenohEndpoints,

@@ -23,7 +23,7 @@ import pytest
 
 from motcomp.config import load_config
 from motcomp.core.models import parse_model
-from motcomp.design.timedomain import estimate_delay
+from motcomp.core.quality import estimate_delay
 from motcomp.io.zenoh_io import free_tcp_port, loopback
 from motcomp.record.session import read_session
 from motcomp.resources import config_file

@@ -35,12 +35,12 @@ from motcomp.core.lti import FloatArray
 from motcomp.core.minjerk import min_jerk
 from motcomp.core.models import P1D, ProcessModel, simulate_axis
 from motcomp.core.pid import PIDGains
+from motcomp.core.quality import estimate_delay
 from motcomp.core.saturation import AxisLimits
 from motcomp.errors import ConfigError
 
 __all__ = [
     "SimulationResult",
-    "estimate_delay",
     "fade_envelope",
     "limits_for",
     "minimum_jerk",
@@ -114,44 +114,6 @@ def slalom(rate_hz: float, speed_kmh: float = 40.0, cone_spacing_m: float = 18.0
     env[ramp_out] = minimum_jerk((weave_s - tw[ramp_out]) / pitch_s)
     r = scale * lateral_m * env * np.sin(2 * math.pi * f * np.clip(tw, 0, None))
     return t, r
-
-
-def estimate_delay(reference: ArrayLike, response: ArrayLike, rate_hz: float,
-                   max_lag_s: float = 1.0, min_lag_s: float = -0.5) -> float:
-    """Delay (s) of ``response`` behind ``reference`` by cross-correlation, sub-sample.
-
-    The search covers lags in ``[min_lag_s, max_lag_s]``; the integer peak is refined by a
-    parabola through it and its neighbours.
-
-    Raises
-    ------
-    ConfigError
-        If the signals differ in length, are constant, or the peak sits on the edge of the range.
-    """
-    r = np.asarray(reference, dtype=float)
-    y = np.asarray(response, dtype=float)
-    if r.shape != y.shape or r.ndim != 1:
-        raise ConfigError(f"reference and response must be 1-D of equal length, got {r.shape} "
-                          f"and {y.shape}")
-    r = r - r.mean()
-    y = y - y.mean()
-    if not (np.any(r) and np.any(y)):
-        raise ConfigError("cannot estimate a delay: a signal is constant")
-    n = r.size
-    nfft = 1 << math.ceil(math.log2(2 * n))
-    xc = np.fft.irfft(np.fft.rfft(y, nfft) * np.conj(np.fft.rfft(r, nfft)), nfft)
-    lo = math.floor(min_lag_s * rate_hz)
-    hi = math.ceil(max_lag_s * rate_hz)
-    lags = np.arange(lo, hi + 1)
-    vals = xc[lags % nfft]
-    i = int(np.argmax(vals))
-    if i == 0 or i == lags.size - 1:
-        raise ConfigError(f"cross-correlation peak at the edge of the searched lags "
-                          f"[{min_lag_s}, {max_lag_s}] s: widen the range")
-    y0, y1, y2 = vals[i - 1], vals[i], vals[i + 1]
-    denom = y0 - 2 * y1 + y2
-    frac = 0.5 * (y0 - y2) / denom if denom != 0 else 0.0
-    return float((lags[i] + frac) / rate_hz)
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """What a replay shows: apparent delays, saturation, differences from the recorded outputs.
 
-Apparent delay (:func:`~motcomp.design.timedomain.estimate_delay`, cross-correlation with
+Apparent delay (:func:`~motcomp.core.quality.estimate_delay`, cross-correlation with
 sub-sample refinement) of a response behind the motion-cueing reference, per axis, on windows
 of :data:`WINDOW_S` (at least :data:`MIN_WINDOW_S`) where the reference moves (peak to peak
 above :data:`MIN_MOTION`) and the compensation state does not change, at most
@@ -147,7 +147,7 @@ gone when the window begins (the models' time constants are well below a second)
 
 
 def _estimate(r: np.ndarray, y: np.ndarray, rate_hz: float) -> float | None:
-    from motcomp.design.timedomain import estimate_delay
+    from motcomp.core.quality import estimate_delay
 
     if not np.all(np.isfinite(r)) or not np.all(np.isfinite(y)) or np.ptp(r) < MIN_MOTION:
         return None
