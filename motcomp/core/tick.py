@@ -142,6 +142,9 @@ class TickState:
         self.src_seq = -1
         self.superseded = 0
         self.sat = [0] * n
+        self.acted = [0] * n
+        """Ticks on which the limiter changed the command of each axis (any bound, any
+        amount; :attr:`sat` counts only the saturation verdict)."""
         self.ticks = 0
         self.mode = "startup"
         self._dev_lp = [0.0] * n
@@ -178,7 +181,7 @@ def step(state: TickState, p: TickParams, now_ns: int, payload: bytes | None = N
     u = comp.step(ref)
     flags = [mode] if mode else []
     limited = [False] * len(u)
-    sat, lp, dev = state.sat, state._dev_lp, comp.deviation
+    sat, lp, dev, acted = state.sat, state._dev_lp, comp.deviation, state.acted
     tol = p.saturation_tolerance
     alpha = p.verdict_alpha
     keep = 1.0 - alpha
@@ -186,6 +189,8 @@ def step(state: TickState, p: TickParams, now_ns: int, payload: bytes | None = N
         d = dev[i]
         if not f and d == 0.0 and lp[i] == 0.0:  # the common case: nothing to average
             continue
+        if f:
+            acted[i] += 1
         lp[i] = alpha * d + keep * lp[i]
         # no flag but a deviation: the target lay beyond the range, the command holds its end
         if f & _HARD_BITS or (f and abs(lp[i]) > tol) or (not f and d != 0.0):
