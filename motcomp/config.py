@@ -171,7 +171,7 @@ class InputConfig(BaseModel):
     model_config = _STRICT
     key: str = "sim/motion/setpoint"
     reject_beyond_fraction: float = Field(0.25, ge=0.0, le=10.0)
-    reconstruction: Literal["linear", "hold"] = "linear"
+    reconstruction: Literal["linear", "smooth", "hold"] = "linear"
     max_extrapolation_s: float = Field(0.02, ge=0.0, le=1.0)
     max_frame_bytes: int = Field(4096, ge=64, le=1_048_576)
 
@@ -766,7 +766,7 @@ def tick_params(cfg: ServiceConfig, axes: ResolvedAxes) -> TickParams:
                                              for v in lim.v_max),
         reach_lo=lo, reach_hi=hi, stale_after_s=loop.stale_after_s, hold_s=loop.hold_s,
         rejoin_s=loop.rejoin_s, startup_s=loop.startup_s,
-        linear=cfg.input.reconstruction == "linear",
+        reconstruction=cfg.input.reconstruction,
         max_extrapolation_s=cfg.input.max_extrapolation_s)
     return TickParams(loop.rate_hz, shaper, cfg.status.saturation_tolerance,
                       cfg.input.max_frame_bytes)

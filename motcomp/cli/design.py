@@ -45,6 +45,13 @@ def _add_optimal(p: argparse.ArgumentParser) -> None:
                    metavar="GAIN",
                    help=f"bound on the command amplification max|u/r| at any frequency "
                         f"(default {_DEFAULTS.max_command_gain:g})")
+    g.add_argument("--hf-gain", type=float, default=_DEFAULTS.hf_command_gain, metavar="GAIN",
+                   help=f"bound on the command amplification at and above --hf-from: what "
+                        f"input jitter and steps reach the platform multiplied by (default "
+                        f"{_DEFAULTS.hf_command_gain:g}; docs/TUNING.md has the trade-off)")
+    g.add_argument("--hf-from", type=float, default=_DEFAULTS.hf_from_hz, metavar="HZ",
+                   help=f"lower edge of the range of --hf-gain (default "
+                        f"{_DEFAULTS.hf_from_hz:g} Hz)")
     g.add_argument("--command-excess-db", type=float, default=_DEFAULTS.command_excess_db,
                    metavar="DB",
                    help=f"in-band bound on the command relative to the exact inverse of the "
@@ -141,7 +148,7 @@ def _options(args: argparse.Namespace) -> OptimalOptions:
     constraints = Constraints(
         peak_db=args.peak_db, gain_error_db=args.gain_db, band_hz=tuple(args.band),
         max_command_gain=args.max_command, command_excess_db=args.command_excess_db,
-        max_sensitivity=args.max_ms)
+        max_sensitivity=args.max_ms, hf_command_gain=args.hf_gain, hf_from_hz=args.hf_from)
     k_rel, td_s, t_rel = args.uncertainty
     uncertainty = Uncertainty(k_rel, td_s, t_rel) if args.robust else None
     return OptimalOptions(constraints=constraints, uncertainty=uncertainty,

@@ -41,6 +41,7 @@ from motcomp.errors import ConfigError
 
 __all__ = [
     "BAND_HZ",
+    "HF_FROM_HZ",
     "REPORT_FREQS_HZ",
     "Evaluation",
     "LoopResponse",
@@ -53,6 +54,9 @@ REPORT_FREQS_HZ: tuple[float, ...] = (0.2, 0.5, 1.0, 2.0)
 """Frequencies at which phase delays are reported (the paper's driver band)."""
 BAND_HZ: tuple[float, float] = (0.1, 2.0)
 """The driver band: steering inputs live in 0-2 Hz (paper)."""
+HF_FROM_HZ = 10.0
+"""Lower edge of the high-frequency range where the command's gain is bounded: no driver
+input lives there, only the input stream's irregularities."""
 
 
 def pid_continuous(g: PIDGains) -> tuple[Poly, Poly]:
@@ -160,6 +164,10 @@ class Evaluation:
     peak_gain_hz: float
     peak_command_gain: float
     peak_command_gain_hz: float
+    hf_command_gain: float
+    """Largest ``|F|`` at or above ``hf_from_hz``: what an irregularity of the input (jitter,
+    steps, quantisation) reaches the platform multiplied by."""
+    hf_from_hz: float
     ms: float
     stable: bool
     max_pole_modulus: float
@@ -175,7 +183,8 @@ def _key(f: float) -> str:
 
 def evaluate(gains: PIDGains, model: P1D, plant: ProcessModel | None = None,
              rate_hz: float | None = 1000.0, band_hz: tuple[float, float] = BAND_HZ,
-             report_hz: tuple[float, ...] = REPORT_FREQS_HZ) -> Evaluation:
+             report_hz: tuple[float, ...] = REPORT_FREQS_HZ,
+             hf_from_hz: float = HF_FROM_HZ) -> Evaluation:
     """All frequency-domain metrics of a design.
 
     Parameters
@@ -189,6 +198,8 @@ def evaluate(gains: PIDGains, model: P1D, plant: ProcessModel | None = None,
         still judged on the discrete loop at 1 kHz, the service's default rate).
     band_hz
         Band of the residual-delay and gain-error metrics.
+    hf_from_hz
+        Lower edge of the high-frequency range of :attr:`Evaluation.hf_command_gain`.
 
     Notes
     -----
@@ -200,7 +211,7 @@ def evaluate(gains: PIDGains, model: P1D, plant: ProcessModel | None = None,
     if not 0 < lo < hi:
         raise ConfigError(f"band must satisfy 0 < low < high, got {band_hz}")
     band = np.geomspace(lo, hi, 400)
-    grid = default_grid(rate_hz, np.concatenate([band, report_hz]))
+    grid = default_grid(rate_hz, np.concatenate([band, report_hz, [hf_from_hz]]))
     resp = loop_response(gains, model, plant, grid, rate_hz)
     tau = resp.phase_delay("delivered")
     tau_p = resp.phase_delay("plant")
@@ -213,6 +224,7 @@ def evaluate(gains: PIDGains, model: P1D, plant: ProcessModel | None = None,
     i_peak = int(np.argmax(mag_db))
     cmd = np.abs(resp.command)
     i_cmd = int(np.argmax(cmd))
+    hf = grid >= hf_from_hz * (1 - 1e-12)
     stable, rho = stability(gains, model, rate_hz or 1000.0)
     notes = []
     if not stable:
@@ -231,6 +243,8 @@ def evaluate(gains: PIDGains, model: P1D, plant: ProcessModel | None = None,
         peak_gain_hz=float(grid[i_peak]),
         peak_command_gain=float(cmd[i_cmd]),
         peak_command_gain_hz=float(grid[i_cmd]),
+        hf_command_gain=float(np.max(cmd[hf])) if np.any(hf) else 0.0,
+        hf_from_hz=float(hf_from_hz),
         ms=float(np.max(np.abs(resp.sensitivity))),
         stable=stable,
         max_pole_modulus=rho,

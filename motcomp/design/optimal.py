@@ -11,6 +11,7 @@ instead, as a constrained minimax problem (``tau_T`` = phase delay of T, ``f`` i
                 |20 log10 |T(f)||     <= gain_error_db        in the band
                 20 log10 |F(f) M(f)|  <= command_excess_db    in the band
                 |F(f)|                <= max_command_gain     for every f
+                |F(f)|                <= hf_command_gain      for f >= hf_from_hz
                 |S(f)| = |1/(1 + Cy M)| <= max_sensitivity    for every f
                 every pole of the discrete internal loop inside |z| <= 1 - 1e-4
 
@@ -18,7 +19,9 @@ Command amplification (what the actuator limits see) is bounded twice: in the dr
 command may exceed the exact inverse of the model, ``r/M`` -- what *any* lag-free compensation
 must send, and what the motion-cueing headroom has to be sized for -- by at most
 ``command_excess_db``; at every frequency it is at most ``max_command_gain`` times the reference
-(reference steps, update staircases and noise reach the actuator multiplied by that).
+(reference steps, update staircases and noise reach the actuator multiplied by that), and above
+``hf_from_hz`` (10 Hz: no driver input lives there, only the input stream's irregularities) by
+``hf_command_gain``.
 docs/TUNING.md explains the choice and the defaults.
 
 Robust version
@@ -68,7 +71,7 @@ from motcomp.core.models import OE, P1D, ProcessModel, p1d_coefficients
 from motcomp.core.pid import PIDGains
 from motcomp.core.tuning import RULES, tune
 from motcomp.design.fastloop import LoopGrid
-from motcomp.design.frequency import Evaluation, evaluate
+from motcomp.design.frequency import HF_FROM_HZ, Evaluation, evaluate
 from motcomp.errors import ConfigError
 
 __all__ = [
@@ -83,6 +86,9 @@ __all__ = [
     "perturb",
 ]
 
+WEIGHT_MAX = 50.0
+"""Largest setpoint weight b, c searched: a small ``kp`` with a large ``b`` is how the reference
+path keeps a low gain above the band while the feedback path stays stiff."""
 POLE_MARGIN = 1e-4
 """Largest admissible pole modulus of the internal loop is ``1 - POLE_MARGIN``."""
 DELAY_DOMINATED_RATIO = 1.0
@@ -106,6 +112,8 @@ class Constraints:
     max_command_gain: float = 60.0
     max_sensitivity: float = 4.0
     band_hz: tuple[float, float] = (0.1, 2.0)
+    hf_command_gain: float = 60.0
+    hf_from_hz: float = HF_FROM_HZ
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -121,11 +129,17 @@ class Constraints:
         if self.max_command_gain <= 1:
             raise ConfigError(f"optimal: max_command_gain must be > 1, got "
                               f"{self.max_command_gain}")
+        if self.hf_command_gain <= 0:
+            raise ConfigError(f"optimal: hf_command_gain must be > 0, got "
+                              f"{self.hf_command_gain}")
         if self.max_sensitivity <= 1:
             raise ConfigError(f"optimal: max_sensitivity must be > 1, got {self.max_sensitivity}")
         lo, hi = self.band_hz
         if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):
             raise ConfigError(f"optimal: band must satisfy 0 < low < high, got {self.band_hz}")
+        if not self.hf_from_hz > hi:
+            raise ConfigError(f"optimal: hf_from_hz must lie above the band ({hi:g} Hz), got "
+                              f"{self.hf_from_hz}")
 
     def as_dict(self) -> dict[str, Any]:
         return {f.name: (list(getattr(self, f.name)) if f.name == "band_hz"
@@ -282,6 +296,7 @@ class OptimalDesign:
                 "gain_error_db": ev.gain_error_db,
                 "command_excess_db": self.command_excess_db,
                 "peak_command_gain": ev.peak_command_gain,
+                "hf_command_gain": ev.hf_command_gain,
                 "ms": ev.ms,
                 "max_pole_modulus": ev.max_pole_modulus,
             },
@@ -327,6 +342,7 @@ class _Problem:
         self.gain_limit_db = gain_limit_db
         self.n_gain = 6 if weights else 4
         self.hi = slice(grid.band.start, None)  # peak constraints from the band upwards
+        self.hf = grid.f >= c.hf_from_hz
         self._value_key: bytes | None = None
         self._value = np.zeros(0)
         self._n_delay_rows = grid.p.shape[0] * 2 * _blocks(grid.f_band.size, 3)
@@ -339,7 +355,7 @@ class _Problem:
             (math.log(1e-2 / K), math.log(1e5 / K)),
             (math.log(1e-7 / K), math.log(10.0 / K)),
             (math.log(0.1 * h), math.log(1.0)),
-        ] + ([(0.0, 5.0), (0.0, 5.0)] if weights else []) + [(0.0, 1e4)]
+        ] + ([(0.0, WEIGHT_MAX), (0.0, WEIGHT_MAX)] if weights else []) + [(0.0, 1e4)]
 
     def gains(self, x: np.ndarray) -> PIDGains:
         g = np.exp(np.asarray(x[:4], dtype=float))
@@ -379,6 +395,7 @@ class _Problem:
                       2 * _blocks(nb, 3)),
             _blockmin(self.c.command_excess_db - r.excess_db, _blocks(nb, 3)),
             _blockmin(1.0 - r.command / self.c.max_command_gain, 40),
+            _blockmin(1.0 - r.command[:, self.hf] / self.c.hf_command_gain, 40),
             _blockmin(1.0 - r.sensitivity / self.c.max_sensitivity, 40),
         ]
         rho = self.pole_modulus(G[:, 0], G[:, 1], G[:, 2], G[:, 3])[:, None]
@@ -507,29 +524,47 @@ def _screen(problem: _Problem, n_best: int = 2) -> list[tuple[str, PIDGains]]:
     """The best points of a fixed Sobol sample of the gain space, scored on the nominal plant
     as residual delay + 10 ms per unit of constraint violation (unstable points excluded).
 
-    The box is scaled by the model: ``kp (K) in [0.03, 30] (0.5 + Tp1/Td)``, ``Ti = kp/ki`` in
-    ``[0.1 Td, 10 (Td + Tp1)]``, ``Td_pid = kd/kp`` in ``[0.01 Td, 10 Td]``, ``N = Td_pid/tf``
-    in ``[1, 30]`` and, with setpoint weights, ``b, c`` in ``[0, 5]``.
+    Two boxes, scaled by the model (``s = (0.5 + Tp1/Td)/K``):
+
+    * the classical one: ``kp in [0.03, 30] s``, ``Ti = kp/ki`` in ``[0.1 Td, 10 (Td + Tp1)]``,
+      ``Td_pid = kd/kp`` in ``[0.01 Td, 10 Td]``, ``N = Td_pid/tf`` in ``[1, 30]`` and, with
+      setpoint weights, ``b, c`` in ``[0, 5]``;
+    * with setpoint weights, a two-degree-of-freedom one, where the feedback path may be soft
+      and the reference path is sampled for itself: ``kp in [0.003, 30] s``,
+      ``ki in [0.1, 100] s/Td``, ``kd in [0.01, 10] s Td``, ``tf in [0.1 h, 2 Td]``, the
+      reference gain ``kp b in [0.01, 3] s`` and ``c in [0, 5]``.  A bounded command gain
+      above the band (``hf_command_gain``) puts the optimum there.
     """
     from scipy.stats import qmc
 
     model = problem.grid.model
     L = max(model.Td, 5.0 * problem.grid.h)
     T = model.Tp1
+    h = problem.grid.h
+    scale = (0.5 + T / L) / model.K
     dim = 6 if problem.weights else 4
     u = qmc.Sobol(d=dim, scramble=True, seed=12345).random(SCREEN_POINTS)
 
     def logu(col: np.ndarray, lo: float, hi: float) -> np.ndarray:
         return np.asarray(np.exp(math.log(lo) + col * (math.log(hi) - math.log(lo))))
 
-    kp = logu(u[:, 0], 0.03, 30.0) * (0.5 + T / L) / model.K
+    kp = logu(u[:, 0], 0.03, 30.0) * scale
     ti = logu(u[:, 1], 0.1 * L, 10.0 * (L + T))
     td = logu(u[:, 2], 0.01 * L, 10.0 * L)
     n = logu(u[:, 3], 1.0, 30.0)
     ki, kd = kp / ti, kp * td
-    tf = np.maximum(td / n, 0.1 * problem.grid.h)
+    tf = np.maximum(td / n, 0.1 * h)
     b = 5.0 * u[:, 4] if problem.weights else np.ones(kp.size)
     cw = 5.0 * u[:, 5] if problem.weights else np.ones(kp.size)
+    if problem.weights:
+        w = qmc.Sobol(d=dim, scramble=True, seed=54321).random(SCREEN_POINTS)
+        kp2 = logu(w[:, 0], 0.003, 30.0) * scale
+        kp = np.concatenate([kp, kp2])
+        ki = np.concatenate([ki, logu(w[:, 1], 0.1, 100.0) * scale / L])
+        kd = np.concatenate([kd, logu(w[:, 2], 0.01, 10.0) * scale * L])
+        tf = np.concatenate([tf, logu(w[:, 3], 0.1 * h, 2.0 * L)])
+        b = np.concatenate([b, np.minimum(logu(w[:, 4], 0.01, 3.0) * scale / kp2, WEIGHT_MAX)])
+        cw = np.concatenate([cw, 5.0 * w[:, 5]])
     lo = np.array([bd[0] for bd in problem.bounds[:4]])
     hi = np.array([bd[1] for bd in problem.bounds[:4]])
     logs = np.clip(np.log(np.stack([kp, ki, kd, tf], axis=1)), lo, hi)
@@ -559,7 +594,8 @@ def _check(gains: PIDGains, model: P1D, dense: LoopGrid, c: Constraints, rate_hz
     :func:`~motcomp.design.frequency.evaluate` (poles included), the other members with a dense
     :class:`LoopGrid`.  Returns the nominal evaluation, the worst excess over the floor, the
     violated bounds and by how much each bound is exceeded."""
-    nominal = evaluate(gains, model, dense.plants[0], rate_hz=rate_hz, band_hz=c.band_hz)
+    nominal = evaluate(gains, model, dense.plants[0], rate_hz=rate_hz, band_hz=c.band_hz,
+                       hf_from_hz=c.hf_from_hz)
     r = dense(gains.kp, gains.ki, gains.kd, gains.tf, gains.b, gains.c)
     floors = np.max(np.abs(dense.floor_delay_s()), axis=1) * 1e3
     worst = float(np.max(r.max_delay_ms()[:, 0] - floors)) if len(dense.plants) > 1 else \
@@ -569,6 +605,7 @@ def _check(gains: PIDGains, model: P1D, dense: LoopGrid, c: Constraints, rate_hz
         "gain_error_db": nominal.gain_error_db - gain_limit_db,
         "command_excess_db": float(np.max(r.excess_db)) - c.command_excess_db,
         "max_command_gain": nominal.peak_command_gain / c.max_command_gain - 1.0,
+        "hf_command_gain": nominal.hf_command_gain / c.hf_command_gain - 1.0,
         "max_sensitivity": nominal.ms / c.max_sensitivity - 1.0,
     }
     violations = []
@@ -655,13 +692,16 @@ def optimise(plant: ProcessModel, model: P1D | None = None, rate_hz: float = 100
             # that did not converge, which tightening would not help
             missed_peak = 0.02 < over["peak_db"] < 0.5
             missed_cmd = 2e-3 < over["max_command_gain"] < 0.05
-            if not nominal.stable or not (missed_peak or missed_cmd):
+            missed_hf = 2e-3 < over["hf_command_gain"] < 0.05
+            if not nominal.stable or not (missed_peak or missed_cmd or missed_hf):
                 break
             target = replace(
                 target,
                 peak_db=max(target.peak_db - missed_peak * (over["peak_db"] + 0.01), 0.0),
                 max_command_gain=target.max_command_gain
-                / (1.0 + missed_cmd * (over["max_command_gain"] + 1e-3)))
+                / (1.0 + missed_cmd * (over["max_command_gain"] + 1e-3)),
+                hf_command_gain=target.hf_command_gain
+                / (1.0 + missed_hf * (over["hf_command_gain"] + 1e-3)))
         records.append({"start": name, "status": status, "iterations": nit,
                         "objective_ms": objective, "feasible": not violations})
         key = (len(violations), round(objective, 6), round(nominal.peak_gain_db, 6))

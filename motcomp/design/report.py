@@ -54,6 +54,8 @@ def _corrected_json(ev: Evaluation) -> dict[str, Any]:
         "peak_gain_hz": ev.peak_gain_hz,
         "peak_command_gain": ev.peak_command_gain,
         "peak_command_gain_hz": ev.peak_command_gain_hz,
+        "hf_command_gain": ev.hf_command_gain,
+        "hf_from_hz": ev.hf_from_hz,
         "ms": ev.ms,
         "stable": ev.stable,
         "max_pole_modulus": ev.max_pole_modulus,
@@ -280,6 +282,8 @@ def markdown(report: dict[str, Any]) -> str:
         f"| peak gain | {c['peak_gain_db']:+.2f} dB at {c['peak_gain_hz']:.1f} Hz |",
         f"| peak command amplification |C/(1+CM)| | {c['peak_command_gain']:.1f} at "
         f"{c['peak_command_gain_hz']:.1f} Hz |",
+        f"| command amplification at and above {c['hf_from_hz']:g} Hz | "
+        f"{c['hf_command_gain']:.1f} |",
         f"| Ms | {c['ms']:.2f} |",
         f"| discrete internal loop | {'stable' if c['stable'] else 'UNSTABLE'} "
         f"(max pole modulus {c['max_pole_modulus']:.4f}) |",
