@@ -378,11 +378,14 @@ class ReferenceShaper:
             self._offset += a * (self._fast - self._offset)
             w = 1.0 / LAG_TAU_S  # critically damped: x'' = w^2 (target - x) - 2 w x'
             for _ in range(1 if dt <= 0.002 else int(dt / 0.002) + 1):
-                h = min(dt, 0.002)
-                self._lag_rate += h * (w * w * (target - self._lag) - 2.0 * w * self._lag_rate)
-                self._lag += h * self._lag_rate
-                dt -= h
-        tau = now - self._offset - self._lag
+                dts = min(dt, 0.002)
+                self._lag_rate += dts * (w * w * (target - self._lag)
+                                         - 2.0 * w * self._lag_rate)
+                self._lag += dts * self._lag_rate
+                dt -= dts
+        offset = self._offset
+        assert offset is not None
+        tau = now - offset - self._lag
         bound = max(p.max_extrapolation_s, 1.5 * q)
         blend_s = max(GAP_BLEND_S, GAP_BLEND_PERIODS * q)
         out = []

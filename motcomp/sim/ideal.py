@@ -72,14 +72,14 @@ def ideal_run(cfg: ServiceConfig, pos: Mapping[str, np.ndarray], rate_hz: float,
     acted = {a: np.zeros(n_ticks, dtype=bool) for a in cols}
     seq = 0
     for k in range(settle_ticks):
-        payload = encode_input(seq, (k * period_ns - settle_ticks * period_ns) / 1e9, first)
+        step(state, params, k * period_ns,
+             encode_input(seq, (k * period_ns - settle_ticks * period_ns) / 1e9, first))
         seq += 1
-        step(state, params, k * period_ns, payload)
     t0_ns = settle_ticks * period_ns
     j = 0  # next source sample
     for k in range(n_ticks):
         now_ns = t0_ns + k * period_ns
-        payload = None
+        payload: bytes | None = None
         while j < n_src and j * src_ns <= k * period_ns + 1e-3:
             payload = encode_input(seq, j / rate_hz,
                                    {a: float(v[j]) for a, v in cols.items()})
