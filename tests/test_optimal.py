@@ -135,6 +135,36 @@ def test_hexapod_reports_the_bound_and_does_no_harm() -> None:
         ev.uncorrected_max_delay_ms - ev.max_residual_delay_ms, abs=0.1)
 
 
+def test_hexapod_design_meets_its_bounds_and_a_looser_bound_is_never_worse() -> None:
+    """The regression of issue 16: at +8 dB the optimiser returned "no design meets every
+    bound" (67.5 to 48.2 ms) while +3 dB found 25.6 ms.  Now both are feasible, the looser bound
+    is at least as good as the tighter one, and both still recommend bypass (the gain is
+    prediction of a pure delay)."""
+    hexapod = load_preset("hexapod").model
+    loose = optimise(hexapod, constraints=Constraints(peak_db=8.0))
+    tight = optimise(hexapod, constraints=Constraints(peak_db=3.0))
+    for d, bound in ((loose, 8.0), (tight, 3.0)):
+        assert d.feasible, d.violations
+        assert d.evaluation.peak_gain_db <= bound + 0.02 and d.evaluation.stable
+        assert d.recommend_bypass
+    res_loose = loose.evaluation.max_residual_delay_ms
+    res_tight = tight.evaluation.max_residual_delay_ms
+    assert res_loose <= res_tight + 0.01
+    assert res_loose < 10.0 and res_tight < 25.6  # 0.35 / 15.7 ms when measured
+
+
+def test_hf_command_gain_bound_holds_and_costs_delay() -> None:
+    """``hf_command_gain`` bounds |F| above 10 Hz on a dense grid; tighter costs delay."""
+    rails = RAILS
+    d25 = optimise(rails, constraints=Constraints(hf_command_gain=25.0))
+    d10 = optimise(rails, constraints=Constraints(hf_command_gain=10.0))
+    for d, g in ((d25, 25.0), (d10, 10.0)):
+        assert d.feasible, d.violations
+        assert d.evaluation.hf_command_gain <= g * 1.002
+    assert (d25.evaluation.max_residual_delay_ms
+            < d10.evaluation.max_residual_delay_ms)  # 2.0 < 14.2 ms when measured
+
+
 def test_bad_bounds_are_config_errors() -> None:
     with pytest.raises(ConfigError, match="gain_error_db"):
         Constraints(gain_error_db=0.0)
