@@ -766,7 +766,7 @@ def tick_params(cfg: ServiceConfig, axes: ResolvedAxes) -> TickParams:
                                              for v in lim.v_max),
         reach_lo=lo, reach_hi=hi, stale_after_s=loop.stale_after_s, hold_s=loop.hold_s,
         rejoin_s=loop.rejoin_s, startup_s=loop.startup_s,
-        reconstruction=cfg.input.reconstruction,
+        reconstruction=cfg.input.reconstruction, tick_s=1.0 / loop.rate_hz,
         max_extrapolation_s=cfg.input.max_extrapolation_s)
     return TickParams(loop.rate_hz, shaper, cfg.status.saturation_tolerance,
                       cfg.input.max_frame_bytes)

@@ -32,23 +32,27 @@ def _params(n: int = 8) -> ShaperParams:
 
 
 def test_a_quadratic_is_played_back_exactly_one_lag_behind() -> None:
-    """Samples of x(t) = 0.3 + 0.5 t + 0.5 t^2 at 100 Hz, arriving 2 ms after their instant:
-    Catmull-Rom tangents and the end parabola's slope are exact on a parabola, so the reference
-    is x(tau) at the playback instant, to rounding."""
+    """Samples of x(t) = 0.3 + 0.5 t + 0.5 t^2 at 100 Hz, arriving 2 ms after their instant, a
+    tick every 1 ms: Catmull-Rom tangents and the end parabola's slope are exact on a parabola,
+    so before the moving average the playback is x(tau) at the playback instant, and the
+    reference is the mean of x over the last 10 instants (one input period), to rounding.  The
+    lag is one period of playback plus 4.5 ticks of averaging."""
     p = _params()
     sh = ReferenceShaper(8)
     x = lambda t: 0.3 + 0.5 * t + 0.5 * t * t  # noqa: E731
-    errs = []
+    errs, taus = [], []
     for k in range(3000):  # ticks at 1 kHz, frames every 10th
         now = 1e-3 * k + 0.002
         if k % 10 == 0:
             t = 1e-3 * k
             sh.on_input(p, {Y: x(t)}, now, t)
         ref, _ = sh.reference(p, now)
-        if k > 1500:  # the lag's filter has settled
-            tau = now - sh._offset - sh.lag_s
-            errs.append(ref[Y] - x(tau))
-    assert sh.lag_s == pytest.approx(0.010, abs=1e-9)  # one period, no jitter
+        delay = sh.playback_delay_s
+        taus.append(None if delay is None else now - delay)
+        if k > 1500:  # the playback delay's filter has settled
+            expected = sum(x(tau) for tau in taus[-10:]) / 10
+            errs.append(ref[Y] - expected)
+    assert sh.lag_s == pytest.approx(0.010 + 0.0045, abs=1e-9)
     assert max(map(abs, errs)) < 1e-9
 
 

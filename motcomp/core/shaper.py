@@ -48,35 +48,43 @@ of guessed::
 
     sender time  each frame's ``t``; a frame without ``t`` gets an estimate on the loop's
                  clock: the previous estimate plus the input period, pulled towards its arrival
-                 by INPUT_PLL_GAIN (jitter moves it by that fraction only), the period from the
-                 intervals between arrivals (those shorter than half of it, a burst, left out;
-                 those over 1.5 times it weigh a fifth);
-                 an arrival further than stale_after_s/2 from the estimate re-anchors it
+                 by INPUT_PLL_GAIN (jitter moves it by that fraction only); "the previous plus
+                 the period" counts the frames the sender sent meanwhile (its seq step), so a
+                 burst after a stall keeps its timeline; an arrival further than
+                 stale_after_s/2 from the estimate re-anchors it
+    period       the interval between frames per seq step (sender time, or arrivals without
+                 t), averaged; a single unusual one (a stall) is ignored, PERIOD_RELEARN in a
+                 row (a new rate) replace it
     offset       loop clock - sender clock: the smallest transit seen (leaking upwards by
-                 OFFSET_LEAK), followed by a first-order filter of OFFSET_TAU_S, so that
-                 jitter never moves the playback instant
-    lag          input period + JITTER_FACTOR x the mean transit beyond the smallest, followed
-                 by a critically damped filter of LAG_TAU_S (its changes warp time gently)
-    playback     tau = now - offset - lag
+                 SMOOTH_OFFSET_LEAK, 1000 ppm of clock drift)
+    lag          input period + JITTER_FACTOR x the mean transit beyond the smallest
+    playback     tau = now - delay, where the delay follows offset + lag through a critically
+                 damped filter of DELAY_TAU_S: neither jitter nor a new smallest transit ever
+                 steps the playback instant, its changes warp time gently
     per axis     the last 4 samples; tau between two of them: cubic Hermite through them with
                  Catmull-Rom tangents (continuous velocity); tau beyond the newest (a frame
-                 late by more than the lag, a stall): straight on with the slope at the newest
-                 sample, at most max_extrapolation_s (or 1.5 input periods if longer), and when
-                 the samples come back, the differences of position and velocity to the
-                 extrapolation fade out in a minimum-jerk blend of GAP_BLEND_PERIODS input
-                 periods (at least GAP_BLEND_S)
+                 late by more than the lag, a stall): the parabola through the last three goes
+                 on, at most max_extrapolation_s (or 1.5 input periods if longer), and when the
+                 samples come back, the differences of position and velocity to it fade out in
+                 a minimum-jerk blend of GAP_BLEND_PERIODS input periods (at least GAP_BLEND_S)
+    average      then a moving average over one input period (fractional length, on the
+                 tick grid): zero gain at the input's rate and its harmonics, where the
+                 playback's roughness lies (the Hermite's acceleration changes at every sample,
+                 and the compensator multiplies them); nothing at the loop's own rate
     on a frame   dt = t - t_prev (per axis): dt < min_dt_s is the same sample again (its
                  value replaces the previous one); a t that goes back, or a rejoin, restarts
                  the axis' history at the new sample
 
-The lag is what the reconstruction costs: about one input period plus the sender's jitter
-(1.3 ms for a 1 kHz sender with 300 us of jitter, 10.3 ms at 100 Hz); a design for such an
-input adds it to the delay the compensator cancels.  ``hold`` keeps the last value
+The lag (:attr:`ReferenceShaper.lag_s`) is what the reconstruction costs: about 1.5 input
+periods plus three times the sender's mean jitter (1 ms plus the jitter at 1 kHz, 15 ms at
+100 Hz); a design for such an input adds it to the delay the compensator cancels
+(``motcomp design --input-lag-ms``).  ``hold`` keeps the last value
 (for tests of the rest of the chain).
 """
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -86,18 +94,24 @@ __all__ = ["OFFSET_LEAK", "ReferenceShaper", "ShaperParams"]
 
 OFFSET_LEAK = 0.05
 """Upward drift (s per s) allowed to the fast estimate of the clock offset (smallest transit)."""
-OFFSET_TAU_S = 5.0
-"""Time constant of the filter between the fast offset estimate and the playback instant."""
+SMOOTH_OFFSET_LEAK = 1e-3
+"""``smooth``: the same leak, small enough that its steps never reach the playback instant."""
 JITTER_FACTOR = 3.0
 """The lag allows this many times the mean transit beyond the smallest."""
 JITTER_GAIN = 0.01
 """Weight of each frame in the mean transit beyond the smallest."""
-LAG_TAU_S = 0.5
-"""Time constant of the critically damped filter the lag follows its target through."""
+DELAY_TAU_S = 0.5
+"""Time constant of the critically damped filter the playback delay follows its target
+through."""
 PERIOD_GAIN = 0.05
 """Weight of each interval in the input period's average."""
+PERIOD_RELEARN = 8
+"""This many intervals in a row outside half to 1.5 times the period replace it."""
 INPUT_PLL_GAIN = 0.02
 """How strongly the sender time of a frame without ``t`` is pulled towards its arrival."""
+MA_HYSTERESIS = 0.02
+"""The moving average's length follows the period only when it moved by more than this
+fraction (a length that flickers would warp time)."""
 GAP_BLEND_PERIODS = 10.0
 GAP_BLEND_S = 0.2
 """After an extrapolation, the difference to the samples fades out over this many input periods
@@ -121,6 +135,8 @@ class ShaperParams:
     reconstruction: str = "linear"
     """``linear``, ``smooth`` or ``hold`` (module docstring)."""
     max_extrapolation_s: float = 0.02
+    tick_s: float = 1e-3
+    """The loop's period (the moving average of ``smooth`` counts ticks)."""
     min_dt_s: float = 1e-5
     """Two samples of an axis closer than this on the sender's timeline are one sample."""
 
@@ -161,18 +177,21 @@ class ReferenceShaper:
         self.live = [0.0] * n
         self._hist: list[list[tuple[float, float]]] = [[] for _ in range(n)]  # (t, v), newest last
         self._period = 0.0  # average interval between frames (sender time)
+        self._odd: list[float] = []  # unusual intervals in a row
+        self._ma_len = 0.0  # length of the moving average (ticks)
         self._t_last: float | None = None  # sender time of the last frame
         self._fast: float | None = None  # smallest transit, leaking upwards
         self._fast_at = 0.0
-        self._offset: float | None = None  # the fast estimate, filtered (OFFSET_TAU_S)
         self._excess = 0.0  # mean transit beyond the smallest
-        self._lag = 0.0  # playback lag and its rate (critically damped filter)
-        self._lag_rate = 0.0
+        self._delay: float | None = None  # playback delay (now - tau) and its rate
+        self._delay_rate = 0.0
         self._at: float | None = None  # loop time of the last reference
-        self._extra: list[tuple[float, float, float] | None] = [None] * n  # extrapolating from
+        self._extra: list[tuple[tuple[float, float], ...] | None] = [None] * n  # extrapolating
         self._fix = [0.0] * n  # difference being faded out after an extrapolation, and its
-        self._fix_rate = [0.0] * n  # rate of change
+        self._fix_rate = [0.0] * n  # and its rate of change
         self._fix_t0 = [0.0] * n
+        self._rings: list[deque[float]] = [deque() for _ in range(n)]  # moving average
+        self._ma_delay_s = 0.0
         self._lin_t = [0.0] * n  # linear: sender time of each axis' last value, its slope,
         self._lin_slope = [0.0] * n
         self._lin_period = [0.0] * n  # the average interval between its frames,
@@ -193,9 +212,17 @@ class ReferenceShaper:
         self.stale_episodes = 0
 
     @property
+    def playback_delay_s(self) -> float | None:
+        """``smooth``: loop time minus the sender instant played back (None before it starts)."""
+        return self._delay
+
+    @property
     def lag_s(self) -> float:
-        """The playback lag behind the sender's newest sample (s)."""
-        return self._lag
+        """``smooth``: how far the playback lies behind the fastest transit (s): what the
+        reconstruction adds to the delay."""
+        if self._delay is None or self._fast is None:
+            return 0.0
+        return self._delay - self._fast + self._ma_delay_s
 
     # --- events ---------------------------------------------------------------------------
     def is_stale(self, p: ShaperParams, now: float) -> bool:
@@ -204,8 +231,9 @@ class ReferenceShaper:
         return last is not None and now - last > p.stale_after_s
 
     def on_input(self, p: ShaperParams, pos: dict[int, float], now: float,
-                 t_sender: float | None = None) -> None:
-        """A valid frame (axis index -> finite value; sender time ``t_sender``, if any)."""
+                 t_sender: float | None = None, frames: int = 1) -> None:
+        """A valid frame (axis index -> finite value; sender time ``t_sender``, if any), the
+        ``frames``-th the sender sent since the last one taken (its ``seq`` step)."""
         if self.parking:
             return
         first = self.last_input_s is None
@@ -213,7 +241,7 @@ class ReferenceShaper:
         if p.reconstruction == "linear":
             self._on_input_linear(p, pos, now, t_sender, rejoin)
         else:
-            self._on_input_smooth(p, pos, now, t_sender, rejoin)
+            self._on_input_smooth(p, pos, now, t_sender, rejoin, max(frames, 1))
         if rejoin:
             if self._stale_since is not None:
                 self.stale_total_s += now - self._stale_since
@@ -256,41 +284,37 @@ class ReferenceShaper:
             t_frame[i] = t
 
     def _on_input_smooth(self, p: ShaperParams, pos: dict[int, float], now: float,
-                         t_sender: float | None, rejoin: bool) -> None:
+                         t_sender: float | None, rejoin: bool, frames: int) -> None:
         q = self._period
-        arrived = self.last_input_s
+        tl = self._t_last
         if t_sender is None:  # estimate the sender's instant (module docstring)
-            tl = self._t_last
-            if arrived is not None and not rejoin:  # the period, from arrivals (not bursts)
-                dt = now - arrived
-                if q == 0.0 or 0.5 * q <= dt <= p.stale_after_s:
-                    gain = PERIOD_GAIN if dt <= 1.5 * q else 0.2 * PERIOD_GAIN
-                    self._period = q = dt if q == 0.0 else q + gain * (dt - q)
-            pred = (tl or 0.0) + q
+            arrived = self.last_input_s
+            if arrived is not None and not rejoin:
+                self._learn_period((now - arrived) / frames)
+                q = self._period
+            pred = (tl or 0.0) + frames * q
             if tl is None or rejoin or q == 0.0 or abs(now - pred) > 0.5 * p.stale_after_s:
                 t = now
             else:
                 t = pred + INPUT_PLL_GAIN * (now - pred)
         else:
             t = t_sender
+            if tl is not None and not rejoin and p.min_dt_s <= t - tl <= p.stale_after_s:
+                self._learn_period((t - tl) / frames)
         transit = now - t
         fast = self._fast
         if fast is None or transit < fast or rejoin:
             self._fast = fast = transit
         else:  # leak upwards so a drifting clock is followed
-            self._fast = fast = min(fast + OFFSET_LEAK * (now - self._fast_at), transit)
+            self._fast = fast = min(fast + SMOOTH_OFFSET_LEAK * (now - self._fast_at), transit)
         self._fast_at = now
-        if self._offset is None or rejoin:
-            self._offset = fast
+        if rejoin:
+            self._delay = None
             self._excess = 0.0
+            for r in self._rings:
+                r.clear()
         else:
             self._excess += JITTER_GAIN * (transit - fast - self._excess)
-        tl = self._t_last
-        if (t_sender is not None and tl is not None and not rejoin
-                and p.min_dt_s <= t - tl <= p.stale_after_s):
-            dt = t - tl  # a longer interval than usual (a stall, lost frames) counts for less
-            gain = PERIOD_GAIN if dt <= 1.5 * q else 0.2 * PERIOD_GAIN
-            self._period = dt if q == 0.0 else q + gain * (dt - q)
         if tl is None or t - tl >= p.min_dt_s or t < tl:
             self._t_last = t
         driven, live, hist = p.driven, self.live, self._hist
@@ -309,6 +333,24 @@ class ReferenceShaper:
                 h.append((t, v))
                 if len(h) > 4:
                     del h[0]
+
+    def _learn_period(self, dt: float) -> None:
+        """One interval between frames (per frame): averaged when within half to 1.5 times the
+        period; :data:`PERIOD_RELEARN` unusual ones in a row (the sender changed its rate)
+        replace the period by their median; a single one (a stall) changes nothing."""
+        q = self._period
+        if q == 0.0:
+            if dt > 0.0:
+                self._period = dt
+            return
+        if 0.5 * q <= dt <= 1.5 * q:
+            self._period = q + PERIOD_GAIN * (dt - q)
+            self._odd.clear()
+            return
+        self._odd.append(dt)
+        if len(self._odd) >= PERIOD_RELEARN:
+            self._period = sorted(self._odd)[len(self._odd) // 2]
+            self._odd.clear()
 
     def park(self, p: ShaperParams, now: float) -> None:
         """Stop requested: ramp to neutral, ignoring input from now on."""
@@ -361,63 +403,79 @@ class ReferenceShaper:
         """The live values at this tick: reconstructed as ``p.reconstruction`` says."""
         if p.reconstruction == "linear":
             return self._live_linear(p, now)
-        if p.reconstruction != "smooth" or self._offset is None:
+        q = self._period
+        fast = self._fast
+        if p.reconstruction != "smooth" or fast is None or q == 0.0:
+            self._delay = None  # (re)starts once the input's period is known
             return self.live[:]
         at = self._at
         dt = 0.0 if at is None else max(now - at, 0.0)
         self._at = now
-        q = self._period
-        target = q + JITTER_FACTOR * self._excess
-        target = min(target, 0.5 * p.stale_after_s + q)
-        if at is None or self._lag == 0.0:
-            self._lag, self._lag_rate = target, 0.0
-            self._offset = self._fast
+        target = fast + min(q + JITTER_FACTOR * self._excess, q + 0.5 * p.stale_after_s)
+        d = self._delay
+        if d is None:
+            d, self._delay_rate = target, 0.0
         elif dt > 0.0:
-            assert self._fast is not None
-            a = min(dt / OFFSET_TAU_S, 1.0)
-            self._offset += a * (self._fast - self._offset)
-            w = 1.0 / LAG_TAU_S  # critically damped: x'' = w^2 (target - x) - 2 w x'
+            w = 1.0 / DELAY_TAU_S  # critically damped: x'' = w^2 (target - x) - 2 w x'
+            r = self._delay_rate
             for _ in range(1 if dt <= 0.002 else int(dt / 0.002) + 1):
                 dts = min(dt, 0.002)
-                self._lag_rate += dts * (w * w * (target - self._lag)
-                                         - 2.0 * w * self._lag_rate)
-                self._lag += dts * self._lag_rate
+                r += dts * (w * w * (target - d) - 2.0 * w * r)
+                d += dts * r
                 dt -= dts
-        offset = self._offset
-        assert offset is not None
-        tau = now - offset - self._lag
+            self._delay_rate = r
+        self._delay = d
+        tau = now - d
         bound = max(p.max_extrapolation_s, 1.5 * q)
         blend_s = max(GAP_BLEND_S, GAP_BLEND_PERIODS * q)
         out = []
+        extra = self._extra
         for i, h in enumerate(self._hist):
             if not h:
                 out.append(self.live[i])
                 continue
-            t_n, v_n = h[-1]
-            if tau <= t_n or len(h) == 1:
-                x = _hermite(h, tau) if len(h) > 1 else v_n
-                ex = self._extra[i]
-                if ex is not None:  # back from an extrapolation: fade the difference out
-                    t0, v0, s0 = ex
-                    e = 1e-5
-                    slope = (_hermite(h, tau + e) - _hermite(h, tau - e)) / (2 * e) \
-                        if len(h) > 1 else 0.0
-                    self._start_fix(i, now, blend_s, v0 + s0 * min(tau - t0, bound) - x,
-                                    (s0 if tau - t0 < bound else 0.0) - slope)
-                    self._extra[i] = None
-            else:
-                slope = _end_slope(h)
-                ex = self._extra[i]
-                if ex is None or ex[0] != t_n:
-                    if ex is not None:  # a newer sample, still behind tau
-                        t0, v0, s0 = ex
-                        xe = v_n + slope * min(tau - t_n, bound)
-                        self._start_fix(i, now, blend_s, v0 + s0 * min(tau - t0, bound) - xe,
-                                        (s0 if tau - t0 < bound else 0.0)
-                                        - (slope if tau - t_n < bound else 0.0))
-                    self._extra[i] = (t_n, v_n, slope)
-                x = v_n + slope * min(tau - t_n, bound)
+            prev = extra[i]
+            if tau <= h[-1][0] or len(h) == 1:
+                x, xs = _hermite(h, tau) if len(h) > 1 else (h[0][1], 0.0)
+                src = None
+            else:  # beyond the newest sample: the parabola through the last three goes on
+                src = tuple(h[-3:])
+                x, xs = _extrapolate(src, tau, bound)
+            if prev is not None and (src is None or src[-1][0] != prev[-1][0]):
+                xo, so = _extrapolate(prev, tau, bound)  # the samples changed under it
+                self._start_fix(i, now, blend_s, xo - x, so - xs)
+            extra[i] = src
             out.append(x + self._current_fix(i, now, blend_s))
+        length = q / p.tick_s
+        if abs(length - self._ma_len) > MA_HYSTERESIS * max(self._ma_len, 1.0):
+            self._ma_len = length  # only a real change of the input's rate moves it
+        return self._average(out, p.tick_s, self._ma_len)
+
+    def _average(self, x: list[float], tick_s: float, length: float) -> list[float]:
+        """Moving average of each axis over the last ``length`` ticks (fractional: the oldest
+        tick weighs what is left), i.e. one input period: zero gain at the input's rate and its
+        harmonics, where the playback's roughness lies."""
+        if length <= 1.0 + MA_HYSTERESIS:
+            self._ma_delay_s = 0.0
+            for r in self._rings:
+                r.clear()
+            return x
+        n = int(length)
+        frac = length - n
+        keep = n + 1 if frac > 0.0 else n
+        out = []
+        for v, r in zip(x, self._rings, strict=True):
+            r.append(v)
+            while len(r) > keep:
+                r.popleft()
+            if len(r) < keep:  # filling up: average what there is
+                out.append(sum(r) / len(r))
+                continue
+            total = sum(r)
+            if frac > 0.0:
+                total -= (1.0 - frac) * r[0]
+            out.append(total / length)
+        self._ma_delay_s = 0.5 * (length - 1.0) * tick_s
         return out
 
     def _live_linear(self, p: ShaperParams, now: float) -> list[float]:
@@ -438,27 +496,31 @@ class ReferenceShaper:
             out.append(v + s * (tau if 0.0 < tau < b else b if tau >= b else 0.0))
         return out
 
+    def _fix_at(self, i: int, el: float, blend_s: float) -> float:
+        """The correction ``el`` after it started: ``(d + r el) w(el/blend)``, which starts with
+        the differences ``d`` and ``r`` of position and velocity (min-jerk ``w``: flat at both
+        ends) and fades them out."""
+        return (self._fix[i] + self._fix_rate[i] * el) * min_jerk_weight(el / blend_s)
+
     def _current_fix(self, i: int, now: float, blend_s: float) -> float:
-        """The correction still faded in: ``(d + r (now - t0)) w((now - t0)/blend)``, which
-        starts with the difference ``d`` of position and ``r`` of velocity (min-jerk ``w``)."""
-        f, r = self._fix[i], self._fix_rate[i]
-        if f == 0.0 and r == 0.0:
+        if self._fix[i] == 0.0 and self._fix_rate[i] == 0.0:
             return 0.0
         el = now - self._fix_t0[i]
-        w = min_jerk_weight(el / blend_s)
-        if w == 0.0:
+        if el >= blend_s:
             self._fix[i] = self._fix_rate[i] = 0.0
-        return (f + r * el) * w
+            return 0.0
+        return self._fix_at(i, el, blend_s)
 
     def _start_fix(self, i: int, now: float, blend_s: float, d: float, r: float) -> None:
-        """A new correction of ``d`` (position) and ``r`` (velocity) on top of what remains."""
-        el = now - self._fix_t0[i]
-        w = min_jerk_weight(el / blend_s) if self._fix[i] or self._fix_rate[i] else 0.0
-        # what remains of the previous correction, and its rate (to first order)
-        rest = (self._fix[i] + self._fix_rate[i] * el) * w
-        e = 1e-5
-        w2 = min_jerk_weight((el + e) / blend_s) if w else 0.0
-        rest_rate = ((self._fix[i] + self._fix_rate[i] * (el + e)) * w2 - rest) / e if w else 0.0
+        """A new correction (position ``d``, velocity ``r``) on top of what remains of the
+        previous one, so that the reference stays continuous in position and velocity."""
+        rest = rest_rate = 0.0
+        if self._fix[i] or self._fix_rate[i]:
+            el = now - self._fix_t0[i]
+            e = 1e-5
+            rest = self._fix_at(i, el, blend_s)
+            rest_rate = (self._fix_at(i, el + e, blend_s) - self._fix_at(i, el - e, blend_s)) \
+                / (2 * e)
         self._fix[i] = d + rest
         self._fix_rate[i] = r + rest_rate
         self._fix_t0[i] = now
@@ -472,28 +534,45 @@ class ReferenceShaper:
 
 
 
-def _hermite(h: Sequence[tuple[float, float]], tau: float) -> float:
-    """Cubic Hermite through the samples ``h`` (2-4, time-ordered) at ``tau`` (clamped to
-    their span), Catmull-Rom tangents; at the newest sample, the slope of the parabola through
-    the last three (:func:`_end_slope`), which the central tangent replaces when the next sample
-    comes with a difference of order jerk x period^2 only."""
+def _hermite(h: Sequence[tuple[float, float]], tau: float) -> tuple[float, float]:
+    """Value and slope at ``tau`` of the cubic Hermite through the samples ``h`` (2-4,
+    time-ordered; ``tau`` clamped to their span), Catmull-Rom tangents; at the
+    newest sample, the slope of the parabola through the last three (:func:`_end_slope`), which
+    the central tangent replaces when the next sample comes with a difference of order
+    jerk x period^2 only."""
     n = len(h)
     j = n - 2
     while j > 0 and tau < h[j][0]:
         j -= 1
     (t0, v0), (t1, v1) = h[j], h[j + 1]
     span = t1 - t0
-    if tau <= t0:
-        return v0
-    if tau >= t1:
-        return v1
     m0 = (v1 - h[j - 1][1]) / (t1 - h[j - 1][0]) if j > 0 else (v1 - v0) / span
     m1 = (h[j + 2][1] - v0) / (h[j + 2][0] - t0) if j + 2 < n else _end_slope(h[:j + 2])
-    x = (tau - t0) / span
+    x = min(max((tau - t0) / span, 0.0), 1.0)
     x2 = x * x
     x3 = x2 * x
-    return ((2 * x3 - 3 * x2 + 1) * v0 + (x3 - 2 * x2 + x) * span * m0
-            + (-2 * x3 + 3 * x2) * v1 + (x3 - x2) * span * m1)
+    value = ((2 * x3 - 3 * x2 + 1) * v0 + (x3 - 2 * x2 + x) * span * m0
+             + (-2 * x3 + 3 * x2) * v1 + (x3 - x2) * span * m1)
+    slope = ((6 * x2 - 6 * x) * (v0 - v1) / span + (3 * x2 - 4 * x + 1) * m0
+             + (3 * x2 - 2 * x) * m1)
+    return value, slope
+
+
+def _extrapolate(h: Sequence[tuple[float, float]], tau: float, bound: float
+                 ) -> tuple[float, float]:
+    """Value and slope at ``tau`` of the parabola through the samples ``h`` (the last 3, or 2:
+    a line), continued at most ``bound`` beyond the newest and held after that."""
+    t_n, v_n = h[-1]
+    e = min(tau - t_n, bound)
+    t1, v1 = h[-2]
+    s1 = (v_n - v1) / (t_n - t1)
+    if len(h) < 3:
+        return v_n + s1 * e, (s1 if tau - t_n < bound else 0.0)
+    t0, v0 = h[-3]
+    curv = 2.0 * ((v_n - v1) / (t_n - t1) - (v1 - v0) / (t1 - t0)) / (t_n - t0)  # 2nd deriv.
+    slope_n = s1 + 0.5 * curv * (t_n - t1)  # = _end_slope(h)
+    value = v_n + slope_n * e + 0.5 * curv * e * e
+    return value, (slope_n + curv * e if tau - t_n < bound else 0.0)
 
 
 def _end_slope(h: Sequence[tuple[float, float]]) -> float:

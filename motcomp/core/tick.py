@@ -77,6 +77,8 @@ __all__ = [
     "step",
 ]
 
+MAX_SEQ_STEP = 1000
+"""A larger forward step of ``seq`` is not taken as frames the sender sent meanwhile."""
 REJECT_REASONS: tuple[str, ...] = ("oversize", "decode", "schema", "type", "axis", "nonfinite",
                                    "range", "duplicate", "old", "internal")
 """Why an input frame was rejected (the status counts each)."""
@@ -213,7 +215,8 @@ def _take(state: TickState, p: TickParams, now: float, payload: bytes) -> None:
         last = state.last_seq
         if last is not None and seq <= last and not shaper.is_stale(sp, now):
             raise FrameError("duplicate" if seq == last else "old", f"seq {seq} after {last}")
-        shaper.on_input(sp, pos, now, t)
+        step_ = seq - last if last is not None and 0 < seq - last <= MAX_SEQ_STEP else 1
+        shaper.on_input(sp, pos, now, t, step_)
     except FrameError as exc:
         state._reject(exc.reason, str(exc))
         return
