@@ -93,7 +93,7 @@ def running(svc: Service) -> Iterator[Run]:
     """Tick ``svc`` from a thread standing in for its loop (1 ms of tick time per tick, a
     feasible motion on rails_y that starts at rest; 1.5 s of it before the block, 0.3 s after),
     while the block calls the service from this thread, as its main thread would."""
-    src, sink = MemorySource(latest_only=True), MemorySink(keep=1)
+    src, sink = MemorySource(burst=True), MemorySink(keep=1)
     svc.attach(src, [sink])
     stop = threading.Event()
     errors: list[BaseException] = []

@@ -32,7 +32,7 @@ def make_service(**loop: Any) -> tuple[Service, MemorySource, MemorySink]:
     data = read_toml(ROOT / "config" / "motcomp.toml")
     data["loop"].update(loop)
     svc = Service(parse_config(data), ZenohEndpoints())
-    src, sink = MemorySource(latest_only=True), MemorySink()
+    src, sink = MemorySource(burst=True), MemorySink()
     svc.attach(src, [sink])
     return svc, src, sink
 

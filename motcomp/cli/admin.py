@@ -11,7 +11,7 @@ from typing import Any
 import msgpack
 
 from motcomp.cli._common import positive_float, print_json
-from motcomp.core.axes import AXES
+from motcomp.core.axes import AXES, ROTATIONAL
 from motcomp.errors import ServiceError
 from motcomp.io.zenoh_io import (
     NoPeerError,
@@ -208,6 +208,7 @@ def format_status(st: dict[str, Any]) -> str:
         lines.append(f"can         sent {can.get('sent', 0)}  errors {can.get('errors', 0)}")
     if st.get("realtime"):
         lines.append(f"scheduling  {st['realtime']}")
+    lines += _quality_lines(st)
     driven = set(st.get("driven") or [])
     bypass = set(st.get("bypass") or [])
     sat = st.get("saturation") or {}
@@ -218,6 +219,45 @@ def format_status(st: dict[str, Any]) -> str:
         lines.append(f"{axis:<12}{_yes(on):<8}{(_yes(axis in bypass) if on else '-'):<8}"
                      f"{sat.get(axis, 0)}")
     return "\n".join(lines)
+
+
+def _num(x: Any, fmt: str) -> str:
+    return "-" if not isinstance(x, int | float) or isinstance(x, bool) else format(x, fmt)
+
+
+def _quality_lines(st: dict[str, Any]) -> list[str]:
+    """The feedback counters and the motion-quality table (before the axis table, whose rows
+    end the output)."""
+    fb = st.get("feedback")
+    quality = st.get("axes_quality")
+    if fb is None and not quality:
+        return []  # a service from before these figures
+    lines = []
+    if fb is not None:
+        age = fb.get("age_s")
+        lines.append(f"feedback    {fb.get('key', '?')}: received {fb.get('received', 0)}  bad "
+                     f"{fb.get('bad', 0)}  dropped {fb.get('dropped', 0)}  "
+                     + ("none yet" if age is None else f"newest {age:.2f} s ago"))
+        if fb.get("last_bad"):
+            lines.append(f"            last bad frame: {fb['last_bad']}")
+    if not quality:
+        return lines
+    q = st.get("quality") or {}
+    lines.append(f"quality     delay and limiter over the last {q.get('window_s', 0):g} s, "
+                 f"command over the last {q.get('command_window_s', 0):g} s"
+                 + (" (rotations: rad/s^2, rad/s^3)" if set(quality) & ROTATIONAL else ""))
+    lines.append(f"  {'':<10}{'delay ms':>10}{'valid':>7}{'corr':>8}{'limited %':>11}"
+                 f"{'hf acc m/s^2':>14}{'jerk m/s^3':>12}")
+    for axis in sorted(quality, key=lambda a: (AXES.index(a) if a in AXES else len(AXES), a)):
+        f = quality[axis] or {}
+        share = f.get("limited_share")
+        share_pct = share * 100 if isinstance(share, int | float) else None
+        reason = "" if f.get("delay_valid") else f"  {f.get('delay_reason') or ''}"
+        lines.append(f"  {axis:<10}{_num(f.get('apparent_delay_ms'), '.2f'):>10}"
+                     f"{_yes(bool(f.get('delay_valid'))):>7}{_num(f.get('delay_corr'), '.3f'):>8}"
+                     f"{_num(share_pct, '.2f'):>11}{_num(f.get('hf_acc_rms'), '.3f'):>14}"
+                     f"{_num(f.get('jerk_rms'), '.1f'):>12}{reason}".rstrip())
+    return lines
 
 
 def run_bypass(args: argparse.Namespace) -> int:

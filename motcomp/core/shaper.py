@@ -48,10 +48,13 @@ of guessed::
 
     sender time  each frame's ``t``; a frame without ``t`` gets an estimate on the loop's
                  clock: the previous estimate plus the input period, pulled towards its arrival
-                 by INPUT_PLL_GAIN (jitter moves it by that fraction only); "the previous plus
-                 the period" counts the frames the sender sent meanwhile (its seq step), so a
-                 burst after a stall keeps its timeline; an arrival further than
-                 stale_after_s/2 from the estimate re-anchors it
+                 by INPUT_PLL_GAIN, by at most that fraction of a period (a late frame, a
+                 burst, barely moves it: frames read in the same tick, or later than half a
+                 period plus JITTER_FACTOR x the mean transit excess, are not pulled at all;
+                 a clock that drifts by less than that is followed); "the previous plus the
+                 period" counts the frames the sender sent meanwhile (its seq step), so a burst
+                 after a stall keeps its timeline; an arrival further than stale_after_s/2
+                 from the estimate re-anchors it
     period       the interval between frames per seq step (sender time, or arrivals without
                  t), averaged; a single unusual one (a stall) is ignored, PERIOD_RELEARN in a
                  row (a new rate) replace it
@@ -75,11 +78,12 @@ of guessed::
                  value replaces the previous one); a t that goes back, or a rejoin, restarts
                  the axis' history at the new sample
 
-The lag (:attr:`ReferenceShaper.lag_s`) is what the reconstruction costs: about 1.5 input
-periods plus three times the sender's mean jitter (1 ms plus the jitter at 1 kHz, 15 ms at
-100 Hz); a design for such an input adds it to the delay the compensator cancels
-(``motcomp design --input-lag-ms``).  ``hold`` keeps the last value
-(for tests of the rest of the chain).
+The lag (:attr:`ReferenceShaper.lag_s`) is what the reconstruction costs: one input period plus
+the mean transit beyond the smallest, plus half a period of averaging below 1 kHz (1.0-1.2 ms
+for a 1 kHz sender with 300 us of jitter, 5.5 ms at 250 Hz, 14.5 ms at 100 Hz); a frame later
+than that is bridged by the extrapolation.  A design for such an input adds the lag to the
+delay the compensator cancels (``motcomp design --input-lag-ms``).  ``hold`` keeps the last
+value (for tests of the rest of the chain).
 """
 
 from __future__ import annotations
@@ -96,7 +100,7 @@ OFFSET_LEAK = 0.05
 """Upward drift (s per s) allowed to the fast estimate of the clock offset (smallest transit)."""
 SMOOTH_OFFSET_LEAK = 1e-3
 """``smooth``: the same leak, small enough that its steps never reach the playback instant."""
-JITTER_FACTOR = 3.0
+JITTER_FACTOR = 1.0
 """The lag allows this many times the mean transit beyond the smallest."""
 JITTER_GAIN = 0.01
 """Weight of each frame in the mean transit beyond the smallest."""
@@ -289,14 +293,18 @@ class ReferenceShaper:
         tl = self._t_last
         if t_sender is None:  # estimate the sender's instant (module docstring)
             arrived = self.last_input_s
-            if arrived is not None and not rejoin:
+            burst = arrived is not None and now <= arrived  # within one tick: no timing news
+            if arrived is not None and not rejoin and not burst:
                 self._learn_period((now - arrived) / frames)
                 q = self._period
             pred = (tl or 0.0) + frames * q
             if tl is None or rejoin or q == 0.0 or abs(now - pred) > 0.5 * p.stale_after_s:
                 t = now
-            else:
-                t = pred + INPUT_PLL_GAIN * (now - pred)
+            elif burst or now - pred > 0.5 * q + JITTER_FACTOR * self._excess:
+                t = pred  # read with others, or later than the jitter: no timing news
+            else:  # pulled towards the arrival by at most INPUT_PLL_GAIN of a period
+                pull = INPUT_PLL_GAIN * (now - pred)
+                t = pred + min(max(pull, -INPUT_PLL_GAIN * q), INPUT_PLL_GAIN * q)
         else:
             t = t_sender
             if tl is not None and not rejoin and p.min_dt_s <= t - tl <= p.stale_after_s:

@@ -6,7 +6,7 @@ and nothing else of the tick, so a replay computes with the very code that ran::
 
      catch-up (skipped deadlines, below; before the frame, which is taken at now_ns)
         |
-     payload (bytes | None, the newest input frame since the last tick)
+     payloads (every input frame since the last tick, oldest first)
         |
         v
      parse and check: size, msgpack, schema, types, axes, finite, range, seq
@@ -32,6 +32,10 @@ Rules for edge cases
   bounded (:data:`MAX_ERROR_CHARS`).  An exception of any other kind while handling the frame
   is counted as ``internal`` and the tick goes on.  A rejected frame changes no state but the
   counters.
+* Input: a tick reads every frame that arrived since the previous one, oldest first (the
+  reconstruction uses every sample, a burst after a sender's stall included), except until a
+  frame is accepted: then it reads its newest only (the backlog of a sender that started first
+  is not history).
 * Sequence: ``seq`` must increase (``duplicate``, ``old``), except after the input was stale,
   when any ``seq`` is accepted (a restarted sender).  A jump forward counts the skipped frames
   as ``superseded`` (a regress of more than a million counts nothing: a restart).
@@ -165,11 +169,12 @@ class TickState:
                             else text[:MAX_ERROR_CHARS - 3] + "...")
 
 
-def step(state: TickState, p: TickParams, now_ns: int, payload: bytes | None = None,
-         skipped: int = 0) -> TickOutput:
-    """One tick at the instant ``now_ns`` (ns, the loop's clock) with the newest input frame
-    (None if none arrived); ``skipped`` deadlines were missed before it.  See the module
-    docstring; never raises because of ``payload``."""
+def step(state: TickState, p: TickParams, now_ns: int,
+         payload: bytes | Sequence[bytes] | None = None, skipped: int = 0) -> TickOutput:
+    """One tick at the instant ``now_ns`` (ns, the loop's clock) with the input frames that
+    arrived since the last tick, oldest first (one frame, a sequence, or None); ``skipped``
+    deadlines were missed before it.  See the module docstring; never raises because of a
+    payload."""
     now = now_ns / 1e9
     shaper, sp = state.shaper, p.shaper
     if skipped > 0:  # before the frame: the ticks at those deadlines would not have seen it
@@ -177,7 +182,14 @@ def step(state: TickState, p: TickParams, now_ns: int, payload: bytes | None = N
         for j in range(min(skipped, MAX_CATCH_UP), 0, -1):
             state.comp.step(shaper.reference(sp, (now_ns - j * period) / 1e9)[0])
     if payload is not None:
-        _take(state, p, now, payload)
+        if isinstance(payload, bytes | bytearray | memoryview):
+            _take(state, p, now, bytes(payload))
+        elif state.last_seq is None:  # no frame accepted yet: a backlog is not history
+            if payload:
+                _take(state, p, now, payload[-1])
+        else:
+            for frame in payload:
+                _take(state, p, now, frame)
     ref, mode = shaper.reference(sp, now)
     comp = state.comp
     u = comp.step(ref)

@@ -1,7 +1,7 @@
 """In-memory twins of the transport adapters, for tests and offline runs.
 
-:class:`MemorySource` hands out queued payloads one per ``latest()`` call (or only the newest, like
-a ring channel, with ``latest_only=True``); :class:`MemorySink` keeps what it was given.
+:class:`MemorySource` hands out the queued payloads one per ``drain()`` call (or all at once, as
+the zenoh source does, with ``burst=True``); :class:`MemorySink` keeps what it was given.
 """
 
 from __future__ import annotations
@@ -16,23 +16,23 @@ __all__ = ["MemorySink", "MemorySource"]
 
 
 class MemorySource:
-    """A source fed by the test: ``push(payload)``; ``latest()`` never blocks."""
+    """A source fed by the test: ``push(payload)``; ``drain()`` never blocks."""
 
-    def __init__(self, payloads: Iterable[bytes] = (), latest_only: bool = False) -> None:
+    def __init__(self, payloads: Iterable[bytes] = (), burst: bool = False) -> None:
         self._queue: deque[bytes] = deque(payloads)
-        self.latest_only = latest_only
+        self.burst = burst
 
     def push(self, payload: bytes) -> None:
         self._queue.append(payload)
 
-    def latest(self) -> bytes | None:
+    def drain(self) -> list[bytes]:
         if not self._queue:
-            return None
-        if self.latest_only:
-            last = self._queue[-1]
+            return []
+        if self.burst:
+            out = list(self._queue)
             self._queue.clear()
-            return last
-        return self._queue.popleft()
+            return out
+        return [self._queue.popleft()]
 
     def close(self) -> None:
         self._queue.clear()

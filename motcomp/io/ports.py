@@ -1,6 +1,7 @@
 """The two small protocols every transport adapter implements (zenoh, CAN, in-memory twins).
 
-An input port hands the loop the newest input frame, never blocking; an output port takes the
+An input port hands the loop every input frame that arrived since the last call, never
+blocking; an output port takes the
 tick's :class:`~motcomp.core.tick.TickOutput` and its time ``t`` (wall-clock seconds), encodes
 it for its medium and sends it without blocking, counting what it could not send instead of
 raising.  The service keeps a list of output ports and knows nothing of their media.
@@ -16,8 +17,8 @@ __all__ = ["InputPort", "OutputPort"]
 
 
 class InputPort(Protocol):
-    def latest(self) -> bytes | None:
-        """The newest frame since the last call (older ones are dropped), or None."""
+    def drain(self) -> list[bytes]:
+        """The frames since the last call, oldest first (a bounded number: the newest)."""
 
     def close(self) -> None: ...
 

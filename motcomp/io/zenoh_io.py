@@ -1,12 +1,12 @@
-"""zenoh adapters: session opening from the usual flags, latest-value source, sink, queryables.
+"""zenoh adapters: session opening from the usual flags, input source, sink, queryables.
 
-Library facts this module relies on (zenoh-python 1.x): a ``RingChannel(1)`` subscriber keeps
-only the newest sample and ``try_recv()`` never blocks (a full ``FifoChannel`` would block zenoh's
-network thread); publishers for the data path are ``express`` with ``CongestionControl.DROP``
-and real-time priority; queryables are served with a channel handler polled from a Python
-thread, so no Python callback ever runs on a zenoh thread (a process whose callback subscriber
-is still declared at exit can hang).  Sessions are closed in ``finally``/``with``.  Never fork
-after ``zenoh.open()``.
+Library facts this module relies on (zenoh-python 1.x): a ``RingChannel(n)`` subscriber keeps
+the newest ``n`` samples (older ones are dropped) and ``try_recv()`` never blocks (a full
+``FifoChannel`` would block zenoh's network thread); publishers for the data path are
+``express`` with ``CongestionControl.DROP`` and real-time priority; queryables are served with a
+channel handler polled from a Python thread, so no Python callback ever runs on a zenoh thread
+(a process whose callback subscriber is still declared at exit can hang). Sessions are closed in
+``finally``/``with``. Never fork after ``zenoh.open()``.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from motcomp.errors import ConfigError, TransportError
 from motcomp.io.wire import encode_output
 
 __all__ = [
+    "MAX_BURST",
     "NoPeerError",
     "ZenohEndpoints",
     "ZenohSink",
@@ -159,21 +160,26 @@ def open_session(ep: ZenohEndpoints) -> Iterator[Any]:
         session.close()
 
 
+MAX_BURST = 64
+"""Input frames kept between two ticks (64 ms of a 1 kHz sender: longer is a stale input)."""
+
+
 class ZenohSource:
-    """Newest payload on a key, never blocking (a ``RingChannel(1)`` subscriber)."""
+    """The payloads on a key since the last call, oldest first, never blocking (a
+    ``RingChannel(MAX_BURST)`` subscriber: a longer burst keeps its newest frames)."""
 
     def __init__(self, session: Any, key: str) -> None:
         import zenoh
 
         self.key = key
-        self._sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
+        self._sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(MAX_BURST))
 
-    def latest(self) -> bytes | None:
-        sample = self._sub.try_recv()
-        if sample is None:
-            return None
-        payload: bytes = sample.payload.to_bytes()
-        return payload
+    def drain(self) -> list[bytes]:
+        out: list[bytes] = []
+        recv = self._sub.try_recv
+        while (sample := recv()) is not None:
+            out.append(sample.payload.to_bytes())
+        return out
 
     def close(self) -> None:
         self._sub.undeclare()

@@ -129,9 +129,11 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
             progress(b0 / max(ticks.size, 1))
         rows = ticks[b0:b0 + _BLOCK]
         fr = plan.frame[rows]
+        assert plan.frame_lo is not None
+        first = plan.frame_lo[rows]
         has = fr >= 0
-        lo = np.where(has, bounds[np.maximum(fr, 0)], -1).tolist()
-        hi = bounds[np.maximum(fr, 0) + 1].tolist()
+        lo = np.where(has, first, -1).tolist()
+        hi = (fr + 1).tolist()
         now_l = plan.now_ns[rows].tolist()
         skip_l = skipped[b0:b0 + _BLOCK].tolist()
         u_b: array[float] = array("d")
@@ -145,7 +147,9 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
                 for fn in hook:
                     fn()
             o = lo[i]
-            out = step(state, current, now_l[i], data[o:hi[i]] if o >= 0 else None, skip_l[i])
+            frames = ([data[bounds[k]:bounds[k + 1]] for k in range(o, hi[i])] if o >= 0
+                      else None)
+            out = step(state, current, now_l[i], frames, skip_l[i])
             if warm_pending and state.accepted:
                 warm_pending = False
                 current = params

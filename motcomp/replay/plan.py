@@ -9,8 +9,9 @@ from a recording in one of three ways (docs/REPLAY.md):
 ``outputs+clock``
     Recorded outputs and a status frame carrying the loop's ``clock``: each output's ``t`` is
     mapped back to the exact tick instant (``tick_ns = grid0_ns + m * period_ns``), the input
-    frame each tick used is the one whose ``seq`` is the output's ``src_seq`` (a change of
-    ``src_seq`` marks a consumed frame), stalls show as gaps of whole periods and become
+    frame each tick used last is the one whose ``seq`` is the output's ``src_seq`` (a change of
+    ``src_seq`` marks a consumed frame; the tick read every recorded frame since the previous
+    consumed one: :func:`consumed_ranges`), stalls show as gaps of whole periods and become
     catch-up rows, bypass changes and parking come from the output flags.  The replay then
     computes with the very numbers the service computed with.
 ``outputs``
@@ -19,8 +20,8 @@ from a recording in one of three ways (docs/REPLAY.md):
     which changes floating-point rounding in the reference reconstruction (see docs/REPLAY.md).
 ``inputs``
     No outputs: ticks at the config's rate from the first input's arrival, each reading the
-    newest frame that arrived since the previous tick (recorder receive times), valid or not,
-    as the service's latest-value input does.
+    frames that arrived since the previous tick (recorder receive times), valid or not, as the
+    service's input does.
 
 A plan does not judge frames: the replay's tick reads the recorded bytes and accepts or rejects
 them itself (:func:`motcomp.core.tick.parse_input` and the sequence rule).  The one use of
@@ -42,7 +43,7 @@ from motcomp.errors import DataError
 from motcomp.record.frames import FLAG_BITS
 from motcomp.record.session import InputStream, Session
 
-__all__ = ["TickPlan", "build_plan", "first_position"]
+__all__ = ["TickPlan", "build_plan", "consumed_ranges", "first_position"]
 
 WARM_AFTER_TICKS = 5000
 """A recording whose first output is a later tick than this, and already used an input,
@@ -56,7 +57,7 @@ class TickPlan:
 
     now_ns: np.ndarray
     frame: np.ndarray
-    """Index of the input frame the step's tick reads, or -1 (none)."""
+    """Index of the newest input frame the step's tick reads, or -1 (none)."""
     output: np.ndarray
     """Index of the recorded output of this step, or -1 (catch-up step, or not recorded)."""
     emit: np.ndarray
@@ -77,6 +78,13 @@ class TickPlan:
     bypass_axes: np.ndarray | None = None
     """Axes whose recorded bypass state is known (driven by the recorded service; the output
     flags say nothing of the others).  None: all."""
+    frame_lo: np.ndarray | None = None
+    """Index of the oldest input frame the step's tick reads (it reads ``frame_lo`` to
+    ``frame``); None: :func:`consumed_ranges` of :attr:`frame`."""
+
+    def __post_init__(self) -> None:
+        if self.frame_lo is None:
+            self.frame_lo = consumed_ranges(self.frame)
 
     @property
     def rows(self) -> int:
@@ -86,6 +94,21 @@ class TickPlan:
     def t_s(self) -> np.ndarray:
         """Row instants relative to the first row (s)."""
         return np.asarray((self.now_ns - self.now_ns[0]) / 1e9)
+
+
+def consumed_ranges(frame: np.ndarray) -> np.ndarray:
+    """The oldest frame each row reads, given the newest (``frame``): a tick reads every frame
+    that arrived since the previous tick, i.e. those after the frame the previous reading row
+    ended with; the first reading row reads its newest frame only (the tick's rule until a
+    frame is accepted: :mod:`motcomp.core.tick`), as does a row whose frame is not after the
+    previous one (a restarted sender)."""
+    lo = np.full(frame.size, -1, dtype=np.int64)
+    prev = -1
+    for r in np.flatnonzero(frame >= 0).tolist():
+        f = int(frame[r])
+        lo[r] = prev + 1 if 0 <= prev < f else f
+        prev = f
+    return lo
 
 
 def first_position(inp: InputStream, frame: int, params: TickParams
@@ -330,13 +353,18 @@ def _from_inputs(session: Session, cfg: ServiceConfig, params: TickParams) -> Ti
     arrival = inp.log_ns - int(inp.log_ns[0])
     n_rows = int(arrival[-1] // period) + 2
     now_ns = np.arange(n_rows, dtype=np.int64) * period + 10**12
-    # the tick after each arrival; the newest frame of a tick wins (the ring channel)
+    # the tick after each arrival reads every frame that arrived since the previous one
     tick_of = np.ceil(arrival / period).astype(np.int64)
     last = np.flatnonzero(np.diff(tick_of, append=tick_of[-1] + 1) != 0)
+    first = np.flatnonzero(np.diff(tick_of, prepend=tick_of[0] - 1) != 0)
     frame = np.full(n_rows, -1, dtype=np.int64)
+    frame_lo = np.full(n_rows, -1, dtype=np.int64)
     frame[tick_of[last]] = last
-    keep = slice(_warm_start(inp, frame, params, session.name), None)
+    frame_lo[tick_of[first]] = first
+    start = _warm_start(inp, frame, params, session.name)
+    frame_lo[start] = frame[start]  # the first reading row: its newest frame only
+    keep = slice(start, None)
     return TickPlan(now_ns[keep], frame[keep], np.full(n_rows, -1)[keep],
                     np.ones(n_rows, bool)[keep], None, [], None, True, "inputs", period,
                     0, ["no outputs recorded: ticks at the config's rate from the input arrival "
-                        "times, warm start at the first input"])
+                        "times, warm start at the first input"], frame_lo=frame_lo[keep])

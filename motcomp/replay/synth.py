@@ -136,12 +136,12 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
             _, on, names = bypass_at.pop(0)
             set_bypass(state, [on if a in names else b
                                for a, b in zip(AXES, state.comp.bypass, strict=True)])
-        payload = None  # the newest frame arrived since the last tick (a latest-value input)
+        payloads = []  # every frame that arrived since the last tick, as the service reads
         while fi < len(frames) and frames[fi][0] <= dl:
-            payload = frames[fi][1]
+            payloads.append(frames[fi][1])
             fi += 1
         skipped = int((dl - deadlines[j - 1]) // period - 1) if j else 0
-        out = step(state, params, dl, payload, skipped)
+        out = step(state, params, dl, payloads, skipped)
         out_msgs.append((dl, encode_output(out.seq, WALL0 + (dl - MONO0_NS) / 1e9, out.src_seq,
                                            out.u, out.flags)))
         if opts.park_at_s is not None and parked_from is None and t_rel >= opts.park_at_s:

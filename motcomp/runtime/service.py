@@ -12,12 +12,15 @@ Lifecycle::
              reference, catch-up, compensator, verdict: the whole per-tick policy), send the
              output on every port; count, never log
     main     the main thread: signals, status at 1 Hz (and on query), admin requests, the
-             systemd watchdog (only while the loop ticks), reloads
+             systemd watchdog (only while the loop ticks), reloads, the motion-quality figures
+             (:mod:`motcomp.runtime.monitor`: the loop records r and u per tick, the feedback
+             subscriber queues each frame with its arrival instant, the main thread decodes
+             and estimates when it builds the status)
     stop     SIGTERM/SIGINT -> park (ramp to neutral within the limits) -> exit 0; exit 1 if
              parking did not finish within park_timeout_s
 
 Everything the loop needs from the outside world comes through two non-blocking doors: the
-input source's ``latest()`` and a command queue (a deque: appends and pops are atomic) through
+input source's ``drain()`` and a command queue (a deque: appends and pops are atomic) through
 which the main thread hands it closures to run between two ticks -- bypass toggles and config
 swaps.  The loop thread is the only one that touches the tick's state.  Reloads are validated
 in the main thread (:mod:`motcomp.runtime.reload`) and swapped in by :meth:`Service.apply_config`.
@@ -54,6 +57,7 @@ from motcomp.io.ports import InputPort, OutputPort
 from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, ZenohSource, open_session
 from motcomp.resources import config_file
 from motcomp.runtime.clock import DeadlineClock
+from motcomp.runtime.monitor import BIN_S, COMMAND_WINDOW_S, LAG_RANGE_S, MotionMonitor
 from motcomp.runtime.reload import Prepared, prepare_config, prepare_profile
 from motcomp.runtime.rt import pin_to_cpu, set_realtime, set_slice
 from motcomp.runtime.stats import LoopStats
@@ -68,6 +72,12 @@ STAT_SERIES = ("tick", "compute", "io", "late")
 tick; ``io`` the part of it spent in the ports (taking the newest input; encoding and sending
 the outputs); ``compute`` the rest (commands, :func:`motcomp.core.tick.step`: catch-up steps,
 validation, reference, compensator, saturation verdicts); ``late`` waking after the deadline."""
+
+
+def _hand_over() -> None:
+    """Between two axes of the motion-quality figures: sleep briefly, so that a loop thread
+    waiting for the interpreter lock takes it now rather than after the switch interval (5 ms)."""
+    time.sleep(0.0002)
 
 
 class ModeLog:
@@ -102,6 +112,9 @@ class ModeLog:
         self.mode, self.episodes = mode, episodes
 
 
+FEEDBACK_RING = 256
+"""Feedback frames kept between two polls of the main thread (every 20 ms)."""
+
 class Service:
     """See the module docstring.  ``run()`` blocks until stopped and returns the exit code."""
 
@@ -116,6 +129,7 @@ class Service:
         self.params: TickParams
         self.params, self.state = new_tick(cfg, self.axes)
         self.stats = LoopStats(round(cfg.status.window_s * cfg.loop.rate_hz), STAT_SERIES)
+        self.monitor = MotionMonitor(cfg.loop.rate_hz, cfg.status.window_s)
         self.last_tick_mono = 0.0
         self.notifier = Notifier(None)
         self.commands: deque[Callable[[], None]] = deque()
@@ -136,7 +150,8 @@ class Service:
         self._t_mono0 = 0
         self.io_ns = 0
         """Time the last :meth:`tick` spent in transport calls (input take, sends)."""
-        self._pending: bytes | None = None
+        self._pending: list[bytes] = []
+        self._feedback: Any = None  # the feedback subscriber (a ring), polled by _main
         self._perf = time.perf_counter_ns
 
     # --- the loop thread ------------------------------------------------------------------
@@ -154,10 +169,10 @@ class Service:
 
     def _poll_input(self) -> bool:
         assert self._source is not None
-        payload = self._source.latest()
-        if payload is None:
+        frames = self._source.drain()
+        if not frames:
             return False
-        self._pending = payload
+        self._pending.extend(frames)
         return True
 
     def tick(self, now_ns: int, skipped: int = 0) -> None:
@@ -168,14 +183,15 @@ class Service:
         while commands:
             commands.popleft()()
         payload = self._pending
-        self._pending = None
+        self._pending = []
         perf = self._perf
         io = 0
-        if payload is None and self._source is not None:
+        if self._source is not None:
             t_io = perf()
-            payload = self._source.latest()
+            payload.extend(self._source.drain())
             io = perf() - t_io
         out = step(self.state, self.params, now_ns, payload, skipped)
+        self.monitor.record(now_ns, self.state.shaper.ref, out.u)
         t_wall = self._t_wall0 + (now_ns - self._t_mono0) / 1e9
         t_io = perf()
         for port in self._ports:
@@ -318,7 +334,30 @@ class Service:
             "reloads": self.reloads[-10:],
             "realtime": self.rt_report,
             "clock": self.tick_clock(),
+            **self._quality(),
         }
+
+    def _quality(self) -> dict[str, Any]:
+        """The status' ``feedback``, ``quality`` and ``axes_quality`` blocks (layout in
+        docs/DEPLOYMENT.md, "Motion quality"); never raises."""
+        st, axes = self.state, self.axes
+        window: dict[str, Any] = {"window_s": self.monitor.window_s,
+                                  "command_window_s": COMMAND_WINDOW_S, "bin_s": BIN_S,
+                                  "lag_range_s": list(LAG_RANGE_S), "from_t": None,
+                                  "to_t": None}
+        try:
+            rep = self.monitor.report(time.perf_counter_ns(), st.ticks, list(st.acted),
+                                      axes.driven, axes.limits.p_min, axes.limits.p_max,
+                                      pause=_hand_over)
+        except Exception as exc:  # pragma: no cover - report() catches its own
+            log.error("motion-quality figures failed: %r", exc)
+            return {"quality": window, "axes_quality": {}}
+        span = rep["span_ns"]
+        if span is not None and self._t_wall0 and self._t_mono0:
+            window["from_t"], window["to_t"] = (self._t_wall0 + (x - self._t_mono0) / 1e9
+                                                for x in span)
+        return {"feedback": {"key": self.cfg.feedback.key, **rep["feedback"]},
+                "quality": window, "axes_quality": rep["axes"]}
 
     def tick_clock(self) -> dict[str, Any] | None:
         """How output ``t`` maps back to the loop's own tick instants (None before the loop
@@ -429,6 +468,11 @@ class Service:
             if cfg.output.transport in ("can", "both"):
                 self._can = self._open_can()
                 self._ports.append(self._can)
+            # feedback: a ring polled by the main thread (no Python callback on a zenoh thread:
+            # it would contend with the loop thread for the interpreter 1000 times a second)
+            feedback_sub = session.declare_subscriber(cfg.feedback.key,
+                                                      zenoh.handlers.RingChannel(FEEDBACK_RING))
+            self._feedback = feedback_sub
             status_pub = session.declare_publisher(cfg.status.key)
             status_q = session.declare_queryable(cfg.status.key, zenoh.handlers.FifoChannel(16))
             admin_q = (session.declare_queryable(f"{cfg.admin.key}/**",
@@ -442,7 +486,7 @@ class Service:
                 self.stop_event.set()
                 thread.join(timeout=cfg.loop.park_timeout_s + 2.0)
                 self.notifier.stopping()
-                for q in (status_q, admin_q):
+                for q in (status_q, admin_q, feedback_sub):
                     if q is not None:
                         q.undeclare()
                 status_pub.undeclare()
@@ -451,6 +495,20 @@ class Service:
                 if self._source is not None:
                     self._source.close()
                 self.notifier.close()
+
+    def _poll_feedback(self) -> None:
+        """Hand the feedback frames received since the last poll to the monitor, stamped now
+        (the monitor times frames by their own ``t``; never raises)."""
+        sub = self._feedback
+        if sub is None:
+            return
+        t_ns = time.perf_counter_ns()
+        while (sample := sub.try_recv()) is not None:
+            try:
+                payload = sample.payload.to_bytes()
+            except Exception:  # counted as a bad frame by the monitor
+                payload = b""
+            self.monitor.on_feedback(t_ns, payload)
 
     def _open_can(self) -> Any:
         from motcomp.io.can_io import CanSink, load_layouts, open_bus
@@ -474,6 +532,8 @@ class Service:
         while not self.loop_done.is_set():
             self.loop_done.wait(0.02)
             now = time.monotonic()
+            self._poll_feedback()
+            self.monitor.drain()
             seen.update(self.state, self.params)
             healthy = self.state.ticks > 0 and now - self.last_tick_mono < 0.25
             if healthy and not ready:

@@ -1,0 +1,476 @@
+"""Live motion quality of the running service, per driven axis: :class:`MotionMonitor`.
+
+Three figures for ``motcomp status`` (why and how: docs/DEPLOYMENT.md, "Motion quality"):
+
+``apparent_delay_ms``
+    how late the platform's feedback position follows the reference ``r`` the compensator is
+    asked to deliver, by :func:`motcomp.core.quality.estimate_delay` over the last ``window_s``;
+    with ``delay_valid``, ``delay_reason`` and ``delay_corr`` (below).
+``limited_share``
+    the fraction of ticks over the window on which the limiter changed the axis' command
+    (:attr:`motcomp.core.tick.TickState.acted`).
+``hf_acc_rms``, ``jerk_rms``, ``acc_peak``
+    :func:`motcomp.core.quality.command_quality` of the command ``u`` sent over the last
+    :data:`COMMAND_WINDOW_S`, taken on the loop's period grid from the tick instants (linear
+    between ticks: a missed tick is bridged rather than read as a jump of the command; the
+    status' ``missed_ticks`` counts those).
+
+Threads and cost: the loop thread calls :meth:`MotionMonitor.record` once per tick (a row written
+into a preallocated ring: under a microsecond); the feedback subscriber's thread calls
+:meth:`MotionMonitor.on_feedback` per frame (an append to a bounded deque); one other thread
+(the service's main thread) calls :meth:`MotionMonitor.drain` and :meth:`MotionMonitor.report`,
+which decode, average and estimate.  Nothing here reads a clock: every instant is an argument,
+in ns on the loop's monotonic clock (``time.perf_counter_ns``).
+
+The delay, step by step (``h`` = :data:`BIN_S`)
+-----------------------------------------------
+0. Each feedback frame is placed on the loop clock at ``t + min(arrival - t)``: its sender's
+   ``t`` shifted by the smallest transit over the frames held (the fastest delivery; the
+   reference shaper times input frames the same way).  The arrival instants themselves carry
+   the receiving side's dispatch delays (the interpreter lock, a busy host), which are not the
+   platform's.  If a frame held lacks a finite ``t``, the arrival instants are used.
+1. Both signals are averaged into bins of ``h`` on that clock -- ``r`` at the tick instants, the
+   feedback at its instants of step 0 -- keeping each bin's mean instant; each is resampled
+   linearly from those mean instants onto the bin centres (so the sampling phase of the two
+   streams within a bin biases nothing; empty bins are bridged).
+2. The window ``[A, B)`` of the feedback: its last ``window_s`` (at most :data:`MAX_WINDOW_S`)
+   such that ``r`` is known over ``[A - max_lag, B - min_lag)`` (:data:`LAG_RANGE_S`).
+3. From ``d = 0``: ``r(t - d)`` over ``[A, B)`` (linear between bins) and ``y``, each with its
+   weighted mean removed and tapered by the same Tukey window (cosine edges over
+   :data:`TAPER_FRACTION` of it), go to ``estimate_delay`` (lags within the range); ``d`` grows
+   by the delay it finds, until a step is below 1 % of a bin (two to five steps; at most ten).
+   A step's estimate is pulled towards zero by the windows (for a slow motion, by a fraction of
+   the remaining delay), which the next step removes: at the fixed point the two windows are
+   aligned and the pull is nil.  (A single correlation of two equal windows is off by 5-100 ms
+   for a 0.2-0.3 Hz motion over 10 s, and so is one of a motion that starts or stops within the
+   window.)  ``delay_corr`` is the Pearson correlation of ``r(t - d)`` and ``y`` over
+   ``[A, B)``.
+
+Validity (``delay_valid`` false, ``delay_reason`` says which; the value is None unless a delay
+was computed): no feedback yet, or none for :data:`FEEDBACK_STALE_S`; less than
+:data:`MIN_SPAN_S` of feedback; the axis in fewer than :data:`MIN_FEEDBACK_COVERAGE` of the
+bins; the reference's standard deviation over the window below :data:`MIN_MOTION_FRACTION` of
+the axis range; the feedback constant, the correlation's peak on the edge of the lags, or no
+convergence; ``delay_corr`` below :data:`MIN_CORRELATION`.
+
+Feedback frames (docs/WIRE.md ``{"t", "pos", "acc"}``): any bytes are accepted by
+:meth:`~MotionMonitor.on_feedback`; a frame that is larger than :data:`MAX_FEEDBACK_BYTES`, does
+not decode, or whose ``pos`` is not a map of finite numbers is counted (``bad``, ``last_bad``)
+and ignored; axes this service does not know are ignored.  Nothing here raises because of a
+frame.
+
+Example
+-------
+>>> m = MotionMonitor(rate_hz=1000.0, window_s=10.0)
+>>> m.record(0, [0.0] * 8, [0.0] * 8)
+>>> m.report(1_000_000, 1, [0] * 8, [True] + [False] * 7, [-1.0] * 8, [1.0] * 8
+...          )["axes"]["rails_x"]["delay_reason"]
+'no feedback received'
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from motcomp.core.axes import AXES, AXIS_INDEX, N_AXES
+from motcomp.core.quality import command_quality, estimate_delay
+from motcomp.core.tick import MAX_ERROR_CHARS
+from motcomp.errors import ConfigError, FrameError
+from motcomp.io.wire import decode_feedback
+
+__all__ = [
+    "BIN_S",
+    "COMMAND_WINDOW_S",
+    "FEEDBACK_STALE_S",
+    "LAG_RANGE_S",
+    "MAX_FEEDBACK_BYTES",
+    "MAX_WINDOW_S",
+    "MIN_CORRELATION",
+    "MIN_FEEDBACK_COVERAGE",
+    "MIN_MOTION_FRACTION",
+    "MIN_SPAN_S",
+    "MotionMonitor",
+    "feedback_positions",
+]
+
+BIN_S = 0.005
+"""Averaging bin of both signals before the correlation (200 Hz)."""
+LAG_RANGE_S = (-0.1, 0.6)
+"""Lags searched (s): a bypassed rails axis shows ~190 ms, a compensated one a few ms."""
+MAX_WINDOW_S = 60.0
+"""Longest delay window (memory: the rings hold it at the loop rate)."""
+COMMAND_WINDOW_S = 2.0
+"""The command's smoothness is measured over its last this long."""
+MIN_SPAN_S = 2.0
+"""Shortest feedback span a delay is estimated on."""
+MIN_FEEDBACK_COVERAGE = 0.5
+"""Fraction of the window's bins that must hold a feedback value of the axis."""
+MIN_MOTION_FRACTION = 1e-3
+"""The reference's standard deviation over the window, as a fraction of the axis range, below
+which the motion is too small to tell a delay (5 mm on the 5.2 m rails)."""
+MIN_CORRELATION = 0.9
+"""Lowest normalised correlation of the feedback with the delayed reference for a valid delay."""
+FEEDBACK_STALE_S = 0.5
+"""No feedback for this long: no delay (the figure would describe the past)."""
+MAX_FEEDBACK_BYTES = 65536
+"""Longest feedback frame read (a frame of 8 axes is about 300 bytes)."""
+TAPER_FRACTION = 0.25
+"""Part of the delay window under the taper's cosine edges (half at each end): the middle 75 %
+weighs uniformly."""
+_MAX_ITERATIONS = 10
+_CONVERGED_BINS = 0.01
+"""Step 3 stops when a step moves the delay by less than this fraction of a bin."""
+
+
+def feedback_positions(payload: bytes) -> tuple[float, list[float]]:
+    """The sender's ``t`` (NaN unless a finite number) and the positions in :data:`AXES` order
+    (NaN for an axis it lacks) of a feedback frame.
+
+    Raises
+    ------
+    FrameError
+        ``oversize``, ``decode``, ``schema``, ``type`` or ``nonfinite``, naming the key.
+    """
+    if len(payload) > MAX_FEEDBACK_BYTES:
+        raise FrameError("oversize", f"feedback frame of {len(payload)} bytes exceeds "
+                                     f"{MAX_FEEDBACK_BYTES}")
+    frame = decode_feedback(payload)
+    t, pos = frame["t"], frame["pos"]
+    t = float(t) if t.__class__ is float or t.__class__ is int else math.nan
+    if pos.__class__ is not dict:
+        raise FrameError("type", f"feedback pos must be a map, got a {type(pos).__name__}")
+    row = [math.nan] * N_AXES
+    for axis, value in pos.items():
+        i = AXIS_INDEX.get(axis) if axis.__class__ is str else None
+        if i is None:
+            continue  # an axis this service does not know
+        if value.__class__ is not float:
+            if value.__class__ is not int:
+                raise FrameError("type", f"feedback pos.{axis} must be a number, got a "
+                                         f"{type(value).__name__}")
+            value = float(value)
+        if not math.isfinite(value):
+            raise FrameError("nonfinite", f"feedback pos.{axis} is {value!r}")
+        row[i] = value
+    return (t if math.isfinite(t) else math.nan), row
+
+
+class MotionMonitor:
+    """The figures of the module docstring, from per-tick samples and feedback frames.
+
+    Parameters
+    ----------
+    rate_hz
+        The loop's rate (sizes the rings; the command's sampling rate).
+    window_s
+        Delay and limiter-share window (the service's ``status.window_s``), at most
+        :data:`MAX_WINDOW_S`.
+    feedback_rate_max_hz
+        Highest feedback rate that fills the window (default: twice ``rate_hz``); faster
+        feedback shortens the window the ring holds.
+    bin_s
+        The averaging bin (:data:`BIN_S`).
+
+    Raises
+    ------
+    ConfigError
+        If the rate, window or bin is not a positive number.
+    """
+
+    def __init__(self, rate_hz: float, window_s: float, feedback_rate_max_hz: float = 0.0,
+                 bin_s: float = BIN_S) -> None:
+        if not (math.isfinite(rate_hz) and rate_hz > 0 and math.isfinite(window_s)
+                and window_s > 0 and bin_s > 0):
+            raise ConfigError(f"monitor needs a positive rate, window and bin, got {rate_hz!r}, "
+                              f"{window_s!r}, {bin_s!r}")
+        self.rate_hz = float(rate_hz)
+        self.window_s = min(float(window_s), MAX_WINDOW_S)
+        self.bin_ns = round(bin_s * 1e9)
+        self._lo = math.floor(LAG_RANGE_S[0] / bin_s)
+        self._hi = math.ceil(LAG_RANGE_S[1] / bin_s)
+        span_s = self.window_s + (self._hi - self._lo) * bin_s + 1.0
+        # loop thread: tick instants, and per tick r then u (AXES order) in one row; the ring
+        # holds half a second more than a report reads, which the loop may overwrite meanwhile
+        self._keep = max(math.ceil(max(span_s, COMMAND_WINDOW_S + 1.0) * rate_hz), 64)
+        self._cap = self._keep + max(math.ceil(0.5 * rate_hz), 16)
+        self._t = np.zeros(self._cap, dtype=np.int64)
+        self._ru = np.zeros((self._cap, 2 * N_AXES))
+        self._n = 0
+        # feedback subscriber's thread -> main thread
+        self._inbox: deque[tuple[int, bytes]] = deque(maxlen=1 << 14)
+        self.fb_dropped = 0
+        """Frames the inbox overflowed with (the main thread did not drain it in time)."""
+        # main thread: arrival instants and positions of the frames that decoded
+        fb_rate = feedback_rate_max_hz or 2.0 * rate_hz
+        self._fcap = max(math.ceil((self.window_s + 2.0) * fb_rate), 64)
+        self._ft = np.zeros(self._fcap, dtype=np.int64)
+        self._fsent = np.zeros(self._fcap)
+        self._fpos = np.zeros((self._fcap, N_AXES))
+        self._fn = 0
+        self.fb_received = 0
+        self.fb_bad = 0
+        self.fb_last_bad = ""
+        self._window_cache = np.zeros(0)
+        # (instant, ticks, acted) at each report; the first, from before any tick, is the base
+        # until one is a window old (the service makes the tick's counters and this together)
+        self._snaps: deque[tuple[int, int, tuple[int, ...]]] = deque([(-(2**62), 0,
+                                                                      (0,) * N_AXES)])
+
+    # --- the loop thread ------------------------------------------------------------------
+    def record(self, t_ns: int, ref: list[float], u: list[float]) -> None:
+        """One tick at ``t_ns``: the reference ``ref`` and the command ``u`` it sent (lists in
+        :data:`AXES` order)."""
+        k = self._n % self._cap
+        self._t[k] = t_ns
+        self._ru[k] = ref + u
+        self._n += 1
+
+    # --- the feedback subscriber's thread -------------------------------------------------
+    def on_feedback(self, t_ns: int, payload: bytes) -> None:
+        """A feedback frame arrived at ``t_ns``; any bytes (decoded later by :meth:`drain`)."""
+        inbox = self._inbox
+        if len(inbox) == inbox.maxlen:
+            self.fb_dropped += 1
+        inbox.append((t_ns, payload))
+
+    # --- the main thread ------------------------------------------------------------------
+    def drain(self) -> int:
+        """Decode the frames that arrived since the last call; returns how many were good."""
+        inbox = self._inbox
+        good = 0
+        while inbox:
+            t_ns, payload = inbox.popleft()
+            self.fb_received += 1
+            try:
+                sent, row = feedback_positions(payload)
+            except FrameError as exc:
+                self._bad(f"{exc.reason}: {exc}")
+                continue
+            except Exception as exc:  # any bytes: a decoder's surprise is counted, not raised
+                self._bad(f"internal: {type(exc).__name__}: {str(exc)[:80]}")
+                continue
+            k = self._fn % self._fcap
+            self._ft[k] = t_ns
+            self._fsent[k] = sent
+            self._fpos[k] = row
+            self._fn += 1
+            good += 1
+        return good
+
+    def _bad(self, text: str) -> None:
+        self.fb_bad += 1
+        self.fb_last_bad = (text if len(text) <= MAX_ERROR_CHARS
+                            else text[:MAX_ERROR_CHARS - 3] + "...")
+
+    def report(self, now_ns: int, ticks: int, acted: Sequence[int], driven: Sequence[bool],
+               p_min: Sequence[float] | np.ndarray, p_max: Sequence[float] | np.ndarray,
+               pause: Callable[[], None] | None = None) -> dict[str, Any]:
+        """The figures at ``now_ns``, after draining the feedback inbox.
+
+        ``ticks`` and ``acted`` are the tick's counters (total ticks, ticks on which the limiter
+        acted per axis); ``driven`` selects the axes reported; ``p_min``/``p_max`` give each
+        axis' range (for the motion threshold); ``pause`` is called between two axes (the
+        service sleeps a little there, handing the interpreter lock to the loop thread).
+        Returns ``{"span_ns": (A, B) | None, "feedback": {...}, "axes": {axis: {...}}}``
+        (layout in docs/DEPLOYMENT.md); a figure that fails says so in its ``delay_reason``
+        (``internal: ...``) instead of raising.
+        """
+        self.drain()
+        share = self._limited_share(now_ns, ticks, acted)
+        n = self._n
+        m = min(n, self._keep)
+        idx = np.arange(n - m, n) % self._cap
+        t_r = self._t[idx]
+        fn = self._fn
+        fm = min(fn, self._fcap)
+        fidx = np.arange(fn - fm, fn) % self._fcap
+        arrived = self._ft[fidx]
+        t_y, fidx = self._feedback_instants(arrived, self._fsent[fidx], fidx)
+        window = self._window(t_r, t_y, arrived)
+        cmd = self._command_grid(t_r)
+        axes: dict[str, Any] = {}
+        for i, axis in enumerate(AXES):
+            if not driven[i]:
+                continue
+            if axes and pause is not None:
+                pause()
+            fig: dict[str, Any] = {"apparent_delay_ms": None, "delay_valid": False,
+                                   "delay_reason": "", "delay_corr": None,
+                                   "limited_share": share[i] if share else None,
+                                   "hf_acc_rms": None, "jerk_rms": None, "acc_peak": None}
+            try:
+                if isinstance(window, str):
+                    fig["delay_reason"] = window
+                else:
+                    fig.update(self._delay(t_r, self._ru[idx, i], t_y, self._fpos[fidx, i], window,
+                                           float(p_max[i]) - float(p_min[i])))
+                if cmd is not None:
+                    grid, first = cmd
+                    u = np.interp(grid, t_r[first:], self._ru[idx[first:], N_AXES + i])
+                    fig.update(command_quality(u, self.rate_hz).as_dict())
+            except Exception as exc:  # a figure must never stop the status
+                fig["delay_reason"] = f"internal: {type(exc).__name__}: {str(exc)[:80]}"
+            axes[axis] = fig
+        return {
+            "span_ns": None if isinstance(window, str) else
+            (window[0] * self.bin_ns, window[1] * self.bin_ns),
+            "feedback": {"received": self.fb_received, "bad": self.fb_bad,
+                         "dropped": self.fb_dropped, "last_bad": self.fb_last_bad,
+                         "age_s": (now_ns - int(arrived[-1])) / 1e9 if fm else None},
+            "axes": axes,
+        }
+
+    def _command_grid(self, t_r: np.ndarray) -> tuple[np.ndarray, int] | None:
+        """The loop's period grid over the last :data:`COMMAND_WINDOW_S` (plus the two samples
+        the second difference takes) ending at the newest tick, and the first tick it needs;
+        None before 8 ticks."""
+        if t_r.size < 8:
+            return None
+        period = round(1e9 / self.rate_hz)
+        last = int(t_r[-1])
+        n = min(round(COMMAND_WINDOW_S * self.rate_hz) + 2, (last - int(t_r[0])) // period + 1)
+        grid = last - period * np.arange(n - 1, -1, -1, dtype=np.int64)
+        first = max(int(np.searchsorted(t_r, grid[0], side="right")) - 1, 0)
+        return grid, first
+
+    def _limited_share(self, now_ns: int, ticks: int, acted: Sequence[int]
+                       ) -> list[float] | None:
+        """Per axis, acted ticks / ticks since the newest report at least a window old (since
+        the start until there is one); None without a tick since."""
+        snaps = self._snaps
+        snaps.append((now_ns, ticks, tuple(acted)))
+        horizon = now_ns - round(self.window_s * 1e9)
+        while len(snaps) > 2 and snaps[1][0] <= horizon:
+            snaps.popleft()
+        _, ticks0, acted0 = snaps[0]
+        if ticks - ticks0 <= 0:
+            return None
+        return [(a - a0) / (ticks - ticks0) for a, a0 in zip(acted, acted0, strict=True)]
+
+    @staticmethod
+    def _feedback_instants(arrived: np.ndarray, sent: np.ndarray, fidx: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray]:
+        """Each frame's instant on the loop clock (step 0), in time order, and the ring rows
+        in that order."""
+        if arrived.size == 0 or not np.isfinite(sent).all():
+            return arrived, fidx
+        transit = arrived / 1e9 - sent
+        t = np.rint((sent + float(transit.min())) * 1e9).astype(np.int64)
+        if np.any(t[1:] < t[:-1]):  # a sender's clock stepped back: keep time order
+            order = np.argsort(t, kind="stable")
+            t, fidx = t[order], fidx[order]
+        return t, fidx
+
+    def _window(self, t_r: np.ndarray, t_y: np.ndarray, arrived: np.ndarray
+                ) -> tuple[int, int] | str:
+        """The feedback window ``(A, B)`` in absolute bins (step 2), or why there is none."""
+        if t_y.size == 0:
+            return "no feedback received"
+        if t_r.size == 0:
+            return "no tick yet"
+        b = self.bin_ns
+        r_first, r_end = int(t_r[0]) // b + 1, int(t_r[-1]) // b  # whole bins only
+        y_first, y_end = int(t_y[0]) // b + 1, int(t_y[-1]) // b
+        silent = (int(t_r[-1]) - int(arrived[-1])) / 1e9
+        if silent > FEEDBACK_STALE_S:
+            return f"no feedback for {silent:.1f} s"
+        end = min(r_end + self._lo, y_end)
+        start = max(end - round(self.window_s * 1e9 / b), r_first + self._hi, y_first)
+        if (end - start) * b < MIN_SPAN_S * 1e9:
+            return (f"{max(0, end - start) * b / 1e9:.1f} s of feedback and reference so far "
+                    f"(needs {MIN_SPAN_S:g} s)")
+        return start, end
+
+    def _binned(self, t_ns: np.ndarray, x: np.ndarray, b0: int, nb: int
+                ) -> tuple[np.ndarray, int] | None:
+        """``x`` (sampled at ``t_ns``, NaN = no value) averaged into the bins ``b0 ..
+        b0 + nb - 1`` and resampled from each bin's mean instant onto the bin centres (step 1);
+        with the number of bins that held a value.  None if none did."""
+        b = self.bin_ns
+        lo, hi = np.searchsorted(t_ns, [b0 * b, (b0 + nb) * b])
+        t, v = t_ns[lo:hi], x[lo:hi]
+        ok = np.isfinite(v)
+        if not ok.all():
+            t, v = t[ok], v[ok]
+        rel = t - b0 * b
+        k = rel // b
+        count = np.bincount(k, minlength=nb)
+        full = count > 0
+        if not full.any():
+            return None
+        c = count[full]
+        t_mean = np.bincount(k, weights=rel, minlength=nb)[full] / c
+        x_mean = np.bincount(k, weights=v, minlength=nb)[full] / c
+        centres = (np.arange(nb) + 0.5) * b
+        return np.interp(centres, t_mean, x_mean), int(full.sum())
+
+    def _taper(self, n: int) -> np.ndarray:
+        """The Tukey window of step 3 over ``n`` bins (cached)."""
+        w = self._window_cache
+        if w.size != n:
+            edge = max(1, round(TAPER_FRACTION / 2 * n))
+            w = np.ones(n)
+            ramp = 0.5 * (1.0 - np.cos(np.pi * (np.arange(edge) + 0.5) / edge))
+            w[:edge] = ramp
+            w[n - edge:] = ramp[::-1]
+            self._window_cache = w
+        return w
+
+    def _delay(self, t_r: np.ndarray, r_raw: np.ndarray, t_y: np.ndarray, y_raw: np.ndarray,
+               window: tuple[int, int], axis_range: float) -> dict[str, Any]:
+        """Steps 1 and 3 of the module docstring for one axis."""
+        start, end = window
+        n = end - start
+        lo, hi = self._lo, self._hi
+        yb = self._binned(t_y, y_raw, start, n)
+        if yb is None or yb[1] < MIN_FEEDBACK_COVERAGE * n:
+            held = 0 if yb is None else yb[1]
+            return {"delay_reason": f"too few feedback samples ({held} of {n} bins)"}
+        rb = self._binned(t_r, r_raw, start - hi, n + hi - lo)
+        if rb is None:
+            return {"delay_reason": "no reference samples"}
+        r, y = rb[0], yb[0]
+        r_win = r[hi:hi + n]
+        motion = float(np.std(r_win))
+        floor = MIN_MOTION_FRACTION * axis_range
+        if not motion >= floor:
+            return {"delay_reason": f"motion too small (reference std {motion:.3g} < "
+                                    f"{floor:.3g})"}
+        rate = 1e9 / self.bin_ns
+        w = self._taper(n)
+        wsum = float(w.sum())
+        y_w = w * (y - float(w @ y) / wsum)
+        grid = np.arange(r.size, dtype=float)
+        at = grid[hi:hi + n]
+        d = 0.0
+        try:
+            for _ in range(_MAX_ITERATIONS):
+                rs = np.interp(at - d * rate, grid, r)
+                step = estimate_delay(w * (rs - float(w @ rs) / wsum), y_w, rate,
+                                      max_lag_s=hi / rate - d, min_lag_s=lo / rate - d)
+                d += step
+                if abs(step) * rate < _CONVERGED_BINS:
+                    break
+            else:
+                return {"delay_reason": f"no convergence ({d * 1e3:.1f} ms after "
+                                        f"{_MAX_ITERATIONS} steps)"}
+        except ConfigError as exc:  # a constant signal, or the peak on the range's edge
+            return {"delay_reason": "the feedback does not move" if "constant" in str(exc)
+                    else f"no correlation peak within {LAG_RANGE_S[0] * 1e3:g}.."
+                         f"{LAG_RANGE_S[1] * 1e3:g} ms"}
+        rs = np.interp(at - d * rate, grid, r)
+        rs = rs - rs.mean()
+        yc = y - y.mean()
+        den = math.sqrt(float(rs @ rs) * float(yc @ yc))
+        corr = float(rs @ yc) / den if den > 0 else 0.0
+        out: dict[str, Any] = {"apparent_delay_ms": d * 1e3, "delay_corr": corr}
+        if corr < MIN_CORRELATION:
+            out["delay_reason"] = f"correlation {corr:.2f} < {MIN_CORRELATION:g}"
+        else:
+            out["delay_valid"] = True
+        return out
