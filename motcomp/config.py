@@ -171,7 +171,7 @@ class InputConfig(BaseModel):
     model_config = _STRICT
     key: str = "sim/motion/setpoint"
     reject_beyond_fraction: float = Field(0.25, ge=0.0, le=10.0)
-    reconstruction: Literal["linear", "smooth", "hold"] = "linear"
+    reconstruction: Literal["smooth", "linear", "hold"] = "smooth"
     max_extrapolation_s: float = Field(0.02, ge=0.0, le=1.0)
     max_frame_bytes: int = Field(4096, ge=64, le=1_048_576)
 

@@ -1,38 +1,107 @@
-"""The README's main command: ``motcomp demo``, end to end (about 35 s)."""
+"""The README's main command: ``motcomp demo``, end to end (about 35 s), run once for the module.
+
+Besides the delay gained, the demo records the command the service sends the platform and
+sets it beside the ideal run (the config's tick fed the same motion perfectly timed: the floor).
+The sanity tests check that those figures exist and hang together; the motion-quality targets of
+the compensated command are :data:`MAX_LIMITED_SHARE_ON` and :data:`MAX_HF_RATIO_TO_IDEAL`,
+asserted in :func:`test_compensated_command_is_near_the_floor`, reported (xfail) while the tuning
+and the input reconstruction are being reworked.
+"""
 
 from __future__ import annotations
 
-import re
-import subprocess
-from pathlib import Path
+import math
 
 import pytest
 
-from tests.conftest import motcomp_cmd, subprocess_env
+from motcomp.demo import PHASES, RAILS, DemoResult, report, run_demo
 
 pytestmark = pytest.mark.slow
 
+MAX_LIMITED_SHARE_ON = 0.005
+"""Compensated rails: largest share of ticks with the command at the acceleration limit.
+(Placeholder: the motion-quality target is set with the tuning, not here.)"""
+MAX_HF_RATIO_TO_IDEAL = 2.0
+"""Compensated rails: largest HF acceleration RMS of the live command, as a multiple of the ideal
+run's.  (Placeholder: the motion-quality target is set with the tuning, not here.)"""
+IDEAL_ABOVE_LIVE_FACTOR = 1.5
+"""Sanity, not quality: the ideal run is the floor, so its HF acceleration RMS may exceed the
+live command's at most by this factor (the two are sampled with a sub-tick phase offset)."""
+MIN_RECORDED_SHARE = 0.9
+"""Sanity: the command figures mean something only if most ticks' frames were recorded."""
+HEXAPOD = ("hex_z", "hex_roll", "hex_pitch")
 
-def test_demo_reports_the_delay_gained(tmp_path: Path) -> None:
-    p = subprocess.run(motcomp_cmd("demo", "--out", str(tmp_path), "--quiet"), capture_output=True,
-                       text=True, env=subprocess_env(), timeout=240)
-    assert p.returncode == 0, p.stdout + p.stderr
-    rows = {m.group(1): (float(m.group(2)), float(m.group(3)))
-            for m in re.finditer(r"^(\w+)\s.*?\s(-?[\d.]+)ms\s+(-?[\d.]+)ms", p.stdout, re.M)}
-    off, on = rows["rails_y"]  # the slalom, as in the paper's Fig. 4
-    assert off == pytest.approx(196, abs=8), p.stdout
-    stale = re.search(r"stale-input episodes off / on: (\d+) / (\d+)", p.stdout)
-    assert stale, p.stdout
-    off_x, on_x = rows["rails_x"]
-    if stale.group(2) == "0":
-        assert off - on > 150 and off_x - on_x > 100, p.stdout
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory: pytest.TempPathFactory) -> DemoResult:
+    return run_demo(tmp_path_factory.mktemp("demo"), quiet=True)
+
+
+def test_demo_reports_the_delay_gained(demo: DemoResult) -> None:
+    text = report(demo)
+    assert all(code == 0 for code in demo.exit_codes.values()), text
+    ms = {a: (d["off"] * 1e3, d["on"] * 1e3) for a, d in demo.delays.items()}
+    off, on = ms["rails_y"]  # the slalom, as in the paper's Fig. 4
+    assert off == pytest.approx(196, abs=8), text
+    off_x, on_x = ms["rails_x"]
+    if demo.stale.get("on", 0) == 0:
+        assert off - on > 150 and off_x - on_x > 100, text
     else:  # the input stalled beyond stale_after_s (a starved host): the report says so
-        assert "the delay of that phase includes it" in p.stdout
-        assert off - on > 100 and off_x - on_x > 50, p.stdout
-    for axis in ("hex_z", "hex_roll", "hex_pitch"):  # bypassed: unchanged
-        assert abs(rows[axis][0] - rows[axis][1]) < 5
-    limited = {m.group(1): (int(m.group(2)), int(m.group(3)))
-               for m in re.finditer(r"^(\w+)\s.*ms\s+(\d+) / (\d+)", p.stdout, re.M)}
-    assert set(limited) == set(rows)  # per phase, for every axis in the table
-    assert "Platform hard-limit violations: 0" in p.stdout
-    assert (tmp_path / "demo.png").stat().st_size > 10_000
+        assert "the delay of that phase includes it" in text
+        assert off - on > 100 and off_x - on_x > 50, text
+    for axis in HEXAPOD:  # bypassed: unchanged
+        assert abs(ms[axis][0] - ms[axis][1]) < 5, text
+    assert set(demo.saturation) >= set(RAILS)  # counts per phase, from the service
+    assert "Platform hard-limit violations: 0" in text
+
+
+def test_demo_records_the_command_and_sets_it_beside_the_floor(demo: DemoResult) -> None:
+    text = report(demo)
+    assert set(demo.command) == set(demo.delays), text  # every axis of the table
+    for ph in PHASES:
+        f = demo.frames[ph]
+        assert f.recorded + f.lost + f.unsent == f.ticks, f
+        assert f.recorded >= MIN_RECORDED_SHARE * f.ticks, f
+        m0, m1 = demo.motion[ph]
+        assert f.ticks == pytest.approx((m1 - m0) * demo.status["rate_hz"], abs=1)
+    for axis, per_phase in demo.command.items():
+        a_max = demo.acc_limit[axis]
+        assert a_max > 0
+        for ph in PHASES:
+            c = per_phase[ph]
+            for q in (c.live, c.ideal):
+                assert all(math.isfinite(v) and v >= 0 for v in q.as_dict().values()), c
+            for share in (c.at_limit, c.ideal_at_limit, c.ideal_acted):
+                assert 0.0 <= share <= 1.0, (axis, ph, c)
+            assert c.ideal.acc_peak <= a_max * (1 + 1e-9), (axis, ph, c)  # the limiter's bound
+            assert c.ideal.hf_acc_rms <= IDEAL_ABOVE_LIVE_FACTOR * c.live.hf_acc_rms, (axis, ph, c)
+            assert c.live.jerk_rms > 0 and c.live.acc_peak > 0, (axis, ph, c)  # it moved
+        if axis in HEXAPOD:  # bypassed in both phases: the same floor
+            assert per_phase["off"].ideal == per_phase["on"].ideal
+    for axis in RAILS:  # the floor of the setpoint itself (bypass) never touches the limit
+        assert demo.command[axis]["off"].ideal_at_limit == 0.0
+        assert demo.command[axis]["off"].ideal.acc_peak < demo.acc_limit[axis]
+    assert "from the command*" in text and "ratio" in text
+    assert "Command frames over the motion, off / on:" in text
+
+
+def test_demo_figure_shows_the_command(demo: DemoResult) -> None:
+    from PIL import Image
+
+    assert demo.figure is not None
+    assert demo.figure.stat().st_size > 10_000
+    want = {f"{a} {what}" for a in RAILS for what in
+            ("position (m)", "command (m)", "acceleration (m/s^2)")}
+    assert want <= set(demo.panels), demo.panels
+    assert "hex_roll position (rad)" in demo.panels
+    with Image.open(demo.figure) as png:  # the file written is the one with these panels
+        assert png.info["Description"] == "; ".join(demo.panels)
+
+
+@pytest.mark.xfail(strict=False, reason="motion-quality cure in progress")
+def test_compensated_command_is_near_the_floor(demo: DemoResult) -> None:
+    text = report(demo)
+    for axis in RAILS:
+        c = demo.command[axis]["on"]
+        assert c.at_limit <= MAX_LIMITED_SHARE_ON, (axis, text)
+        assert c.hf_ratio <= MAX_HF_RATIO_TO_IDEAL, (axis, text)

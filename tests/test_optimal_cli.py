@@ -38,7 +38,7 @@ def test_design_optimal_json_keeps_the_schema_and_adds_its_block() -> None:
 
 def test_design_optimal_fragment_is_the_example_configs_rails_tuning(tmp_path: Path) -> None:
     """``--out`` writes the gains in the config's keys, exactly; the example config's rails
-    gains are this design (to its 8 digits)."""
+    gains are this design for a 1 kHz sender played back 1.1 ms late (to its 8 digits)."""
     import re
     import tomllib
 
@@ -49,13 +49,15 @@ def test_design_optimal_fragment_is_the_example_configs_rails_tuning(tmp_path: P
     from motcomp.resources import config_file
 
     frag = tmp_path / "design.toml"
-    p = run("design", "--plant", "rails", "--rule", "optimal", "--json", "--quiet", "--out",
-            str(frag))
+    p = run("design", "--plant", "rails", "--rule", "optimal", "--input-lag-ms", "1.1", "--json",
+            "--quiet", "--out", str(frag))
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
     text = frag.read_text()
     assert re.match(r"# motcomp design: optimal, rails preset, 1000 Hz: residual 0\.\d\d ms, "
                     r"peak \+8\.0 dB \(generated\)\n", text), text
+    assert "played back 1.1 ms behind its newest sample" in text
+    assert out["input_lag_ms"] == pytest.approx(1.1)
     axis = tomllib.loads(text)["axes"]["rails_y"]
     assert axis == {"model": "p1d:K=1,Td=0.0175,Tp1=0.1857683128", "bypass": False,
                     "gains": out["gains"]}

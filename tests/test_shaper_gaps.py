@@ -1,4 +1,5 @@
-"""Gaps in the input: the reference goes on along the motion instead of stopping dead.
+"""Gaps in the input (the ``linear`` reconstruction): the reference goes on along the motion
+instead of stopping dead.  (``smooth`` has its own tests: tests/test_reconstruction_smooth.py.)
 
 A ramp is extrapolated exactly by a line, so through a gap the reference must *be* the ramp
 (closed form) until ``max_extrapolation_s`` (or 1.5 input periods, if longer) after the last
@@ -30,7 +31,7 @@ def shaper(max_extrapolation_s: float, reach: float = REACH
     return ReferenceShaper(N), ShaperParams(
         driven=(True,) * N, ramp_speed=(0.5,) * N, reach_lo=(-reach,) * N,
         reach_hi=(reach,) * N, stale_after_s=0.05, hold_s=0.5, rejoin_s=0.2, startup_s=0.0,
-        max_extrapolation_s=max_extrapolation_s)
+        max_extrapolation_s=max_extrapolation_s, reconstruction="linear")
 
 
 def ramp_with_gap(sh: tuple[ReferenceShaper, ShaperParams], frame_period_s: float,

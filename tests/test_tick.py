@@ -269,15 +269,18 @@ def test_oversize_frame_is_rejected_unread(monkeypatch: pytest.MonkeyPatch) -> N
     (1.0, math.nextafter(1.0, -math.inf)),  # one ulp back
     (1.0, 0.999),  # 1 ms back
 ], ids=["ulp", "ulp-epoch", "subnormal", "same", "ulp-back", "back"])
-def test_one_ulp_time_step_never_divides_by_zero(t_prev: float, t_next: float) -> None:
+@pytest.mark.parametrize("reconstruction", ["linear", "smooth"])
+def test_one_ulp_time_step_never_divides_by_zero(t_prev: float, t_next: float,
+                                                 reconstruction: str) -> None:
     """Frames at -3.8 m on rails_y, then one ``t_next - t_prev`` later at +3.8 m (both within
     the reach, +-3.9 m).  The slope through the last two samples would be 7.6 m over that step:
     3.4e16 m/s for an ulp, inf for the subnormal -- before the fix the reference went to +-inf
     (or ~1e13 m after a millisecond of extrapolation), and a t going back gave the same slope
     with its sign flipped.  Now a step below ``min_dt_s`` replaces the sample and a step back
-    restarts the line: the reference is the new value, exactly, until the next frame; the
-    command stays within the limits."""
-    params, state = new_tick(config(loop__startup_s=0.0))
+    restarts the line: with ``linear`` the reference is the new value, exactly, until the next
+    frame; ``smooth`` plays the jump back, then (no frame follows) extrapolates it, within the
+    reach; the command stays within the limits."""
+    params, state = new_tick(config(loop__startup_s=0.0, input__reconstruction=reconstruction))
     sp = params.shaper
     v0, v1 = -3.8, 3.8
     assert sp.reach_lo[Y] < v0 and v1 < sp.reach_hi[Y]
@@ -290,7 +293,10 @@ def test_one_ulp_time_step_never_divides_by_zero(t_prev: float, t_next: float) -
         refs.append(state.shaper.ref[Y])
     assert state.accepted == 4
     assert all(math.isfinite(r) and sp.reach_lo[Y] <= r <= sp.reach_hi[Y] for r in refs)
-    assert refs[2] == v0 and refs[3:] == [v1] * 37
+    if reconstruction == "linear":
+        assert refs[2] == v0 and refs[3:] == [v1] * 37
+    else:  # the new value, or beyond it up to the reach
+        assert refs[2] == v0 and all(v1 <= r <= sp.reach_hi[Y] for r in refs[-10:])
     assert_within_limits(outputs, state)
 
 

@@ -201,6 +201,11 @@ def format_status(st: dict[str, Any]) -> str:
                  + f"  superseded {fr.get('superseded', 0)}")
     if fr.get("last_reject"):
         lines.append(f"            last rejection: {fr['last_reject']}")
+    inp = st.get("input") or {}
+    if inp:
+        lines.append(f"input       {inp.get('reconstruction', '?')}  period "
+                     f"{float(inp.get('period_ms', 0.0)):.2f} ms  lag "
+                     f"{float(inp.get('lag_ms', 0.0)):.2f} ms (design --input-lag-ms)")
     lines.append(f"stale       now {st.get('stale_s', 0.0):.2f} s  total "
                  f"{st.get('stale_total_s', 0.0):.2f} s  episodes {st.get('stale_episodes', 0)}")
     can = st.get("can")

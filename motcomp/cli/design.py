@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from motcomp.cli._common import add_plant_args, print_json, rate_arg
+from motcomp.cli._common import add_plant_args, non_negative_float, print_json, rate_arg
 from motcomp.core.models import P1D, parse_model
 from motcomp.design.optimal import Constraints, OptimalOptions, Uncertainty
 from motcomp.design.report import DESIGN_RULES, OPTIMAL
@@ -89,6 +89,10 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--internal", metavar="SPEC",
                    help="internal P1D model of the compensator if it differs from the plant "
                         "(default: the plant, or its P1D approximation)")
+    p.add_argument("--input-lag-ms", type=non_negative_float, default=0.0, metavar="MS",
+                   help="lag of the input reconstruction before the compensator, cancelled "
+                        "with the platform's delay (input.reconstruction = \"smooth\": about "
+                        "one input period; `motcomp status` shows it as input lag; default 0)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     _add_optimal(p)
 
@@ -176,7 +180,8 @@ def run_design(args: argparse.Namespace) -> int:
     source = _source(args)
     with _progress(args, "optimal tuning") as progress:
         report = design_report(source.model, args.rule, args.rate, args.filter_n,
-                               model=_internal(args), options=_options(args), progress=progress)
+                               model=_internal(args), options=_options(args), progress=progress,
+                               input_lag_s=args.input_lag_ms / 1e3)
     fragment = config_fragment(report, source.axis, source.label)
     if args.out is not None:
         _write_file_atomically(args.out, fragment)
@@ -238,7 +243,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     with _progress(args, "optimal tuning") as progress:
         report, runs = evaluation_report(plant, args.rule, limits, args.rate, args.filter_n,
                                          model=_internal(args), options=_options(args),
-                                         progress=progress)
+                                         progress=progress, input_lag_s=args.input_lag_ms / 1e3)
     written = _write_atomically(
         args.out, lambda tmp: write_report(report, tmp) + write_figures(report, runs, plant, tmp))
     if args.json:

@@ -59,7 +59,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--axis", metavar="NAME",
                    help="axis name (default: from the data, else rails_y); for a recording of "
                         "several axes, a comma-separated list or 'all' (every axis whose "
-                        "command moves; those without usable data are left out with a warning)")
+                        "command moves; those without usable data, or whose fit fails, are left "
+                        "out with a warning)")
     p.add_argument("--models", type=_models, default=("p1d", "p2d", "p2uzd", "oe"),
                    metavar="LIST", help="models to fit (default: p1d,p2d,p2uzd,oe)")
     p.add_argument("--delay-range", nargs=2, type=float, default=(0.0, 250.0),
@@ -166,7 +167,12 @@ def run_identify(args: argparse.Namespace) -> int:
 
                 def note(msg: str, prefix: str = prefix) -> None:
                     bar.advance(note=prefix + msg)
-                idents[axis] = identify(rec, options, progress=note)
+                try:
+                    idents[axis] = identify(rec, options, progress=note)
+                except MotcompError as exc:
+                    if args.axis != "all" or len(axes) == 1:
+                        raise
+                    refused.append(f"{args.data}: {axis}: {exc}")  # 'all': left out too
     except MotcompError:
         _print_warnings(data_warnings)
         raise

@@ -20,7 +20,7 @@ Blends and ramps are minimum-jerk (:mod:`motcomp.core.minjerk`): continuous posi
 *and* acceleration at both ends, so the compensator sees no step it would amplify.  Undriven axes
 stay at neutral.
 
-Input reconstruction (``linear``, the default): each axis is extrapolated along the line
+Input reconstruction ``linear``: each axis is extrapolated along the line
 through its last two frames *on the sender's timeline* (frame ``t``), to the sender time that
 corresponds to the tick.  The offset between the clocks is the smallest transit seen
 (``arrival - t``), leaking upwards by :data:`OFFSET_LEAK` so that a sender whose clock runs up to
@@ -41,12 +41,20 @@ Through a gap -- frames lost, a sender that stalls -- ``age`` grows and the refe
 the motion up to ``max_extrapolation_s`` (docs/REPLAY.md and tests/test_shaper_gaps.py have the
 measurements that chose it).  Frames without ``t`` use their arrival time.
 
-Input reconstruction ``smooth`` (``input.reconstruction = "smooth"``; docs/TUNING.md has its
-measurements).  The reference is the input *played back on the sender's timeline, a little
-behind its newest sample*, so that it is interpolated between samples already received instead
-of guessed::
+Input reconstruction ``smooth`` (the default; docs/TUNING.md has its measurements).  The
+reference is the input *played back on the sender's timeline, a little behind its newest
+sample*, so that it is interpolated between samples already received instead of guessed::
 
-    sender time  each frame's ``t``; a frame without ``t`` gets an estimate on the loop's
+    sender time  each frame's ``t``, relative to a whole second (float64 arithmetic on epoch
+                 times resolves only 0.24 us), on a grid: a ``t`` within TIME_GATE_S of the
+                 previous one plus the period (times the seq step) is taken as rounded, and a
+                 tracker of the grid (TRACK_ALPHA, TRACK_BETA) replaces it, so that the
+                 rounding of the stamps does not reach the reference (0.24 us at 0.5 m/s is
+                 0.1 um: 0.1 m/s^2 of acceleration from sample to sample, 6 m/s^2 once
+                 compensated); a ``t`` further off is the sender's real timing and is used
+                 as it is; a frame without ``t`` from a sender that stamps the others is
+                 put on its grid (the previous instant plus the period times the seq step);
+                 from a sender that never stamps, it gets an estimate on the loop's
                  clock: the previous estimate plus the input period, pulled towards its arrival
                  by INPUT_PLL_GAIN, by at most that fraction of a period (a late frame, a
                  burst, barely moves it: frames read in the same tick, or later than half a
@@ -59,17 +67,19 @@ of guessed::
                  t), averaged; a single unusual one (a stall) is ignored, PERIOD_RELEARN in a
                  row (a new rate) replace it
     offset       loop clock - sender clock: the smallest transit seen (leaking upwards by
-                 SMOOTH_OFFSET_LEAK, 1000 ppm of clock drift)
+                 SMOOTH_OFFSET_LEAK, 1000 ppm of clock drift; falling at most by
+                 SMOOTH_OFFSET_DOWN after the first second: a late tick's frames look early)
     lag          input period + JITTER_FACTOR x the mean transit beyond the smallest
     playback     tau = now - delay, where the delay follows offset + lag through a critically
                  damped filter of DELAY_TAU_S: neither jitter nor a new smallest transit ever
                  steps the playback instant, its changes warp time gently
-    per axis     the last 4 samples; tau between two of them: cubic Hermite through them with
-                 Catmull-Rom tangents (continuous velocity); tau beyond the newest (a frame
-                 late by more than the lag, a stall): the parabola through the last three goes
-                 on, at most max_extrapolation_s (or 1.5 input periods if longer), and when the
-                 samples come back, the differences of position and velocity to it fade out in
-                 a minimum-jerk blend of GAP_BLEND_PERIODS input periods (at least GAP_BLEND_S)
+    per axis     the last HISTORY samples at least (the playback may lie several samples behind the
+                 newest, after a burst); tau between two of them: cubic Hermite through them with
+                 Catmull-Rom tangents (continuous velocity); tau beyond the newest (a frame late by
+                 more than the lag, a stall): the parabola through the last three goes on, at most
+                 max_extrapolation_s (or 1.5 input periods if longer), and when the samples come
+                 back, the differences of position and velocity to it fade out in a minimum-jerk
+                 blend of GAP_BLEND_PERIODS input periods (at least GAP_BLEND_S)
     average      then a moving average over one input period (fractional length, on the
                  tick grid): zero gain at the input's rate and its harmonics, where the
                  playback's roughness lies (the Hermite's acceleration changes at every sample,
@@ -88,6 +98,7 @@ value (for tests of the rest of the chain).
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -100,6 +111,11 @@ OFFSET_LEAK = 0.05
 """Upward drift (s per s) allowed to the fast estimate of the clock offset (smallest transit)."""
 SMOOTH_OFFSET_LEAK = 1e-3
 """``smooth``: the same leak, small enough that its steps never reach the playback instant."""
+SMOOTH_OFFSET_DOWN = 2e-2
+"""``smooth``: after its first second, the smallest transit falls at most this fast (s per s).
+A tick that runs late reads frames at its deadline, before they arrived: their transit looks
+short by the lateness, and taken at face value it would pull the playback ahead of the
+samples."""
 JITTER_FACTOR = 1.0
 """The lag allows this many times the mean transit beyond the smallest."""
 JITTER_GAIN = 0.01
@@ -109,10 +125,19 @@ DELAY_TAU_S = 0.5
 through."""
 PERIOD_GAIN = 0.05
 """Weight of each interval in the input period's average."""
+TIME_GATE_S = 5e-6
+"""A frame ``t`` this close to the sender's regular grid is on it: the difference is the
+rounding of its stamp (a float64 epoch time resolves 0.24 us; many senders stamp whole us)."""
+TRACK_ALPHA = 0.01
+TRACK_BETA = TRACK_ALPHA ** 2 / 4
+"""Gains of the tracker of the sender's grid (phase, period; critically damped)."""
 PERIOD_RELEARN = 8
 """This many intervals in a row outside half to 1.5 times the period replace it."""
 INPUT_PLL_GAIN = 0.02
 """How strongly the sender time of a frame without ``t`` is pulled towards its arrival."""
+HISTORY = 64
+"""Samples kept per axis (at least): a burst of up to :data:`~motcomp.io.zenoh_io.MAX_BURST`
+frames leaves the playback instant among them."""
 MA_HYSTERESIS = 0.02
 """The moving average's length follows the period only when it moved by more than this
 fraction (a length that flickers would warp time)."""
@@ -136,8 +161,8 @@ class ShaperParams:
     hold_s: float = 0.5
     rejoin_s: float = 0.5
     startup_s: float = 1.0
-    reconstruction: str = "linear"
-    """``linear``, ``smooth`` or ``hold`` (module docstring)."""
+    reconstruction: str = "smooth"
+    """``smooth``, ``linear`` or ``hold`` (module docstring)."""
     max_extrapolation_s: float = 0.02
     tick_s: float = 1e-3
     """The loop's period (the moving average of ``smooth`` counts ticks)."""
@@ -181,11 +206,14 @@ class ReferenceShaper:
         self.live = [0.0] * n
         self._hist: list[list[tuple[float, float]]] = [[] for _ in range(n)]  # (t, v), newest last
         self._period = 0.0  # average interval between frames (sender time)
+        self._t_base: float | None = None  # sender time origin (a whole second)
+        self._stamped = False  # the timeline is the sender's (frames with t), not the loop's
         self._odd: list[float] = []  # unusual intervals in a row
         self._ma_len = 0.0  # length of the moving average (ticks)
         self._t_last: float | None = None  # sender time of the last frame
         self._fast: float | None = None  # smallest transit, leaking upwards
         self._fast_at = 0.0
+        self._fast_since = 0.0
         self._excess = 0.0  # mean transit beyond the smallest
         self._delay: float | None = None  # playback delay (now - tau) and its rate
         self._delay_rate = 0.0
@@ -214,6 +242,11 @@ class ReferenceShaper:
         self.parked = False
         self.stale_total_s = 0.0
         self.stale_episodes = 0
+
+    @property
+    def period_s(self) -> float:
+        """``smooth``: the input's period as learnt (0 before two frames)."""
+        return self._period
 
     @property
     def playback_delay_s(self) -> float | None:
@@ -291,7 +324,10 @@ class ReferenceShaper:
                          t_sender: float | None, rejoin: bool, frames: int) -> None:
         q = self._period
         tl = self._t_last
-        if t_sender is None:  # estimate the sender's instant (module docstring)
+        if t_sender is None and self._stamped and tl is not None and not rejoin and q > 0.0:
+            t = tl + frames * q  # a stamping sender's frame without t: on its grid
+        elif t_sender is None:  # estimate the sender's instant (module docstring)
+            self._stamped = False
             arrived = self.last_input_s
             burst = arrived is not None and now <= arrived  # within one tick: no timing news
             if arrived is not None and not rejoin and not burst:
@@ -306,13 +342,31 @@ class ReferenceShaper:
                 pull = INPUT_PLL_GAIN * (now - pred)
                 t = pred + min(max(pull, -INPUT_PLL_GAIN * q), INPUT_PLL_GAIN * q)
         else:
-            t = t_sender
-            if tl is not None and not rejoin and p.min_dt_s <= t - tl <= p.stale_after_s:
+            if not self._stamped:  # from the loop's clock to the sender's: a new timeline
+                rejoin = True
+                self._stamped = True
+            if self._t_base is None or rejoin:  # sender times relative to a whole second
+                self._t_base = math.floor(t_sender) if math.isfinite(t_sender) else 0.0
+            t = t_sender - self._t_base
+            pred = (tl or 0.0) + frames * q
+            if tl is None or rejoin:
+                pass
+            elif q > 0.0 and abs(t - pred) <= TIME_GATE_S:  # on the grid but for rounding
+                err = t - pred
+                t = pred + TRACK_ALPHA * err
+                self._period = q = q + TRACK_BETA * err / frames
+                self._odd.clear()
+            elif p.min_dt_s <= t - tl <= p.stale_after_s:  # irregular: the stamps are right
                 self._learn_period((t - tl) / frames)
         transit = now - t
         fast = self._fast
-        if fast is None or transit < fast or rejoin:
+        if fast is None or rejoin:
             self._fast = fast = transit
+            self._fast_since = now
+        elif transit < fast:  # down, at most SMOOTH_OFFSET_DOWN after the first second
+            floor = (fast - SMOOTH_OFFSET_DOWN * (now - self._fast_at)
+                     if now - self._fast_since > 1.0 else transit)
+            self._fast = fast = max(transit, floor)
         else:  # leak upwards so a drifting clock is followed
             self._fast = fast = min(fast + SMOOTH_OFFSET_LEAK * (now - self._fast_at), transit)
         self._fast_at = now
@@ -321,8 +375,12 @@ class ReferenceShaper:
             self._excess = 0.0
             for r in self._rings:
                 r.clear()
+            n = self.n
+            self._extra = [None] * n
+            self._fix = [0.0] * n
+            self._fix_rate = [0.0] * n
         else:
-            self._excess += JITTER_GAIN * (transit - fast - self._excess)
+            self._excess += JITTER_GAIN * (max(transit - fast, 0.0) - self._excess)
         if tl is None or t - tl >= p.min_dt_s or t < tl:
             self._t_last = t
         driven, live, hist = p.driven, self.live, self._hist
@@ -339,8 +397,8 @@ class ReferenceShaper:
                 h[-1] = (h[-1][0], v)
             else:
                 h.append((t, v))
-                if len(h) > 4:
-                    del h[0]
+                if len(h) > 2 * HISTORY:  # (trimmed in batches: no shift per sample)
+                    del h[:HISTORY]
 
     def _learn_period(self, dt: float) -> None:
         """One interval between frames (per frame): averaged when within half to 1.5 times the
@@ -543,7 +601,7 @@ class ReferenceShaper:
 
 
 def _hermite(h: Sequence[tuple[float, float]], tau: float) -> tuple[float, float]:
-    """Value and slope at ``tau`` of the cubic Hermite through the samples ``h`` (2-4,
+    """Value and slope at ``tau`` of the cubic Hermite through the samples ``h`` (at least 2,
     time-ordered; ``tau`` clamped to their span), Catmull-Rom tangents; at the
     newest sample, the slope of the parabola through the last three (:func:`_end_slope`), which
     the central tangent replaces when the next sample comes with a difference of order
@@ -555,7 +613,7 @@ def _hermite(h: Sequence[tuple[float, float]], tau: float) -> tuple[float, float
     (t0, v0), (t1, v1) = h[j], h[j + 1]
     span = t1 - t0
     m0 = (v1 - h[j - 1][1]) / (t1 - h[j - 1][0]) if j > 0 else (v1 - v0) / span
-    m1 = (h[j + 2][1] - v0) / (h[j + 2][0] - t0) if j + 2 < n else _end_slope(h[:j + 2])
+    m1 = (h[j + 2][1] - v0) / (h[j + 2][0] - t0) if j + 2 < n else _end_slope(h[max(j - 1, 0):])
     x = min(max((tau - t0) / span, 0.0), 1.0)
     x2 = x * x
     x3 = x2 * x

@@ -72,11 +72,16 @@ DESIGN_RULES: tuple[str, ...] = (*RULES, OPTIMAL)
 def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
                   filter_n: float = 10.0, gains: PIDGains | None = None,
                   model: P1D | None = None, options: opt.OptimalOptions | None = None,
-                  progress: Callable[[int, int, str], None] | None = None) -> dict[str, Any]:
+                  progress: Callable[[int, int, str], None] | None = None,
+                  input_lag_s: float = 0.0) -> dict[str, Any]:
     """The ``motcomp design --json`` object.
 
     ``plant`` is the platform; the compensator's internal model is ``model`` or the plant's P1D
-    approximation.  ``gains`` overrides the rule's gains (``rule`` is then only a label).
+    approximation.  ``input_lag_s`` is what the input reconstruction adds before the compensator
+    (``input.reconstruction = "smooth"``: about one input period; the status shows it): the
+    delivered response is computed, and the delay cancelled, with it added to the platform's
+    delay, the internal model staying the platform's.  ``gains`` overrides the rule's gains
+    (``rule`` is then only a label).
     ``rule = "optimal"`` runs :func:`motcomp.design.optimal.optimise` with ``options`` (and
     ``progress``) and adds its block under ``"optimal"``; ``filter_n`` does not apply to it.
     ``recommendation`` is ``"bypass"`` or ``"compensate"``: the optimiser's verdict, and for the
@@ -84,6 +89,11 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
     delay-dominated model, a low-frequency lag above the plant's).
     """
     internal = model or plant.to_p1d()
+    if not (math.isfinite(input_lag_s) and 0.0 <= input_lag_s <= 1.0):
+        raise ConfigError(f"input lag must be 0-1000 ms, got {input_lag_s * 1e3:g} ms")
+    platform = plant
+    if input_lag_s > 0.0:
+        plant = opt.perturb(plant, dead_time_s=input_lag_s)
     warnings: list[str] = []
     std: dict[str, float] = {}
     design: opt.OptimalDesign | None = None
@@ -137,10 +147,11 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
     }
     if design is not None:
         out["optimal"] = design.summary()
-    if not isinstance(plant, P1D) or plant != internal:
-        out["plant"] = _model_json(plant)
-        out["plant_spec"] = plant.spec()
+    if not isinstance(platform, P1D) or platform != internal:
+        out["plant"] = _model_json(platform)
+        out["plant_spec"] = platform.spec()
     out["model_spec"] = internal.spec()
+    out["input_lag_ms"] = input_lag_s * 1e3
     return out
 
 
@@ -192,6 +203,9 @@ def config_fragment(report: dict[str, Any], axis: str, source: str = "") -> str:
             model_spec = plant_spec
         else:
             lines.append(f"# Designed on the platform {plant_spec} with this internal model.")
+    if report.get("input_lag_ms"):
+        lines.append(f"# Designed for an input played back {report['input_lag_ms']:.3g} ms behind "
+                     "its newest sample (input.reconstruction = \"smooth\").")
     bypass = report.get("recommendation") == "bypass"
     if bypass:
         lines.append("# Recommendation: bypass (see the design's warnings); no gains.")
@@ -224,10 +238,15 @@ def evaluation_report(plant: ProcessModel, rule: str, limits: AxisLimits, rate_h
                       model: P1D | None = None, sweep_amplitude: float | None = None,
                       options: opt.OptimalOptions | None = None,
                       progress: Callable[[int, int, str], None] | None = None,
+                      input_lag_s: float = 0.0,
                       ) -> tuple[dict[str, Any], dict[str, SimulationResult]]:
-    """Design report plus time-domain runs on a 0.1-3 Hz swept sine and on the slalom."""
+    """Design report plus time-domain runs on a 0.1-3 Hz swept sine and on the slalom (the
+    platform delayed by ``input_lag_s``: :func:`design_report`)."""
     internal = model or plant.to_p1d()
-    report = design_report(plant, rule, rate_hz, filter_n, gains, internal, options, progress)
+    report = design_report(plant, rule, rate_hz, filter_n, gains, internal, options, progress,
+                           input_lag_s)
+    if input_lag_s > 0.0:
+        plant = opt.perturb(plant, dead_time_s=input_lag_s)
     g = PIDGains.from_config(report["gains"])
     amp = _sweep_amplitude(limits, 3.0, sweep_amplitude)
     _, r_sweep = swept_sine(rate_hz, 0.1, 3.0, 60.0, amp)

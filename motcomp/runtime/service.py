@@ -320,6 +320,8 @@ class Service:
             "frames": {"received": st.received, "accepted": st.accepted,
                        "rejected": st.rejected, "rejected_by_reason": dict(st.rejected_by_reason),
                        "last_reject": st.last_reject, "superseded": st.superseded},
+            "input": {"reconstruction": self.params.shaper.reconstruction,
+                      "period_ms": shaper.period_s * 1e3, "lag_ms": shaper.lag_s * 1e3},
             "stale_s": shaper.stale_time(now),
             "stale_total_s": shaper.stale_total_s,
             "stale_episodes": shaper.stale_episodes,
