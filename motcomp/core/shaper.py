@@ -54,15 +54,10 @@ sample*, so that it is interpolated between samples already received instead of 
                  compensated); a ``t`` further off is the sender's real timing and is used
                  as it is; a frame without ``t`` from a sender that stamps the others is
                  put on its grid (the previous instant plus the period times the seq step);
-                 from a sender that never stamps, it gets an estimate on the loop's
-                 clock: the previous estimate plus the input period, pulled towards its arrival
-                 by INPUT_PLL_GAIN, by at most that fraction of a period (a late frame, a
-                 burst, barely moves it: frames read in the same tick, or later than half a
-                 period plus JITTER_FACTOR x the mean transit excess, are not pulled at all;
-                 a clock that drifts by less than that is followed); "the previous plus the
-                 period" counts the frames the sender sent meanwhile (its seq step), so a burst
-                 after a stall keeps its timeline; an arrival further than stale_after_s/2
-                 from the estimate re-anchors it
+                 from a sender that never stamps, the instants are the line through (frame
+                 count, arrival on the loop's clock), fitted by recursive least squares whose
+                 gains fall to NO_T_ALPHA (frames read in the same tick carry no timing news;
+                 an arrival further than stale_after_s/2 from the line re-anchors it)
     period       the interval between frames per seq step (sender time, or arrivals without
                  t), averaged; a single unusual one (a stall) is ignored, PERIOD_RELEARN in a
                  row (a new rate) replace it
@@ -133,8 +128,10 @@ TRACK_BETA = TRACK_ALPHA ** 2 / 4
 """Gains of the tracker of the sender's grid (phase, period; critically damped)."""
 PERIOD_RELEARN = 8
 """This many intervals in a row outside half to 1.5 times the period replace it."""
-INPUT_PLL_GAIN = 0.02
-"""How strongly the sender time of a frame without ``t`` is pulled towards its arrival."""
+NO_T_ALPHA = 1e-4
+"""Frames without ``t``: the least-squares gains of the sender's timeline fall to this (phase)
+and its square over 4 (period) and stay there, so that the tracker follows a drifting clock
+while an arrival's jitter moves the timeline by a ten-thousandth of it."""
 HISTORY = 64
 """Samples kept per axis (at least): a burst of up to :data:`~motcomp.io.zenoh_io.MAX_BURST`
 frames leaves the playback instant among them."""
@@ -208,6 +205,7 @@ class ReferenceShaper:
         self._period = 0.0  # average interval between frames (sender time)
         self._t_base: float | None = None  # sender time origin (a whole second)
         self._stamped = False  # the timeline is the sender's (frames with t), not the loop's
+        self._nt_n = 0  # frames without t since the timeline was anchored
         self._odd: list[float] = []  # unusual intervals in a row
         self._ma_len = 0.0  # length of the moving average (ticks)
         self._t_last: float | None = None  # sender time of the last frame
@@ -330,17 +328,23 @@ class ReferenceShaper:
             self._stamped = False
             arrived = self.last_input_s
             burst = arrived is not None and now <= arrived  # within one tick: no timing news
-            if arrived is not None and not rejoin and not burst:
-                self._learn_period((now - arrived) / frames)
-                q = self._period
             pred = (tl or 0.0) + frames * q
-            if tl is None or rejoin or q == 0.0 or abs(now - pred) > 0.5 * p.stale_after_s:
+            if tl is None or rejoin or abs(now - pred) > 0.5 * p.stale_after_s:
                 t = now
-            elif burst or now - pred > 0.5 * q + JITTER_FACTOR * self._excess:
-                t = pred  # read with others, or later than the jitter: no timing news
-            else:  # pulled towards the arrival by at most INPUT_PLL_GAIN of a period
-                pull = INPUT_PLL_GAIN * (now - pred)
-                t = pred + min(max(pull, -INPUT_PLL_GAIN * q), INPUT_PLL_GAIN * q)
+                self._nt_n = 1
+            elif burst:
+                t = pred
+            else:  # the line through (frame count, arrival): recursive least squares
+                self._nt_n = n = self._nt_n + 1
+                alpha = max(2.0 * (2 * n - 1) / (n * (n + 1)), NO_T_ALPHA)
+                beta = max(6.0 / (n * (n + 1)), NO_T_ALPHA ** 2 / 4)
+                err = now - pred
+                new_q = q + beta * err / frames
+                if q > 0.0 and not 0.25 * q < new_q < 4.0 * q:  # not the same sender: anew
+                    t, self._nt_n = now, 1
+                else:
+                    t = pred + alpha * err
+                    self._period = q = new_q
         else:
             if not self._stamped:  # from the loop's clock to the sender's: a new timeline
                 rejoin = True
