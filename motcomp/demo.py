@@ -44,7 +44,14 @@ import numpy as np
 
 from motcomp.config import ServiceConfig, load_config, resolve_axes
 from motcomp.core.axes import AXES, AXIS_INDEX, unit
-from motcomp.core.quality import HF_ABOVE_HZ, CommandQuality, command_quality, estimate_delay
+from motcomp.core.quality import (
+    AT_LIMIT_FRACTION,
+    HF_ABOVE_HZ,
+    CommandQuality,
+    at_acc_limit,
+    command_quality,
+    estimate_delay,
+)
 from motcomp.errors import ServiceError
 from motcomp.io.zenoh_io import (
     ZenohEndpoints,
@@ -58,16 +65,13 @@ from motcomp.resources import config_file
 from motcomp.sim.ideal import IdealRun, ideal_run
 from motcomp.sim.source import Trajectory, builtin
 
-__all__ = ["AT_LIMIT_FRACTION", "PHASES", "RAILS", "CommandFigures", "DemoResult", "OutputFrames",
-           "report", "run_demo"]
+__all__ = ["PHASES", "RAILS", "CommandFigures", "DemoResult", "OutputFrames",
+           "report", "run_demo", "stop_processes"]
 
 RAILS = ("rails_x", "rails_y")
 SIGNAL_OF = {"rails_y": "slalom, 18 m cones at 40 km/h", "rails_x": "sweep 0.2-1 Hz",
              "hex_z": "heave 0.5 Hz", "hex_roll": "roll 0.25 Hz", "hex_pitch": "pitch 0.35 Hz"}
 PHASES = ("off", "on")
-AT_LIMIT_FRACTION = 0.99
-"""A tick counts as at the acceleration limit when the command's |acceleration| (second
-difference on the tick grid) is at least this fraction of the axis' limit (within 1 %)."""
 
 
 @dataclass
@@ -99,7 +103,7 @@ class CommandFigures:
     ideal: CommandQuality
     at_limit: float
     """Share of the ticks whose |acceleration| is within 1 % of the axis' limit
-    (:data:`AT_LIMIT_FRACTION`), counted on the recorded command."""
+    (:data:`motcomp.core.quality.AT_LIMIT_FRACTION`), counted on the recorded command."""
     ideal_at_limit: float
     """The same count on the ideal run's command."""
     ideal_acted: float
@@ -227,6 +231,22 @@ def _command_grid(cmd: _Trace, t_start: float, n: int, rate_hz: float) -> _Comma
     return _Command(t0 + grid / rate_hz, u, have, frames)
 
 
+def stop_processes(procs: dict[str, subprocess.Popen[bytes]]) -> dict[str, int]:
+    """SIGTERM to every process still running (the service parks), then their exit codes; one
+    that does not exit within 30 s is killed (-9)."""
+    for p in procs.values():
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+    codes = {}
+    for name, p in procs.items():
+        try:
+            codes[name] = p.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            codes[name] = -9
+    return codes
+
+
 def _acceleration(u: np.ndarray, rate_hz: float) -> np.ndarray:
     """Second difference of a command on the tick grid (unit/s^2), as the limiter bounds it:
     ``acc[k]`` belongs to tick ``k + 2``."""
@@ -235,13 +255,13 @@ def _acceleration(u: np.ndarray, rate_hz: float) -> np.ndarray:
 
 def _at_limit_share(u: np.ndarray, rate_hz: float, a_max: float,
                     have: np.ndarray | None = None) -> float:
-    """Share of the ticks whose |acceleration| is at least :data:`AT_LIMIT_FRACTION` of
-    ``a_max``, over the ticks whose difference stencil has three recorded frames."""
-    acc = np.abs(_acceleration(u, rate_hz))
-    ok = np.ones(acc.size, dtype=bool) if have is None else have[:-2] & have[1:-1] & have[2:]
+    """Share of the ticks at the acceleration limit (:func:`~motcomp.core.quality.at_acc_limit`),
+    over the ticks whose difference stencil has three recorded frames."""
+    at = at_acc_limit(u, rate_hz, a_max)
+    ok = np.ones(at.size, dtype=bool) if have is None else have[:-2] & have[1:-1] & have[2:]
     if not ok.any():
         return float("nan")
-    return float(np.mean(acc[ok] >= AT_LIMIT_FRACTION * a_max))
+    return float(np.mean(at[ok]))
 
 
 def _phase_config(cfg: ServiceConfig, rails_bypassed: bool) -> ServiceConfig:
@@ -384,17 +404,7 @@ def run_demo(out_dir: Path, quiet: bool = False, keep_logs: bool = True) -> Demo
             for s in (sub_sp, sub_fb, sub_out, sub_hs):
                 s.undeclare()
     finally:
-        for name in ("service", "hil"):
-            p = procs.get(name)
-            if p is not None and p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        codes = {}
-        for name, p in procs.items():
-            try:
-                codes[name] = p.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                codes[name] = -9
+        codes = stop_processes(procs)
     delays: dict[str, dict[str, float]] = {}
     axes = [a for a in AXES if a in setpoints.pos]
     for axis in axes:

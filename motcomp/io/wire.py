@@ -35,8 +35,11 @@ __all__ = [
 _pack = msgpack.Packer(use_bin_type=True).pack
 
 
-def encode_input(seq: int, t: float, pos: dict[str, float]) -> bytes:
-    """An input frame."""
+def encode_input(seq: int, t: float | None, pos: dict[str, float]) -> bytes:
+    """An input frame; without ``t`` when ``t`` is None (the service then times the sample by
+    its arrival)."""
+    if t is None:
+        return _pack({"seq": seq, "pos": pos})
     return _pack({"seq": seq, "t": t, "pos": pos})
 
 

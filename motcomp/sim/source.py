@@ -1,28 +1,48 @@
 """``motcomp source``: a motion source publishing setpoint frames at a fixed rate.
 
-It stands in for the vehicle model and motion cueing: built-in trajectories (a slalom on the
-rails, a swept sine, a demo mix of rails and hexapod motion) or a file -- a msgpack stream of
-input frames (what ``motcomp excite`` writes) or a CSV ``t,<axis>...`` (or ``t,cmd`` with
-``--axis``) -- published on ``sim/motion/setpoint`` on absolute deadlines.
+It stands in for the vehicle model and motion cueing: built-in trajectories (a slalom and a
+lane change on the rails, swept sines, a demo mix of rails and hexapod motion) or a file -- a
+msgpack stream of input frames (what ``motcomp excite`` writes) or a CSV ``t,<axis>...`` (or
+``t,cmd`` with ``--axis``) -- published on ``sim/motion/setpoint`` on absolute deadlines.
+
+Realistic senders (:class:`SenderTiming`): a live vehicle model is not perfectly timed.  Each
+frame can go out late by a random amount (jitter), the sender can stop now and then (stalls),
+and it can leave ``t`` out (the receiver then times the samples by their arrival).  Sample ``k``
+is due at its nominal instant ``t0 + k / rate``, which its frame's ``t`` always carries::
+
+    nominal   |---------|---------|---------|---------|---------|---------|   (1 / rate)
+    sent        *          *        [====== stall ======)***    *       *
+                (each late by U[0, J])                  (burst: the frames due meanwhile)
+
+A stall holds every frame due during it until its end, where they go out at once, in order, as
+a vehicle model catching up does: their ``t`` are their own instants, so with ``t`` the motion
+keeps its timeline; without ``t`` a receiver sees a gap, then a burst.  (docs/WIRE.md asks a
+sender that falls behind to skip samples instead: this one misbehaves on purpose.)  Stalls of
+this process itself (the machine's) are handled as before: a sample whose send instant passed
+more than a period ago is dropped.
 """
 
 from __future__ import annotations
 
 import csv
 import math
+import secrets
 import signal
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import msgpack
 import numpy as np
 
 from motcomp.core.axes import AXES, AXIS_INDEX
+from motcomp.core.minjerk import min_jerk
+from motcomp.core.models import P1D
 from motcomp.design.timedomain import fade_envelope, slalom, swept_sine
-from motcomp.errors import DataError
+from motcomp.errors import ConfigError, DataError
 from motcomp.io.wire import encode_input
 from motcomp.io.zenoh_io import (
     NoPeerError,
@@ -31,11 +51,19 @@ from motcomp.io.zenoh_io import (
     open_session,
     wait_for_subscriber,
 )
-from motcomp.runtime.clock import DeadlineClock
 
-__all__ = ["PublishStats", "Trajectory", "builtin", "load_trajectory", "publish"]
+__all__ = ["PublishStats", "Send", "SenderTiming", "Trajectory", "band_sweep", "builtin",
+           "lane_change", "load_trajectory", "publish", "send_schedule"]
 
-SIGNALS = ("demo", "slalom", "sweep")
+SIGNALS = ("bandsweep", "demo", "lanechange", "slalom", "sweep")
+
+RAILS_MODEL = P1D(K=1.0, Td=0.0175, Tp1=0.1857683128)
+"""The rails preset's model, whose exact inverse sizes ``bandsweep`` (written out here, so that
+the signal does not change when the preset does)."""
+RAILS_ACC_MAX_M_S2 = 6.0
+"""The rails' acceleration limit (config/motcomp.toml)."""
+SIGNAL_ACC_FRACTION = 0.8
+"""``lanechange`` and ``bandsweep`` keep within this fraction of :data:`RAILS_ACC_MAX_M_S2`."""
 
 
 @dataclass(frozen=True)
@@ -56,9 +84,42 @@ class Trajectory:
 
 
 def builtin(name: str, rate_hz: float = 1000.0, duration_s: float | None = None) -> Trajectory:
-    """``slalom`` (rails_y, 18 m cones at 40 km/h), ``sweep`` (rails_x, 0.1-3 Hz within the
-    rails' acceleration limit) or ``demo`` (~12 s: slalom on rails_y, a 0.2-1 Hz sweep on
-    rails_x, heave/roll/pitch sines on the hexapod)."""
+    """A built-in trajectory sampled at ``rate_hz``.
+
+    ``slalom``
+        rails_y, 18 m cones at 40 km/h (22.2 s).
+    ``sweep``
+        rails_x, 0.1-3 Hz within the rails' acceleration limit (``duration_s``, default 60 s).
+    ``demo``
+        ~12 s: slalom on rails_y, a 0.2-1 Hz sweep on rails_x, heave/roll/pitch sines on the
+        hexapod.
+    ``lanechange``
+        rails_y, :func:`lane_change`: 1 s at rest, 1.5 m aside in 2 s (minimum-jerk), 2 s
+        there, back in 2 s, 1 s at rest (8 s).  Peak acceleration ``10/sqrt(3) 1.5 / 2^2 =
+        2.17 m/s^2``, 36 % of the rails' 6 m/s^2 (its exact inverse, below: 2.6 m/s^2); peak
+        speed 1.41 m/s (limit 2 m/s).
+    ``bandsweep``
+        rails_x, :func:`band_sweep`: 1 s at rest, a logarithmic sweep over the driver band
+        0.1-2 Hz in ``duration_s`` (default 20 s) with 2 s minimum-jerk fades, 1 s at rest.
+        Its amplitude (24 mm) is the largest for which the command any lag-free compensation
+        must send -- the exact inverse ``r / M`` of the rails' model ``M`` =
+        :data:`RAILS_MODEL` (p1d K=1, Td=0.0175, Tp1=0.1857683128), i.e.
+        ``(r + Tp1 r')(t + Td) / K`` -- peaks at 80 % of the rails' 6 m/s^2 acceleration limit
+        (the sweep itself peaks at 2.3 m/s^2).
+
+    Raises
+    ------
+    DataError
+        For an unknown name.
+    """
+    if name == "lanechange":
+        return Trajectory(rate_hz, {"rails_y": lane_change(rate_hz)},
+                          "lane change on rails_y (1.5 m in 2 s and back)")
+    if name == "bandsweep":
+        dur = duration_s or 20.0
+        return Trajectory(rate_hz, {"rails_x": band_sweep(rate_hz, dur)},
+                          f"0.1-2 Hz swept sine on rails_x in {dur:g} s, sized for the exact "
+                          "inverse")
     if name == "slalom":
         _, r = slalom(rate_hz)
         return Trajectory(rate_hz, {"rails_y": r}, "slalom on rails_y (18 m cones, 40 km/h)")
@@ -83,6 +144,39 @@ def builtin(name: str, rate_hz: float = 1000.0, duration_s: float | None = None)
             "hex_pitch": 0.03 * np.sin(2 * math.pi * 0.35 * t) * env,
         }, "demo: slalom (rails_y), 0.2-1 Hz sweep (rails_x), heave/roll/pitch (hexapod)")
     raise DataError(f"unknown signal {name!r}; signals: {', '.join(SIGNALS)}")
+
+
+def lane_change(rate_hz: float, width_m: float = 1.5, move_s: float = 2.0, hold_s: float = 2.0,
+                rest_s: float = 1.0) -> np.ndarray:
+    """A step-like lane change: ``rest_s`` at 0, a minimum-jerk move to ``width_m`` in
+    ``move_s``, ``hold_s`` there, the same move back, ``rest_s`` at 0.
+
+    Peak acceleration ``10/sqrt(3) width / move^2``, peak speed ``1.875 width / move``.
+    """
+    n_move, n_hold, n_rest = (round(x * rate_hz) for x in (move_s, hold_s, rest_s))
+    up = width_m * min_jerk(np.arange(n_move) / n_move)
+    rest = np.zeros(n_rest)
+    return np.concatenate([rest, up, np.full(n_hold, width_m), width_m - up, rest])
+
+
+def band_sweep(rate_hz: float, duration_s: float = 20.0, rest_s: float = 1.0) -> np.ndarray:
+    """A logarithmic 0.1-2 Hz sweep of ``duration_s`` (2 s fades) between ``rest_s`` at rest,
+    sized so that the exact inverse of :data:`RAILS_MODEL` peaks at
+    :data:`SIGNAL_ACC_FRACTION` of :data:`RAILS_ACC_MAX_M_S2` (see :func:`builtin`).
+
+    The size is computed once on a 1 kHz grid, whatever ``rate_hz`` (one amplitude at every
+    rate): the inverse's acceleration ``(r'' + Tp1 r''') / K`` as differences of the sweep.
+    """
+    def shape(rate: float) -> np.ndarray:
+        _, r = swept_sine(rate, 0.1, 2.0, duration_s, 1.0, fade_s=2.0)
+        rest = np.zeros(round(rest_s * rate))
+        return np.concatenate([rest, r, rest])
+
+    fine = 1000.0
+    r = shape(fine)
+    inverse = (r + RAILS_MODEL.Tp1 * np.gradient(r, 1.0 / fine)) / RAILS_MODEL.K
+    peak = float(np.max(np.abs(np.diff(inverse, 2)))) * fine**2
+    return shape(rate_hz) * (SIGNAL_ACC_FRACTION * RAILS_ACC_MAX_M_S2 / peak)
 
 
 def load_trajectory(path: Path, rate_hz: float, axis: str | None = None) -> Trajectory:
@@ -143,6 +237,129 @@ def load_trajectory(path: Path, rate_hz: float, axis: str | None = None) -> Traj
 
 
 @dataclass(frozen=True)
+class SenderTiming:
+    """How a sender departs from perfect timing (the defaults: it does not).
+
+    Attributes
+    ----------
+    jitter_us
+        Each frame goes out late by a random amount, uniform in ``[0, jitter_us]``, after its
+        nominal instant; shorter than a period (frames keep their order).
+    stall_every_s
+        Mean time between stalls (0: none): from the start, or the end of a stall, to the next
+        stall is exponential with this mean (stalls come at random, about every
+        ``stall_every_s``).
+    stall_ms
+        ``(shortest, longest)`` stall in ms: each lasts a uniform draw in that range.
+    seed
+        Of the jitter and stall draws (two independent streams: adding stalls does not change
+        the jitter).  None: a fresh one, which :func:`publish` reports.
+
+    Raises
+    ------
+    ConfigError
+        Naming the value: negative or non-finite numbers, an inverted or empty stall range,
+        stalls with only one of interval and durations.
+    """
+
+    jitter_us: float = 0.0
+    stall_every_s: float = 0.0
+    stall_ms: tuple[float, float] | None = None
+    seed: int | None = None
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.jitter_us) and self.jitter_us >= 0):
+            raise ConfigError(f"jitter must be a number of us >= 0, got {self.jitter_us!r}")
+        if not (math.isfinite(self.stall_every_s) and self.stall_every_s >= 0):
+            raise ConfigError(f"the mean interval between stalls must be a number of s >= 0, "
+                              f"got {self.stall_every_s!r}")
+        if self.stall_ms is not None:
+            lo, hi = self.stall_ms
+            if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
+                raise ConfigError(f"stall durations must be 0 < shortest <= longest (ms), got "
+                                  f"{lo:g}-{hi:g}")
+        if (self.stall_every_s > 0) != (self.stall_ms is not None):
+            raise ConfigError("stalls need both a mean interval (s) and a range of durations "
+                              "(ms)")
+        if self.seed is not None and self.seed < 0:
+            raise ConfigError(f"seed must be >= 0, got {self.seed}")
+
+    @property
+    def random(self) -> bool:
+        """Whether any draw is made (jitter or stalls)."""
+        return self.jitter_us > 0 or self.stall_ms is not None
+
+    def check_rate(self, rate_hz: float) -> None:
+        """Raise :class:`ConfigError` unless the jitter is shorter than a period at ``rate_hz``."""
+        period_us = 1e6 / rate_hz
+        if self.jitter_us >= period_us:
+            raise ConfigError(f"jitter of {self.jitter_us:g} us is not shorter than a period "
+                              f"({period_us:g} us at {rate_hz:g} Hz): frames would overtake "
+                              "each other")
+
+    def describe(self) -> str:
+        parts = []
+        if self.jitter_us > 0:
+            parts.append(f"jitter 0-{self.jitter_us:g} us")
+        if self.stall_ms is not None:
+            parts.append(f"stalls of {self.stall_ms[0]:g}-{self.stall_ms[1]:g} ms about every "
+                         f"{self.stall_every_s:g} s")
+        return ", ".join(parts) or "on time"
+
+
+class Send(NamedTuple):
+    """When a frame goes out: ``at_ns`` after sample 0's nominal instant; ``held`` when a stall
+    delayed it (it leaves in the burst at the stall's end)."""
+
+    at_ns: int
+    held: bool
+
+
+_DRAW_BLOCK = 4096
+
+
+def send_schedule(rate_hz: float, timing: SenderTiming) -> Iterator[Send]:
+    """The send instants of samples 0, 1, 2, ... (endless).
+
+    Sample ``k`` is due at ``k * period`` (ns, ``period = round(1e9 / rate_hz)``) and sent
+    ``U[0, jitter]`` later, or at the end of the stall that instant falls in (stalls span
+    ``[begin, end)`` on the same timeline).  Pure: a ``timing`` with a seed always gives the
+    same schedule.
+
+    Raises
+    ------
+    ConfigError
+        If the jitter is not shorter than a period.
+    """
+    timing.check_rate(rate_hz)
+    period_ns = round(1e9 / rate_hz)
+    rng_jitter, rng_stall = (np.random.default_rng(s)
+                             for s in np.random.SeedSequence(timing.seed).spawn(2))
+    jitter_ns = timing.jitter_us * 1e3
+    every_ns = timing.stall_every_s * 1e9
+    stall_ms = timing.stall_ms
+
+    def stall_after(t_ns: float) -> tuple[float, float]:
+        if stall_ms is None:
+            return math.inf, math.inf
+        begin = t_ns + float(rng_stall.exponential(every_ns))
+        return begin, begin + float(rng_stall.uniform(*stall_ms)) * 1e6
+
+    begin, end = stall_after(0.0)
+    k = 0
+    while True:
+        draws = (rng_jitter.uniform(0.0, jitter_ns, _DRAW_BLOCK) if jitter_ns > 0
+                 else np.zeros(_DRAW_BLOCK))
+        for j in draws.tolist():
+            at = k * period_ns + j
+            while at >= end:
+                begin, end = stall_after(end)
+            held = at >= begin
+            yield Send(round(end if held else at), held)
+            k += 1
+
+
+@dataclass(frozen=True)
 class PublishStats:
     """What :func:`publish` did."""
 
@@ -156,14 +373,36 @@ class PublishStats:
     stopped: bool
     """Stopped (SIGTERM/SIGINT or ``stop``) before the end."""
     duration_s: float
+    rate_hz: float = 0.0
+    t0_s: float = math.nan
+    """Nominal instant of sample 0 (wall clock, s): sample ``k`` is due at ``t0_s + k /
+    rate_hz``, the ``t`` its frame carries (or would carry, without ``t``)."""
+    with_t: bool = True
+    timing: str = "on time"
+    seed: int | None = None
+    """The seed of the jitter and stall draws (None: none were made)."""
+    stalls: int = 0
+    """Stalls that held at least one frame."""
+    held: int = 0
+    """Frames sent late, in a burst at the end of a stall."""
 
     @property
     def sent(self) -> int:
         return self.next_seq - self.seq_start
 
+    def as_dict(self) -> dict[str, Any]:
+        """The fields and ``sent`` (JSON-ready but for a NaN ``t0_s`` when nothing ran)."""
+        return asdict(self) | {"sent": self.sent}
+
     def text(self) -> str:
         out = (f"published {self.sent} frames (seq {self.seq_start}-{self.next_seq - 1}) of "
                f"{self.samples} samples on {self.key} in {self.duration_s:.1f} s")
+        if self.timing != "on time" or not self.with_t:
+            out += f"; {self.timing}{'' if self.with_t else ', without t'}"
+            if self.seed is not None:
+                out += f" (seed {self.seed})"
+        if self.stalls:
+            out += f"; {self.stalls} stalls held {self.held} frames, sent in bursts"
         if self.skipped:
             out += (f"; {self.skipped} not sent: their instants passed while this process was "
                     "stalled")
@@ -173,23 +412,53 @@ class PublishStats:
         return out
 
 
+_NAP_NS = 100_000
+"""Longest sleep while waiting for a send instant, as the service's loop naps (a virtual CPU
+idle for longer than the host's halt polling can wake late)."""
+
+
+def _wait_until(due_ns: int, spin_ns: int, stop: threading.Event) -> None:
+    """Sleep (on ``stop`` for long waits, then in naps) until ``spin_ns`` before ``due_ns`` on
+    ``perf_counter_ns``, then spin; returns early if ``stop`` is set during a long wait."""
+    perf = time.perf_counter_ns
+    while (rest := due_ns - spin_ns - perf()) > 0:
+        if rest > 5_000_000:
+            if stop.wait((rest - 2_000_000) / 1e9):
+                return
+        else:
+            time.sleep(min(rest, _NAP_NS) / 1e9)
+    while perf() < due_ns:
+        pass
+
+
 def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/setpoint",
             seq_start: int = 0, repeat: int = 1, stop: threading.Event | None = None,
             spin_us: float = 100.0, lead_in_s: float = 0.0, wait_peer_s: float = 0.0,
-            progress: Callable[[float], None] | None = None) -> PublishStats:
+            progress: Callable[[float], None] | None = None,
+            timing: SenderTiming | None = None, with_t: bool = True) -> PublishStats:
     """Publish the trajectory (``repeat`` times) on absolute deadlines.
 
-    The motion stays on wall time, as a vehicle model's does: samples whose instants pass while
-    this loop is stalled are dropped, not published late (that would stretch the motion in
-    time).  ``seq`` counts the frames sent, so it stays consecutive.  With ``wait_peer_s`` > 0
-    nothing is sent until a subscriber of ``key`` is reachable; ``progress`` is called with the
-    seconds of motion sent so far, about ten times a second.
+    The motion stays on wall time, as a vehicle model's does: samples whose send instants pass
+    while this loop is stalled (by a period or more) are dropped, not published late (that
+    would stretch the motion in time).  ``seq`` counts the frames sent, so it stays
+    consecutive.  ``timing`` makes the sender misbehave on purpose: jitter, and stalls whose
+    frames go out in a burst (module docstring); ``with_t`` False leaves ``t`` out of the
+    frames.  With ``wait_peer_s`` > 0 nothing is sent until a subscriber of ``key`` is
+    reachable; ``progress`` is called with the seconds of motion sent so far, about ten times
+    a second.
 
     Raises
     ------
     NoPeerError
         If no subscriber of ``key`` was reachable within ``wait_peer_s``.
+    ConfigError
+        If the jitter is not shorter than a period.
     """
+    timing = timing or SenderTiming()
+    timing.check_rate(traj.rate_hz)
+    if timing.random and timing.seed is None:
+        timing = replace(timing, seed=secrets.randbelow(2**31))
+    seed = timing.seed if timing.random else None
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
@@ -198,39 +467,57 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
     columns = [traj.pos[a].tolist() for a in axes]
     seq = seq_start
     total = traj.samples * repeat
-    skipped = 0
+    skipped = stalls = held = 0
     every = max(1, round(traj.rate_hz / 10))
+    period_ns = round(1e9 / traj.rate_hz)
+    spin_ns = int(spin_us * 1000)
+    t0 = math.nan
+    k = 0
     t_start = time.monotonic()
+
+    def stats() -> PublishStats:
+        return PublishStats(key, seq_start, seq, total, skipped, stop.is_set() and k < total,
+                            time.monotonic() - t_start, traj.rate_hz, t0, with_t,
+                            timing.describe(), seed, stalls, held)
+
     with open_session(endpoints) as session:
         if wait_peer_s > 0 and not wait_for_subscriber(session, key, wait_peer_s, stop):
             if not stop.is_set():
                 raise NoPeerError(f"no subscriber of {key} reachable within {wait_peer_s:g} s "
                                   f"({endpoints.describe()})")
-            return PublishStats(key, seq_start, seq, total, 0, True,
-                                time.monotonic() - t_start)
+            return stats()
         sink = ZenohSink(session, key)
         if lead_in_s > 0:
             stop.wait(lead_in_s)
-        clock = DeadlineClock(traj.rate_hz, spin_us)
-        t_wall0, t_mono0 = time.time(), time.perf_counter_ns()
-        k = 0  # the sample due at the next deadline
+        schedule = send_schedule(traj.rate_hz, timing)
+        perf = time.perf_counter_ns
+        t_wall0, t_mono0 = time.time(), perf()
+        start_ns = t_mono0 + period_ns  # sample 0 is due one period from now
+        t0 = t_wall0 + period_ns / 1e9
+        burst_at = -1
         try:
-            while not stop.is_set():
-                deadline, _ = clock.wait()
-                if clock.skipped:
-                    skipped += min(clock.skipped, max(0, total - k))
-                    k += clock.skipped
-                if k >= total:
+            while k < total and not stop.is_set():
+                send = next(schedule)
+                due = start_ns + send.at_ns
+                _wait_until(due, spin_ns, stop)
+                if stop.is_set():
                     break
-                t = t_wall0 + (deadline - t_mono0) / 1e9  # the sample's nominal time
-                i = k % traj.samples
-                sink.put(encode_input(seq, t, {a: col[i] for a, col in
-                                               zip(axes, columns, strict=True)}))
-                seq += 1
+                if perf() - due >= period_ns:  # this process was stalled: the instant passed
+                    skipped += 1
+                else:
+                    if send.held:
+                        held += 1
+                        stalls += send.at_ns != burst_at
+                        burst_at = send.at_ns
+                    t = t_wall0 + (start_ns + k * period_ns - t_mono0) / 1e9  # nominal instant
+                    i = k % traj.samples
+                    sink.put(encode_input(seq, t if with_t else None,
+                                          {a: col[i] for a, col in zip(axes, columns,
+                                                                       strict=True)}))
+                    seq += 1
                 k += 1
                 if progress is not None and k % every == 0:
                     progress(k / traj.rate_hz)
         finally:
             sink.close()
-    return PublishStats(key, seq_start, seq, total, skipped, stop.is_set() and k < total,
-                        time.monotonic() - t_start)
+    return stats()
