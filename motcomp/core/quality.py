@@ -4,10 +4,8 @@ One implementation of each figure, used offline (demo, replay analysis, benchmar
 service's status):
 
 ``estimate_delay``
-    delay of a response behind a reference by cross-correlation, each lag's sum divided by the
-    number of samples that overlap at that lag (unbiased: the plain sum favours short lags,
-    which moved the peak of a 0.3-2 Hz motion by 1.7 ms over 20 s), the integer peak refined by
-    a parabola through it and its neighbours (sub-sample).
+    delay of a response behind a reference by cross-correlation, the integer peak refined by a
+    parabola through it and its neighbours (sub-sample).
 ``command_quality``
     of a position command sampled at a uniform rate: the RMS of its acceleration above
     ``above_hz`` (what vibrates the cabin and wears the actuators: a motion-cueing command lives
@@ -42,44 +40,33 @@ def estimate_delay(reference: ArrayLike, response: ArrayLike, rate_hz: float,
                    max_lag_s: float = 1.0, min_lag_s: float = -0.5) -> float:
     """Delay (s) of ``response`` behind ``reference`` by cross-correlation, sub-sample.
 
-    The search covers lags in ``[min_lag_s, max_lag_s]`` (unbiased correlation, module
-    docstring); the integer peak is refined by a parabola through it and its neighbours.  Two
-    equal windows still pull a slow motion's estimate towards zero by what each holds that the
-    other lacks (0.9 ms for a 0.3-2.1 Hz multisine delayed by 37 ms over 20 s): a caller that
-    has the reference beyond the response's window aligns them and iterates
-    (:mod:`motcomp.runtime.monitor`).
+    The search covers lags in ``[min_lag_s, max_lag_s]``; the integer peak is refined by a
+    parabola through it and its neighbours.  Two equal windows pull a slow motion's estimate
+    towards zero by what each holds that the other lacks (1.7 ms for a 0.3-2.1 Hz multisine
+    delayed by 37 ms over 20 s; nothing measurable for 2-8 Hz): a caller that has the reference
+    beyond the response's window aligns them and iterates (:mod:`motcomp.runtime.monitor`).
 
     Raises
     ------
     ConfigError
-        If the signals differ in length, are constant, are shorter than the lags searched, or
-        the peak sits on the edge of the range.
+        If the signals differ in length, are constant, or the peak sits on the edge of the range.
     """
     r = np.asarray(reference, dtype=float)
     y = np.asarray(response, dtype=float)
     if r.shape != y.shape or r.ndim != 1:
         raise ConfigError(f"reference and response must be 1-D of equal length, got {r.shape} "
                           f"and {y.shape}")
-    return _xcorr_peak(r, y, rate_hz, min_lag_s, max_lag_s) / rate_hz
-
-
-def _xcorr_peak(r: np.ndarray, y: np.ndarray, rate_hz: float, min_lag_s: float,
-                max_lag_s: float) -> float:
-    """Lag (samples, sub-sample) of the unbiased cross-correlation's peak of ``y`` on ``r``."""
     r = r - r.mean()
     y = y - y.mean()
     if not (np.any(r) and np.any(y)):
         raise ConfigError("cannot estimate a delay: a signal is constant")
     n = r.size
+    nfft = 1 << math.ceil(math.log2(2 * n))
+    xc = np.fft.irfft(np.fft.rfft(y, nfft) * np.conj(np.fft.rfft(r, nfft)), nfft)
     lo = math.floor(min_lag_s * rate_hz)
     hi = math.ceil(max_lag_s * rate_hz)
     lags = np.arange(lo, hi + 1)
-    if np.any(np.abs(lags) >= n):
-        raise ConfigError(f"the searched lags [{min_lag_s}, {max_lag_s}] s reach beyond the "
-                          f"signals ({n} samples at {rate_hz:g} Hz)")
-    nfft = 1 << math.ceil(math.log2(2 * n))
-    xc = np.fft.irfft(np.fft.rfft(y, nfft) * np.conj(np.fft.rfft(r, nfft)), nfft)
-    vals = xc[lags % nfft] / (n - np.abs(lags))
+    vals = xc[lags % nfft]
     i = int(np.argmax(vals))
     if i == 0 or i == lags.size - 1:
         raise ConfigError(f"cross-correlation peak at the edge of the searched lags "
@@ -87,7 +74,7 @@ def _xcorr_peak(r: np.ndarray, y: np.ndarray, rate_hz: float, min_lag_s: float,
     y0, y1, y2 = vals[i - 1], vals[i], vals[i + 1]
     denom = y0 - 2 * y1 + y2
     frac = 0.5 * (y0 - y2) / denom if denom != 0 else 0.0
-    return float(lags[i] + frac)
+    return float((lags[i] + frac) / rate_hz)
 
 
 def hf_rms(x: ArrayLike, rate_hz: float, above_hz: float = HF_ABOVE_HZ) -> float:
