@@ -129,7 +129,7 @@ def tick_in_process(cfg_path: str, ticks: int) -> dict[str, list[float]]:
     out = {}
     for name, paced in (("tight", False), ("paced", True)):
         svc = Service(cfg, ZenohEndpoints())
-        src = MemorySource(latest_only=True)
+        src = MemorySource(burst=True)
         svc.attach(src, [MemorySink(keep=1)])
         gc.collect()
         gc.freeze()
