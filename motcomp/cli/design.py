@@ -45,10 +45,10 @@ def _add_optimal(p: argparse.ArgumentParser) -> None:
                    metavar="GAIN",
                    help=f"bound on the command amplification max|u/r| at any frequency "
                         f"(default {_DEFAULTS.max_command_gain:g})")
-    g.add_argument("--hf-gain", type=float, default=_DEFAULTS.hf_command_gain, metavar="GAIN",
-                   help=f"bound on the command amplification at and above --hf-from: what "
-                        f"input jitter and steps reach the platform multiplied by (default "
-                        f"{_DEFAULTS.hf_command_gain:g}; docs/TUNING.md has the trade-off)")
+    g.add_argument("--hf-gain", type=float, default=None, metavar="GAIN",
+                   help="bound on the command amplification at and above --hf-from: what "
+                        "input jitter and steps reach the platform multiplied by (default: the "
+                        "--max-command bound; docs/TUNING.md has the trade-off)")
     g.add_argument("--hf-from", type=float, default=_DEFAULTS.hf_from_hz, metavar="HZ",
                    help=f"lower edge of the range of --hf-gain (default "
                         f"{_DEFAULTS.hf_from_hz:g} Hz)")

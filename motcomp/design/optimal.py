@@ -112,10 +112,14 @@ class Constraints:
     max_command_gain: float = 60.0
     max_sensitivity: float = 4.0
     band_hz: tuple[float, float] = (0.1, 2.0)
-    hf_command_gain: float = 60.0
+    hf_command_gain: float | None = None
+    """Bound on ``|F|`` at and above ``hf_from_hz``; None: ``max_command_gain`` (no extra
+    bound)."""
     hf_from_hz: float = HF_FROM_HZ
 
     def __post_init__(self) -> None:
+        if self.hf_command_gain is None:
+            object.__setattr__(self, "hf_command_gain", self.max_command_gain)
         for f in fields(self):
             if f.name == "band_hz":
                 continue
@@ -129,7 +133,7 @@ class Constraints:
         if self.max_command_gain <= 1:
             raise ConfigError(f"optimal: max_command_gain must be > 1, got "
                               f"{self.max_command_gain}")
-        if self.hf_command_gain <= 0:
+        if self.hf_gain <= 0:
             raise ConfigError(f"optimal: hf_command_gain must be > 0, got "
                               f"{self.hf_command_gain}")
         if self.max_sensitivity <= 1:
@@ -140,6 +144,12 @@ class Constraints:
         if not self.hf_from_hz > hi:
             raise ConfigError(f"optimal: hf_from_hz must lie above the band ({hi:g} Hz), got "
                               f"{self.hf_from_hz}")
+
+    @property
+    def hf_gain(self) -> float:
+        """:attr:`hf_command_gain`, resolved (a number)."""
+        assert self.hf_command_gain is not None
+        return self.hf_command_gain
 
     def as_dict(self) -> dict[str, Any]:
         return {f.name: (list(getattr(self, f.name)) if f.name == "band_hz"
@@ -395,7 +405,7 @@ class _Problem:
                       2 * _blocks(nb, 3)),
             _blockmin(self.c.command_excess_db - r.excess_db, _blocks(nb, 3)),
             _blockmin(1.0 - r.command / self.c.max_command_gain, 40),
-            _blockmin(1.0 - r.command[:, self.hf] / self.c.hf_command_gain, 40),
+            _blockmin(1.0 - r.command[:, self.hf] / self.c.hf_gain, 40),
             _blockmin(1.0 - r.sensitivity / self.c.max_sensitivity, 40),
         ]
         rho = self.pole_modulus(G[:, 0], G[:, 1], G[:, 2], G[:, 3])[:, None]
@@ -605,7 +615,7 @@ def _check(gains: PIDGains, model: P1D, dense: LoopGrid, c: Constraints, rate_hz
         "gain_error_db": nominal.gain_error_db - gain_limit_db,
         "command_excess_db": float(np.max(r.excess_db)) - c.command_excess_db,
         "max_command_gain": nominal.peak_command_gain / c.max_command_gain - 1.0,
-        "hf_command_gain": nominal.hf_command_gain / c.hf_command_gain - 1.0,
+        "hf_command_gain": nominal.hf_command_gain / c.hf_gain - 1.0,
         "max_sensitivity": nominal.ms / c.max_sensitivity - 1.0,
     }
     violations = []
@@ -700,7 +710,7 @@ def optimise(plant: ProcessModel, model: P1D | None = None, rate_hz: float = 100
                 peak_db=max(target.peak_db - missed_peak * (over["peak_db"] + 0.01), 0.0),
                 max_command_gain=target.max_command_gain
                 / (1.0 + missed_cmd * (over["max_command_gain"] + 1e-3)),
-                hf_command_gain=target.hf_command_gain
+                hf_command_gain=target.hf_gain
                 / (1.0 + missed_hf * (over["hf_command_gain"] + 1e-3)))
         records.append({"start": name, "status": status, "iterations": nit,
                         "objective_ms": objective, "feasible": not violations})
