@@ -46,18 +46,20 @@ reference is the input *played back on the sender's timeline, a little behind it
 sample*, so that it is interpolated between samples already received instead of guessed::
 
     sender time  each frame's ``t``, relative to a whole second (float64 arithmetic on epoch
-                 times resolves only 0.24 us), on a grid: a ``t`` within TIME_GATE_S of the
-                 previous one plus the period (times the seq step) is taken as rounded, and a
-                 tracker of the grid (TRACK_ALPHA, TRACK_BETA) replaces it, so that the
-                 rounding of the stamps does not reach the reference (0.24 us at 0.5 m/s is
-                 0.1 um: 0.1 m/s^2 of acceleration from sample to sample, 6 m/s^2 once
-                 compensated); a ``t`` further off is the sender's real timing and is used
-                 as it is; a frame without ``t`` from a sender that stamps the others is
-                 put on its grid (the previous instant plus the period times the seq step);
-                 from a sender that never stamps, the instants are the line through (frame
-                 count, arrival on the loop's clock), fitted by recursive least squares whose
-                 gains fall to NO_T_ALPHA (frames read in the same tick carry no timing news;
-                 an arrival further than stale_after_s/2 from the line re-anchors it)
+                 times resolves only 0.24 us), on a grid: a least-squares line through (frame
+                 count, ``t``) whose gains fall to TRACK_ALPHA; a ``t`` within TIME_GATE_S of
+                 the line (the seq step, or a whole number of periods when the sender skipped
+                 samples) is on it, and the frame's instant is the previous one plus the period
+                 times that step -- the samples lie on an exact grid, so that neither the
+                 rounding of the stamps nor the line's own corrections reach the reference
+                 (0.24 us at 0.5 m/s is 0.1 um: 0.1 m/s^2 of acceleration from sample to
+                 sample, 6 m/s^2 once compensated); a ``t`` further off is the sender's real
+                 timing and is used as it is (the line is anchored there); a frame without
+                 ``t`` from a sender that stamps the others is put on its grid; from a sender
+                 that never stamps, the same line goes through (frame count, arrival on the
+                 loop's clock), with gains falling to NO_T_ALPHA (frames read in the same tick
+                 carry no timing news; an arrival further than stale_after_s/2 from the line
+                 re-anchors it)
     period       the interval between frames per seq step (sender time, or arrivals without
                  t), averaged; a single unusual one (a stall) is ignored, PERIOD_RELEARN in a
                  row (a new rate) replace it
@@ -68,17 +70,21 @@ sample*, so that it is interpolated between samples already received instead of 
     playback     tau = now - delay, where the delay follows offset + lag through a critically
                  damped filter of DELAY_TAU_S: neither jitter nor a new smallest transit ever
                  steps the playback instant, its changes warp time gently
-    per axis     the last HISTORY samples at least (the playback may lie several samples behind the
-                 newest, after a burst); tau between two of them: cubic Hermite through them with
-                 Catmull-Rom tangents (continuous velocity); tau beyond the newest (a frame late by
-                 more than the lag, a stall): the parabola through the last three goes on, at most
-                 max_extrapolation_s (or 1.5 input periods if longer), and when the samples come
-                 back, the differences of position and velocity to it fade out in a minimum-jerk
-                 blend of GAP_BLEND_PERIODS input periods (at least GAP_BLEND_S)
+    per axis     the last HISTORY samples at least (the playback may lie several samples
+                 behind the newest, after a burst), each with the slope, acceleration and jerk
+                 of the cubic through it and the three before it (exact on cubics, and causal:
+                 never revised by the next sample, so the curve under the playback never
+                 changes); tau between two of them: the quintic Hermite that meets both with
+                 their value, slope and acceleration (continuous acceleration); tau beyond the
+                 newest (a frame late by more than the lag, a stall): the newest sample's
+                 Taylor cubic (constant jerk) goes on, at most max_extrapolation_s (or 1.5
+                 input periods if longer), and when the samples come back, the differences of
+                 position and velocity to it fade out in a quintic of GAP_BLEND_PERIODS input
+                 periods (at least GAP_BLEND_S)
     average      then a moving average over one input period (fractional length, on the
                  tick grid): zero gain at the input's rate and its harmonics, where the
-                 playback's roughness lies (the Hermite's acceleration changes at every sample,
-                 and the compensator multiplies them); nothing at the loop's own rate
+                 playback's roughness lies (the quintic's jerk changes at every sample, and the
+                 compensator multiplies it); nothing at the loop's own rate
     on a frame   dt = t - t_prev (per axis): dt < min_dt_s is the same sample again (its
                  value replaces the previous one); a t that goes back, or a rejoin, restarts
                  the axis' history at the new sample
@@ -102,6 +108,9 @@ from motcomp.core.minjerk import PEAK_SPEED_FACTOR, min_jerk_weight
 
 __all__ = ["OFFSET_LEAK", "ReferenceShaper", "ShaperParams"]
 
+Knot = tuple[float, float, float, float, float]
+"""A sample of one axis: instant, value, and the slope, acceleration and jerk there."""
+
 OFFSET_LEAK = 0.05
 """Upward drift (s per s) allowed to the fast estimate of the clock offset (smallest transit)."""
 SMOOTH_OFFSET_LEAK = 1e-3
@@ -124,14 +133,19 @@ TIME_GATE_S = 5e-6
 """A frame ``t`` this close to the sender's regular grid is on it: the difference is the
 rounding of its stamp (a float64 epoch time resolves 0.24 us; many senders stamp whole us)."""
 TRACK_ALPHA = 0.01
-TRACK_BETA = TRACK_ALPHA ** 2 / 4
-"""Gains of the tracker of the sender's grid (phase, period; critically damped)."""
+"""The least-squares gains of the sender's grid fall to this (phase) and its square over 4
+(period); they move the line only, never a sample's instant."""
 PERIOD_RELEARN = 8
 """This many intervals in a row outside half to 1.5 times the period replace it."""
 NO_T_ALPHA = 1e-4
 """Frames without ``t``: the least-squares gains of the sender's timeline fall to this (phase)
 and its square over 4 (period) and stay there, so that the tracker follows a drifting clock
 while an arrival's jitter moves the timeline by a ten-thousandth of it."""
+MIN_SKIP_STEP = 1e-6
+SKIP_TOLERANCE = 0.15
+"""Frames without ``t``: a step of the fastest axis within SKIP_TOLERANCE of m >= 2 times the
+previous one (per frame), which moved at least MIN_SKIP_STEP (axis units), spans m samples: the
+sender skipped m - 1 (a simulation that keeps its schedule after a stall)."""
 HISTORY = 64
 """Samples kept per axis (at least): a burst of up to :data:`~motcomp.io.zenoh_io.MAX_BURST`
 frames leaves the playback instant among them."""
@@ -201,11 +215,12 @@ class ReferenceShaper:
     def __init__(self, n: int) -> None:
         self.n = n
         self.live = [0.0] * n
-        self._hist: list[list[tuple[float, float]]] = [[] for _ in range(n)]  # (t, v), newest last
+        self._hist: list[list[Knot]] = [[] for _ in range(n)]  # per axis, newest last
         self._period = 0.0  # average interval between frames (sender time)
         self._t_base: float | None = None  # sender time origin (a whole second)
         self._stamped = False  # the timeline is the sender's (frames with t), not the loop's
-        self._nt_n = 0  # frames without t since the timeline was anchored
+        self._line = 0.0  # the least-squares line of the sender's instants: its newest point
+        self._line_n = 0  # and the frames on it since it was anchored
         self._odd: list[float] = []  # unusual intervals in a row
         self._ma_len = 0.0  # length of the moving average (ticks)
         self._t_last: float | None = None  # sender time of the last frame
@@ -216,7 +231,8 @@ class ReferenceShaper:
         self._delay: float | None = None  # playback delay (now - tau) and its rate
         self._delay_rate = 0.0
         self._at: float | None = None  # loop time of the last reference
-        self._extra: list[tuple[tuple[float, float], ...] | None] = [None] * n  # extrapolating
+        self._extra: list[Knot | None] = [None] * n
+        """Per axis while extrapolating: the sample extrapolated from."""
         self._fix = [0.0] * n  # difference being faded out after an extrapolation, and its
         self._fix_rate = [0.0] * n  # and its rate of change
         self._fix_t0 = [0.0] * n
@@ -320,48 +336,10 @@ class ReferenceShaper:
 
     def _on_input_smooth(self, p: ShaperParams, pos: dict[int, float], now: float,
                          t_sender: float | None, rejoin: bool, frames: int) -> None:
-        q = self._period
         tl = self._t_last
-        if t_sender is None and self._stamped and tl is not None and not rejoin and q > 0.0:
-            t = tl + frames * q  # a stamping sender's frame without t: on its grid
-        elif t_sender is None:  # estimate the sender's instant (module docstring)
-            self._stamped = False
-            arrived = self.last_input_s
-            burst = arrived is not None and now <= arrived  # within one tick: no timing news
-            pred = (tl or 0.0) + frames * q
-            if tl is None or rejoin or abs(now - pred) > 0.5 * p.stale_after_s:
-                t = now
-                self._nt_n = 1
-            elif burst:
-                t = pred
-            else:  # the line through (frame count, arrival): recursive least squares
-                self._nt_n = n = self._nt_n + 1
-                alpha = max(2.0 * (2 * n - 1) / (n * (n + 1)), NO_T_ALPHA)
-                beta = max(6.0 / (n * (n + 1)), NO_T_ALPHA ** 2 / 4)
-                err = now - pred
-                new_q = q + beta * err / frames
-                if q > 0.0 and not 0.25 * q < new_q < 4.0 * q:  # not the same sender: anew
-                    t, self._nt_n = now, 1
-                else:
-                    t = pred + alpha * err
-                    self._period = q = new_q
-        else:
-            if not self._stamped:  # from the loop's clock to the sender's: a new timeline
-                rejoin = True
-                self._stamped = True
-            if self._t_base is None or rejoin:  # sender times relative to a whole second
-                self._t_base = math.floor(t_sender) if math.isfinite(t_sender) else 0.0
-            t = t_sender - self._t_base
-            pred = (tl or 0.0) + frames * q
-            if tl is None or rejoin:
-                pass
-            elif q > 0.0 and abs(t - pred) <= TIME_GATE_S:  # on the grid but for rounding
-                err = t - pred
-                t = pred + TRACK_ALPHA * err
-                self._period = q = q + TRACK_BETA * err / frames
-                self._odd.clear()
-            elif p.min_dt_s <= t - tl <= p.stale_after_s:  # irregular: the stamps are right
-                self._learn_period((t - tl) / frames)
+        if t_sender is None and not rejoin:
+            frames *= self._skipped(p, pos)
+        t, rejoin = self._timeline(p, now, t_sender, rejoin, frames)
         transit = now - t
         fast = self._fast
         if fast is None or rejoin:
@@ -396,15 +374,96 @@ class ReferenceShaper:
             h = hist[i]
             if rejoin or not h or t < h[-1][0]:  # start, rejoin, or a t that goes back
                 h.clear()
-                h.append((t, v))
+                h.append(_knot(h, t, v))
             elif t - h[-1][0] < min_dt:  # the same sample again: replace it
-                h[-1] = (h[-1][0], v)
+                h[-1] = _knot(h[:-1][-3:], h[-1][0], v)
             else:
-                h.append((t, v))
+                h.append(_knot(h[-3:], t, v))
                 if len(h) > 2 * HISTORY:  # (trimmed in batches: no shift per sample)
                     del h[:HISTORY]
 
-    def _learn_period(self, dt: float) -> None:
+    def _skipped(self, p: ShaperParams, pos: dict[int, float]) -> int:
+        """A frame without ``t``: how many of the sender's samples its step spans (1, or more
+        when the sender skipped some).  Read from the motion itself, on the axis moving fastest:
+        where its last two steps (per frame) agree within SKIP_TOLERANCE (a steady motion, not a
+        start or a reversal) and moved at least MIN_SKIP_STEP, a new step SKIP_TOLERANCE-close
+        to m >= 2 times the one expected (the last step plus its change) spans m samples; a
+        wrong count, where the motion is too slow or unsteady to tell, misplaces a sample by
+        little."""
+        q = self._period
+        best, ratio = 0.0, 1.0
+        for i, v in pos.items():
+            h = self._hist[i]
+            if not p.driven[i] or len(h) < 3 or q <= 0.0:
+                continue
+            (t0, v0), (t1, v1), (t2, v2) = h[-3][:2], h[-2][:2], h[-1][:2]
+            s0 = (v1 - v0) * q / (t1 - t0)  # steps per frame
+            s1 = (v2 - v1) * q / (t2 - t1)
+            if abs(s1) > best and abs(s1 - s0) <= SKIP_TOLERANCE * abs(s1):
+                best, ratio = abs(s1), (v - v2) / (2.0 * s1 - s0)
+        m = round(ratio)
+        return m if best >= MIN_SKIP_STEP and m >= 2 and abs(ratio - m) <= SKIP_TOLERANCE else 1
+
+    def _timeline(self, p: ShaperParams, now: float, t_sender: float | None, rejoin: bool,
+                  frames: int) -> tuple[float, bool]:
+        """The sender instant of a frame (seconds from :attr:`_t_base` or on the loop's clock) and
+        whether the timeline starts anew (module docstring, "sender time")."""
+        q = self._period
+        tl = self._t_last
+        if t_sender is None and self._stamped and tl is not None and not rejoin and q > 0.0:
+            self._line += frames * q  # a stamping sender's frame without t: on its grid
+            return tl + frames * q, rejoin
+        skipped = False
+        if t_sender is None:  # timed by its arrival
+            self._stamped = False
+            x, gate, floor = now, 0.5 * p.stale_after_s, NO_T_ALPHA
+            arrived = self.last_input_s
+            news = arrived is None or now > arrived  # frames read in one tick: no timing news
+        else:
+            if not self._stamped:  # from the loop's clock to the sender's: a new timeline
+                rejoin = True
+                self._stamped = True
+            if self._t_base is None or rejoin:  # sender times relative to a whole second
+                self._t_base = math.floor(t_sender) if math.isfinite(t_sender) else 0.0
+            x, gate, floor = t_sender - self._t_base, TIME_GATE_S, TRACK_ALPHA
+            news = True
+            if q > 0.0 and self._line_n > 0 and not rejoin and tl is not None:
+                m = round((x - self._line) / q)
+                if m > frames and abs(x - self._line - m * q) <= TIME_GATE_S:
+                    # on the grid, samples skipped: the sender's grid goes on, unless this
+                    # keeps happening (then the sender changed its rate)
+                    if self._learn_period((x - tl) / frames):
+                        self._line, self._line_n = x, 1
+                        return x, rejoin
+                    frames, skipped = m, True
+        if tl is None or rejoin or self._line_n == 0:
+            self._line, self._line_n = x, 1
+            return x, rejoin
+        pred = self._line + frames * q
+        err = x - pred
+        if not news:
+            self._line = pred
+            return tl + frames * q, rejoin
+        if abs(err) > gate:
+            if t_sender is not None and p.min_dt_s <= x - tl <= p.stale_after_s:
+                self._learn_period((x - tl) / frames)  # irregular: the stamps are right
+            self._line = x  # off the line: anchored anew where the frame says
+            if t_sender is None:  # and, timed by arrival, its slope learnt anew
+                self._line_n = 1
+            return x, rejoin
+        n = self._line_n + 1
+        alpha = max(2.0 * (2 * n - 1) / (n * (n + 1)), floor)
+        beta = max(6.0 / (n * (n + 1)), floor * floor / 4)
+        new_q = q + beta * err / frames
+        if new_q <= 0.0 or (n > 2 and not 0.25 * q < new_q < 4.0 * q):  # another sender
+            self._line, self._line_n = x, 1
+            return x, rejoin
+        self._line, self._line_n, self._period = pred + alpha * err, n, new_q
+        if not skipped:
+            self._odd.clear()
+        return tl + frames * new_q, rejoin
+
+    def _learn_period(self, dt: float) -> bool:
         """One interval between frames (per frame): averaged when within half to 1.5 times the
         period; :data:`PERIOD_RELEARN` unusual ones in a row (the sender changed its rate)
         replace the period by their median; a single one (a stall) changes nothing."""
@@ -412,15 +471,18 @@ class ReferenceShaper:
         if q == 0.0:
             if dt > 0.0:
                 self._period = dt
-            return
+            return False
         if 0.5 * q <= dt <= 1.5 * q:
             self._period = q + PERIOD_GAIN * (dt - q)
             self._odd.clear()
-            return
+            return False
         self._odd.append(dt)
         if len(self._odd) >= PERIOD_RELEARN:
             self._period = sorted(self._odd)[len(self._odd) // 2]
             self._odd.clear()
+            self._line_n = 1  # the line's slope is learnt anew
+            return True
+        return False
 
     def park(self, p: ShaperParams, now: float) -> None:
         """Stop requested: ramp to neutral, ignoring input from now on."""
@@ -506,12 +568,12 @@ class ReferenceShaper:
                 continue
             prev = extra[i]
             if tau <= h[-1][0] or len(h) == 1:
-                x, xs = _hermite(h, tau) if len(h) > 1 else (h[0][1], 0.0)
+                x, xs = _quintic(h, tau) if len(h) > 1 else (h[0][1], 0.0)
                 src = None
-            else:  # beyond the newest sample: the parabola through the last three goes on
-                src = tuple(h[-3:])
+            else:  # beyond the newest sample: its Taylor cubic goes on
+                src = h[-1]
                 x, xs = _extrapolate(src, tau, bound)
-            if prev is not None and (src is None or src[-1][0] != prev[-1][0]):
+            if prev is not None and (src is None or src[0] != prev[0]):
                 xo, so = _extrapolate(prev, tau, bound)  # the samples changed under it
                 self._start_fix(i, now, blend_s, xo - x, so - xs)
             extra[i] = src
@@ -566,11 +628,19 @@ class ReferenceShaper:
             out.append(v + s * (tau if 0.0 < tau < b else b if tau >= b else 0.0))
         return out
 
-    def _fix_at(self, i: int, el: float, blend_s: float) -> float:
-        """The correction ``el`` after it started: ``(d + r el) w(el/blend)``, which starts with
-        the differences ``d`` and ``r`` of position and velocity (min-jerk ``w``: flat at both
-        ends) and fades them out."""
-        return (self._fix[i] + self._fix_rate[i] * el) * min_jerk_weight(el / blend_s)
+    def _fix_at(self, i: int, el: float, blend_s: float) -> tuple[float, float]:
+        """The correction ``el`` after it started and its rate: the quintic that starts with
+        the differences ``d`` and ``r`` of position and velocity and no acceleration of its
+        own, and ends ``blend_s`` later at zero, flat to its second derivative."""
+        x = el / blend_s
+        if x >= 1.0:
+            return 0.0, 0.0
+        d, rt = self._fix[i], self._fix_rate[i] * blend_s
+        x2 = x * x
+        f = d * (1.0 - x2 * x * (10.0 - 15.0 * x + 6.0 * x2)) \
+            + rt * x * (1.0 - x2 * (6.0 - 8.0 * x + 3.0 * x2))
+        f1 = d * -30.0 * x2 * (1.0 - x) ** 2 + rt * (1.0 - x2 * (18.0 - 32.0 * x + 15.0 * x2))
+        return f, f1 / blend_s
 
     def _current_fix(self, i: int, now: float, blend_s: float) -> float:
         if self._fix[i] == 0.0 and self._fix_rate[i] == 0.0:
@@ -579,20 +649,16 @@ class ReferenceShaper:
         if el >= blend_s:
             self._fix[i] = self._fix_rate[i] = 0.0
             return 0.0
-        return self._fix_at(i, el, blend_s)
+        return self._fix_at(i, el, blend_s)[0]
 
     def _start_fix(self, i: int, now: float, blend_s: float, d: float, r: float) -> None:
         """A new correction (position ``d``, velocity ``r``) on top of what remains of the
         previous one, so that the reference stays continuous in position and velocity."""
-        rest = rest_rate = 0.0
+        rest = (0.0, 0.0)
         if self._fix[i] or self._fix_rate[i]:
-            el = now - self._fix_t0[i]
-            e = 1e-5
-            rest = self._fix_at(i, el, blend_s)
-            rest_rate = (self._fix_at(i, el + e, blend_s) - self._fix_at(i, el - e, blend_s)) \
-                / (2 * e)
-        self._fix[i] = d + rest
-        self._fix_rate[i] = r + rest_rate
+            rest = self._fix_at(i, now - self._fix_t0[i], blend_s)
+        self._fix[i] = d + rest[0]
+        self._fix_rate[i] = r + rest[1]
         self._fix_t0[i] = now
 
     def stale_time(self, now: float) -> float:
@@ -604,53 +670,64 @@ class ReferenceShaper:
 
 
 
-def _hermite(h: Sequence[tuple[float, float]], tau: float) -> tuple[float, float]:
-    """Value and slope at ``tau`` of the cubic Hermite through the samples ``h`` (at least 2,
-    time-ordered; ``tau`` clamped to their span), Catmull-Rom tangents; at the
-    newest sample, the slope of the parabola through the last three (:func:`_end_slope`), which
-    the central tangent replaces when the next sample comes with a difference of order
-    jerk x period^2 only."""
+def _knot(before: Sequence[Knot], t: float, v: float) -> Knot:
+    """The sample ``(t, v)`` with the slope, acceleration and jerk at ``t`` of the polynomial
+    through it and the (up to) three samples ``before`` it (a cubic, exact on cubics): causal,
+    so never revised when the next sample comes."""
+    ts = [t]
+    f = [v]  # Newton divided differences about the newest: f[0], f[0,1], f[0,1,2], f[0..3]
+    col = [v]
+    for k in range(len(before) - 1, -1, -1):
+        tk = before[k][0]
+        new = [before[k][1]]
+        for j in range(len(col)):
+            new.append((col[j] - new[j]) / (ts[-1 - j] - tk))
+        ts.append(tk)
+        col = new
+        f.append(col[-1])
+    f += [0.0] * (4 - len(f))
+    d1 = t - ts[1] if len(ts) > 1 else 0.0
+    d2 = t - ts[2] if len(ts) > 2 else 0.0
+    return (t, v, f[1] + f[2] * d1 + f[3] * d1 * d2, 2.0 * f[2] + 2.0 * f[3] * (d1 + d2),
+            6.0 * f[3])
+
+
+def _quintic(h: Sequence[Knot], tau: float) -> tuple[float, float]:
+    """Value and slope at ``tau`` of the quintic Hermite between the two samples of ``h`` (at
+    least 2, time-ordered) around it (``tau`` clamped to their span), which meets each with its
+    value, slope and acceleration (:func:`_knot`): continuous to the acceleration."""
     n = len(h)
     j = n - 2
     while j > 0 and tau < h[j][0]:
         j -= 1
-    (t0, v0), (t1, v1) = h[j], h[j + 1]
+    t0, v0, m0, a0, _ = h[j]
+    t1, v1, m1, a1, _ = h[j + 1]
     span = t1 - t0
-    m0 = (v1 - h[j - 1][1]) / (t1 - h[j - 1][0]) if j > 0 else (v1 - v0) / span
-    m1 = (h[j + 2][1] - v0) / (h[j + 2][0] - t0) if j + 2 < n else _end_slope(h[max(j - 1, 0):])
     x = min(max((tau - t0) / span, 0.0), 1.0)
+    m0 *= span
+    m1 *= span
+    a0 *= span * span
+    a1 *= span * span
     x2 = x * x
     x3 = x2 * x
-    value = ((2 * x3 - 3 * x2 + 1) * v0 + (x3 - 2 * x2 + x) * span * m0
-             + (-2 * x3 + 3 * x2) * v1 + (x3 - x2) * span * m1)
-    slope = ((6 * x2 - 6 * x) * (v0 - v1) / span + (3 * x2 - 4 * x + 1) * m0
-             + (3 * x2 - 2 * x) * m1)
+    y = 1.0 - x
+    s = x3 * (10.0 - 15.0 * x + 6.0 * x2)  # H3, and H0 = 1 - s
+    value = (v0 + (v1 - v0) * s + m0 * x * (1.0 - x2 * (6.0 - 8.0 * x + 3.0 * x2))
+             + 0.5 * a0 * x2 * y ** 3 + x3 * (m1 * (-4.0 + 7.0 * x - 3.0 * x2)
+                                              + 0.5 * a1 * (1.0 - 2.0 * x + x2)))
+    ds = 30.0 * x2 * y * y
+    slope = ((v1 - v0) * ds + m0 * (1.0 - x2 * (18.0 - 32.0 * x + 15.0 * x2))
+             + 0.5 * a0 * x * y * y * (2.0 - 5.0 * x)
+             + m1 * x2 * (-12.0 + 28.0 * x - 15.0 * x2)
+             + 0.5 * a1 * x2 * (3.0 - 8.0 * x + 5.0 * x2)) / span
     return value, slope
 
 
-def _extrapolate(h: Sequence[tuple[float, float]], tau: float, bound: float
-                 ) -> tuple[float, float]:
-    """Value and slope at ``tau`` of the parabola through the samples ``h`` (the last 3, or 2:
-    a line), continued at most ``bound`` beyond the newest and held after that."""
-    t_n, v_n = h[-1]
-    e = min(tau - t_n, bound)
-    t1, v1 = h[-2]
-    s1 = (v_n - v1) / (t_n - t1)
-    if len(h) < 3:
-        return v_n + s1 * e, (s1 if tau - t_n < bound else 0.0)
-    t0, v0 = h[-3]
-    curv = 2.0 * ((v_n - v1) / (t_n - t1) - (v1 - v0) / (t1 - t0)) / (t_n - t0)  # 2nd deriv.
-    slope_n = s1 + 0.5 * curv * (t_n - t1)  # = _end_slope(h)
-    value = v_n + slope_n * e + 0.5 * curv * e * e
-    return value, (slope_n + curv * e if tau - t_n < bound else 0.0)
-
-
-def _end_slope(h: Sequence[tuple[float, float]]) -> float:
-    """Slope at the newest of the samples ``h`` (at least 2): of the parabola through the last
-    three, or of the line through the last two."""
-    (t1, v1), (t2, v2) = h[-2], h[-1]
-    if len(h) < 3:
-        return (v2 - v1) / (t2 - t1)
-    t0, v0 = h[-3]
-    return (v0 * (t2 - t1) / ((t0 - t1) * (t0 - t2)) + v1 * (t2 - t0) / ((t1 - t0) * (t1 - t2))
-            + v2 * (2 * t2 - t0 - t1) / ((t2 - t0) * (t2 - t1)))
+def _extrapolate(src: Knot, tau: float, bound: float) -> tuple[float, float]:
+    """Value and slope at ``tau`` of the cubic that leaves the sample ``src`` with its value,
+    slope, acceleration and jerk, continued at most ``bound`` beyond it and held after that."""
+    t_n, v, s, a, j = src
+    el = tau - t_n
+    e = min(el, bound)
+    return (v + e * (s + e * (0.5 * a + e * j / 6.0)),
+            (s + e * (a + 0.5 * j * e) if el < bound else 0.0))
