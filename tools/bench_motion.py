@@ -19,7 +19,11 @@ the axis the signal moves (each moves one):
 * at acc limit: the share of ticks whose command acceleration -- second difference on the
   output ``seq`` grid -- is within 1 % of the axis' limit;
 * HF acc, jerk: the command's acceleration RMS above 5 Hz and jerk RMS
-  (``motcomp.core.quality.command_quality``).
+  (``motcomp.core.quality.command_quality``);
+* HF acc / ideal's on the same stretches: the live HF acceleration over that of the ideal run's
+  command cut into the same stretches of the motion (below): a spectrum over a stretch of a
+  second or so leaks some of the motion's own acceleration above 5 Hz, so the ideal run over
+  the whole motion is not the floor of a run its missed deadlines cut up.
 
 Lost output frames (gaps in ``seq``) and missed deadlines of the service (a step of more than
 one period in the frames' ``t``) are counted and reported, never interpolated: the figures are
@@ -442,8 +446,9 @@ def percentiles_ms(x: np.ndarray) -> dict[str, float]:
 
 
 def analyse(rec: Recording, signal_name: str, sender: Sender, axis: str, a_max: float,
-            loop_hz: float) -> dict[str, Any]:
-    """The figures of one live run (module docstring)."""
+            loop_hz: float, ideal_u: np.ndarray) -> dict[str, Any]:
+    """The figures of one live run (module docstring); ``ideal_u``: the ideal run's command of
+    the same sender rate and mode, from the motion's start, on the loop's grid."""
     traj = builtin(signal_name, sender.rate_hz)
     src = rec.source
     t0 = float(src["t0_s"])
@@ -473,8 +478,15 @@ def analyse(rec: Recording, signal_name: str, sender: Sender, axis: str, a_max: 
     steps = np.rint(np.diff(t) * loop_hz).astype(np.int64) if t.size else np.zeros(0, int)
     missed = int(np.clip(steps - 1 - np.clip(np.diff(seq) - 1, 0, None), 0, None).sum()) \
         if seq.size else 0
-    fig = (command_figures(u, segments(seq, t, loop_hz), loop_hz, a_max) if seq.size else
+    parts = segments(seq, t, loop_hz) if seq.size else []
+    fig = (command_figures(u, parts, loop_hz, a_max) if seq.size else
            dict.fromkeys(("at_limit", "hf_acc_rms", "jerk_rms", "acc_peak"), math.nan))
+    # the ideal command over the same stretches of the motion: what the stretches' edges alone
+    # do to the figures (a spectrum over a short stretch leaks the motion's own acceleration)
+    k = np.rint((t - t0) * loop_hz).astype(np.int64) if seq.size else np.zeros(0, np.int64)
+    same = [slice(int(np.clip(k[p.start], 0, ideal_u.size)),
+                  int(np.clip(k[p.stop - 1] + 1, 0, ideal_u.size))) for p in parts]
+    floor = command_figures(ideal_u, same, loop_hz, a_max) if same else {}
     fb = [msgpack.unpackb(p) for p in rec.feedback]
     t_fb = np.array([f["t"] for f in fb])
     y_fb = np.array([f["pos"][axis] for f in fb])
@@ -486,6 +498,8 @@ def analyse(rec: Recording, signal_name: str, sender: Sender, axis: str, a_max: 
                                     signal_name in DELAY_ON_VELOCITY) * 1e3,
         "sat": float(sat.mean()) if sat.size else math.nan,
         **fig,
+        "hf_floor_same": floor.get("hf_acc_rms", math.nan),
+        "hf_ratio": fig["hf_acc_rms"] / floor["hf_acc_rms"] if floor else math.nan,
         "frames": {"expected": expected, "recorded": int(seq.size), "lost": lost,
                    "missed_deadlines": missed},
         "input": {"sent": src["sent"], "skipped": src["skipped"], "stalls": src["stalls"],
@@ -503,8 +517,9 @@ def analyse(rec: Recording, signal_name: str, sender: Sender, axis: str, a_max: 
 
 
 def ideal_figures(cfg: ServiceConfig, signal_name: str, rate_hz: float, mode: str,
-                  a_max: float, truth: Any) -> dict[str, Any]:
-    """The figures of the ideal offline run (delay through the hil's true model)."""
+                  a_max: float, truth: Any) -> tuple[dict[str, Any], np.ndarray]:
+    """The figures of the ideal offline run (delay through the hil's true model), and its
+    command on the loop's grid."""
     traj = builtin(signal_name, rate_hz)
     (axis, ref), = traj.pos.items()
     run = ideal_run(cfg, traj.pos, rate_hz, bypass=mode == "bypass")
@@ -515,7 +530,7 @@ def ideal_figures(cfg: ServiceConfig, signal_name: str, rate_hz: float, mode: st
     return {"delay_ms": resampled_delay(t_src, ref, run.t, y,
                                         signal_name in DELAY_ON_VELOCITY) * 1e3,
             "sat": math.nan, **fig,
-            "acted": float(np.mean(run.acted[axis]))}
+            "acted": float(np.mean(run.acted[axis]))}, u
 
 
 # --- report -----------------------------------------------------------------------------------
@@ -581,8 +596,9 @@ def report(args: argparse.Namespace, runs: list[dict[str, Any]], ideal: list[dic
         (axis, _), = traj.pos.items()
         lines += [f"**{sig}** ({traj.description}, {traj.duration_s:.1f} s; {axis}):", "",
                   "| sender | t | delay (ms) | sat flags (%) | at acc limit (%) | "
-                  "HF acc RMS > 5 Hz (m/s^2) | jerk RMS (m/s^3) | lost / missed frames, stale |",
-                  "|---|---|---|---|---|---|---|---|"]
+                  "HF acc RMS > 5 Hz (m/s^2) | HF acc / ideal's on the same stretches | "
+                  "jerk RMS (m/s^3) | lost / missed frames, stale |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         rates = list(dict.fromkeys(SENDERS[s].rate_hz for s in args.senders))
         for rate in sorted(rates, reverse=True):
             rows = {m: [r for r in ideal if r["signal"] == sig and r["rate_hz"] == rate
@@ -592,7 +608,7 @@ def report(args: argparse.Namespace, runs: list[dict[str, Any]], ideal: list[dic
             lines.append(
                 f"| ideal, {rate_name(rate)} | - | {pair(on['delay_ms'], off['delay_ms'], fmt)} "
                 f"| - | {pair(on['at_limit'], off['at_limit'], pct)} | "
-                f"{pair(on['hf_acc_rms'], off['hf_acc_rms'], lambda x: fmt(x, '.3g'))} | "
+                f"{pair(on['hf_acc_rms'], off['hf_acc_rms'], lambda x: fmt(x, '.3g'))} | - | "
                 f"{pair(on['jerk_rms'], off['jerk_rms'], lambda x: fmt(x, '.3g'))} | - |")
         for name in args.senders:
             s = SENDERS[name]
@@ -601,7 +617,7 @@ def report(args: argparse.Namespace, runs: list[dict[str, Any]], ideal: list[dic
             if not any(rows.values()):
                 continue
             on, off = ({k: median(rows[m], k) for k in ("delay_ms", "sat", "at_limit",
-                                                         "hf_acc_rms", "jerk_rms")}
+                                                         "hf_acc_rms", "jerk_rms", "hf_ratio")}
                        for m in MODES)
             lost = {m: sum(r["frames"]["lost"] for r in rows[m]) for m in MODES}
             missed = {m: sum(r["frames"]["missed_deadlines"] for r in rows[m]) for m in MODES}
@@ -612,6 +628,7 @@ def report(args: argparse.Namespace, runs: list[dict[str, Any]], ideal: list[dic
                 f"{pair(on['sat'], off['sat'], pct)} | "
                 f"{pair(on['at_limit'], off['at_limit'], pct)} | "
                 f"{pair(on['hf_acc_rms'], off['hf_acc_rms'], lambda x: fmt(x, '.3g'))} | "
+                f"{pair(on['hf_ratio'], off['hf_ratio'], lambda x: fmt(x, '.2g'))} | "
                 f"{pair(on['jerk_rms'], off['jerk_rms'], lambda x: fmt(x, '.3g'))} | "
                 f"{lost['on']}/{missed['on']}/{stale['on']} / "
                 f"{lost['bypass']}/{missed['bypass']}/{stale['bypass']} |")
@@ -818,13 +835,15 @@ def measure(args: argparse.Namespace, ap: argparse.ArgumentParser, cfg_path: Pat
     print(f"machine: {machine_line}", flush=True)
     t_start = time.monotonic()
     ideal: list[dict[str, Any]] = []
+    ideal_u: dict[tuple[str, float, str], np.ndarray] = {}
     rates = sorted({SENDERS[s].rate_hz for s in args.senders}, reverse=True)
     for sig in args.signals:
         (axis, _), = builtin(sig, 1000.0).pos.items()
         a_max = float(axes.limits.a_max[AXIS_INDEX[axis]])
         for rate in rates:
             for mode in args.modes:
-                row = ideal_figures(cfg, sig, rate, mode, a_max, truth_models[AXIS_INDEX[axis]])
+                row, ideal_u[sig, rate, mode] = ideal_figures(
+                    cfg, sig, rate, mode, a_max, truth_models[AXIS_INDEX[axis]])
                 ideal.append({"signal": sig, "rate_hz": rate, "mode": mode, "axis": axis,
                               "code": code, **row})
                 print(f"  ideal {sig:<10} {rate_name(rate):>6} {mode:<6} delay "
@@ -853,13 +872,15 @@ def measure(args: argparse.Namespace, ap: argparse.ArgumentParser, cfg_path: Pat
                               f"{'t' if sender.with_t else 'no t'}, {mode}: ", end="",
                               flush=True)
                         rec = bench.run(sig, sender, seed_of(name, sig, rep), durations[sig])
-                        row = analyse(rec, sig, sender, axis, a_max, loop_hz)
+                        row = analyse(rec, sig, sender, axis, a_max, loop_hz,
+                                      ideal_u[sig, sender.rate_hz, mode])
                         runs.append({"signal": sig, "sender": name, "mode": mode,
                                      "repeat": rep + 1, "axis": axis, "code": code, **row})
                         fr = row["frames"]
                         print(f"delay {fmt(row['delay_ms'], '.1f')} ms, sat "
                               f"{pct(row['sat'])} %, at acc limit {pct(row['at_limit'])} "
-                              f"%, HF acc {fmt(row['hf_acc_rms'], '.3g')}, jerk "
+                              f"%, HF acc {fmt(row['hf_acc_rms'], '.3g')} (ideal on the "
+                              f"same stretches {fmt(row['hf_floor_same'], '.3g')}), jerk "
                               f"{fmt(row['jerk_rms'], '.3g')}; frames lost {fr['lost']}, "
                               f"missed {fr['missed_deadlines']}; stalls "
                               f"{row['input']['stalls']}, dropped "

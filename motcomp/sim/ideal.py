@@ -37,8 +37,9 @@ def ideal_run(cfg: ServiceConfig, pos: Mapping[str, np.ndarray], rate_hz: float,
               bypass: bool | None = None, settle_s: float = 2.0) -> IdealRun:
     """Run ``cfg``'s tick on the trajectory ``pos`` (axis -> samples at ``rate_hz``).
 
-    The first sample is held for ``settle_s`` before the motion starts (the start-up blend
-    settles), and the returned traces start with the motion.  ``bypass`` True/False forces
+    The first sample is held for ``settle_s`` before the motion starts, sent at ``rate_hz``
+    (the start-up blend and the input's period settle), and the returned traces start with the
+    motion.  ``bypass`` True/False forces
     compensation off/on on every driven axis; None keeps the config's.
 
     Raises
@@ -71,15 +72,21 @@ def ideal_run(cfg: ServiceConfig, pos: Mapping[str, np.ndarray], rate_hz: float,
     u = {a: np.empty(n_ticks) for a in cols}
     acted = {a: np.zeros(n_ticks, dtype=bool) for a in cols}
     seq = 0
+    n_settle = int(settle_ticks * period_ns / src_ns)  # at the trajectory's own rate
+    j = -n_settle  # next settling sample (negative instants, before the motion)
+    payload: bytes | None
     for k in range(settle_ticks):
-        step(state, params, k * period_ns,
-             encode_input(seq, (k * period_ns - settle_ticks * period_ns) / 1e9, first))
-        seq += 1
+        payload = None
+        while j < 0 and (j + n_settle) * src_ns <= k * period_ns + 1e-3:
+            payload = encode_input(seq, j / rate_hz, first)
+            seq += 1
+            j += 1
+        step(state, params, k * period_ns, payload)
     t0_ns = settle_ticks * period_ns
     j = 0  # next source sample
     for k in range(n_ticks):
         now_ns = t0_ns + k * period_ns
-        payload: bytes | None = None
+        payload = None
         while j < n_src and j * src_ns <= k * period_ns + 1e-3:
             payload = encode_input(seq, j / rate_hz,
                                    {a: float(v[j]) for a, v in cols.items()})
