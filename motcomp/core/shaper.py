@@ -140,7 +140,7 @@ PERIOD_RELEARN = 8
 NO_T_ALPHA = 1e-4
 """Frames without ``t``: the least-squares gains of the sender's timeline fall to this (phase)
 and its square over 4 (period) and stay there, so that the tracker follows a drifting clock
-while an arrival's jitter moves the timeline by a ten-thousandth of it."""
+while an arrival's jitter moves the line by a ten-thousandth of it (and no sample at all)."""
 MIN_SKIP_STEP = 1e-6
 SKIP_TOLERANCE = 0.15
 """Frames without ``t``: a step of the fastest axis within SKIP_TOLERANCE of m >= 2 times the
