@@ -77,8 +77,10 @@ sample*, so that it is interpolated between samples already received instead of 
                  changes); tau between two of them: the quintic Hermite that meets both with
                  their value, slope and acceleration (continuous acceleration); tau beyond the
                  newest (a frame late by more than the lag, a stall): the newest sample's
-                 Taylor cubic (constant jerk) goes on, at most max_extrapolation_s (or 1.5
-                 input periods if longer), and when the samples come back, the differences of
+                 Taylor cubic (constant jerk) goes on for max_extrapolation_s (or 1.5 input
+                 periods if longer), then the parabola it reached (no velocity step, which the
+                 compensator would turn into its limits; the stale-input rule ends a gap
+                 longer still), and when the samples come back, the differences of
                  position and velocity to it fade out in a quintic of GAP_BLEND_PERIODS input
                  periods (at least GAP_BLEND_S)
     average      then a moving average over one input period (fractional length, on the
@@ -725,9 +727,17 @@ def _quintic(h: Sequence[Knot], tau: float) -> tuple[float, float]:
 
 def _extrapolate(src: Knot, tau: float, bound: float) -> tuple[float, float]:
     """Value and slope at ``tau`` of the cubic that leaves the sample ``src`` with its value,
-    slope, acceleration and jerk, continued at most ``bound`` beyond it and held after that."""
+    slope, acceleration and jerk; beyond ``bound`` after it, the jerk stops and the parabola
+    with the value, slope and acceleration reached there goes on (continuous to the
+    acceleration: stopping there would be a step of velocity, which the compensator turns into
+    its limits; the stale-input rule ends a longer gap)."""
     t_n, v, s, a, j = src
     el = tau - t_n
     e = min(el, bound)
-    return (v + e * (s + e * (0.5 * a + e * j / 6.0)),
-            (s + e * (a + 0.5 * j * e) if el < bound else 0.0))
+    value = v + e * (s + e * (0.5 * a + e * j / 6.0))
+    slope = s + e * (a + 0.5 * j * e)
+    if el <= bound:
+        return value, slope
+    acc = a + j * bound
+    r = el - bound
+    return value + r * (slope + 0.5 * acc * r), slope + acc * r
