@@ -22,8 +22,10 @@ feedback), so the recorder's polling does not blur them.  Command figures cover 
 the first setpoint of a phase, for the trajectory's duration) on the service's tick grid: an
 output frame's ``t`` is its tick's deadline, so its grid index is exact (own-clock pacing, as in
 the demo config).  Grid ticks without a frame -- lost (a gap in ``seq``) or never sent (a
-deadline the service missed) -- are counted, bridged linearly for the spectral figures, and left
-out of the acceleration-limit share.
+deadline the service missed) -- are counted and left out: the spectral figures are taken over the
+stretches between them, the ideal run's over the same stretches (:func:`command_quality_over`;
+a linear bridge would add the command's own acceleration at each missing tick), and the
+acceleration-limit share counts only second differences of three recorded frames.
 """
 
 from __future__ import annotations
@@ -49,8 +51,9 @@ from motcomp.core.quality import (
     HF_ABOVE_HZ,
     CommandQuality,
     at_acc_limit,
-    command_quality,
+    command_quality_over,
     estimate_delay,
+    stretches,
 )
 from motcomp.errors import ServiceError
 from motcomp.io.zenoh_io import (
@@ -286,9 +289,10 @@ def _command_figures(grid: _Command, ideal: IdealRun, axis: str, a_max: float
     rate = ideal.rate_hz
     n = min(grid.have.size, ideal.u[axis].size)
     u_live, u_ideal = grid.u[axis][:n], ideal.u[axis][:n]
+    parts = stretches(grid.have[:n])  # the recorded ticks, the ideal over the same ones
     return CommandFigures(
-        live=command_quality(u_live, rate, HF_ABOVE_HZ),
-        ideal=command_quality(u_ideal, rate, HF_ABOVE_HZ),
+        live=command_quality_over(u_live, parts, rate, HF_ABOVE_HZ),
+        ideal=command_quality_over(u_ideal, parts, rate, HF_ABOVE_HZ),
         at_limit=_at_limit_share(u_live, rate, a_max, grid.have[:n]),
         ideal_at_limit=_at_limit_share(u_ideal, rate, a_max),
         ideal_acted=float(np.mean(ideal.acted[axis][:n])))
@@ -524,8 +528,8 @@ def report(res: DemoResult) -> str:
               *_wrap(f"Command frames over the motion, off / on: {per_phase('ticks')} ticks, "
                      f"{per_phase('recorded')} recorded, {per_phase('lost')} lost (gaps in seq), "
                      f"{per_phase('unsent')} not sent (missed deadlines); the spectral figures "
-                     "bridge the missing ones linearly, the acceleration-limit share leaves them "
-                     "out."),
+                     "are taken over the stretches between them, live and ideal alike, the "
+                     "acceleration-limit share leaves them out."),
               "", f"Service loop: {st.get('rate_hz', 0):g} Hz, {st.get('ticks', 0)} ticks, "
                   f"{st.get('missed_ticks', 0)} missed; tick compute p50 "
                   f"{loop.get('compute_p50_us', nan):.0f} us, p99 "

@@ -4,8 +4,8 @@ Besides the delay gained, the demo records the command the service sends the pla
 sets it beside the ideal run (the config's tick fed the same motion perfectly timed: the floor).
 The sanity tests check that those figures exist and hang together; the motion-quality targets of
 the compensated command are :data:`MAX_LIMITED_SHARE_ON` and :data:`MAX_HF_RATIO_TO_IDEAL`,
-asserted in :func:`test_compensated_command_is_near_the_floor`, reported (xfail) while the tuning
-and the input reconstruction are being reworked.
+asserted in :func:`test_compensated_command_is_near_the_floor` (the same bounds however busy the
+machine: the figures are taken over the stretches of recorded ticks, live and ideal alike).
 """
 
 from __future__ import annotations
@@ -19,11 +19,11 @@ from motcomp.demo import PHASES, RAILS, DemoResult, report, run_demo
 pytestmark = pytest.mark.slow
 
 MAX_LIMITED_SHARE_ON = 0.005
-"""Compensated rails: largest share of ticks with the command at the acceleration limit.
-(Placeholder: the motion-quality target is set with the tuning, not here.)"""
+"""Compensated rails: largest share of ticks with the command at the acceleration limit (the
+motion-quality target; measured 0 in runs at load 0.5-4, 1710 missed deadlines in the last)."""
 MAX_HF_RATIO_TO_IDEAL = 2.0
 """Compensated rails: largest HF acceleration RMS of the live command, as a multiple of the ideal
-run's.  (Placeholder: the motion-quality target is set with the tuning, not here.)"""
+run's over the same stretches (the target; measured 1.0-1.2 at load 0.5-4)."""
 IDEAL_ABOVE_LIVE_FACTOR = 1.5
 """Sanity, not quality: the ideal run is the floor, so its HF acceleration RMS may exceed the
 live command's at most by this factor (the two are sampled with a sub-tick phase offset)."""
@@ -76,8 +76,10 @@ def test_demo_records_the_command_and_sets_it_beside_the_floor(demo: DemoResult)
             assert c.ideal.acc_peak <= a_max * (1 + 1e-9), (axis, ph, c)  # the limiter's bound
             assert c.ideal.hf_acc_rms <= IDEAL_ABOVE_LIVE_FACTOR * c.live.hf_acc_rms, (axis, ph, c)
             assert c.live.jerk_rms > 0 and c.live.acc_peak > 0, (axis, ph, c)  # it moved
-        if axis in HEXAPOD:  # bypassed in both phases: the same floor
-            assert per_phase["off"].ideal == per_phase["on"].ideal
+        if axis in HEXAPOD:  # bypassed in both phases: the same ideal run (its figures are
+            # taken over each phase's recorded stretches)
+            off, on = per_phase["off"], per_phase["on"]
+            assert (off.ideal_acted, off.ideal_at_limit) == (on.ideal_acted, on.ideal_at_limit)
     for axis in RAILS:  # the floor of the setpoint itself (bypass) never touches the limit
         assert demo.command[axis]["off"].ideal_at_limit == 0.0
         assert demo.command[axis]["off"].ideal.acc_peak < demo.acc_limit[axis]
@@ -98,7 +100,6 @@ def test_demo_figure_shows_the_command(demo: DemoResult) -> None:
         assert png.info["Description"] == "; ".join(demo.panels)
 
 
-@pytest.mark.xfail(strict=False, reason="motion-quality cure in progress")
 def test_compensated_command_is_near_the_floor(demo: DemoResult) -> None:
     text = report(demo)
     for axis in RAILS:

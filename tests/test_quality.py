@@ -7,7 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from motcomp.core.quality import at_acc_limit, command_quality, estimate_delay, hf_rms
+from motcomp.core.quality import (
+    at_acc_limit,
+    command_quality,
+    command_quality_over,
+    estimate_delay,
+    hf_rms,
+    stretches,
+)
 from motcomp.errors import ConfigError
 
 RATE = 1000.0
@@ -38,6 +45,34 @@ def test_jerk_rms_of_a_sine() -> None:
     q = command_quality(a * np.sin(2 * math.pi * f * T), RATE)
     amp = a * (2 * math.sin(math.pi * f / RATE) * RATE) ** 3
     assert q.jerk_rms == pytest.approx(amp / math.sqrt(2), rel=1e-3)
+
+
+def test_stretches_are_the_runs_of_recorded_ticks() -> None:
+    have = np.array([True, True, False, True, False, False, True, True, True])
+    assert stretches(have) == [slice(0, 2), slice(3, 4), slice(6, 9)]
+    assert stretches(np.zeros(3, dtype=bool)) == []
+
+
+def test_quality_over_stretches_weights_them_and_bridges_nothing() -> None:
+    """A 20 Hz sine in stretches of 2 s: each stretch holds whole periods, so each reads the
+    closed-form RMS and so does the weighted whole; a 1 Hz motion of 1 m/s^2 with a tick missing
+    every second reads little above 5 Hz over the stretches (their edges leak a little of the
+    motion), while bridging the holes linearly reads the motion's own acceleration at each."""
+    a, f = 0.01, 20.0
+    u = a * np.sin(2 * math.pi * f * T)
+    parts = [slice(0, 2000), slice(2500, 4500), slice(5000, 7000), slice(7002, 7003)]
+    q = command_quality_over(u, parts, RATE)
+    amp = a * (2 * math.sin(math.pi * f / RATE) * RATE) ** 2
+    assert q.hf_acc_rms == pytest.approx(amp / math.sqrt(2), rel=2e-3)
+    w = 2 * math.pi
+    slow = np.sin(w * T) / w**2
+    have = np.ones(T.size, dtype=bool)
+    have[250::1000] = False  # at the crests: |acceleration| 1 m/s^2
+    over = command_quality_over(slow, stretches(have), RATE)
+    idx = np.flatnonzero(have)
+    bridged = np.interp(np.arange(T.size), idx, slow[idx])
+    assert over.hf_acc_rms < 0.01  # what stretches of 1 s leak of a 1 Hz motion
+    assert command_quality(bridged, RATE).hf_acc_rms > 4 * over.hf_acc_rms
 
 
 def test_at_acceleration_limit_on_parabolas() -> None:

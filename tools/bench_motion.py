@@ -74,7 +74,7 @@ from motcomp.core.quality import (
     AT_LIMIT_FRACTION,
     HF_ABOVE_HZ,
     at_acc_limit,
-    command_quality,
+    command_quality_over,
     estimate_delay,
 )
 from motcomp.demo import stop_processes
@@ -395,31 +395,16 @@ def segments(seq: np.ndarray, t: np.ndarray, rate_hz: float) -> list[slice]:
 
 def command_figures(u: np.ndarray, parts: list[slice], rate_hz: float,
                     a_max: float) -> dict[str, float]:
-    """At-limit share and :func:`command_quality` over the stretches ``parts`` of ``u`` (the RMS
-    values weighted by the samples they cover; nothing is bridged)."""
+    """At-limit share and :func:`command_quality_over` of the stretches ``parts`` of ``u``
+    (nothing is bridged)."""
     at = n_acc = 0
-    hf2 = jerk2 = 0.0
-    n_hf = n_jerk = 0
-    peak = 0.0
     for part in parts:
-        x = u[part]
-        if x.size < 3:
-            continue
-        at_limit = at_acc_limit(x, rate_hz, a_max)
-        at += int(np.count_nonzero(at_limit))
-        n_acc += at_limit.size
-        q = command_quality(x, rate_hz, HF_ABOVE_HZ)
-        if x.size >= 8:
-            hf2 += q.hf_acc_rms ** 2 * at_limit.size
-            n_hf += at_limit.size
-        if x.size >= 4:
-            jerk2 += q.jerk_rms ** 2 * (x.size - 3)
-            n_jerk += x.size - 3
-        peak = max(peak, q.acc_peak)
-    nan = math.nan
-    return {"at_limit": at / n_acc if n_acc else nan,
-            "hf_acc_rms": math.sqrt(hf2 / n_hf) if n_hf else nan,
-            "jerk_rms": math.sqrt(jerk2 / n_jerk) if n_jerk else nan, "acc_peak": peak}
+        if u[part].size >= 3:
+            at_limit = at_acc_limit(u[part], rate_hz, a_max)
+            at += int(np.count_nonzero(at_limit))
+            n_acc += at_limit.size
+    q = command_quality_over(u, parts, rate_hz, HF_ABOVE_HZ)
+    return {"at_limit": at / n_acc if n_acc else math.nan, **q.as_dict()}
 
 
 def resampled_delay(t_ref: np.ndarray, ref: np.ndarray, t_out: np.ndarray, out: np.ndarray,

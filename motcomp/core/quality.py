@@ -20,6 +20,7 @@ service's status):
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,8 +28,16 @@ from numpy.typing import ArrayLike
 
 from motcomp.errors import ConfigError
 
-__all__ = ["AT_LIMIT_FRACTION", "CommandQuality", "at_acc_limit", "command_quality",
-           "estimate_delay", "hf_rms"]
+__all__ = [
+    "AT_LIMIT_FRACTION",
+    "CommandQuality",
+    "at_acc_limit",
+    "command_quality",
+    "command_quality_over",
+    "estimate_delay",
+    "hf_rms",
+    "stretches",
+]
 
 HF_ABOVE_HZ = 5.0
 """Default lower edge of the "high-frequency" band of the command's acceleration."""
@@ -126,6 +135,43 @@ def command_quality(u: ArrayLike, rate_hz: float, above_hz: float = HF_ABOVE_HZ
     return CommandQuality(hf_acc_rms=hf_rms(acc, rate_hz, above_hz),
                           jerk_rms=float(math.sqrt(np.mean(jerk * jerk))),
                           acc_peak=float(np.max(np.abs(acc))))
+
+
+def stretches(have: ArrayLike) -> list[slice]:
+    """The runs of consecutive True in ``have`` (e.g. the ticks a frame was recorded for)."""
+    h = np.concatenate([[False], np.asarray(have, dtype=bool), [False]])
+    edges = np.flatnonzero(np.diff(h.astype(np.int8)))
+    return [slice(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
+
+
+def command_quality_over(u: ArrayLike, parts: Sequence[slice], rate_hz: float,
+                         above_hz: float = HF_ABOVE_HZ) -> CommandQuality:
+    """:func:`command_quality` over the stretches ``parts`` of ``u``, nothing bridged between
+    them: the RMS values weighted by the differences each stretch holds (a stretch shorter than
+    8 samples adds nothing to the HF figure, shorter than 4 nothing at all), the peak the
+    largest.  A missing sample bridged linearly instead is an acceleration error of the
+    command's own acceleration at that tick; and over a stretch of a second or so the spectrum
+    leaks some of the motion's acceleration above ``above_hz``: compare two commands over the
+    same stretches."""
+    x = np.asarray(u, dtype=float)
+    hf2 = jerk2 = 0.0
+    n_hf = n_jerk = 0
+    peak = 0.0
+    for part in parts:
+        seg = x[part]
+        if seg.size < 4:
+            continue
+        q = command_quality(seg, rate_hz, above_hz)
+        if seg.size >= 8:
+            hf2 += q.hf_acc_rms ** 2 * (seg.size - 2)
+            n_hf += seg.size - 2
+        jerk2 += q.jerk_rms ** 2 * (seg.size - 3)
+        n_jerk += seg.size - 3
+        peak = max(peak, q.acc_peak)
+    nan = math.nan
+    return CommandQuality(hf_acc_rms=math.sqrt(hf2 / n_hf) if n_hf else nan,
+                          jerk_rms=math.sqrt(jerk2 / n_jerk) if n_jerk else nan,
+                          acc_peak=peak if n_jerk else nan)
 
 
 def at_acc_limit(u: ArrayLike, rate_hz: float, a_max: float) -> np.ndarray:
