@@ -286,3 +286,32 @@ def test_a_stall_longer_than_the_bound_does_not_trip_the_limiter() -> None:
     share, _ = _jittery(_cfg("smooth"), "slalom", 1000.0, 300.0, True, True, False,
                         stall_ms=(35.0, 35.0))
     assert share == 0.0
+
+
+def test_the_rejoin_blend_starts_where_the_reference_is() -> None:
+    """A moving input (0.5 m/s) stops for 120 ms (stale: the reference holds), then comes back
+    with a burst of 10 frames: the first reference after it equals the held one (the blend's
+    offset is taken against the played-back reference, not the newest sample, which lies a lag
+    and a burst ahead; that difference was a 4.5 mm jump in a live recording)."""
+    p = _params()
+    sh = ReferenceShaper(8)
+    x = lambda t: 0.5 * t  # noqa: E731
+    held = None
+    for k in range(1500):
+        now = 1e-3 * k + 3e-4
+        if k < 1000:
+            sh.on_input(p, {Y: x(1e-3 * k)}, now, 1e-3 * k)
+        elif k == 1120:
+            for j in range(1110, 1121):
+                sh.on_input(p, {Y: x(1e-3 * j)}, now, 1e-3 * j)
+        elif k > 1120:
+            sh.on_input(p, {Y: x(1e-3 * k)}, now, 1e-3 * k)
+        ref, mode = sh.reference(p, now)
+        if k == 1119:
+            assert mode == "stale"
+            held = ref[Y]
+        if k == 1120:
+            assert mode == "rejoin"
+            assert ref[Y] == pytest.approx(held, abs=1e-12)
+        if k == 1121:
+            assert abs(ref[Y] - held) < 1e-3  # moving on from there, at most ~0.5 m/s

@@ -252,6 +252,7 @@ class ReferenceShaper:
         self._blend_t0 = 0.0
         self._blend_s = 0.0
         self._blend_offset: list[float] | None = None
+        self._blend_pending = False
         self._stale_since: float | None = None
         self._move: _Move | None = None
         self.parking = False
@@ -300,9 +301,9 @@ class ReferenceShaper:
                 self.stale_total_s += now - self._stale_since
             self._stale_since = None
             self._move = None
-            self._blend_t0 = now
             self._blend_s = p.startup_s if first else p.rejoin_s
-            self._blend_offset = [r - v for r, v in zip(self.ref, self.live, strict=True)]
+            self._blend_offset = None
+            self._blend_pending = True  # from the reference the next tick plays back
         self.last_input_s = now
 
     def _on_input_linear(self, p: ShaperParams, pos: dict[int, float], now: float,
@@ -492,6 +493,7 @@ class ReferenceShaper:
             return
         self.parking = True
         self._blend_offset = None
+        self._blend_pending = False
         self._move = _Move(now, self.ref, [0.0] * self.n, p.ramp_speed)
 
     # --- the reference --------------------------------------------------------------------
@@ -510,6 +512,7 @@ class ReferenceShaper:
                 self._stale_since = now
                 self.stale_episodes += 1
                 self._blend_offset = None
+                self._blend_pending = False
             if now - self._stale_since < p.hold_s:
                 return self.ref, mode
             if self._move is None:
@@ -518,6 +521,10 @@ class ReferenceShaper:
         else:
             ref = self._live_now(p, now)
             mode = ""
+            if self._blend_pending:  # the blend starts where the reference is
+                self._blend_pending = False
+                self._blend_t0 = now
+                self._blend_offset = [r - v for r, v in zip(self.ref, ref, strict=True)]
             if self._blend_offset is not None:
                 w = min_jerk_weight((now - self._blend_t0) / self._blend_s) if self._blend_s > 0 \
                     else 0.0
