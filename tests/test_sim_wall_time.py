@@ -183,3 +183,19 @@ def test_source_drops_the_samples_of_a_stall_instead_of_stretching_the_motion(
     dropped = np.round(value * RATE).astype(int) - seq  # samples never sent, so far
     assert np.all(np.diff(dropped) >= 0)
     assert dropped[-1] - dropped[0] >= 25  # the stall's (and any the machine's own stalls cost)
+
+
+def test_the_setpoints_age_when_applied_is_measured() -> None:
+    """Frames stamped 0.3 ms before the period they are applied at (and one during a stall,
+    applied at its own time): the mean age is what the simulator adds to its truth's delay as
+    the service's stamps see it (identify measures the sum)."""
+    plat = platform()
+    assert math.isnan(plat.setpoint_age_s)
+    for k in range(10):
+        plat.take_frame(encode_output(k, k / RATE - 3e-4, k, [0.0] * len(AXES), []))
+        plat.step(k / RATE)
+    assert plat.setpoint_age_s == pytest.approx(3e-4, abs=1e-12)
+    plat.take_frame(encode_output(10, 10 / RATE - 3e-4, 10, [0.0] * len(AXES), []))
+    plat.catch_up(1, 11 / RATE)  # the stall's period starts at 10 / RATE: the frame is 0.3 ms old
+    assert plat.setpoint_age_s == pytest.approx(3e-4, abs=1e-12)
+    assert plat.age_n == 11

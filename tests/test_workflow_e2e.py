@@ -3,11 +3,11 @@ by hand: an unknown (simulated) platform -> ``identify --live`` through the runn
 ``design --plant <fragment> --out`` -> ``config check`` -> ``reload`` -> the slalom's apparent
 delay measured on the platform's feedback.
 
-Opt-in (``pytest -m e2e``, about 65 s, five processes on the machine's cores): in its last three
-runs it passed, the slalom lagging 0.7 and 3.1 ms after the reload; during the live excitation
-the service's limiter still acted on 28-37 % of the samples (its input reconstruction under
-arrival jitter), which the identification survives because it fits the command the platform
-received, over the excitation's band only."""
+In the suite (about 65 s, five processes on the machine's cores; ``pytest -m e2e`` runs it
+alone).  Runs on this 2-core machine at load 0.5-1.8: the limiter acted on 0, 0 and 16 of about
+30 000 samples of the live excitation; Td identified 0.2-0.4 ms from the drawn one plus the
+stack's own 0.5-1.0 ms (the simulator reports each setpoint's age when applied); the slalom
+lagged 3.2-4.0 ms after the reload."""
 
 from __future__ import annotations
 
@@ -60,8 +60,8 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
     site = tmp_path / "site.toml"
     admin = "[admin]\nenabled = true\n"
     site.write_text(f'include = ["{config_file("motcomp.toml")}"]\n{admin}')
-    with process(["hil", "-l", hil_ep, "--truth", f"rails_y={truth}", "--log-level", "warning"],
-                 tmp_path / "hil.log"), \
+    with process(["hil", "-l", hil_ep, "--truth", f"rails_y={truth}", "--log-level", "info"],
+                 tmp_path / "hil.log") as hil, \
             process(["run", "--config", str(site), "-l", svc_ep, "-e", hil_ep],
                     tmp_path / "svc.log") as svc:
         time.sleep(2.0)
@@ -84,7 +84,6 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
         # the P1D fit against the drawn truth (the selected model may add the accelerometer's
         # own lag as a second pole: the fragment says which and why)
         p1d = json.loads(p.stdout)["models"]["p1d"]["params"]
-        assert abs(p1d["Td"] - td) <= 1e-3, (p1d, truth, fragment.read_text())
         assert abs(p1d["Tp1"] / tp1 - 1) <= 0.05, (p1d, truth, fragment.read_text())
         # 2. design from the fragment, written as a fragment of the config
         design = tmp_path / "design.toml"
@@ -114,6 +113,17 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
             assert recorder.wait(timeout=30) == 0
         svc.send_signal(signal.SIGTERM)
         assert svc.wait(timeout=30) == 0
+        hil.send_signal(signal.SIGTERM)
+        assert hil.wait(timeout=30) == 0
+    # the platform as the service's stamps see it: the drawn delay plus the transport and the
+    # simulator's tick phase, which the simulator measures (each setpoint's age when applied)
+    age = re.search(r"applied (\S+) ms after their t on average",
+                    (tmp_path / "hil.log").read_text())
+    assert age, (tmp_path / "hil.log").read_text()[-2000:]
+    seen_td = td + float(age.group(1)) / 1e3
+    print(f"identified Td {p1d['Td'] * 1e3:.2f} ms; drawn {td * 1e3:.2f} ms + the stack's "
+          f"{age.group(1)} ms")
+    assert abs(p1d["Td"] - seen_td) <= 1e-3, (p1d, truth, age.group(0))
     s = read_session(rec)
     assert s.inputs is not None and s.feedback is not None
     y_axis = 1  # rails_y

@@ -106,6 +106,11 @@ class HilPlatform:
         self.bad = 0
         self.caught_up = 0
         """Periods simulated after a stall of the simulator's own loop."""
+        self.age_sum = 0.0
+        self.age_n = 0
+        """Sum and count of the setpoint frames' ages when applied: the period's start minus the
+        frame's ``t`` (the service's tick), i.e. the transport and this loop's tick phase that
+        the platform adds to the delay of its truth model, as the service's stamps see it."""
         self._max_catch_up = max(1, round(self.max_catch_up_s * cfg.rate_hz))
         self._period_s = 1.0 / cfg.rate_hz
         self._queue: deque[tuple[float, dict[str, float]]] = deque()
@@ -125,14 +130,24 @@ class HilPlatform:
             return
         self._queue.append((t_frame, pos))
 
-    def _apply(self, until_t: float) -> None:
+    def _apply(self, until_t: float, tick_t: float | None = None) -> None:
         """Apply the queued frames stamped up to ``until_t``, in order (their axes replace the
-        held setpoint; the velocity limit is judged between consecutive frames)."""
+        held setpoint; the velocity limit is judged between consecutive frames), at the period
+        starting at wall time ``tick_t`` (their ages are counted, if given)."""
         queue = self._queue
+        at = until_t if tick_t is None else tick_t
         while queue and queue[0][0] <= until_t:
             t_frame, pos = queue.popleft()
             self.take_axes(pos)
             self._judge_speed(t_frame)
+            if math.isfinite(at):
+                self.age_sum += at - t_frame
+                self.age_n += 1
+
+    @property
+    def setpoint_age_s(self) -> float:
+        """Mean age of the setpoint frames when applied (nan before any)."""
+        return self.age_sum / self.age_n if self.age_n else math.nan
 
     def _judge_speed(self, t_frame: float) -> None:
         now_sp = np.array(self.setpoint)
@@ -160,10 +175,10 @@ class HilPlatform:
             self.sim.step(self.setpoint)
         self.caught_up += n
 
-    def step(self) -> np.ndarray:
-        """Simulate this tick's period with every frame received; returns the acceleration
-        measured at its start."""
-        self._apply(math.inf)
+    def step(self, tick_t: float | None = None) -> np.ndarray:
+        """Simulate this tick's period (starting at wall time ``tick_t``, if known) with every
+        frame received; returns the acceleration measured at its start."""
+        self._apply(math.inf, tick_t)
         _, acc, _ = self.sim.step(self.setpoint)
         return acc
 
@@ -211,11 +226,11 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
                     if clock.skipped:
                         plat.catch_up(clock.skipped)
                     plat.take_axes(got)
-                acc = plat.step()
+                t = t_wall0 + (now - t_mono0) / 1e9
+                acc = plat.step(t if cfg.transport == "zenoh" else None)
                 if clock.ticks % cfg.feedback_every == 0:
                     # position and acceleration at the instant of this setpoint (the start of
                     # the period), stamped with it
-                    t = t_wall0 + (now - t_mono0) / 1e9
                     y = sim.position_at_start
                     feedback.put(encode_feedback(t, dict(zip(AXES, y.tolist(), strict=True)),
                                                  dict(zip(AXES, acc.tolist(), strict=True))))
@@ -262,6 +277,9 @@ def summary_text(status: dict[str, Any], how: str = "stopped") -> str:
     text = (f"{how}: {status['ticks']} ticks, {status['missed_ticks']} missed, "
             f"{status['caught_up']} periods caught up; setpoint frames received "
             f"{status['frames']} ({status['bad_frames']} bad)")
+    age = status.get("setpoint_age_ms", math.nan)
+    if math.isfinite(age):
+        text += f", applied {age:.2f} ms after their t on average"
     can = status.get("can")
     if can is not None:
         text += (f"; CAN frames {can['received']} (CRC errors {can['crc_errors']}, alive "
@@ -275,6 +293,7 @@ def _status(plat: HilPlatform, clock: DeadlineClock, receiver: Any) -> dict[str,
     out: dict[str, Any] = {
         "t": time.time(), "ticks": clock.ticks, "missed_ticks": clock.missed,
         "caught_up": plat.caught_up, "frames": plat.frames, "bad_frames": plat.bad,
+        "setpoint_age_ms": plat.setpoint_age_s * 1e3,
         "violations": dict(zip(AXES, sim.violations.tolist(), strict=True)),
         "position": dict(zip(AXES, sim.position.tolist(), strict=True)),
     }
