@@ -19,7 +19,7 @@ from typing import Any
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, event, given, settings
+from hypothesis import HealthCheck, event, example, given, settings
 from hypothesis import strategies as st
 
 from motcomp.config import ServiceConfig, load_config, new_tick, parse_config, read_toml
@@ -306,6 +306,9 @@ tiny_and_huge_steps = st.sampled_from([
 
 
 @settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@example(name="example", t0=0.0,  # a period of 1e-98 s, then a stamp 1e300 s on
+         frames=[(0.0, {"rails_x": 0.0}, 1), (8.7e-99, {"rails_x": 0.0}, 1),
+                 (1e300, {"rails_x": 0.0}, 1)])
 @given(name=st.sampled_from(CONFIGS), t0=st.sampled_from([0.0, 1.0, 1.7e9, -5.0]),
        frames=st.lists(st.tuples(tiny_and_huge_steps,
                                  st.dictionaries(st.sampled_from(AXES), st.floats(0.0, 1.0),

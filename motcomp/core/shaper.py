@@ -145,9 +145,11 @@ and its square over 4 (period) and stay there, so that the tracker follows a dri
 while an arrival's jitter moves the line by a ten-thousandth of it (and no sample at all)."""
 MIN_SKIP_STEP = 1e-6
 SKIP_TOLERANCE = 0.15
+MAX_SKIP = 1000
 """Frames without ``t``: a step of the fastest axis within SKIP_TOLERANCE of m >= 2 times the
 previous one (per frame), which moved at least MIN_SKIP_STEP (axis units), spans m samples: the
-sender skipped m - 1 (a simulation that keeps its schedule after a stall)."""
+sender skipped m - 1 (a simulation that keeps its schedule after a stall); at most MAX_SKIP, as
+for a stamp on the grid MAX_SKIP periods on at most."""
 HISTORY = 64
 """Samples kept per axis (at least): a burst of up to :data:`~motcomp.io.zenoh_io.MAX_BURST`
 frames leaves the playback instant among them."""
@@ -404,8 +406,10 @@ class ReferenceShaper:
             s1 = (v2 - v1) * q / (t2 - t1)
             if abs(s1) > best and abs(s1 - s0) <= SKIP_TOLERANCE * abs(s1):
                 best, ratio = abs(s1), (v - v2) / (2.0 * s1 - s0)
+        if best < MIN_SKIP_STEP or not 1.5 <= ratio <= MAX_SKIP:
+            return 1
         m = round(ratio)
-        return m if best >= MIN_SKIP_STEP and m >= 2 and abs(ratio - m) <= SKIP_TOLERANCE else 1
+        return m if abs(ratio - m) <= SKIP_TOLERANCE else 1
 
     def _timeline(self, p: ShaperParams, now: float, t_sender: float | None, rejoin: bool,
                   frames: int) -> tuple[float, bool]:
@@ -431,7 +435,8 @@ class ReferenceShaper:
             x, gate, floor = t_sender - self._t_base, TIME_GATE_S, TRACK_ALPHA
             news = True
             if q > 0.0 and self._line_n > 0 and not rejoin and tl is not None:
-                m = round((x - self._line) / q)
+                ratio = (x - self._line) / q
+                m = round(ratio) if frames < ratio <= MAX_SKIP else 0
                 if m > frames and abs(x - self._line - m * q) <= TIME_GATE_S:
                     # on the grid, samples skipped: the sender's grid goes on, unless this
                     # keeps happening (then the sender changed its rate)
