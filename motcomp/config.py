@@ -173,6 +173,7 @@ class InputConfig(BaseModel):
     reject_beyond_fraction: float = Field(0.25, ge=0.0, le=10.0)
     reconstruction: Literal["smooth", "linear", "hold"] = "smooth"
     max_extrapolation_s: float = Field(0.02, ge=0.0, le=1.0)
+    lead_s: float = Field(0.0, ge=0.0, le=0.1)
     max_frame_bytes: int = Field(4096, ge=64, le=1_048_576)
 
 
@@ -767,7 +768,7 @@ def tick_params(cfg: ServiceConfig, axes: ResolvedAxes) -> TickParams:
         reach_lo=lo, reach_hi=hi, stale_after_s=loop.stale_after_s, hold_s=loop.hold_s,
         rejoin_s=loop.rejoin_s, startup_s=loop.startup_s,
         reconstruction=cfg.input.reconstruction, tick_s=1.0 / loop.rate_hz,
-        max_extrapolation_s=cfg.input.max_extrapolation_s)
+        max_extrapolation_s=cfg.input.max_extrapolation_s, lead_s=cfg.input.lead_s)
     return TickParams(loop.rate_hz, shaper, cfg.status.saturation_tolerance,
                       cfg.input.max_frame_bytes)
 

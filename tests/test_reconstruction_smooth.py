@@ -9,7 +9,7 @@ import pytest
 
 from motcomp.config import ServiceConfig, load_config, new_tick, resolve_axes
 from motcomp.core.axes import AXIS_INDEX
-from motcomp.core.quality import command_quality
+from motcomp.core.quality import command_quality, estimate_delay
 from motcomp.core.shaper import ReferenceShaper, ShaperParams, _extrapolate, _knot, _quintic
 from motcomp.core.tick import set_bypass, step
 from motcomp.io.wire import encode_input
@@ -20,10 +20,10 @@ from motcomp.sim.source import builtin
 Y = AXIS_INDEX["rails_y"]
 
 
-def _cfg(reconstruction: str) -> ServiceConfig:
+def _cfg(reconstruction: str, lead_s: float = 0.0) -> ServiceConfig:
     cfg = load_config(config_file("motcomp.toml"))
     return cfg.model_copy(update={"input": cfg.input.model_copy(
-        update={"reconstruction": reconstruction})})
+        update={"reconstruction": reconstruction, "lead_s": lead_s})})
 
 
 def _params(n: int = 8) -> ShaperParams:
@@ -58,12 +58,13 @@ def test_a_quadratic_is_played_back_exactly_one_lag_behind() -> None:
 
 def _jittery(cfg: ServiceConfig, signal: str, src_hz: float, jitter_us: float, stalls: bool,
              with_t: bool, bypass: bool, seed: int = 1, drift: float = 0.0,
-             skips: bool = False, stall_ms: tuple[float, float] = (2.0, 15.0)
-             ) -> tuple[float, float]:
+             skips: bool = False, stall_ms: tuple[float, float] = (2.0, 15.0),
+             ref_delay: list[float] | None = None) -> tuple[float, float]:
     """(share of ticks the limiter acted on, HF acceleration RMS of the command) of rails_y or
     rails_x (the signal's axis) for a sender late by U(0, jitter) after its instants, whose
     clock runs ``drift`` (relative) slow against the loop's; with ``skips``, the sender leaves
-    out one sample about every second (its seq counts the frames it sends)."""
+    out one sample about every second (its seq counts the frames it sends); ``ref_delay``
+    receives the reference's delay behind the sender's trajectory (s)."""
     traj = builtin(signal, src_hz)
     rng = np.random.default_rng(seed)
     axes = resolve_axes(cfg)
@@ -94,7 +95,7 @@ def _jittery(cfg: ServiceConfig, signal: str, src_hz: float, jitter_us: float, s
     settle = 2000
     for k in range(settle):
         step(state, params, k * period, frame(k, (k - settle) * 1e-3, float(x[0])))
-    seq, j, u, acted = settle, 0, [], 0
+    seq, j, u, refs, acted = settle, 0, [], [], 0
     for k in range(int(ts[-1] * 1000)):
         frames = []  # every frame that arrived since the previous tick, as the service reads
         while j < x.size and arrive[j] <= k * 1e-3:
@@ -104,7 +105,12 @@ def _jittery(cfg: ServiceConfig, signal: str, src_hz: float, jitter_us: float, s
             j += 1
         before = state.acted[i]
         u.append(step(state, params, (settle + k) * period, frames).u[i])
+        refs.append(state.shaper.ref[i])
         acted += state.acted[i] != before
+    if ref_delay is not None:
+        grid = np.arange(len(refs)) * 1e-3
+        ref_delay.append(estimate_delay(np.interp(grid, ts, x), np.array(refs), 1000.0,
+                                        min_lag_s=-0.05, max_lag_s=0.1))
     return acted / len(u), command_quality(np.array(u), 1000.0).hf_acc_rms
 
 
@@ -315,3 +321,40 @@ def test_the_rejoin_blend_starts_where_the_reference_is() -> None:
             assert ref[Y] == pytest.approx(held, abs=1e-12)
         if k == 1121:
             assert abs(ref[Y] - held) < 1e-3  # moving on from there, at most ~0.5 m/s
+
+
+def test_a_lead_plays_a_cubic_back_ahead_exactly() -> None:
+    """With ``lead_s`` the playback runs that far ahead of the lag, beyond the newest sample:
+    along the newest sample's constant-jerk cubic, exact on a cubic; the lag reported is the
+    playback's minus the lead."""
+    x = lambda t: 0.3 + t * (0.5 + t * (-0.6 + 0.2 * t))  # noqa: E731
+    period = 2.0**-10
+    p = ShaperParams(driven=(True,) * 8, ramp_speed=(1.0,) * 8, reach_lo=(-10.0,) * 8,
+                     reach_hi=(10.0,) * 8, startup_s=0.0, tick_s=period, lead_s=0.003)
+    sh = ReferenceShaper(8)
+    errs = []
+    for k in range(2000):
+        now = period * k + 3e-4
+        sh.on_input(p, {Y: x(period * k)}, now, 1.7e9 + period * k)
+        ref, _ = sh.reference(p, now)
+        if k > 1000:
+            tau = now - sh.playback_delay_s + 0.003
+            assert tau > period * k  # ahead of the newest sample
+            errs.append(ref[Y] - x(tau))
+    assert max(map(abs, errs)) < 1e-9
+    assert sh.lag_s == pytest.approx(period - 0.003, abs=2e-5)
+
+
+@pytest.mark.parametrize(("src_hz", "lead_s"), [(100.0, 0.0145), (250.0, 0.0055)])
+def test_a_lead_takes_the_lag_off_a_slow_sender(src_hz: float, lead_s: float) -> None:
+    """A 100 Hz (250 Hz) sender with t and 300 us jitter, the lead set to the lag: the slalom's
+    reference lags its trajectory by about 1 ms instead of 15.5 ms (6.5 ms), the limiter never
+    acts, and the compensated command's HF acceleration stays within 2x the ideal 1 kHz run's
+    (1.8x and 1.1x measured; docs/TUNING.md, "Prediction", has the lane change's price)."""
+    plain, ahead = [], []
+    _jittery(_cfg("smooth"), "slalom", src_hz, 300.0, False, True, False, ref_delay=plain)
+    share, hf = _jittery(_cfg("smooth", lead_s), "slalom", src_hz, 300.0, False, True, False,
+                         ref_delay=ahead)
+    assert plain[0] > 0.006 and abs(ahead[0]) < 0.0015
+    assert plain[0] - ahead[0] == pytest.approx(lead_s, abs=5e-4)
+    assert share == 0.0 and hf <= 2.0 * _floor(_cfg("smooth"), "slalom", False)

@@ -205,7 +205,8 @@ def format_status(st: dict[str, Any]) -> str:
     if inp:
         lines.append(f"input       {inp.get('reconstruction', '?')}  period "
                      f"{float(inp.get('period_ms', 0.0)):.2f} ms  lag "
-                     f"{float(inp.get('lag_ms', 0.0)):.2f} ms (design --input-lag-ms)")
+                     f"{float(inp.get('lag_ms', 0.0)):.2f} ms (design --input-lag-ms)"
+                     + (f"  lead {float(inp['lead_ms']):.2f} ms" if inp.get("lead_ms") else ""))
     lines.append(f"stale       now {st.get('stale_s', 0.0):.2f} s  total "
                  f"{st.get('stale_total_s', 0.0):.2f} s  episodes {st.get('stale_episodes', 0)}")
     can = st.get("can")

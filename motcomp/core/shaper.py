@@ -67,9 +67,12 @@ sample*, so that it is interpolated between samples already received instead of 
                  SMOOTH_OFFSET_LEAK, 1000 ppm of clock drift; falling at most by
                  SMOOTH_OFFSET_DOWN after the first second: a late tick's frames look early)
     lag          input period + JITTER_FACTOR x the mean transit beyond the smallest
-    playback     tau = now - delay, where the delay follows offset + lag through a critically
-                 damped filter of DELAY_TAU_S: neither jitter nor a new smallest transit ever
-                 steps the playback instant, its changes warp time gently
+    playback     tau = now - delay + lead_s, where the delay follows offset + lag through a
+                 critically damped filter of DELAY_TAU_S: neither jitter nor a new smallest
+                 transit ever steps the playback instant, its changes warp time gently; a lead
+                 (0 by default) plays ahead of the lag: prediction along the constant-jerk
+                 bridge below, exact on cubics, whose errors on a change of jerk the
+                 compensator amplifies (docs/TUNING.md has the trade-off)
     per axis     the last HISTORY samples at least (the playback may lie several samples
                  behind the newest, after a burst), each with the slope, acceleration and jerk
                  of the cubic through it and the three before it (exact on cubics, and causal:
@@ -158,8 +161,13 @@ MA_HYSTERESIS = 0.02
 fraction (a length that flickers would warp time)."""
 GAP_BLEND_PERIODS = 10.0
 GAP_BLEND_S = 0.2
-"""After an extrapolation, the difference to the samples fades out over this many input periods
-(at least ``GAP_BLEND_S``)."""
+"""After an extrapolation, the difference to the samples fades out over about this many input
+periods (at least ``GAP_BLEND_S``)."""
+FIX_POLE_FACTOR = 6.0
+"""The fade is a triple pole at ``-FIX_POLE_FACTOR / blend``: within 6 % of its start after the
+blend time, 0.05 % after twice it."""
+FIX_FLOOR = 1e-12
+"""A correction below this (axis units, and its rate times the blend time) is dropped."""
 
 
 @dataclass(frozen=True)
@@ -179,6 +187,9 @@ class ShaperParams:
     reconstruction: str = "smooth"
     """``smooth``, ``linear`` or ``hold`` (module docstring)."""
     max_extrapolation_s: float = 0.02
+    lead_s: float = 0.0
+    """``smooth``: play back this far ahead (s): prediction along the newest sample's
+    constant-jerk cubic, which takes this much off the reconstruction's lag."""
     tick_s: float = 1e-3
     """The loop's period (the moving average of ``smooth`` counts ticks)."""
     min_dt_s: float = 1e-5
@@ -187,6 +198,8 @@ class ShaperParams:
     def __post_init__(self) -> None:
         if not self.min_dt_s > 0:
             raise ValueError(f"min_dt_s must be > 0 s, got {self.min_dt_s!r}")
+        if not 0.0 <= self.lead_s <= 0.1:
+            raise ValueError(f"lead_s must be within [0, 0.1] s, got {self.lead_s!r}")
         if self.reconstruction not in ("linear", "smooth", "hold"):
             raise ValueError(f"reconstruction must be linear, smooth or hold, got "
                              f"{self.reconstruction!r}")
@@ -234,12 +247,14 @@ class ReferenceShaper:
         self._excess = 0.0  # mean transit beyond the smallest
         self._delay: float | None = None  # playback delay (now - tau) and its rate
         self._delay_rate = 0.0
+        self._lead_s = 0.0  # the lead in force (ShaperParams.lead_s)
         self._at: float | None = None  # loop time of the last reference
         self._extra: list[Knot | None] = [None] * n
         """Per axis while extrapolating: the sample extrapolated from."""
-        self._fix = [0.0] * n  # difference being faded out after an extrapolation, and its
-        self._fix_rate = [0.0] * n  # and its rate of change
-        self._fix_t0 = [0.0] * n
+        self._fix: list[list[float] | None] = [None] * n
+        """Per axis, the correction being faded out after an extrapolation: its value, rate and
+        acceleration (None: none)."""
+        self._fix_step: tuple[float, float, tuple[float, ...]] = (0.0, 0.0, ())
         self._rings: list[deque[float]] = [deque() for _ in range(n)]  # moving average
         self._ma_delay_s = 0.0
         self._lin_t = [0.0] * n  # linear: sender time of each axis' last value, its slope,
@@ -274,11 +289,11 @@ class ReferenceShaper:
 
     @property
     def lag_s(self) -> float:
-        """``smooth``: how far the playback lies behind the fastest transit (s): what the
-        reconstruction adds to the delay."""
+        """``smooth``: how far the playback lies behind the fastest transit (s), less the lead:
+        what the reconstruction adds to the delay (negative when the lead exceeds the lag)."""
         if self._delay is None or self._fast is None:
             return 0.0
-        return self._delay - self._fast + self._ma_delay_s
+        return self._delay - self._fast + self._ma_delay_s - self._lead_s
 
     # --- events ---------------------------------------------------------------------------
     def is_stale(self, p: ShaperParams, now: float) -> bool:
@@ -364,8 +379,7 @@ class ReferenceShaper:
                 r.clear()
             n = self.n
             self._extra = [None] * n
-            self._fix = [0.0] * n
-            self._fix_rate = [0.0] * n
+            self._fix = [None] * n
         else:
             self._excess += JITTER_GAIN * (max(transit - fast, 0.0) - self._excess)
         if tl is None or t - tl >= p.min_dt_s or t < tl:
@@ -557,6 +571,8 @@ class ReferenceShaper:
         at = self._at
         dt = 0.0 if at is None else max(now - at, 0.0)
         self._at = now
+        blend_s = max(GAP_BLEND_S, GAP_BLEND_PERIODS * q)
+        phi = self._fade_step(dt, blend_s)
         target = fast + min(q + JITTER_FACTOR * self._excess, q + 0.5 * p.stale_after_s)
         d = self._delay
         if d is None:
@@ -571,9 +587,9 @@ class ReferenceShaper:
                 dt -= dts
             self._delay_rate = r
         self._delay = d
-        tau = now - d
-        bound = max(p.max_extrapolation_s, 1.5 * q)
-        blend_s = max(GAP_BLEND_S, GAP_BLEND_PERIODS * q)
+        self._lead_s = p.lead_s
+        tau = now - d + p.lead_s
+        bound = max(p.max_extrapolation_s, 1.5 * q) + p.lead_s
         out = []
         extra = self._extra
         for i, h in enumerate(self._hist):
@@ -587,11 +603,22 @@ class ReferenceShaper:
             else:  # beyond the newest sample: its Taylor cubic goes on
                 src = h[-1]
                 x, xs = _extrapolate(src, tau, bound)
+            fix = self._fix[i]
+            if fix is not None:  # the correction fades on its own schedule
+                f, f1, f2 = fix
+                fix[0] = phi[0] * f + phi[1] * f1 + phi[2] * f2
+                fix[1] = phi[3] * f + phi[4] * f1 + phi[5] * f2
+                fix[2] = phi[6] * f + phi[7] * f1 + phi[8] * f2
+                if abs(fix[0]) < FIX_FLOOR and abs(fix[1]) * blend_s < FIX_FLOOR:
+                    self._fix[i] = fix = None
             if prev is not None and (src is None or src[0] != prev[0]):
                 xo, so = _extrapolate(prev, tau, bound)  # the samples changed under it
-                self._start_fix(i, now, blend_s, xo - x, so - xs)
+                if fix is None:
+                    self._fix[i] = fix = [0.0, 0.0, 0.0]
+                fix[0] += xo - x  # continuous in position and velocity, added to what fades
+                fix[1] += so - xs
             extra[i] = src
-            out.append(x + self._current_fix(i, now, blend_s))
+            out.append(x if fix is None else x + fix[0])
         length = q / p.tick_s
         if abs(length - self._ma_len) > MA_HYSTERESIS * max(self._ma_len, 1.0):
             self._ma_len = length  # only a real change of the input's rate moves it
@@ -642,38 +669,27 @@ class ReferenceShaper:
             out.append(v + s * (tau if 0.0 < tau < b else b if tau >= b else 0.0))
         return out
 
-    def _fix_at(self, i: int, el: float, blend_s: float) -> tuple[float, float]:
-        """The correction ``el`` after it started and its rate: the quintic that starts with
-        the differences ``d`` and ``r`` of position and velocity and no acceleration of its
-        own, and ends ``blend_s`` later at zero, flat to its second derivative."""
-        x = el / blend_s
-        if x >= 1.0:
-            return 0.0, 0.0
-        d, rt = self._fix[i], self._fix_rate[i] * blend_s
-        x2 = x * x
-        f = d * (1.0 - x2 * x * (10.0 - 15.0 * x + 6.0 * x2)) \
-            + rt * x * (1.0 - x2 * (6.0 - 8.0 * x + 3.0 * x2))
-        f1 = d * -30.0 * x2 * (1.0 - x) ** 2 + rt * (1.0 - x2 * (18.0 - 32.0 * x + 15.0 * x2))
-        return f, f1 / blend_s
-
-    def _current_fix(self, i: int, now: float, blend_s: float) -> float:
-        if self._fix[i] == 0.0 and self._fix_rate[i] == 0.0:
-            return 0.0
-        el = now - self._fix_t0[i]
-        if el >= blend_s:
-            self._fix[i] = self._fix_rate[i] = 0.0
-            return 0.0
-        return self._fix_at(i, el, blend_s)[0]
-
-    def _start_fix(self, i: int, now: float, blend_s: float, d: float, r: float) -> None:
-        """A new correction (position ``d``, velocity ``r``) on top of what remains of the
-        previous one, so that the reference stays continuous in position and velocity."""
-        rest = (0.0, 0.0)
-        if self._fix[i] or self._fix_rate[i]:
-            rest = self._fix_at(i, now - self._fix_t0[i], blend_s)
-        self._fix[i] = d + rest[0]
-        self._fix_rate[i] = r + rest[1]
-        self._fix_t0[i] = now
+    def _fade_step(self, dt: float, blend_s: float) -> tuple[float, ...]:
+        """The transition over ``dt`` of a correction's (value, rate, acceleration): a triple
+        pole at ``-w``, ``w = FIX_POLE_FACTOR / blend_s`` (critically damped, settled in about
+        ``blend_s``).  A new difference adds to the value and rate, so the reference stays
+        continuous to its acceleration, and each fades on its own schedule however often they
+        come (every sample, with a lead): ``exp(A dt) = exp(-w dt) (I + N dt + N^2 dt^2 / 2)``,
+        ``N = A + w I`` nilpotent."""
+        key = (dt, blend_s)
+        if self._fix_step[:2] == key:
+            return self._fix_step[2]
+        w = FIX_POLE_FACTOR / blend_s
+        e = math.exp(-w * dt)
+        h, h2 = dt, 0.5 * dt * dt
+        # N = [[w, 1, 0], [0, w, 1], [-w^3, -3w^2, -2w]]; N^2 by hand
+        n = ((w, 1.0, 0.0), (0.0, w, 1.0), (-w ** 3, -3.0 * w * w, -2.0 * w))
+        n2 = tuple(tuple(sum(n[r][k] * n[k][c] for k in range(3)) for c in range(3))
+                   for r in range(3))
+        phi = tuple(e * ((1.0 if r == c else 0.0) + n[r][c] * h + n2[r][c] * h2)
+                    for r in range(3) for c in range(3))
+        self._fix_step = (dt, blend_s, phi)
+        return phi
 
     def stale_time(self, now: float) -> float:
         """Seconds since the last valid frame (0 while live)."""
