@@ -58,12 +58,14 @@ def test_a_quadratic_is_played_back_exactly_one_lag_behind() -> None:
 
 def _jittery(cfg: ServiceConfig, signal: str, src_hz: float, jitter_us: float, stalls: bool,
              with_t: bool, bypass: bool, seed: int = 1, drift: float = 0.0,
-             skips: bool = False, stall_ms: tuple[float, float] = (2.0, 15.0),
+             skips: bool = False, losses: bool = False,
+             stall_ms: tuple[float, float] = (2.0, 15.0),
              ref_delay: list[float] | None = None) -> tuple[float, float]:
     """(share of ticks the limiter acted on, HF acceleration RMS of the command) of rails_y or
     rails_x (the signal's axis) for a sender late by U(0, jitter) after its instants, whose
     clock runs ``drift`` (relative) slow against the loop's; with ``skips``, the sender leaves
-    out one sample about every second (its seq counts the frames it sends); ``ref_delay``
+    out one sample about every second (its seq counts the frames it sends); with ``losses``,
+    about one frame a second is lost on the way (its seq is skipped); ``ref_delay``
     receives the reference's delay behind the sender's trajectory (s)."""
     traj = builtin(signal, src_hz)
     rng = np.random.default_rng(seed)
@@ -86,6 +88,9 @@ def _jittery(cfg: ServiceConfig, signal: str, src_hz: float, jitter_us: float, s
     keep = np.ones(x.size, dtype=bool)
     if skips:
         keep[rng.choice(np.arange(1000, x.size - 1000), size=int(ts[-1]), replace=False)] = False
+    lose = np.zeros(x.size, dtype=bool)
+    if losses:
+        lose[rng.choice(np.arange(1500, x.size - 1000), size=int(ts[-1]), replace=False)] = True
 
     def frame(seq: int, t: float, v: float) -> bytes:
         return (encode_input(seq, t, {axis: v}) if with_t
@@ -100,7 +105,8 @@ def _jittery(cfg: ServiceConfig, signal: str, src_hz: float, jitter_us: float, s
         frames = []  # every frame that arrived since the previous tick, as the service reads
         while j < x.size and arrive[j] <= k * 1e-3:
             if keep[j]:
-                frames.append(frame(seq, float(ts[j]), float(x[j])))
+                if not lose[j]:
+                    frames.append(frame(seq, float(ts[j]), float(x[j])))
                 seq += 1
             j += 1
         before = state.acted[i]
@@ -174,6 +180,10 @@ def test_samples_a_sender_skips_keep_their_place(with_t: bool) -> None:
     acted on 20 % of a live recording's ticks)."""
     smooth = _cfg("smooth")
     share, hf = _jittery(smooth, "slalom", 1000.0, 300.0, False, with_t, False, skips=True)
+    assert share == 0.0 and hf <= 1.2 * _floor(smooth, "slalom", False)
+    # and frames lost on the way besides (seq steps by 2): the skip is counted on top
+    share, hf = _jittery(smooth, "slalom", 1000.0, 300.0, False, with_t, False, skips=True,
+                         losses=True)
     assert share == 0.0 and hf <= 1.2 * _floor(smooth, "slalom", False)
 
 

@@ -358,7 +358,7 @@ class ReferenceShaper:
                          t_sender: float | None, rejoin: bool, frames: int) -> None:
         tl = self._t_last
         if t_sender is None and not rejoin:
-            frames *= self._skipped(p, pos)
+            frames = self._spanned(p, pos, frames)
         t, rejoin = self._timeline(p, now, t_sender, rejoin, frames)
         transit = now - t
         fast = self._fast
@@ -401,14 +401,14 @@ class ReferenceShaper:
                 if len(h) > 2 * HISTORY:  # (trimmed in batches: no shift per sample)
                     del h[:HISTORY]
 
-    def _skipped(self, p: ShaperParams, pos: dict[int, float]) -> int:
-        """A frame without ``t``: how many of the sender's samples its step spans (1, or more
-        when the sender skipped some).  Read from the motion itself, on the axis moving fastest:
-        where its last two steps (per frame) agree within SKIP_TOLERANCE (a steady motion, not a
-        start or a reversal) and moved at least MIN_SKIP_STEP, a new step SKIP_TOLERANCE-close
-        to m >= 2 times the one expected (the last step plus its change) spans m samples; a
-        wrong count, where the motion is too slow or unsteady to tell, misplaces a sample by
-        little."""
+    def _spanned(self, p: ShaperParams, pos: dict[int, float], frames: int) -> int:
+        """A frame without ``t``, ``frames`` after the previous one (its seq step): how many of
+        the sender's samples its step spans (``frames``, or more when the sender skipped some).
+        Read from the motion itself, on the axis moving fastest: where its last two steps (per
+        sample) agree within SKIP_TOLERANCE (a steady motion, not a start or a reversal) and
+        moved at least MIN_SKIP_STEP, a new step SKIP_TOLERANCE-close to m > ``frames`` times
+        the one expected (the last step plus its change) spans m samples; a wrong count, where
+        the motion is too slow or unsteady to tell, misplaces a sample by little."""
         q = self._period
         best, ratio = 0.0, 1.0
         for i, v in pos.items():
@@ -420,10 +420,10 @@ class ReferenceShaper:
             s1 = (v2 - v1) * q / (t2 - t1)
             if abs(s1) > best and abs(s1 - s0) <= SKIP_TOLERANCE * abs(s1):
                 best, ratio = abs(s1), (v - v2) / (2.0 * s1 - s0)
-        if best < MIN_SKIP_STEP or not 1.5 <= ratio <= MAX_SKIP:
-            return 1
+        if best < MIN_SKIP_STEP or not frames + 0.5 <= ratio <= MAX_SKIP:
+            return frames
         m = round(ratio)
-        return m if abs(ratio - m) <= SKIP_TOLERANCE else 1
+        return m if abs(ratio - m) <= SKIP_TOLERANCE else frames
 
     def _timeline(self, p: ShaperParams, now: float, t_sender: float | None, rejoin: bool,
                   frames: int) -> tuple[float, bool]:
