@@ -84,8 +84,10 @@ sample*, so that it is interpolated between samples already received instead of 
                  periods if longer), then the parabola it reached (no velocity step, which the
                  compensator would turn into its limits; the stale-input rule ends a gap
                  longer still), and when the samples come back, the differences of
-                 position and velocity to it fade out in a quintic of GAP_BLEND_PERIODS input
-                 periods (at least GAP_BLEND_S)
+                 position and velocity to it are added to a correction that fades out
+                 through a critically damped triple pole, settled in about GAP_BLEND_PERIODS
+                 input periods (at least GAP_BLEND_S): continuous to the acceleration, each
+                 difference on its own schedule however often they come
     average      then a moving average over one input period (fractional length, on the
                  tick grid): zero gain at the input's rate and its harmonics, where the
                  playback's roughness lies (the quintic's jerk changes at every sample, and the
