@@ -490,7 +490,8 @@ class ReferenceShaper:
     def _learn_period(self, dt: float) -> bool:
         """One interval between frames (per frame): averaged when within half to 1.5 times the
         period; :data:`PERIOD_RELEARN` unusual ones in a row (the sender changed its rate)
-        replace the period by their median; a single one (a stall) changes nothing."""
+        replace the period by their median (then True is returned, and the line's slope is
+        learnt anew); a single one (a stall) changes nothing."""
         q = self._period
         if q == 0.0:
             if dt > 0.0:
