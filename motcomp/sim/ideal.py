@@ -39,8 +39,8 @@ def ideal_run(cfg: ServiceConfig, pos: Mapping[str, np.ndarray], rate_hz: float,
 
     The first sample is held for ``settle_s`` before the motion starts, sent at ``rate_hz``
     (the start-up blend and the input's period settle), and the returned traces start with the
-    motion.  ``bypass`` True/False forces
-    compensation off/on on every driven axis; None keeps the config's.
+    motion.  ``bypass`` True/False forces compensation off/on on every driven axis; None keeps
+    the config's.
 
     Raises
     ------
