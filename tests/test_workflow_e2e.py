@@ -3,11 +3,14 @@ by hand: an unknown (simulated) platform -> ``identify --live`` through the runn
 ``design --plant <fragment> --out`` -> ``config check`` -> ``reload`` -> the slalom's apparent
 delay measured on the platform's feedback.
 
-In the suite (about 65 s, five processes on the machine's cores; ``pytest -m e2e`` runs it
-alone).  Runs on this 2-core machine at load 0.5-1.8: the limiter acted on 0, 0 and 16 of about
-30 000 samples of the live excitation; Td identified 0.2-0.4 ms from the drawn one plus the
-stack's own 0.5-1.0 ms (the simulator reports each setpoint's age when applied); the slalom
-lagged 3.2-4.0 ms after the reload."""
+Opt-in (``pytest -m e2e``, about 65 s, five processes on the machine's cores).  Runs on this
+2-core machine at load 0.5-1.8: the limiter acted on 0, 0 and 16 of about 30 000 samples of the
+live excitation; Td identified 0.2-0.4 ms from the drawn one plus the stack's own 0.5-1.0 ms
+(the simulator reports each setpoint's age when applied); the slalom lagged 3.2-4.0 ms after
+the reload.  Not in the suite yet: in one run of six (a CI run) the excitation's publisher
+stalled for 50 ms near its end, the input went stale, and identify on a window holding that
+episode put the pure delay at the lower end of its search (the same file identifies right on
+0.49-29.7 s, wrongly on 0.49-30.2 s)."""
 
 from __future__ import annotations
 
