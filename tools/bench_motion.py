@@ -79,6 +79,7 @@ from motcomp.core.quality import (
 )
 from motcomp.demo import stop_processes
 from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loopback, open_session
+from motcomp.jsonsafe import finite
 from motcomp.sim.hil import default_truth
 from motcomp.sim.ideal import ideal_run
 from motcomp.sim.source import builtin
@@ -728,19 +729,6 @@ def unplain(obj: Any) -> Any:
     return math.nan if obj is None else obj
 
 
-def plain(obj: Any) -> Any:
-    """``obj`` for strict JSON: numpy numbers as Python's, NaN and infinities as null."""
-    if isinstance(obj, dict):
-        return {str(k): plain(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [plain(v) for v in obj]
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
-
-
 def words(text: str) -> list[str]:
     return [w for w in text.replace(",", " ").split() if w]
 
@@ -884,7 +872,7 @@ def measure(args: argparse.Namespace, ap: argparse.ArgumentParser, cfg_path: Pat
                               "stalls": v.stalls, "with_t": v.with_t, "label": v.label()}
                           for k, v in SENDERS.items() if k in args.senders},
               "ideal": ideal, "runs": runs}
-    (args.out / "motion.json").write_text(json.dumps(plain(result), indent=1) + "\n")
+    (args.out / "motion.json").write_text(json.dumps(finite(result), indent=1) + "\n")
     (args.out / "motion.md").write_text(text + "\n")
     print()
     print(text)

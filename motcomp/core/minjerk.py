@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import TypeVar
 
-__all__ = ["PEAK_SPEED_FACTOR", "min_jerk", "min_jerk_weight"]
+__all__ = ["PEAK_SPEED_FACTOR", "min_jerk", "min_jerk_rate", "min_jerk_weight"]
 
 PEAK_SPEED_FACTOR = 1.875
 """Peak of ``ds/dx``: a minimum-jerk move of ``distance`` over ``T`` peaks at 1.875 distance/T."""
@@ -21,6 +21,11 @@ X = TypeVar("X")
 def min_jerk(x: X) -> X:
     """``10 x^3 - 15 x^4 + 6 x^5`` for a float or a numpy array ``x`` (not clipped)."""
     return x**3 * (10.0 - 15.0 * x + 6.0 * x * x)  # type: ignore[operator]
+
+
+def min_jerk_rate(x: float) -> float:
+    """``d/dx`` of :func:`min_jerk`: ``30 x^2 (1 - x)^2``."""
+    return 30.0 * x * x * (1.0 - x) ** 2
 
 
 def min_jerk_weight(progress: float) -> float:

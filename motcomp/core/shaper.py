@@ -111,7 +111,7 @@ from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from motcomp.core.minjerk import PEAK_SPEED_FACTOR, min_jerk_weight
+from motcomp.core.minjerk import PEAK_SPEED_FACTOR, min_jerk, min_jerk_rate, min_jerk_weight
 
 __all__ = ["OFFSET_LEAK", "ReferenceShaper", "ShaperParams"]
 
@@ -744,11 +744,11 @@ def _quintic(h: Sequence[Knot], tau: float) -> tuple[float, float]:
     x2 = x * x
     x3 = x2 * x
     y = 1.0 - x
-    s = x3 * (10.0 - 15.0 * x + 6.0 * x2)  # H3, and H0 = 1 - s
+    s = min_jerk(x)  # H3, and H0 = 1 - s
     value = (v0 + (v1 - v0) * s + m0 * x * (1.0 - x2 * (6.0 - 8.0 * x + 3.0 * x2))
              + 0.5 * a0 * x2 * y ** 3 + x3 * (m1 * (-4.0 + 7.0 * x - 3.0 * x2)
                                               + 0.5 * a1 * (1.0 - 2.0 * x + x2)))
-    ds = 30.0 * x2 * y * y
+    ds = min_jerk_rate(x)
     slope = ((v1 - v0) * ds + m0 * (1.0 - x2 * (18.0 - 32.0 * x + 15.0 * x2))
              + 0.5 * a0 * x * y * y * (2.0 - 5.0 * x)
              + m1 * x2 * (-12.0 + 28.0 * x - 15.0 * x2)

@@ -14,7 +14,6 @@ left half-written.  matplotlib is imported only in :func:`write_figures`.
 from __future__ import annotations
 
 import json
-import math
 import shutil
 import tempfile
 from pathlib import Path
@@ -26,6 +25,7 @@ from motcomp.core.models import ProcessModel
 from motcomp.errors import ConfigError
 from motcomp.ident.data import Recording
 from motcomp.ident.fit import Identification, ModelFit
+from motcomp.jsonsafe import finite
 
 __all__ = ["config_fragment", "markdown", "report_json", "table1", "table1_markdown",
            "write_figures", "write_report", "write_reports"]
@@ -85,7 +85,7 @@ def report_json(ident: Identification, axis: str | None = None) -> dict[str, Any
         "warnings": [*rec.warnings, *ident.warnings],
         "seconds": ident.seconds,
     }
-    return _finite(out)
+    return finite(out)
 
 
 def _window_json(rec: Recording) -> dict[str, Any]:
@@ -107,18 +107,6 @@ def _window_text(d: dict[str, Any]) -> str:
     else:
         text += "No gaps in the data."
     return text
-
-
-def _finite(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
 
 
 def _pm(value: float, se: float | None, fmt: str = ".4g") -> str:
@@ -426,7 +414,7 @@ def write_reports(idents: dict[str, Identification], out_dir: Path, figures: boo
             _write_one(ident, tmp_path / axis, axis, figures)
         (tmp_path / "table1.md").write_text(table1_markdown(rows) + "\n")
         (tmp_path / "table1.json").write_text(
-            json.dumps(_finite(rows), indent=2, allow_nan=False) + "\n")
+            json.dumps(finite(rows), indent=2, allow_nan=False) + "\n")
         (tmp_path / "axes.toml").write_text(
             "\n".join(config_fragment(ident, axis) for axis, ident in idents.items()))
         return _commit(tmp_path, out_dir)

@@ -31,6 +31,7 @@ from motcomp.config import ResolvedAxes, ServiceConfig
 from motcomp.core.axes import AXES
 from motcomp.core.saturation import axis_constants, limit_axis
 from motcomp.errors import ConfigError
+from motcomp.jsonsafe import finite
 from motcomp.record.frames import FLAG_BITS
 from motcomp.record.session import Session
 from motcomp.replay.engine import EngineResult
@@ -89,18 +90,7 @@ class ReplayReport:
         for a, rep in zip(out["axes"], self.axes, strict=True):
             a["reduction_ms"] = rep.reduction_ms
             a["recorded_reduction_ms"] = rep.recorded_reduction_ms
-        return _finite(out)
-
-
-def _finite(obj: Any) -> Any:
-    """NaN -> None, for strict JSON."""
-    if isinstance(obj, float):
-        return None if not math.isfinite(obj) else obj
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_finite(v) for v in obj]
-    return obj
+        return finite(out)
 
 
 def held_commands(plan: TickPlan, u: np.ndarray) -> np.ndarray:
