@@ -15,6 +15,7 @@ from motcomp.core.models import OE, P1D, P2D, P2UZD, ProcessModel, parse_model
 from motcomp.ident.data import Recording
 from motcomp.ident.excitation import AxisRange, excitation
 from motcomp.ident.fit import (
+    DelayOutOfRange,
     FitOptions,
     _Data,
     _response,
@@ -250,3 +251,20 @@ def test_any_p1d_is_recovered_from_noise_free_data(K: float, Td: float, Tp1: flo
     got = identify(rec, FitOptions(models=("p1d",))).fits["p1d"].model.params()
     for name, value in truth.params().items():
         assert got[name] == pytest.approx(value, rel=1e-3), name
+
+
+def test_a_structure_whose_delay_is_on_the_range_end_is_left_out_not_the_run() -> None:
+    """A P2D platform (Td 5 ms, Tp2 20 ms) searched over 10-100 ms: the P2D's own delay lies
+    below the range and only that structure is left out; the P1D lumps Tp2 into its delay
+    (about 23 ms, inside the range) and is selected.  Searched over 30-100 ms, every structure
+    is on the lower end: the run fails with the simplest structure's error."""
+    truth = P2D(K=1.0, Td=0.005, Tp1=0.2, Tp2=0.02)
+    rec = recording(truth, "multisine", "rails_y", None, seed=7, duration_s=30.0)
+    ident = identify(rec, FitOptions(models=("p1d", "p2d"), delay_min_s=0.010,
+                                     delay_max_s=0.100))
+    assert set(ident.fits) == {"p1d"} and ident.selected == "p1d"
+    assert 0.015 < ident.fits["p1d"].model.pure_delay_s < 0.030
+    assert ident.errors["p2d"] == ("its best delay is at the lower end of the searched range "
+                                   "(10.0 ms): on these data it trades its delay for its lags")
+    with pytest.raises(DelayOutOfRange, match=r"lower end \(30\.0 ms\) of \[30\.0, 100\.0\]"):
+        identify(rec, FitOptions(models=("p1d", "p2d"), delay_min_s=0.030, delay_max_s=0.100))

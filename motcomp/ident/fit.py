@@ -97,6 +97,7 @@ from motcomp.ident.data import Recording
 from motcomp.ident.structures import STRUCTURES, Structure, make_structure
 
 __all__ = [
+    "DelayOutOfRange",
     "FitOptions",
     "Identification",
     "ModelFit",
@@ -534,7 +535,16 @@ def delay_bracket(prep: Prepared, lo_s: float, hi_s: float) -> Bracket:
                    ir_t_s=t, ir=np.asarray(g))
 
 
-def _outside(side: str, value_s: float, lo_s: float, hi_s: float) -> DataError:
+class DelayOutOfRange(DataError):
+    """The best pure delay of a structure lies on ``side`` (``"lower"``, ``"upper"``) of the
+    searched range, at ``value_s``."""
+
+    def __init__(self, message: str, side: str, value_s: float) -> None:
+        super().__init__(message)
+        self.side, self.value_s = side, value_s
+
+
+def _outside(side: str, value_s: float, lo_s: float, hi_s: float) -> DelayOutOfRange:
     if side == "upper":
         hint = "widen the delay range (--delay-range)"
     elif lo_s > 0:
@@ -543,9 +553,9 @@ def _outside(side: str, value_s: float, lo_s: float, hi_s: float) -> DataError:
     else:
         hint = ("a delay of zero or less: the measurement may lead the command (clocks or "
                 "columns misaligned?)")
-    return DataError(f"pure delay outside the searched range: the best delay is at the {side} "
-                     f"end ({value_s * 1e3:.1f} ms) of [{lo_s * 1e3:.1f}, {hi_s * 1e3:.1f}] ms; "
-                     f"{hint}")
+    return DelayOutOfRange(f"pure delay outside the searched range: the best delay is at the "
+                           f"{side} end ({value_s * 1e3:.1f} ms) of [{lo_s * 1e3:.1f}, "
+                           f"{hi_s * 1e3:.1f}] ms; {hint}", side, value_s)
 
 
 def _coarse_profile(prep: Prepared, s: Structure, lo_s: float, hi_s: float, grid: FloatArray
@@ -1066,10 +1076,15 @@ def identify(rec: Recording, options: FitOptions = FitOptions(),
 
     ``progress(message)`` is called at each stage (for a progress bar).
 
+    A structure whose best delay lies on an end of the searched range is left out, with the
+    reason in ``errors`` (a richer structure may trade its delay for a lag: P2UZD's
+    ``Td + Tp2`` is what the data fix when the platform is first order).
+
     Raises
     ------
     DataError
-        For unusable data or a delay outside the searched range.
+        For unusable data, or when every structure's best delay lies on an end of the searched
+        range (the simplest structure's error: the data or the range are wrong).
     ModelFitError
         If no structure could be fitted.
     """
@@ -1080,6 +1095,7 @@ def identify(rec: Recording, options: FitOptions = FitOptions(),
     bracket = delay_bracket(prep, options.delay_min_s, options.delay_max_s)
     fits: dict[str, ModelFit] = {}
     errors: dict[str, str] = {}
+    outside: dict[str, DelayOutOfRange] = {}
     for kind in sorted(options.models, key=STRUCTURES.index):
         s = make_structure(kind, options.oe_order, options.oe_pade)
         seed = fits.get("p2uzd") or fits.get("p2d") if kind == "oe" else None
@@ -1088,6 +1104,15 @@ def identify(rec: Recording, options: FitOptions = FitOptions(),
                                        start=seed.model if seed else None)
         except ModelFitError as exc:
             errors[kind] = str(exc)
+        except DelayOutOfRange as exc:
+            outside[kind] = exc
+    if not fits and outside:
+        raise next(iter(outside.values()))
+    for kind, exc in outside.items():  # others fitted: the data are fine, this structure is not
+        errors[kind] = (f"its best delay is at the {exc.side} end of the searched range "
+                        f"({exc.value_s * 1e3:.1f} ms): " +
+                        ("on these data it trades its delay for its lags" if exc.side == "lower"
+                         else "widen the delay range (--delay-range) to fit it"))
     if not fits:
         raise ModelFitError("no model could be fitted: " + "; ".join(
             f"{k}: {v}" for k, v in errors.items()))
