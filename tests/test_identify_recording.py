@@ -138,6 +138,23 @@ def test_a_gap_longer_than_max_gap_ends_the_window_or_is_named(mixed: Path) -> N
         load_recording(mixed, axis="rails_y", max_gap_s=0.01, window=(11.0, 30.0))
 
 
+def test_the_automatic_window_searched_inside_bounds(mixed: Path) -> None:
+    """``within`` (identify --live: the excitation's bounds) keeps the automatic window's rules
+    inside it: with 10 ms bridged at most, the longest piece inside 11-33 s runs from the
+    bounds' start to the 16 ms gap at 20 s (the whole recording's is the last, 25-36 s);
+    compensated samples inside the bounds are never taken."""
+    rec = load_recording(mixed, axis="rails_y", max_gap_s=0.01, within=(11.0, 33.0))
+    assert rec.window is not None
+    assert rec.window.how == "longest stretch bypassed and not limited inside 11.00-33.00 s"
+    assert rec.window.start_s == pytest.approx(11.0, abs=2e-3)
+    assert rec.window.end_s == pytest.approx(20.0 + T0, abs=2e-3)
+    with pytest.raises(DataError, match=r"rails_y: no stretch of 5 s or more with the axis "
+                                        r"bypassed and not limited inside 2\.00-12\.00 s: "):
+        load_recording(mixed, axis="rails_y", within=(2.0, 12.0))
+    with pytest.raises(DataError, match="exclude each other"):
+        load_recording(mixed, axis="rails_y", within=(2.0, 12.0), window=(2.0, 12.0))
+
+
 def test_gaps_of_a_few_milliseconds_are_bridged(mixed: Path) -> None:
     rec = load_recording(mixed, axis="rails_y", window=(14.0, 16.0 + T0))
     # one gap, 9 ms; the grid goes on through it at 1 kHz

@@ -187,7 +187,7 @@ def test_source_drops_the_samples_of_a_stall_instead_of_stretching_the_motion(
 
 def test_the_setpoints_age_when_applied_is_measured() -> None:
     """Frames stamped 0.3 ms before the period they are applied at (and one during a stall,
-    applied at its own time): the mean age is what the simulator adds to its truth's delay as
+    applied at its own time): the age is what the simulator adds to its truth's delay as
     the service's stamps see it (identify measures the sum)."""
     plat = platform()
     assert math.isnan(plat.setpoint_age_s)
@@ -197,5 +197,12 @@ def test_the_setpoints_age_when_applied_is_measured() -> None:
     assert plat.setpoint_age_s == pytest.approx(3e-4, abs=1e-12)
     plat.take_frame(encode_output(10, 10 / RATE - 3e-4, 10, [0.0] * len(AXES), []))
     plat.catch_up(1, 11 / RATE)  # the stall's period starts at 10 / RATE: the frame is 0.3 ms old
-    assert plat.setpoint_age_s == pytest.approx(3e-4, abs=1e-12)
+    assert plat.setpoint_age_mean_s == pytest.approx(3e-4, abs=1e-12)
     assert plat.age_n == 11
+    # the median, rounded to 10 us, is what a fit sees: a few late frames move only the mean
+    assert plat.setpoint_age_s == pytest.approx(3e-4, abs=1e-12)
+    for k in range(12, 16):
+        plat.take_frame(encode_output(k, k / RATE - 0.04, k, [0.0] * len(AXES), []))
+        plat.step(k / RATE)
+    assert plat.setpoint_age_mean_s == pytest.approx((11 * 3e-4 + 4 * 0.04) / 15, abs=1e-12)
+    assert plat.setpoint_age_s == pytest.approx(3e-4, abs=1e-12)

@@ -77,6 +77,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="validation fit %% points a simpler model may trail by (default: 1)")
     p.add_argument("--rate", type=rate_arg, default=None, metavar="HZ",
                    help="resampling rate for irregular time stamps (default: the mean rate)")
+    p.set_defaults(within=None)  # --live: the excitation's bounds
     p.add_argument("--window", nargs=2, type=float, default=None, metavar=("START", "END"),
                    help="identify this stretch, in seconds from the recording's start (default: "
                         "an MCAP recording's longest stretch, of 5 s or more, with the axis "
@@ -153,7 +154,8 @@ def run_identify(args: argparse.Namespace) -> int:
                 try:
                     rec = load_recording(args.data, axis=name, rate_hz=args.rate,
                                          clock=args.clock, window=args.window,
-                                         max_gap_s=args.max_gap)
+                                         max_gap_s=args.max_gap,
+                                         within=args.within)
                 except DataError as exc:
                     if args.axis != "all" or len(axes) == 1:
                         raise
@@ -216,7 +218,9 @@ def run_identify(args: argparse.Namespace) -> int:
 
 def _run_live(args: argparse.Namespace) -> None:
     """``--live``: the identification run (:mod:`motcomp.ident.live`); then ``args`` points at
-    the recording and the excitation's window, and says whether the limiter acted in it."""
+    the recording and bounds the automatic window to the excitation (a sender's stall there
+    leaves the input stale and the limiter acting for a while: the window is the longest stretch
+    without that), and says whether the limiter acted in the excitation."""
     from motcomp.ident.live import LiveOptions, run_live
     from motcomp.record.session import read_session
 
@@ -237,7 +241,7 @@ def _run_live(args: argparse.Namespace) -> None:
           f"window {t0:.2f}-{t1:.2f} s; limiter acted on {limited} of {int(inside.sum())} "
           f"feedback samples, compensation on at {compensated}; axis "
           f"{'left bypassed' if run.was_bypassed else 'compensated again'}", file=sys.stderr)
-    args.window = (t0, t1)
+    args.within = (t0, t1)
     if args.cutoff is None:  # the fit sees the band the excitation covers, not the limiter's
         from motcomp.ident.excitation import default_band_hz  # chatter above it
 

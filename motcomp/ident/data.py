@@ -26,7 +26,8 @@ Window (:func:`select_window`)
 Time is counted from the recording's start.  A window given as ``(start_s, end_s)`` is used as
 is, with a warning if the axis was compensated or limited in it.  Otherwise a recording with
 bypass and limiter flags (MCAP) is identified on the longest stretch where the axis is
-bypassed and not limited (at least :data:`MIN_WINDOW_S`); a recording without them (CSV) whole.
+bypassed and not limited (at least :data:`MIN_WINDOW_S`), searched inside ``within`` if given
+(an identification run's excitation); a recording without them (CSV) whole, or ``within``.
 
 Gaps
 ----
@@ -146,7 +147,8 @@ class Window:
     samples: int
     """Recorded samples (of the measurement) in it."""
     how: str
-    """``"given"``, ``"whole recording"`` or ``"longest stretch bypassed and not limited"``."""
+    """``"given"``, ``"whole recording"`` or ``"longest stretch bypassed and not limited"``
+    (followed by ``" inside START-END s"`` when searched inside bounds)."""
 
 
 @dataclass(frozen=True)
@@ -212,11 +214,13 @@ def register_loader(*suffixes: str) -> Callable[[Loader], Loader]:
 
 def load_recording(path: str | Path, axis: str | None = None, rate_hz: float | None = None,
                    clock: str = "frame", window: tuple[float, float] | None = None,
-                   max_gap_s: float = DEFAULT_MAX_GAP_S) -> Recording:
+                   max_gap_s: float = DEFAULT_MAX_GAP_S,
+                   within: tuple[float, float] | None = None) -> Recording:
     """Read, check, window and (if irregular) resample a recording.
 
     ``window`` is ``(start_s, end_s)`` from the recording's start (default: see the module
-    notes); ``max_gap_s`` the longest gap bridged by interpolation.
+    notes), ``within`` the bounds the automatic window is searched in; ``max_gap_s`` the
+    longest gap bridged by interpolation.
 
     Raises
     ------
@@ -234,7 +238,7 @@ def load_recording(path: str | Path, axis: str | None = None, rate_hz: float | N
     if axis is not None and axis not in AXIS_INDEX:
         raise DataError(f"unknown axis {axis!r}; axes are {', '.join(AXIS_INDEX)}")
     raw = loader(p, axis, clock)
-    return check_and_resample(raw, rate_hz, max_gap_s=max_gap_s, window=window)
+    return check_and_resample(raw, rate_hz, max_gap_s=max_gap_s, window=window, within=within)
 
 
 # --- checks, window and resampling --------------------------------------------------------------
@@ -300,10 +304,11 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
 
 
 def select_window(raw: RawRecording, window: tuple[float, float] | None = None,
-                  max_gap_s: float = DEFAULT_MAX_GAP_S
+                  max_gap_s: float = DEFAULT_MAX_GAP_S,
+                  within: tuple[float, float] | None = None
                   ) -> tuple[int, int, Window, list[str]]:
     """The samples ``[i0, i1)`` of ``raw.t_acc`` to identify, the :class:`Window` and warnings
-    (see the module notes).
+    (see the module notes; ``window`` and ``within`` exclude each other).
 
     Raises
     ------
@@ -319,6 +324,10 @@ def select_window(raw: RawRecording, window: tuple[float, float] | None = None,
     long_gap = np.diff(t) > max(_gap_threshold(t), max_gap_s)  # after sample i
     axis = raw.axis or "the axis"
     flagged = raw.bypassed is not None and raw.limited is not None
+    if window is not None and within is not None:
+        raise DataError("a given window and bounds to search one in exclude each other")
+    if within is not None and not flagged:
+        window = within
     if window is not None:
         start, end = (float(x) for x in window)
         if not (math.isfinite(start) and math.isfinite(end) and start < end):
@@ -355,6 +364,11 @@ def select_window(raw: RawRecording, window: tuple[float, float] | None = None,
         return 0, n, Window(float(t[0]), float(t[-1]), n, "whole recording"), []
     assert raw.bypassed is not None and raw.limited is not None
     good = raw.bypassed & ~raw.limited
+    inside = ""
+    if within is not None:
+        lo, hi = (float(x) for x in within)
+        good = good & (t >= lo) & (t <= hi)
+        inside = f" inside {lo:.2f}-{hi:.2f} s"
     stretches = []
     for a, b in _runs(good):
         cuts = [a, *(np.flatnonzero(long_gap[a:b - 1]) + a + 1).tolist(), b]
@@ -378,12 +392,13 @@ def select_window(raw: RawRecording, window: tuple[float, float] | None = None,
                      f"({t[best[0]]:.2f}-{t[best[1] - 1]:.2f} s)" if best else
                      "no sample with the axis bypassed and not limited")
         raise DataError(f"{src}: {axis}: no stretch of {MIN_WINDOW_S:g} s or more with the axis "
-                        f"bypassed and not limited: {'; '.join(found)}; record the excitation "
+                        f"bypassed and not limited{inside}: {'; '.join(found)}; record the "
+                        "excitation "
                         f"with the axis bypassed (motcomp bypass on --axes {axis}) or choose a "
                         "window with --window START END")
     i0, i1 = best
     return i0, i1, Window(float(t[i0]), float(t[i1 - 1]), i1 - i0,
-                          "longest stretch bypassed and not limited"), []
+                          "longest stretch bypassed and not limited" + inside), []
 
 
 def _bridged(t: FloatArray, max_gap_s: float) -> tuple[Gaps, np.ndarray]:
@@ -407,7 +422,8 @@ def _merge(a: Gaps, b: Gaps) -> Gaps:
 
 def check_and_resample(raw: RawRecording, rate_hz: float | None = None,
                        max_gap_s: float = DEFAULT_MAX_GAP_S,
-                       window: tuple[float, float] | None = None) -> Recording:
+                       window: tuple[float, float] | None = None,
+                       within: tuple[float, float] | None = None) -> Recording:
     """Check a raw recording, choose its window (:func:`select_window`) and put it on a
     uniform grid.
 
@@ -429,7 +445,7 @@ def check_and_resample(raw: RawRecording, rate_hz: float | None = None,
     same = raw.t_cmd is raw.t_acc
     if not same:
         _check_time(raw.t_cmd, raw.cmd_place, src, "setpoint")
-    i0, i1, win, warnings = select_window(raw, window, max_gap_s)
+    i0, i1, win, warnings = select_window(raw, window, max_gap_s, within)
     t_acc, acc = raw.t_acc[i0:i1], raw.acc[i0:i1]
     if same:
         t_cmd, cmd = t_acc, raw.cmd[i0:i1]

@@ -38,6 +38,10 @@ __all__ = ["HilConfig", "HilPlatform", "default_truth", "run_hil", "summary_text
 
 log = logging.getLogger("motcomp.hil")
 
+AGE_BIN_S = 1e-5
+"""Resolution of the setpoint age's histogram (10 us); :data:`AGE_BINS` of them span 0.1 s."""
+AGE_BINS = 10_000
+
 
 def default_truth() -> tuple[list[ProcessModel], np.ndarray, np.ndarray, np.ndarray]:
     """Truth models and soft limits of the 8 axes from the ``rails`` and ``hexapod`` presets."""
@@ -108,9 +112,11 @@ class HilPlatform:
         """Periods simulated after a stall of the simulator's own loop."""
         self.age_sum = 0.0
         self.age_n = 0
-        """Sum and count of the setpoint frames' ages when applied: the period's start minus the
-        frame's ``t`` (the service's tick), i.e. the transport and this loop's tick phase that
-        the platform adds to the delay of its truth model, as the service's stamps see it."""
+        self.age_hist = np.zeros(AGE_BINS, dtype=np.int64)
+        """Sum, count and histogram (ages rounded to :data:`AGE_BIN_S`, the last bin open) of the
+        setpoint frames' ages when applied: the period's start minus the frame's ``t`` (the
+        service's tick), i.e. the transport and this loop's tick phase that the platform adds to
+        the delay of its truth model, as the service's stamps see it."""
         self._max_catch_up = max(1, round(self.max_catch_up_s * cfg.rate_hz))
         self._period_s = 1.0 / cfg.rate_hz
         self._queue: deque[tuple[float, dict[str, float]]] = deque()
@@ -141,11 +147,23 @@ class HilPlatform:
             self.take_axes(pos)
             self._judge_speed(t_frame)
             if math.isfinite(at):
-                self.age_sum += at - t_frame
+                age = at - t_frame
+                self.age_sum += age
                 self.age_n += 1
+                self.age_hist[min(max(round(age / AGE_BIN_S), 0), AGE_BINS - 1)] += 1
 
     @property
     def setpoint_age_s(self) -> float:
+        """Median age of the setpoint frames when applied, rounded to :data:`AGE_BIN_S` (nan
+        before any): the typical delay the stack adds, which a fit sees; a stall's
+        few late frames move the mean, not this."""
+        if not self.age_n:
+            return math.nan
+        k = int(np.searchsorted(np.cumsum(self.age_hist), (self.age_n + 1) // 2))
+        return k * AGE_BIN_S
+
+    @property
+    def setpoint_age_mean_s(self) -> float:
         """Mean age of the setpoint frames when applied (nan before any)."""
         return self.age_sum / self.age_n if self.age_n else math.nan
 
@@ -279,7 +297,8 @@ def summary_text(status: dict[str, Any], how: str = "stopped") -> str:
             f"{status['frames']} ({status['bad_frames']} bad)")
     age = status.get("setpoint_age_ms", math.nan)
     if math.isfinite(age):
-        text += f", applied {age:.2f} ms after their t on average"
+        text += (f", applied {age:.2f} ms after their t (median; mean "
+                 f"{status.get('setpoint_age_mean_ms', math.nan):.2f} ms)")
     can = status.get("can")
     if can is not None:
         text += (f"; CAN frames {can['received']} (CRC errors {can['crc_errors']}, alive "
@@ -294,6 +313,7 @@ def _status(plat: HilPlatform, clock: DeadlineClock, receiver: Any) -> dict[str,
         "t": time.time(), "ticks": clock.ticks, "missed_ticks": clock.missed,
         "caught_up": plat.caught_up, "frames": plat.frames, "bad_frames": plat.bad,
         "setpoint_age_ms": plat.setpoint_age_s * 1e3,
+        "setpoint_age_mean_ms": plat.setpoint_age_mean_s * 1e3,
         "violations": dict(zip(AXES, sim.violations.tolist(), strict=True)),
         "position": dict(zip(AXES, sim.position.tolist(), strict=True)),
     }
