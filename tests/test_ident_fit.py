@@ -15,7 +15,7 @@ from motcomp.core.models import OE, P1D, P2D, P2UZD, ProcessModel, parse_model
 from motcomp.ident.data import Recording
 from motcomp.ident.excitation import AxisRange, excitation
 from motcomp.ident.fit import (
-    DelayOutOfRange,
+    DelayRangeError,
     FitOptions,
     _Data,
     _response,
@@ -266,5 +266,5 @@ def test_a_structure_whose_delay_is_on_the_range_end_is_left_out_not_the_run() -
     assert 0.015 < ident.fits["p1d"].model.pure_delay_s < 0.030
     assert ident.errors["p2d"] == ("its best delay is at the lower end of the searched range "
                                    "(10.0 ms): on these data it trades its delay for its lags")
-    with pytest.raises(DelayOutOfRange, match=r"lower end \(30\.0 ms\) of \[30\.0, 100\.0\]"):
+    with pytest.raises(DelayRangeError, match=r"lower end \(30\.0 ms\) of \[30\.0, 100\.0\]"):
         identify(rec, FitOptions(models=("p1d", "p2d"), delay_min_s=0.030, delay_max_s=0.100))

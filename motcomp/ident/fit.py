@@ -97,7 +97,7 @@ from motcomp.ident.data import Recording
 from motcomp.ident.structures import STRUCTURES, Structure, make_structure
 
 __all__ = [
-    "DelayOutOfRange",
+    "DelayRangeError",
     "FitOptions",
     "Identification",
     "ModelFit",
@@ -535,7 +535,7 @@ def delay_bracket(prep: Prepared, lo_s: float, hi_s: float) -> Bracket:
                    ir_t_s=t, ir=np.asarray(g))
 
 
-class DelayOutOfRange(DataError):
+class DelayRangeError(DataError):
     """The best pure delay of a structure lies on ``side`` (``"lower"``, ``"upper"``) of the
     searched range, at ``value_s``."""
 
@@ -544,7 +544,7 @@ class DelayOutOfRange(DataError):
         self.side, self.value_s = side, value_s
 
 
-def _outside(side: str, value_s: float, lo_s: float, hi_s: float) -> DelayOutOfRange:
+def _outside(side: str, value_s: float, lo_s: float, hi_s: float) -> DelayRangeError:
     if side == "upper":
         hint = "widen the delay range (--delay-range)"
     elif lo_s > 0:
@@ -553,7 +553,7 @@ def _outside(side: str, value_s: float, lo_s: float, hi_s: float) -> DelayOutOfR
     else:
         hint = ("a delay of zero or less: the measurement may lead the command (clocks or "
                 "columns misaligned?)")
-    return DelayOutOfRange(f"pure delay outside the searched range: the best delay is at the "
+    return DelayRangeError(f"pure delay outside the searched range: the best delay is at the "
                            f"{side} end ({value_s * 1e3:.1f} ms) of [{lo_s * 1e3:.1f}, "
                            f"{hi_s * 1e3:.1f}] ms; {hint}", side, value_s)
 
@@ -1095,7 +1095,7 @@ def identify(rec: Recording, options: FitOptions = FitOptions(),
     bracket = delay_bracket(prep, options.delay_min_s, options.delay_max_s)
     fits: dict[str, ModelFit] = {}
     errors: dict[str, str] = {}
-    outside: dict[str, DelayOutOfRange] = {}
+    outside: dict[str, DelayRangeError] = {}
     for kind in sorted(options.models, key=STRUCTURES.index):
         s = make_structure(kind, options.oe_order, options.oe_pade)
         seed = fits.get("p2uzd") or fits.get("p2d") if kind == "oe" else None
@@ -1104,7 +1104,7 @@ def identify(rec: Recording, options: FitOptions = FitOptions(),
                                        start=seed.model if seed else None)
         except ModelFitError as exc:
             errors[kind] = str(exc)
-        except DelayOutOfRange as exc:
+        except DelayRangeError as exc:
             outside[kind] = exc
     if not fits and outside:
         raise next(iter(outside.values()))
