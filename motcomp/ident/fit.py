@@ -1108,10 +1108,10 @@ def identify(rec: Recording, options: FitOptions = FitOptions(),
             outside[kind] = exc
     if not fits and outside:
         raise next(iter(outside.values()))
-    for kind, exc in outside.items():  # others fitted: the data are fine, this structure is not
-        errors[kind] = (f"its best delay is at the {exc.side} end of the searched range "
-                        f"({exc.value_s * 1e3:.1f} ms): " +
-                        ("on these data it trades its delay for its lags" if exc.side == "lower"
+    for kind, out in outside.items():  # others fitted: the data are fine, this structure is not
+        errors[kind] = (f"its best delay is at the {out.side} end of the searched range "
+                        f"({out.value_s * 1e3:.1f} ms): " +
+                        ("on these data it trades its delay for its lags" if out.side == "lower"
                          else "widen the delay range (--delay-range) to fit it"))
     if not fits:
         raise ModelFitError("no model could be fitted: " + "; ".join(
