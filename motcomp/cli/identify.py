@@ -238,7 +238,7 @@ def _run_live(args: argparse.Namespace) -> None:
     compensated = int((~cols.bypassed[inside]).sum())
     print(f"live: {run.frames_sent} excitation frames on {args.axis} "
           f"({run.excitation['kind']}, {args.usage:g} of its limits) recorded to {run.path}; "
-          f"window {t0:.2f}-{t1:.2f} s; limiter acted on {limited} of {int(inside.sum())} "
+          f"excitation {t0:.2f}-{t1:.2f} s; limiter acted on {limited} of {int(inside.sum())} "
           f"feedback samples, compensation on at {compensated}; axis "
           f"{'left bypassed' if run.was_bypassed else 'compensated again'}", file=sys.stderr)
     args.within = (t0, t1)

@@ -113,10 +113,11 @@ class HilPlatform:
         self.age_sum = 0.0
         self.age_n = 0
         self.age_hist = np.zeros(AGE_BINS, dtype=np.int64)
-        """Sum, count and histogram (ages rounded to :data:`AGE_BIN_S`, the last bin open) of the
-        setpoint frames' ages when applied: the period's start minus the frame's ``t`` (the
-        service's tick), i.e. the transport and this loop's tick phase that the platform adds to
-        the delay of its truth model, as the service's stamps see it."""
+        """Sum, count and histogram (ages rounded to :data:`AGE_BIN_S`; below 0 and beyond the
+        last bin counted in the end bins) of the setpoint frames' ages when applied: the
+        period's start minus the frame's ``t`` (the service's tick), i.e. the transport and this
+        loop's tick phase that the platform adds to the delay of its truth model, as the
+        service's stamps see it."""
         self._max_catch_up = max(1, round(self.max_catch_up_s * cfg.rate_hz))
         self._period_s = 1.0 / cfg.rate_hz
         self._queue: deque[tuple[float, dict[str, float]]] = deque()
