@@ -9,8 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from motcomp.core.minjerk import min_jerk
 from motcomp.core.saturation import ACC, POS, RECOVER, VEL, AxisLimits, Saturator
 from motcomp.errors import ConfigError
+from motcomp.ident.excitation import AxisRange, excitation
 
 H = 1e-3
 
@@ -68,6 +70,34 @@ def test_step_is_met_without_overshoot_and_holds() -> None:
     assert out_a[-1] == pytest.approx(0.5, abs=1e-12)
     assert np.all(np.abs(out_a[-500:] - 0.5) < 1e-12)  # settled, no oscillation
     assert flags[0] & ACC and any(f & RECOVER for f in flags)
+
+
+def test_a_smooth_target_lost_for_a_moment_is_caught_again() -> None:
+    """The identification multisine (content up to 4 Hz, 3 m/s^2 at most, half the limit) held
+    for 0.3 s, then blended back over 0.5 s, as the service's reference does across a stale
+    input: the limiter acts from the hold and catches the target again 0.59 s after it began,
+    then passes it through bit-exactly.  With the tracker's velocity alone as the wall's it
+    caught it 1.02 s after (the tracker lags such a target by up to 0.04 m/s)."""
+    exc = excitation("multisine", "rails_y", AxisRange(-2.6, 2.6, 2.0, 6.0), duration_s=20.0,
+                     seed=0, usage=0.5)
+    ref = np.asarray(exc.cmd, dtype=float)
+    k0, k1, blend = 10_000, 10_300, 500
+    offset = ref[k0] - ref[k1]
+    ref[k0:k1] = ref[k0]
+    ref[k1:k1 + blend] += offset * (1.0 - min_jerk(np.arange(blend) / blend))
+    lim = AxisLimits([-2.6], [2.6], [2.0], [6.0])
+    sat = Saturator(lim, H, position=[ref[0]])
+    out = np.empty(ref.size)
+    flags = np.empty(ref.size, dtype=int)
+    for k, x in enumerate(ref.tolist()):
+        out[k] = sat.step([x])[0]
+        flags[k] = sat.flags[0]
+    check_sequence(out, ref[0], lim, H)
+    acted = np.flatnonzero(flags)
+    assert acted.size and acted[0] >= k0  # nothing to do before the hold
+    caught = int(acted[-1]) + 1
+    assert (caught - k0) * H <= 0.8
+    assert np.array_equal(out[caught:], ref[caught:])
 
 
 def test_braking_before_the_end_stop() -> None:

@@ -103,7 +103,14 @@ from motcomp.core.lti import FloatArray
 from motcomp.core.minjerk import min_jerk
 from motcomp.core.models import P1D, p1d_coefficients
 from motcomp.core.pid import PIDGains
-from motcomp.core.saturation import AxisLimits, axis_constants, check_position, limit_axis
+from motcomp.core.saturation import (
+    AxisLimits,
+    Track,
+    at_rest,
+    axis_constants,
+    check_position,
+    limit_axis,
+)
 from motcomp.errors import ConfigError
 
 __all__ = ["NONFINITE", "Compensator", "CompensatorState"]
@@ -129,6 +136,7 @@ class CompensatorState:
     u: FloatArray
     v: FloatArray
     tracker: FloatArray
+    """(n, 5): per axis, the limiter's :data:`~motcomp.core.saturation.Track`."""
     raw: FloatArray
     bypass: np.ndarray
     fade_offset: FloatArray
@@ -200,7 +208,7 @@ class Compensator:
         self._dy = [0.0] * n
         self.deviation = [0.0] * n
         """Per axis, emitted command minus its target at the last step (0 when feasible)."""
-        self._track = zeros * 3  # the limiter's target tracker: (p, v, a) per axis
+        self._track: list[Track] = [at_rest(0.0)] * n  # the limiter's view of its target
         self._hist_c = zeros * length  # axis i at [i * length, (i + 1) * length)
         self._hist_m = zeros * length
         self._bypass = [False] * n
@@ -368,7 +376,7 @@ class Compensator:
             buf[:] = values
         self._dr[:] = zeros
         self._dy[:] = zeros
-        self._track[:] = [x for pi in p for x in (pi, 0.0, 0.0)]
+        self._track[:] = [at_rest(pi) for pi in p]
         hist = [x for pi in p for x in [pi] * self._hist_len]
         self._hist_c[:] = hist
         self._hist_m[:] = hist
@@ -395,7 +403,7 @@ class Compensator:
             history_c=np.array(self._hist_c).reshape(self.n, self._hist_len),
             history_m=np.array(self._hist_m).reshape(self.n, self._hist_len),
             u=np.array(self._u), v=np.array(self._v),
-            tracker=np.array(self._track).reshape(self.n, 3), raw=np.array(self._raw),
+            tracker=np.array(self._track), raw=np.array(self._raw),
             bypass=np.array(self._bypass, dtype=bool),
             fade_offset=np.array(self._fade_offset),
             fade_progress=np.array(self._fade_progress),
@@ -467,9 +475,7 @@ class Compensator:
                     target = r
             else:
                 target = v
-            j = 3 * i
-            u, vs[i], trk[j], trk[j + 1], trk[j + 2], sat = limit_axis(
-                target, us[i], vs[i], trk[j], trk[j + 1], trk[j + 2], lim)
+            u, vs[i], trk[i], sat = limit_axis(target, us[i], vs[i], trk[i], lim)
             us[i] = u
             dev[i] = u - target
             if bypass[i]:

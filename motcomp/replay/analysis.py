@@ -29,7 +29,7 @@ import numpy as np
 
 from motcomp.config import ResolvedAxes, ServiceConfig
 from motcomp.core.axes import AXES
-from motcomp.core.saturation import axis_constants, limit_axis
+from motcomp.core.saturation import at_rest, axis_constants, limit_axis
 from motcomp.errors import ConfigError
 from motcomp.jsonsafe import finite
 from motcomp.record.frames import FLAG_BITS
@@ -105,9 +105,9 @@ def limiter_alone(ref: np.ndarray, lim: tuple[float, ...], p0: float) -> np.ndar
     :func:`~motcomp.core.saturation.axis_constants`), from rest at ``p0``: the command
     without compensation."""
     out = np.empty(ref.size)
-    u, v, sp, sv, sa = p0, 0.0, p0, 0.0, 0.0
+    u, v, track = p0, 0.0, at_rest(p0)
     for k, x in enumerate(ref.tolist()):
-        u, v, sp, sv, sa, _ = limit_axis(x, u, v, sp, sv, sa, lim)
+        u, v, track, _ = limit_axis(x, u, v, track, lim)
         out[k] = u
     return out
 
