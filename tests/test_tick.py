@@ -461,19 +461,20 @@ def test_catch_up_equals_ticking_every_deadline(name: str, k: int) -> None:
         else:
             assert step(a, params, m * MS, frame).u == step(b, params, m * MS, frame).u, m
         m += 1
-    assert checked > 50 and a.comp.state().k == b.comp.state().k
+    assert checked >= 20 and a.comp.state().k == b.comp.state().k
     assert b.ticks < a.ticks and b.accepted == a.accepted
 
 
 def test_a_longer_stall_is_caught_up_over_its_last_max_catch_up_deadlines() -> None:
-    """50 deadlines skipped: the compensator is stepped at the last MAX_CATCH_UP of them only,
-    as a loop that had been dead before those and then ticked them without input."""
+    """MAX_CATCH_UP + 30 deadlines skipped: the compensator is stepped at the last MAX_CATCH_UP
+    of them only, as a loop that had been dead before those and then ticked them without
+    input."""
     params, a = new_tick(config())
     _, b = new_tick(config())
     for m in range(1200):
         step(a, params, m * MS, motion_frame(m))
         step(b, params, m * MS, motion_frame(m))
-    skipped = 50
+    skipped = MAX_CATCH_UP + 30
     now = 1200 + skipped
     for j in range(now - MAX_CATCH_UP, now):
         step(a, params, j * MS)

@@ -43,8 +43,10 @@ Rules for edge cases
   compensator is first stepped at the ``min(skipped, MAX_CATCH_UP)`` deadlines just before
   ``now_ns``, with the reference of each (before this tick's frame is taken) and no output, so
   that its discrete dynamics stay on the real time grid instead of seeing the reference jump
-  several samples at once.  A longer stall is left to the stale-input rules.  One output per
-  call, never a burst.
+  several samples at once: their difference would reach the command as a derivative kick (a
+  36 ms stall of a loaded host, caught up over its last 20 periods only, kicked the rails'
+  command 0.4 m off and the limiter acted for 0.9 s).  A stall longer than ``MAX_CATCH_UP``
+  periods is caught up over its last ones.  One output per call, never a burst.
 * Saturation verdict (flag ``sat:<axis>``, ``limited``): a position or velocity bound acted
   (holding the end of the range for a target beyond it included), or the command departs from
   its target by more than ``saturation_tolerance`` on a 20 ms exponential average; the limiter
@@ -86,8 +88,10 @@ MAX_SEQ_STEP = 1000
 REJECT_REASONS: tuple[str, ...] = ("oversize", "decode", "schema", "type", "axis", "nonfinite",
                                    "range", "duplicate", "old", "internal")
 """Why an input frame was rejected (the status counts each)."""
-MAX_CATCH_UP = 20
-"""Longest stall (in periods) whose samples are computed afterwards."""
+MAX_CATCH_UP = 100
+"""Longest stall (in periods) whose samples are computed afterwards: a 100 ms stall costs the
+next tick about 100 reference and compensator steps (3-4 ms at 1 kHz, docs/BENCHMARKS.md
+``tick.step``), whose own overrun is caught up by the tick after."""
 MAX_ERROR_CHARS = 200
 """Longest text of a rejected frame's error (status ``last_reject``)."""
 _INPUT_KEYS = frozenset({"seq", "t", "pos"})
