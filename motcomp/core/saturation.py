@@ -27,7 +27,8 @@ acceleration limits, with the position flag raised while it is outside.  A targe
 range is treated as the nearest end of the range.
 
 A feasible target passes through bit-exactly; an infeasible one is approached without overshoot,
-at the velocity a third-order tracker estimates for it (see :func:`limit_axis`).
+as a wall moving at the target's velocity (a third-order tracker's estimate, corrected towards
+the target's own sample-to-sample velocity; see :func:`limit_axis`), and caught again.
 
 Flags (bit field per axis, every bound that changed the value this sample): :data:`POS` the
 position/braking bound, :data:`VEL` the velocity limit, :data:`ACC` the acceleration limit,
