@@ -7,7 +7,9 @@ rate...): :data:`RESTART_KEYS` lists the latter, and a reload that changes one i
 
 Per axis (``[axes.<name>]``, names from :data:`motcomp.core.axes.AXES`): the internal model
 (``model``, a compact spec; non-P1D models are reduced with ``to_p1d()``), the tuning (``rule``,
-or explicit ``gains``), ``bypass``, and the limits (``pos_min_m``... or ``pos_min_rad``...).
+or explicit ``gains``), ``bypass``, the predictive prefilter (``prediction``, as ``motcomp
+design`` writes it, and ``predict`` to switch it), and the limits (``pos_min_m``... or
+``pos_min_rad``...).
 A ``[defaults]`` table supplies any of these for every axis.  Axes not listed are not driven:
 they stay at neutral and are sent as such.
 """
@@ -30,6 +32,7 @@ from motcomp.core.axes import AXES
 from motcomp.core.compensator import Compensator
 from motcomp.core.models import P1D, ProcessModel, parse_model
 from motcomp.core.pid import PIDGains
+from motcomp.core.predictor import MonitorParams, PredictorParams
 from motcomp.core.saturation import AxisLimits
 from motcomp.core.shaper import ShaperParams
 from motcomp.core.tick import TickParams, TickState
@@ -85,14 +88,57 @@ class GainsConfig(BaseModel):
         return PIDGains.from_config(self.model_dump())
 
 
+class PredictionTable(BaseModel):
+    """An axis' predictive prefilter (:class:`motcomp.core.predictor.PredictorParams`), as
+    ``motcomp design`` writes it."""
+
+    model_config = _STRICT
+    pole_hz: float
+    rate_hz: float
+    band_hz: tuple[float, float] = (0.1, 2.0)
+    coeffs: list[float]
+
+    @model_validator(mode="after")
+    def _valid(self) -> PredictionTable:
+        self.to_params()  # raises ConfigError (a ValueError) with the reason
+        return self
+
+    def to_params(self) -> PredictorParams:
+        return PredictorParams(pole_hz=self.pole_hz, coeffs=tuple(self.coeffs),
+                               rate_hz=self.rate_hz, band_hz=self.band_hz)
+
+
+class PredictionConfig(BaseModel):
+    """The band monitor and the fallback of every predicted axis
+    (:class:`motcomp.core.predictor.MonitorParams`)."""
+
+    model_config = _STRICT
+    fallback_ratio: float = Field(0.3, gt=0.0, le=10.0)
+    resume_ratio: float = Field(0.15, gt=0.0, le=10.0)
+    resume_after_s: float = Field(0.5, ge=0.0, le=60.0)
+    fade_out_s: float = Field(0.03, ge=0.0, le=10.0)
+    fade_in_s: float = Field(0.5, ge=0.0, le=10.0)
+    floor: float = Field(1e-4, gt=0.0, le=1.0)
+
+    @model_validator(mode="after")
+    def _valid(self) -> PredictionConfig:
+        self.to_params()
+        return self
+
+    def to_params(self) -> MonitorParams:
+        return MonitorParams(**self.model_dump())
+
+
 class TuningConfig(BaseModel):
-    """What a scenario profile may set, for every axis or for one: the tuning and bypass."""
+    """What a scenario profile may set, for every axis or for one: the tuning, bypass and
+    whether a configured prediction is used."""
 
     model_config = _STRICT
     rule: str | None = None
     filter_n: float | None = Field(None, gt=0)
     gains: GainsConfig | None = None
     bypass: bool | None = None
+    predict: bool | None = None
 
     @field_validator("rule")
     @classmethod
@@ -114,6 +160,7 @@ class AxisConfig(TuningConfig, LimitsConfig):
 
     model_config = _STRICT
     model: str | None = None
+    prediction: PredictionTable | None = None
 
     @field_validator("model")
     @classmethod
@@ -239,6 +286,7 @@ class ServiceConfig(BaseModel):
     status: StatusConfig = StatusConfig()
     admin: AdminConfig = AdminConfig()
     zenoh: ZenohConfig = ZenohConfig()
+    prediction: PredictionConfig = PredictionConfig()
     defaults: AxisConfig = AxisConfig()
     axes: dict[str, AxisConfig] = {}
     profile: str | None = None
@@ -282,6 +330,10 @@ class ResolvedAxes:
     limits: AxisLimits
     bypass: tuple[bool, ...]
     warnings: tuple[str, ...]
+    prediction: tuple[PredictorParams | None, ...] = ()
+    """Per axis, the predictive prefilter (None: none)."""
+    predict: tuple[bool, ...] = ()
+    """Per axis, whether its prefilter is used (``predict``, default true)."""
 
 
 _UNDRIVEN_LIMITS = (-1.0, 1.0, 1.0, 1.0)  # an undriven axis is held at neutral
@@ -293,7 +345,7 @@ def _merged(defaults: AxisConfig, axis: AxisConfig) -> dict[str, Any]:
     return out
 
 
-_TUNING_KEYS = ("rule", "filter_n", "gains", "bypass")
+_TUNING_KEYS = ("rule", "filter_n", "gains", "bypass", "predict")
 
 
 def _tuning_layers(cfg: ServiceConfig, name: str, profile: str | None) -> list[dict[str, Any]]:
@@ -331,6 +383,8 @@ def resolve_axes(cfg: ServiceConfig, profile: str | None = "") -> ResolvedAxes:
     plants: list[ProcessModel] = []
     gains: list[PIDGains] = []
     bypass: list[bool] = []
+    prediction: list[PredictorParams | None] = []
+    predict: list[bool] = []
     driven: list[bool] = []
     rows: list[tuple[float, float, float, float]] = []
     warnings: list[str] = []
@@ -340,6 +394,8 @@ def resolve_axes(cfg: ServiceConfig, profile: str | None = "") -> ResolvedAxes:
             plants.append(models[-1])
             gains.append(PIDGains(kp=1.0))
             bypass.append(True)
+            prediction.append(None)
+            predict.append(False)
             driven.append(False)
             rows.append(_UNDRIVEN_LIMITS)
             continue
@@ -362,6 +418,13 @@ def resolve_axes(cfg: ServiceConfig, profile: str | None = "") -> ResolvedAxes:
             (ly for ly in reversed(layers) if "gains" in ly or "rule" in ly), {})
         bypass_on = next((ly["bypass"] for ly in reversed(layers) if "bypass" in ly), False)
         filter_n = next((ly["filter_n"] for ly in reversed(layers) if "filter_n" in ly), 10.0)
+        predict_on = next((ly["predict"] for ly in reversed(layers) if "predict" in ly), True)
+        table = cfg.axes[name].prediction or cfg.defaults.prediction
+        pred = table.to_params() if table is not None else None
+        if pred is not None and abs(pred.rate_hz - cfg.loop.rate_hz) > 1e-9 * cfg.loop.rate_hz:
+            raise ConfigError(f"{where}.prediction.rate_hz: designed for {pred.rate_hz:g} Hz, "
+                              f"the loop runs at {cfg.loop.rate_hz:g} Hz (loop.rate_hz): design "
+                              "it again for this rate (motcomp design --rate-hz)")
         if "gains" in tuning_layer:
             g = GainsConfig(**tuning_layer["gains"]).to_gains()
         else:
@@ -379,11 +442,13 @@ def resolve_axes(cfg: ServiceConfig, profile: str | None = "") -> ResolvedAxes:
         plants.append(plant)
         gains.append(g)
         bypass.append(bool(bypass_on))
+        prediction.append(pred)
+        predict.append(bool(predict_on) and pred is not None)
         driven.append(True)
     arr = np.array(rows, dtype=float)
     limits = AxisLimits(arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3], AXES)
     return ResolvedAxes(AXES, tuple(driven), tuple(models), tuple(plants), tuple(gains), limits,
-                        tuple(bypass), tuple(warnings))
+                        tuple(bypass), tuple(warnings), tuple(prediction), tuple(predict))
 
 
 def _format_error(source: str, exc: ValidationError) -> str:
@@ -770,7 +835,8 @@ def tick_params(cfg: ServiceConfig, axes: ResolvedAxes) -> TickParams:
         reconstruction=cfg.input.reconstruction, tick_s=1.0 / loop.rate_hz,
         max_extrapolation_s=cfg.input.max_extrapolation_s, lead_s=cfg.input.lead_s)
     return TickParams(loop.rate_hz, shaper, cfg.status.saturation_tolerance,
-                      cfg.input.max_frame_bytes)
+                      cfg.input.max_frame_bytes, prediction=axes.prediction,
+                      predict=axes.predict, monitor=cfg.prediction.to_params())
 
 
 def new_tick(cfg: ServiceConfig, axes: ResolvedAxes | None = None

@@ -14,9 +14,10 @@ and nothing else of the tick, so a replay computes with the very code that ran::
         v
      ReferenceShaper.on_input                   motcomp.core.shaper: start-up, stale, hold,
         |                                       rejoin, parking, linear reconstruction
-     now --> ReferenceShaper.reference --> r --> Compensator.step --> u  (motcomp.core.compensator:
-                                                    |                    PID, internal model,
-                                                    v                    limiter)
+     now --> ReferenceShaper.reference --> r --> Prediction.step --> r' --> Compensator.step --> u
+                                         (motcomp.core.predictor:  (motcomp.core.compensator:
+                                          prefilter, band monitor,  PID, internal model,
+                                          fallback)                 limiter)
                                      saturation verdict, flags --> TickOutput(seq, src_seq, u,
                                                                    flags, limited, mode)
 
@@ -51,8 +52,15 @@ Rules for edge cases
   (holding the end of the range for a target beyond it included), or the command departs from
   its target by more than ``saturation_tolerance`` on a 20 ms exponential average; the limiter
   absorbing zero-mean jitter is not a saturation.
+* Prediction (axes with a ``prediction``): used while the shaper's mode is live (``""``), the
+  config's ``predict`` is true and compensation is on (:func:`set_bypass` turns it off with the
+  PID; an axis the config bypasses keeps its prediction when compensation is turned back on);
+  otherwise, and while the band monitor finds the reference outside the band, it falls back to
+  the plain reference, bumplessly (:mod:`motcomp.core.predictor`).  A change of its parameters
+  (a reload) is taken at the next tick, bumplessly.
 * Flags, in this order: the shaper's mode (``rejoin``, ``stale``, ``parking``) if any, then
-  ``sat:<axis>`` per limited axis, then ``bypass:<axis>`` per driven axis in bypass.
+  ``sat:<axis>`` per limited axis, then ``bypass:<axis>`` per driven axis in bypass, then
+  ``fallback:<axis>`` per axis whose prediction is wanted but fallen back.
 """
 
 from __future__ import annotations
@@ -65,6 +73,7 @@ import msgpack
 
 from motcomp.core.axes import AXES, AXIS_INDEX
 from motcomp.core.compensator import Compensator
+from motcomp.core.predictor import MonitorParams, Prediction, PredictorParams
 from motcomp.core.saturation import POS, VEL
 from motcomp.core.shaper import ReferenceShaper, ShaperParams
 from motcomp.errors import FrameError
@@ -79,6 +88,7 @@ __all__ = [
     "is_parked",
     "park",
     "parse_input",
+    "prediction_status",
     "set_bypass",
     "step",
 ]
@@ -98,6 +108,7 @@ _INPUT_KEYS = frozenset({"seq", "t", "pos"})
 _HARD_BITS = POS | VEL
 _SAT_FLAGS = tuple(f"sat:{a}" for a in AXES)
 _BYPASS_FLAGS = tuple(f"bypass:{a}" for a in AXES)
+_FALLBACK_FLAGS = tuple(f"fallback:{a}" for a in AXES)
 _unpackb = msgpack.unpackb
 
 
@@ -111,6 +122,12 @@ class TickParams:
     """Departure (axis units, 20 ms average) from the target that counts as saturated."""
     max_frame_bytes: int = 4096
     """Longest input frame read; a larger one is rejected (``oversize``)."""
+    prediction: tuple[PredictorParams | None, ...] = ()
+    """Per axis (:data:`AXES` order), the predictive prefilter; empty or None: none."""
+    predict: tuple[bool, ...] = ()
+    """Per axis, whether the prefilter is used (the config's ``predict``)."""
+    monitor: MonitorParams = MonitorParams()  # noqa: RUF009 (frozen, immutable)
+    """The prediction's band monitor and fallback."""
 
     @property
     def period_ns(self) -> int:
@@ -160,7 +177,20 @@ class TickState:
         self._dev_lp = [0.0] * n
         self.bypass_flags: list[str] = []
         self._driven = tuple(driven)
+        self.pred = Prediction([None] * n, MonitorParams(), comp.rate_hz)
+        """The prefilters (:mod:`motcomp.core.predictor`), configured from the params at the
+        first tick and after a reload."""
+        self._pred_src: tuple[PredictorParams | None, ...] | None = None
+        self._pred_wanted = [False] * n
+        self._pred_params_predict: tuple[bool, ...] = ()
+        self._comp_off = [False] * n
+        self._ref = [0.0] * n
         _set_bypass_flags(self)
+
+    @property
+    def prediction_off(self) -> list[bool]:
+        """Per axis, prediction turned off with compensation (:func:`set_bypass`)."""
+        return list(self._comp_off)
 
     @property
     def rejected(self) -> int:
@@ -181,10 +211,13 @@ def step(state: TickState, p: TickParams, now_ns: int,
     payload."""
     now = now_ns / 1e9
     shaper, sp = state.shaper, p.shaper
+    if p.prediction is not state._pred_src:
+        _sync_prediction(state, p)
     if skipped > 0:  # before the frame: the ticks at those deadlines would not have seen it
         period = p.period_ns
         for j in range(min(skipped, MAX_CATCH_UP), 0, -1):
-            state.comp.step(shaper.reference(sp, (now_ns - j * period) / 1e9)[0])
+            r, m = shaper.reference(sp, (now_ns - j * period) / 1e9)
+            state.comp.step(_predicted(state, r, m))
     if payload is not None:
         if isinstance(payload, bytes | bytearray | memoryview):
             _take(state, p, now, bytes(payload))
@@ -196,7 +229,7 @@ def step(state: TickState, p: TickParams, now_ns: int,
                 _take(state, p, now, frame)
     ref, mode = shaper.reference(sp, now)
     comp = state.comp
-    u = comp.step(ref)
+    u = comp.step(_predicted(state, ref, mode))
     flags = [mode] if mode else []
     limited = [False] * len(u)
     sat, lp, dev, acted = state.sat, state._dev_lp, comp.deviation, state.acted
@@ -216,10 +249,46 @@ def step(state: TickState, p: TickParams, now_ns: int,
             limited[i] = True
             flags.append(_SAT_FLAGS[i])
     flags.extend(state.bypass_flags)
+    if state.pred.idx:
+        wanted = state._pred_wanted
+        for i, on in enumerate(state.pred.predicting()):
+            if wanted[i] and not on:
+                flags.append(_FALLBACK_FLAGS[i])
     out = TickOutput(state.ticks, state.src_seq, u, flags, limited, mode)
     state.ticks += 1
     state.mode = mode or "running"
     return out
+
+
+def _sync_prediction(state: TickState, p: TickParams) -> None:
+    """Take the params' prediction (first tick, reload), bumplessly; a set the loop cannot use
+    (designed for another rate) was refused by the config already and is ignored here."""
+    n = state.comp.n
+    params = tuple(p.prediction) + (None,) * (n - len(p.prediction))
+    state.pred.set_params(params, p.monitor, state._ref)
+    state._pred_src = p.prediction
+    predict = tuple(p.predict) + (False,) * (n - len(p.predict))
+    state._pred_params_predict = predict
+    _set_pred_wanted(state)
+
+
+def _set_pred_wanted(state: TickState) -> None:
+    """Prediction wanted per axis: configured, ``predict`` on, compensation not turned off."""
+    predict = state._pred_params_predict
+    off = state._comp_off
+    state._pred_wanted = [bool(i < len(predict) and predict[i]) and not off[i]
+                          and state.pred.params[i] is not None for i in range(state.comp.n)]
+
+
+def _predicted(state: TickState, ref: list[float], mode: str) -> list[float]:
+    """The reference through the prediction (unchanged without one)."""
+    state._ref = ref
+    pred = state.pred
+    if not pred.idx:
+        return ref
+    wanted = state._pred_wanted
+    live = [w and not mode for w in wanted]
+    return pred.step(ref, live)
 
 
 def _take(state: TickState, p: TickParams, now: float, payload: bytes) -> None:
@@ -323,15 +392,35 @@ def _describe(x: object) -> str:
 
 
 # --- between ticks: bypass, parking ----------------------------------------------------------
-def set_bypass(state: TickState, mask: Sequence[bool]) -> list[str]:
-    """Compensation off (True) or on (False) per axis, bumplessly; entries of undriven axes are
-    ignored.  Returns the axes in bypass."""
+def set_bypass(state: TickState, mask: Sequence[bool],
+               prediction_off: Sequence[bool] | None = None) -> list[str]:
+    """PID off (True) or on (False) per axis, bumplessly; entries of undriven axes are ignored.
+    ``prediction_off`` (default: ``mask``) turns the axes' prediction off (True) or back on, as
+    far as the config uses it.  Returns the axes in bypass."""
     comp = state.comp
     new = [bool(m) if d else bool(b) for m, d, b in zip(mask, state._driven, comp.bypass,
                                                        strict=True)]
     comp.set_bypass(new)
+    off = mask if prediction_off is None else prediction_off
+    state._comp_off = [bool(o) if d else True for o, d in zip(off, state._driven, strict=True)]
     _set_bypass_flags(state)
+    _set_pred_wanted(state)
     return [a for a, b in zip(AXES, comp.bypass, strict=True) if b]
+
+
+def prediction_status(state: TickState) -> dict[str, dict[str, object]]:
+    """Per axis with a prediction: ``state`` (``predicting``, ``fallback`` -- wanted but the
+    band monitor or the shaper's mode holds it off -- or ``off``), the prediction's share
+    ``weight`` (0-1), the monitor's ``ratio`` and the count of ``fallbacks``."""
+    pred = state.pred
+    on = pred.predicting()
+    out: dict[str, dict[str, object]] = {}
+    for i in pred.idx:
+        wanted = state._pred_wanted[i]
+        out[AXES[i]] = {"state": ("predicting" if on[i] else "fallback") if wanted else "off",
+                        "weight": pred.weight[i], "ratio": pred.ratio[i],
+                        "fallbacks": pred.fallbacks[i]}
+    return out
 
 
 def _set_bypass_flags(state: TickState) -> None:

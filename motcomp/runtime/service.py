@@ -49,6 +49,7 @@ from motcomp.core.tick import (
     TickState,
     is_parked,
     park,
+    prediction_status,
     set_bypass,
     step,
 )
@@ -244,12 +245,16 @@ class Service:
     # --- configuration changes (main thread builds, loop thread swaps) ---------------------
     def request_bypass(self, on: bool, axes: list[str] | None = None) -> list[str]:
         """Queue a bumpless bypass change for the given driven axes; returns the axes in bypass
-        once the loop applied it.  Without ``axes``: bypass on for every driven axis, bypass off
-        (compensation back on) only for the driven axes that the running config compensates --
-        an axis the config bypasses on purpose (e.g. a delay-dominated one) stays bypassed."""
+        once the loop applied it.  Bypass on turns the axis' PID and its prediction off.  Without
+        ``axes``: bypass on for every driven axis, bypass off (compensation back on) only for the
+        driven axes that the running config compensates -- an axis the config bypasses on
+        purpose (e.g. a delay-dominated one) keeps its PID bypassed and gets its prediction back
+        (if it has one)."""
+        cfg_axes = self.axes
         names = list(axes) if axes is not None else [
-            a for a, d, b in zip(AXES, self.axes.driven, self.axes.bypass, strict=True)
-            if d and (on or not b)]
+            a for a, d, b, p in zip(AXES, cfg_axes.driven, cfg_axes.bypass, cfg_axes.predict,
+                                    strict=True)
+            if d and (on or not b or p)]
         unknown = [a for a in names if a not in AXES]
         if unknown:
             raise ConfigError(f"unknown axis {str(unknown[0])[:40]!r}; axes: {', '.join(AXES)}")
@@ -257,9 +262,15 @@ class Service:
         done = threading.Event()
 
         def apply() -> None:
-            mask = [on if a in names else b
-                    for a, b in zip(AXES, self.state.comp.bypass, strict=True)]
-            result.extend(set_bypass(self.state, mask))
+            # compensation off: PID and prediction; back on: prediction, and the PID unless
+            # the config bypasses it and no axis was named
+            pid = list(self.state.comp.bypass)
+            off = list(self.state.prediction_off)
+            for i, a in enumerate(AXES):
+                if a in names:
+                    off[i] = on
+                    pid[i] = on or (axes is None and cfg_axes.bypass[i])
+            result.extend(set_bypass(self.state, pid, off))
             done.set()
 
         self.run_between_ticks(apply, done, "the bypass change")
@@ -289,7 +300,7 @@ class Service:
             comp = self.state.comp
             comp.reconfigure(new.axes.models, new.axes.gains, new.axes.limits)
             comp.set_fade(new.cfg.loop.bypass_fade_s)
-            set_bypass(self.state, new.axes.bypass)
+            set_bypass(self.state, new.axes.bypass, [False] * len(AXES))
             self.params = new.params
             self.cfg = new.cfg
             self.axes = new.axes
@@ -328,6 +339,7 @@ class Service:
             "stale_episodes": shaper.stale_episodes,
             "saturation": dict(zip(AXES, st.sat, strict=True)),
             "bypass": [a for a, b in zip(AXES, st.comp.bypass, strict=True) if b],
+            "prediction": prediction_status(st),
             "profile": self.cfg.profile,
             "profiles": sorted(self.cfg.profiles),
             "driven": [a for a, d in zip(AXES, self.axes.driven, strict=True) if d],

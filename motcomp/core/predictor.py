@@ -1,0 +1,411 @@
+"""The predictive prefilter: phase lead over the driver band, for delay-dominated axes.
+
+A pure delay cannot be cancelled by a PID around a model, but the compensator is feed-forward:
+nothing measured comes back, so what limits a prefilter is a trade-off, not stability.  The
+driver's inputs are band-limited (0-2 Hz), so the reference can be predicted some tens of
+milliseconds ahead at the price of some gain above the band.  Per axis::
+
+     r --+--> F(z) = d + sum_k c_k L_k(z) --> r_pred --+
+         |                                              (blend w) --> r' --> compensator
+         +--------------------------------------------> r --------+
+         |
+         +--> band monitor: out-of-band / in-band amplitude --> w: 1 (predict) <-> 0 (fallback)
+
+``L_k`` are the discrete Laguerre functions of pole ``a = exp(-2 pi pole_hz / rate_hz)``::
+
+    L_k(z) = sqrt(1 - a^2) / (1 - a z^-1) * ((z^-1 - a) / (1 - a z^-1))^k,   k = 0 .. N-1
+
+an orthonormal basis of stable filters, so that the coefficients ``(d, c_0 .. c_{N-1})`` are
+found by a linear programme (:mod:`motcomp.design.predictor`) and the filter is stable whatever
+they are.  Realisation (``l_k`` the output of ``L_k``, computed in order of ``k``)::
+
+    l_0[n] = a l_0[n-1] + sqrt(1 - a^2) r[n]
+    l_k[n] = a l_k[n-1] + l_{k-1}[n-1] - a l_{k-1}[n]
+    r_pred[n] = d r[n] + sum_k c_k l_k[n]
+
+written as ``l[n] = A l[n-1] + B r[n]`` (A lower triangular).  A designed filter has
+``F(1) = 1``: a constant reference is passed unchanged.
+
+Band monitor and fallback (the rule; docs/TUNING.md "Predictive prefilter" has the why)::
+
+    hi[n]   = |HP2(r)|,  2nd-order Butterworth high-pass at HIGH_CUT x the design band's top
+    lo[n]   = |HP1(r)|,  1st-order high-pass at LOW_CUT_HZ (removes the offset)
+    env     = peak hold with exponential decay over ENVELOPE_S, of each
+    ratio   = env_hi / (env_lo + floor)
+    ratio > fallback_ratio                         -> fallback (w fades to 0 over fade_out_s)
+    ratio < resume_ratio for resume_after_s        -> predict  (w fades to 1 over fade_in_s)
+    the reference not live (start-up, stale, rejoin, parking)  -> fallback, forced
+
+``r' = r + w (r_pred - r)``; ``w`` moves along the minimum-jerk blend from wherever it is, so
+the switch is continuous in position and velocity both ways.  The filter runs in fallback too,
+so that it is warm when prediction resumes.  A change of the parameters (a reload) starts the new
+filter at rest at the current reference and fades the difference between the old and the new
+output out over ``fade_in_s``: no jump.  Non-finite reference: the filter is not advanced (the
+compensator holds the last finite reference itself).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from motcomp.core.lti import ComplexArray, FloatArray
+from motcomp.core.minjerk import min_jerk
+from motcomp.errors import ConfigError
+
+__all__ = [
+    "ENVELOPE_S",
+    "HIGH_CUT",
+    "LOW_CUT_HZ",
+    "MonitorParams",
+    "Prediction",
+    "PredictorParams",
+    "laguerre_basis",
+    "predictor_freqresp",
+    "realisation",
+]
+
+HIGH_CUT = 3.0
+"""The monitor's high-pass corner, in multiples of the design band's top: a sine at the band's
+top reads a ratio of 0.11, at 1.2x the top 0.15 (``resume_ratio``), at 1.7x 0.3
+(``fallback_ratio``)."""
+LOW_CUT_HZ = 0.05
+"""Corner of the in-band amplitude's high-pass (removes the reference's offset)."""
+ENVELOPE_S = 0.2
+"""Decay time constant of the band monitor's peak-hold envelopes."""
+MAX_ORDER = 64
+"""Largest number of Laguerre functions of a predictor."""
+
+
+@dataclass(frozen=True)
+class PredictorParams:
+    """One axis' prefilter ``F(z) = d + sum_k c_k L_k(z)`` (see the module docstring).
+
+    Parameters
+    ----------
+    pole_hz
+        Pole of the Laguerre functions (Hz; ``a = exp(-2 pi pole_hz / rate_hz)``).
+    coeffs
+        ``(d, c_0, ..., c_{N-1})``, ``1 <= N <= MAX_ORDER``.
+    rate_hz
+        Loop rate the filter was designed for (its coefficients hold at that rate only).
+    band_hz
+        The driver band it was designed for; the monitor watches above ``HIGH_CUT x band_hz[1]``.
+
+    Raises
+    ------
+    ConfigError
+        Non-finite values, a pole outside ``(0, rate/2)``, an empty or too long basis, a band
+        that is not ``0 < low < high < rate/8``, or ``|F(1) - 1| > 1e-6``.
+    """
+
+    pole_hz: float
+    coeffs: tuple[float, ...]
+    rate_hz: float
+    band_hz: tuple[float, float] = (0.1, 2.0)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "coeffs", tuple(float(c) for c in self.coeffs))
+        object.__setattr__(self, "band_hz", tuple(float(b) for b in self.band_hz))
+        for name, v in (("pole_hz", self.pole_hz), ("rate_hz", self.rate_hz)):
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+                raise ConfigError(f"prediction.{name} must be a positive finite number, got {v!r}")
+        if not self.pole_hz < self.rate_hz / 2:
+            raise ConfigError(f"prediction.pole_hz = {self.pole_hz:g} must lie below the "
+                              f"Nyquist frequency {self.rate_hz / 2:g} Hz")
+        n = len(self.coeffs) - 1
+        if not 1 <= n <= MAX_ORDER:
+            raise ConfigError(f"prediction.coeffs must hold 2 to {MAX_ORDER + 1} numbers "
+                              f"(d, then one per Laguerre function), got {n + 1}")
+        bad = [i for i, c in enumerate(self.coeffs) if not math.isfinite(c)]
+        if bad:
+            raise ConfigError(f"prediction.coeffs[{bad[0]}] is {self.coeffs[bad[0]]!r}")
+        lo, hi = self.band_hz
+        if not (len(self.band_hz) == 2 and 0 < lo < hi < self.rate_hz / 8):
+            raise ConfigError(f"prediction.band_hz must satisfy 0 < low < high < rate/8, got "
+                              f"{list(self.band_hz)}")
+        dc = self.dc_gain
+        if abs(dc - 1.0) > 1e-6:
+            raise ConfigError(f"prediction: the filter's static gain F(1) is {dc:.9g}, not 1 "
+                              "(a predictor must pass a constant reference unchanged)")
+
+    @property
+    def order(self) -> int:
+        """Number of Laguerre functions ``N``."""
+        return len(self.coeffs) - 1
+
+    @property
+    def pole(self) -> float:
+        """The discrete pole ``a``."""
+        return math.exp(-2.0 * math.pi * self.pole_hz / self.rate_hz)
+
+    @property
+    def dc_gain(self) -> float:
+        """``F(1)``, the static gain (1 for a designed filter)."""
+        return float(predictor_freqresp(self, [0.0])[0].real)
+
+    def to_config(self) -> dict[str, object]:
+        """The ``prediction`` table of an axis (:mod:`motcomp.config`)."""
+        return {"pole_hz": self.pole_hz, "rate_hz": self.rate_hz,
+                "band_hz": list(self.band_hz), "coeffs": list(self.coeffs)}
+
+
+@dataclass(frozen=True)
+class MonitorParams:
+    """The band monitor's thresholds and the fallback's blend times (one set for all axes).
+
+    Raises
+    ------
+    ConfigError
+        ``resume_ratio`` not below ``fallback_ratio``, or a negative or non-finite value.
+    """
+
+    fallback_ratio: float = 0.3
+    resume_ratio: float = 0.15
+    resume_after_s: float = 0.5
+    fade_out_s: float = 0.03
+    fade_in_s: float = 0.5
+    floor: float = 1e-4
+    """Added to the in-band amplitude (axis units): motion smaller than this is not judged."""
+
+    def __post_init__(self) -> None:
+        for name in ("fallback_ratio", "resume_ratio", "resume_after_s", "fade_out_s",
+                     "fade_in_s", "floor"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+                raise ConfigError(f"prediction.{name} must be finite and >= 0, got {v!r}")
+        if not 0 < self.resume_ratio < self.fallback_ratio:
+            raise ConfigError(f"prediction: resume_ratio ({self.resume_ratio:g}) must lie in "
+                              f"(0, fallback_ratio = {self.fallback_ratio:g})")
+        if self.floor <= 0:
+            raise ConfigError(f"prediction.floor must be > 0, got {self.floor!r}")
+
+
+def laguerre_basis(pole: float, order: int, z: ArrayLike) -> ComplexArray:
+    """``(len(z), order + 1)`` matrix: ``1, L_0(z), ..., L_{N-1}(z)`` (closed form)."""
+    zi = 1.0 / np.asarray(z, dtype=complex)
+    a = pole
+    l0 = math.sqrt(1.0 - a * a) / (1.0 - a * zi)
+    ap = (zi - a) / (1.0 - a * zi)
+    cols = [np.ones_like(zi), l0]
+    for _ in range(order - 1):
+        cols.append(cols[-1] * ap)
+    return np.stack(cols, axis=1)
+
+
+def predictor_freqresp(p: PredictorParams, f_hz: ArrayLike) -> ComplexArray:
+    """Exact frequency response ``F(e^{j 2 pi f / rate})`` of the prefilter."""
+    f = np.atleast_1d(np.asarray(f_hz, dtype=float))
+    z = np.exp(2j * np.pi * f / p.rate_hz)
+    return np.asarray(laguerre_basis(p.pole, p.order, z) @ np.asarray(p.coeffs))
+
+
+def realisation(p: PredictorParams) -> tuple[FloatArray, FloatArray, FloatArray, float]:
+    """``(A, B, C, D)`` with ``l[n] = A l[n-1] + B r[n]``, ``r_pred[n] = C l[n] + D r[n]``."""
+    n, a = p.order, p.pole
+    s = math.sqrt(1.0 - a * a)
+
+    def advance(prev: FloatArray, r: float) -> FloatArray:
+        new = np.empty(n)
+        new[0] = a * prev[0] + s * r
+        for k in range(1, n):
+            new[k] = a * prev[k] + prev[k - 1] - a * new[k - 1]
+        return new
+
+    eye = np.eye(n)
+    big_a = np.stack([advance(eye[j], 0.0) for j in range(n)], axis=1)
+    big_b = advance(np.zeros(n), 1.0)
+    return big_a, big_b, np.asarray(p.coeffs[1:], dtype=float), float(p.coeffs[0])
+
+
+def _highpass2(fc_hz: float, rate_hz: float) -> tuple[float, ...]:
+    """Butterworth 2nd-order high-pass biquad ``(b0, b1, b2, a1, a2)`` (bilinear, prewarped)."""
+    k = math.tan(math.pi * fc_hz / rate_hz)
+    q = 1.0 / math.sqrt(2.0)
+    norm = 1.0 / (1.0 + k / q + k * k)
+    return (norm, -2.0 * norm, norm, 2.0 * (k * k - 1.0) * norm, (1.0 - k / q + k * k) * norm)
+
+
+class Prediction:
+    """The prefilters and band monitors of ``n`` axes, stepped once a tick.
+
+    ``params[i]`` None: axis ``i`` is not predicted (its reference passes unchanged).
+    """
+
+    def __init__(self, params: Sequence[PredictorParams | None], monitor: MonitorParams,
+                 rate_hz: float) -> None:
+        self.n = len(params)
+        self.rate_hz = float(rate_hz)
+        self.dt_s = 1.0 / self.rate_hz
+        self.params: tuple[PredictorParams | None, ...] = ()
+        self.monitor = monitor
+        self.ratio = [0.0] * self.n
+        """The band monitor's last ratio per axis (0 where not predicted)."""
+        self.weight = [0.0] * self.n
+        """Share of the prediction in the reference per axis: 1 predicting, 0 fallen back."""
+        self.fallbacks = [0] * self.n
+        """Times each axis fell back."""
+        self._configure(params, None)
+
+    # --- configuration ------------------------------------------------------------------------
+    def _configure(self, params: Sequence[PredictorParams | None],
+                   ref: Sequence[float] | None) -> None:
+        if len(params) != self.n:
+            raise ConfigError(f"{len(params)} predictors for {self.n} axes")
+        for i, p in enumerate(params):
+            if p is not None and abs(p.rate_hz - self.rate_hz) > 1e-9 * self.rate_hz:
+                raise ConfigError(f"prediction of axis {i} was designed for {p.rate_hz:g} Hz, "
+                                  f"the loop runs at {self.rate_hz:g} Hz: design it again")
+        old_out = None if ref is None or not self.params else self._outputs(ref)
+        self.params = tuple(params)
+        self.idx = [i for i, p in enumerate(params) if p is not None]
+        m = len(self.idx)
+        order = max((p.order for p in params if p is not None), default=1)
+        self._a = np.zeros((m, order, order))
+        self._b = np.zeros((m, order))
+        self._c = np.zeros((m, order))
+        self._d = np.zeros(m)
+        hp = []
+        for j, i in enumerate(self.idx):
+            p = params[i]
+            assert p is not None
+            a, b, c, d = realisation(p)
+            n = p.order
+            self._a[j, :n, :n] = a
+            self._b[j, :n] = b
+            self._c[j, :n] = c
+            self._d[j] = d
+            hp.append(_highpass2(HIGH_CUT * p.band_hz[1], self.rate_hz))
+        self._hp = np.array(hp).reshape(m, 5)
+        self._lo_a = math.exp(-2.0 * math.pi * LOW_CUT_HZ * self.dt_s)
+        self._decay = math.exp(-self.dt_s / ENVELOPE_S)
+        r = np.zeros(m) if ref is None else np.array([ref[i] for i in self.idx], dtype=float)
+        self._seed(r)
+        # per predicted axis: blend weight, its start and progress, the calm time, the mode
+        self._w = np.zeros(m)
+        self._w0 = np.zeros(m)
+        self._progress = np.ones(m)
+        self._target = np.zeros(m)
+        self._calm = np.zeros(m)
+        self._offset = np.zeros(m)
+        self._offset_progress = np.ones(m)
+        if old_out is not None and m:
+            new_out = self._outputs(ref)  # type: ignore[arg-type]
+            self._offset = np.array([old_out[i] - new_out[i] for i in self.idx])
+            self._offset_progress = np.zeros(m)
+        self.weight = [0.0] * self.n
+        self.ratio = [0.0] * self.n
+
+    def _seed(self, r: FloatArray) -> None:
+        """Every filter at rest at the reference ``r`` (predicted axes)."""
+        m, order = self._b.shape
+        self._l = np.zeros((m, order))
+        for j in range(m):
+            n = self.params[self.idx[j]].order  # type: ignore[union-attr]
+            a = self._a[j, :n, :n]
+            self._l[j, :n] = np.linalg.solve(np.eye(n) - a, self._b[j, :n]) * r[j]
+        self._r_last = r.copy()
+        self._hp_x = np.stack([r, r], axis=1) if m else np.zeros((0, 2))
+        self._hp_y = np.zeros((m, 2))
+        self._lo_y = np.zeros(m)
+        self._env_hi = np.zeros(m)
+        self._env_lo = np.zeros(m)
+        self._pred = r.copy()
+
+    def set_params(self, params: Sequence[PredictorParams | None], monitor: MonitorParams,
+                   reference: Sequence[float]) -> None:
+        """Swap parameters between two steps, bumplessly (see the module docstring);
+        ``reference`` is the last reference stepped.  Unchanged parameters keep their state."""
+        self.monitor = monitor
+        if tuple(params) == self.params:
+            return
+        self._configure(params, reference)
+
+    # --- the step -----------------------------------------------------------------------------
+    def _outputs(self, ref: Sequence[float]) -> list[float]:
+        """What :meth:`step` returned last, given the reference it was stepped with."""
+        out = list(ref)
+        for j, i in enumerate(self.idx):
+            off = self._offset[j] * (1.0 - min_jerk(self._offset_progress[j]))
+            out[i] = ref[i] + self._w[j] * (self._pred[j] - ref[i]) + off
+        return out
+
+    def step(self, reference: Sequence[float], live: bool | Sequence[bool] = True
+             ) -> list[float]:
+        """Advance one sample with ``reference`` (``n`` values); return the reference to
+        compensate.  ``live`` (one for all axes, or per axis) False forces the fallback: the
+        reference is a hold, ramp or blend of the shaper's, or prediction is switched off."""
+        if not self.idx:
+            return list(reference)
+        r = np.array([reference[i] for i in self.idx], dtype=float)
+        finite = np.isfinite(r)
+        if not finite.all():
+            r = np.where(finite, r, self._r_last)
+        mon = self.monitor
+        # the prefilter
+        self._l = np.einsum("jkl,jl->jk", self._a, self._l) + self._b * r[:, None]
+        pred = np.einsum("jk,jk->j", self._c, self._l) + self._d * r
+        self._pred = pred
+        # band monitor
+        b0, b1, b2, a1, a2 = self._hp.T
+        x1, x2 = self._hp_x[:, 0], self._hp_x[:, 1]
+        y1, y2 = self._hp_y[:, 0], self._hp_y[:, 1]
+        hi = b0 * r + b1 * x1 + b2 * x2 - a1 * y1 - a2 * y2
+        self._hp_x = np.stack([r, x1], axis=1)
+        self._hp_y = np.stack([hi, y1], axis=1)
+        lo = self._lo_a * (self._lo_y + r - self._r_last)
+        self._lo_y = lo
+        self._r_last = r
+        self._env_hi = np.maximum(np.abs(hi), self._decay * self._env_hi)
+        self._env_lo = np.maximum(np.abs(lo), self._decay * self._env_lo)
+        ratio = self._env_hi / (self._env_lo + mon.floor)
+        # the rule
+        calm = ratio < mon.resume_ratio
+        self._calm = np.where(calm, self._calm + self.dt_s, 0.0)
+        if isinstance(live, bool):
+            on = np.full(len(self.idx), live)
+        else:
+            on = np.array([bool(live[i]) for i in self.idx])
+        self._calm = np.where(on, self._calm, 0.0)
+        want = np.where(~on | (ratio > mon.fallback_ratio), 0.0,
+                        np.where(self._calm >= mon.resume_after_s, 1.0, self._target))
+        changed = want != self._target
+        if changed.any():
+            for jj in np.nonzero(changed & (want == 0.0))[0].tolist():
+                self.fallbacks[self.idx[jj]] += 1
+            self._w0 = np.where(changed, self._w, self._w0)
+            self._progress = np.where(changed, 0.0, self._progress)
+            self._target = want
+        moving = self._progress < 1.0
+        if moving.any():
+            dur = np.where(self._target > 0.5, mon.fade_in_s, mon.fade_out_s)
+            inc = np.where(dur > 0, self.dt_s / np.maximum(dur, 1e-300), 1.0)
+            self._progress = np.where(moving, np.minimum(self._progress + inc, 1.0),
+                                      self._progress)
+            s = min_jerk(self._progress)
+            self._w = np.where(moving, self._w0 + (self._target - self._w0) * s, self._w)
+        if (self._offset_progress < 1.0).any():
+            inc1 = self.dt_s / mon.fade_in_s if mon.fade_in_s > 0 else 1.0
+            self._offset_progress = np.minimum(self._offset_progress + inc1, 1.0)
+        out = list(reference)
+        w = self._w
+        off = self._offset * (1.0 - min_jerk(self._offset_progress))
+        vals = (r + w * (pred - r) + off).tolist()
+        ratio_l = ratio.tolist()
+        w_l = w.tolist()
+        for j, i in enumerate(self.idx):
+            out[i] = vals[j] if finite[j] else reference[i]
+            self.ratio[i] = ratio_l[j]
+            self.weight[i] = w_l[j]
+        return out
+
+    def predicting(self) -> list[bool]:
+        """Per axis: a predictor is configured and not fallen back (its target is predict)."""
+        out = [False] * self.n
+        for j, i in enumerate(self.idx):
+            out[i] = bool(self._target[j] > 0.5)
+        return out
