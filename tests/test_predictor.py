@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import pytest
@@ -245,7 +246,7 @@ def test_constant_zero_from_construction_is_exact() -> None:
 
 
 # --- 4. validation -----------------------------------------------------------------------------
-GOOD = dict(pole_hz=2.0, coeffs=P.coeffs, rate_hz=RATE, band_hz=(0.1, 2.0))
+GOOD: dict[str, Any] = dict(pole_hz=2.0, coeffs=P.coeffs, rate_hz=RATE, band_hz=(0.1, 2.0))
 
 
 @pytest.mark.parametrize(("over", "key"), [
@@ -410,7 +411,8 @@ def test_live_acts_per_axis_and_an_unpredicted_axis_passes_bit_exactly() -> None
     live = np.ones((n, 3), dtype=bool)
     live[:k0, 2] = False
     live[k0:, 0] = False
-    pred = Prediction([P, None, design(tau_s=0.05)], MON, RATE)
+    p2 = design(tau_s=0.05)
+    pred = Prediction([P, None, p2], MON, RATE)
     out, w, _ = run(pred, refs, live)
     assert np.array_equal(out[:, 1], refs[:, 1]) and np.all(w[:, 1] == 0.0)
     assert w[k0 - 1, 0] == 1.0 and np.all(w[:k0, 2] == 0.0)
@@ -421,8 +423,8 @@ def test_live_acts_per_axis_and_an_unpredicted_axis_passes_bit_exactly() -> None
     assert np.all(w[:k_on - 1, 2] == 0.0) and w[k_on + 1, 2] > 0.0
     assert np.all(w[k_on + round(MON.fade_in_s * RATE) + 1:, 2] == 1.0)
     assert pred.fallbacks == [1, 0, 0] and pred.predicting() == [False, False, True]
-    np.testing.assert_allclose(out[-500:, 2], prefilter(pred.params[2], refs[:, 2])[-500:],
-                               rtol=0, atol=1e-12)  # type: ignore[arg-type]
+    np.testing.assert_allclose(out[-500:, 2], prefilter(p2, refs[:, 2])[-500:], rtol=0,
+                               atol=1e-12)
 
 
 def test_no_predictor_at_all_returns_the_reference() -> None:
