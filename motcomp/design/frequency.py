@@ -11,9 +11,15 @@ Both a continuous-time evaluation (``s = j w``, exact delays) and one at the loo
 (``z = e^{j w h}``: exact ZOH models with sub-sample delays, and the *implemented* discrete PID of
 :mod:`motcomp.core.compensator`) are provided; below a few Hz they agree to a fraction of a ms.
 
-Phases are unwrapped without ambiguity: ``arg T = arg P + arg Cr - arg(1 + Cy M)``, where the
-first two are exact from poles and zeros and the last is unwrapped along a dense grid that starts
-where ``1 + Cy M ~ K ki / (j w)`` (phase -90 deg) or, without integral action, ~ ``1 + kp K``.
+With a predictive prefilter ``F_pred`` (:mod:`motcomp.core.predictor`) before the compensator,
+the command is ``F = F_pred Cr / (1 + Cy M)`` and ``T = P F``; without a PID (the axis bypassed)
+``Cr / (1 + Cy M)`` is 1 and ``F = F_pred`` (or 1).
+
+Phases are unwrapped without ambiguity: ``arg T = arg P + arg Cr - arg(1 + Cy M) + arg F_pred``,
+where the first two are exact from poles and zeros, the third is unwrapped along a dense grid
+that starts where ``1 + Cy M ~ K ki / (j w)`` (phase -90 deg) or, without integral action,
+~ ``1 + kp K``, and the last is unwrapped along a dense grid from DC, where it is 0
+(:func:`predictor_phase`).
 
 Stability of the discrete internal loop is decided from the roots of its characteristic
 polynomial (:func:`motcomp.core.loop.stability`), never from a frequency grid alone.
@@ -37,6 +43,7 @@ from motcomp.core.lti import (
 )
 from motcomp.core.models import P1D, ProcessModel
 from motcomp.core.pid import PIDGains
+from motcomp.core.predictor import PredictorParams, predictor_freqresp
 from motcomp.errors import ConfigError
 
 __all__ = [
@@ -48,6 +55,7 @@ __all__ = [
     "evaluate",
     "loop_response",
     "pid_continuous",
+    "predictor_phase",
 ]
 
 REPORT_FREQS_HZ: tuple[float, ...] = (0.2, 0.5, 1.0, 2.0)
@@ -81,9 +89,9 @@ class LoopResponse:
 
     f: FloatArray
     plant: ComplexArray  # P
-    command: ComplexArray  # F = Cr / (1 + Cy M)
+    command: ComplexArray  # F = F_pred Cr / (1 + Cy M)  (F_pred = 1 without prediction)
     delivered: ComplexArray  # T = P F
-    sensitivity: ComplexArray  # S = 1 / (1 + Cy M)
+    sensitivity: ComplexArray  # S = 1 / (1 + Cy M)  (1 in bypass)
     plant_phase: FloatArray  # unwrapped arg P
     delivered_phase: FloatArray  # unwrapped arg T
 
@@ -99,52 +107,104 @@ def default_grid(rate_hz: float | None, extra: ArrayLike = ()) -> FloatArray:
     return np.unique(np.concatenate([base, np.asarray(extra, dtype=float)]))
 
 
-def loop_response(gains: PIDGains, model: P1D, plant: ProcessModel, f_hz: ArrayLike,
-                  rate_hz: float | None = None) -> LoopResponse:
+PHASE_STEPS = 1 << 14
+"""Points of the uniform grid (0 to the highest frequency asked) along which
+:func:`predictor_phase` unwraps."""
+
+
+def predictor_phase(p: PredictorParams, f_hz: ArrayLike) -> FloatArray:
+    """Unwrapped ``arg F_pred`` (rad) on ``f_hz`` (Hz, below ``p.rate_hz / 2``), 0 at DC.
+
+    The phase is unwrapped along the union of ``f_hz`` and a uniform grid of
+    :data:`PHASE_STEPS` points from 0 Hz, where ``F_pred(1) = 1``: a step of the uniform grid
+    turns each pole factor ``1/(z - a)`` by at most ``dtheta / (1 - a)``.
+    """
+    f = np.atleast_1d(np.asarray(f_hz, dtype=float))
+    if f.size == 0:
+        return np.zeros(0)
+    top = float(np.max(f))
+    if not top < p.rate_hz / 2:
+        raise ConfigError(f"frequency grid reaches the Nyquist frequency {p.rate_hz / 2} Hz")
+    fine = np.unique(np.concatenate([np.linspace(0.0, top, PHASE_STEPS), f]))
+    ph = np.unwrap(np.angle(predictor_freqresp(p, fine)))
+    ph = ph - 2.0 * np.pi * round(float(ph[0]) / (2.0 * np.pi))  # arg F(1) = 0
+    return np.asarray(np.interp(f, fine, ph))
+
+
+def loop_response(gains: PIDGains | None, model: P1D | None, plant: ProcessModel,
+                  f_hz: ArrayLike, rate_hz: float | None = None,
+                  predictor: PredictorParams | None = None) -> LoopResponse:
     """Responses of the compensated loop on the ascending grid ``f_hz`` (must start low,
     below ~0.01 Hz, for the unwrapping).
 
     ``rate_hz=None`` evaluates in continuous time; otherwise at the discrete rate.
+    ``gains=None`` is the bypassed axis (no PID: ``Cr / (1 + Cy M) = 1``, ``model`` unused);
+    ``predictor`` multiplies the command and the delivered response (evaluated at its own
+    rate, in continuous time too).
     """
     f = np.asarray(f_hz, dtype=float)
     if f.ndim != 1 or f.size < 2 or np.any(np.diff(f) <= 0) or f[0] <= 0:
         raise ConfigError("frequency grid must be positive and strictly ascending")
+    if gains is not None and model is None:
+        raise ConfigError("a PID needs its internal model")
     w = 2.0 * np.pi * f
+    ones: ComplexArray = np.ones(f.size, dtype=complex)
+    cr: ComplexArray = ones
+    cy: ComplexArray = ones
+    m: ComplexArray = ones
+    arg_cr: FloatArray = np.zeros(f.size)
+    arg_p: FloatArray
     if rate_hz is None:
-        (nr, dr), (ny, dy) = pid_continuous(gains)
-        s = 1j * w
-        cr = np.polyval(nr, s) / np.polyval(dr, s)
-        cy = np.polyval(ny, s) / np.polyval(dy, s)
-        m = model.freqresp(f)
         p = plant.freqresp(f)
         arg_p = plant.phase(f)
-        arg_cr = rational_phase_continuous(nr, dr, w)
+        if gains is not None:
+            assert model is not None
+            (nr, dr), (ny, dy) = pid_continuous(gains)
+            s = 1j * w
+            cr = np.polyval(nr, s) / np.polyval(dr, s)
+            cy = np.polyval(ny, s) / np.polyval(dy, s)
+            m = model.freqresp(f)
+            arg_cr = rational_phase_continuous(nr, dr, w)
     else:
         dt = 1.0 / rate_hz
         theta = w * dt
         if np.any(theta >= np.pi):
             raise ConfigError(f"frequency grid reaches the Nyquist frequency {rate_hz / 2} Hz")
         z = np.exp(1j * theta)
-        (nr, dr), (ny, dy) = pid_tf(gains, dt)
-        cr = np.polyval(nr, z) / np.polyval(dr, z)
-        cy = np.polyval(ny, z) / np.polyval(dy, z)
-        nm, dm = model_tf(model, dt)
-        m = np.asarray(np.polyval(nm, z) / np.polyval(dm, z), dtype=complex)
         pd = plant.discretize(rate_hz)
         pn, pden = pd.tf()
         p = np.asarray(np.polyval(pn, z) / np.polyval(pden, z), dtype=complex)
         arg_p = rational_phase_discrete(pn, pden, theta)
-        arg_cr = rational_phase_discrete(nr, dr, theta)
-    one_plus = 1.0 + cy * m
-    arg_loop = np.unwrap(np.angle(one_plus))
-    # anchor at the low-frequency asymptote (-pi/2 with integral action, 0 without)
-    expected0 = -np.pi / 2 if gains.ki > 0 else float(np.angle(1.0 + gains.kp * model.K))
-    arg_loop = arg_loop + 2.0 * np.pi * round((expected0 - arg_loop[0]) / (2.0 * np.pi))
-    f_cmd = cr / one_plus
+        if gains is not None:
+            assert model is not None
+            (nr, dr), (ny, dy) = pid_tf(gains, dt)
+            cr = np.asarray(np.polyval(nr, z) / np.polyval(dr, z), dtype=complex)
+            cy = np.asarray(np.polyval(ny, z) / np.polyval(dy, z), dtype=complex)
+            nm, dm = model_tf(model, dt)
+            m = np.asarray(np.polyval(nm, z) / np.polyval(dm, z), dtype=complex)
+            arg_cr = rational_phase_discrete(nr, dr, theta)
+    one_plus: ComplexArray
+    arg_loop: FloatArray
+    if gains is None:
+        one_plus = ones
+        arg_loop = np.zeros(f.size)
+    else:
+        assert model is not None
+        one_plus = 1.0 + cy * m
+        arg_loop = np.unwrap(np.angle(one_plus))
+        # anchor at the low-frequency asymptote (-pi/2 with integral action, 0 without)
+        expected0 = -np.pi / 2 if gains.ki > 0 else float(np.angle(1.0 + gains.kp * model.K))
+        arg_loop = arg_loop + 2.0 * np.pi * round((expected0 - arg_loop[0]) / (2.0 * np.pi))
+    f_cmd: ComplexArray = np.asarray(cr / one_plus, dtype=complex)
+    arg_pred: FloatArray = np.zeros(f.size)
+    if predictor is not None:
+        f_cmd = f_cmd * predictor_freqresp(predictor, f)
+        arg_pred = predictor_phase(predictor, f)
     t = p * f_cmd
     return LoopResponse(
         f=f, plant=p, command=f_cmd, delivered=t, sensitivity=1.0 / one_plus,
-        plant_phase=np.asarray(arg_p), delivered_phase=np.asarray(arg_p + arg_cr - arg_loop),
+        plant_phase=np.asarray(arg_p),
+        delivered_phase=np.asarray(arg_p + arg_cr - arg_loop + arg_pred),
     )
 
 
@@ -181,18 +241,23 @@ def _key(f: float) -> str:
     return f"{f:g}"
 
 
-def evaluate(gains: PIDGains, model: P1D, plant: ProcessModel | None = None,
+def evaluate(gains: PIDGains | None, model: P1D | None, plant: ProcessModel | None = None,
              rate_hz: float | None = 1000.0, band_hz: tuple[float, float] = BAND_HZ,
              report_hz: tuple[float, ...] = REPORT_FREQS_HZ,
-             hf_from_hz: float = HF_FROM_HZ) -> Evaluation:
+             hf_from_hz: float = HF_FROM_HZ,
+             predictor: PredictorParams | None = None) -> Evaluation:
     """All frequency-domain metrics of a design.
 
     Parameters
     ----------
     gains, model
-        The compensator (PID gains and its internal P1D model).
+        The compensator (PID gains and its internal P1D model); ``gains=None``: the axis is
+        bypassed (no PID; the internal loop is then reported stable, ``Ms = 1``).
     plant
         The real platform; defaults to ``model`` (exact model).
+    predictor
+        The predictive prefilter before the compensator, if any: it multiplies the command and
+        the delivered response.
     rate_hz
         Loop rate for the discrete evaluation, or None for continuous time (stability is then
         still judged on the discrete loop at 1 kHz, the service's default rate).
@@ -207,12 +272,14 @@ def evaluate(gains: PIDGains, model: P1D, plant: ProcessModel | None = None,
     delay) is an error too.
     """
     plant = plant or model
+    if plant is None:
+        raise ConfigError("evaluate needs a plant or a model")
     lo, hi = band_hz
     if not 0 < lo < hi:
         raise ConfigError(f"band must satisfy 0 < low < high, got {band_hz}")
     band = np.geomspace(lo, hi, 400)
     grid = default_grid(rate_hz, np.concatenate([band, report_hz, [hf_from_hz]]))
-    resp = loop_response(gains, model, plant, grid, rate_hz)
+    resp = loop_response(gains, model, plant, grid, rate_hz, predictor)
     tau = resp.phase_delay("delivered")
     tau_p = resp.phase_delay("plant")
     idx = {f: int(np.searchsorted(grid, f)) for f in report_hz}
@@ -225,7 +292,8 @@ def evaluate(gains: PIDGains, model: P1D, plant: ProcessModel | None = None,
     cmd = np.abs(resp.command)
     i_cmd = int(np.argmax(cmd))
     hf = grid >= hf_from_hz * (1 - 1e-12)
-    stable, rho = stability(gains, model, rate_hz or 1000.0)
+    stable, rho = (True, 0.0) if gains is None or model is None else \
+        stability(gains, model, rate_hz or 1000.0)
     notes = []
     if not stable:
         notes.append(f"internal loop UNSTABLE at {rate_hz or 1000.0:g} Hz "
