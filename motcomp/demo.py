@@ -14,8 +14,10 @@ config's tick fed the same motion perfectly timed, offline -- the floor); the sa
 and the loop statistics.  The PNG shows, per rails axis, the positions, the command and its
 acceleration against the limit.  A compensated command can chatter at the acceleration limit
 while the positions look perfect (the platform's lag filters it): hence the command figures.
-The hexapod stays bypassed in both phases: it is delay-dominated (Tp1/Td = 0.08) and the tuning
-rules refuse it.
+The hexapod is delay-dominated (Tp1/Td = 0.08): its PID stays bypassed in both phases, and its
+axes are compensated by prediction instead (the config's ``prediction``,
+:mod:`motcomp.core.predictor`), off in the first phase, on in the second: one admin call per
+phase turns compensation off (PID and prediction) on every driven axis, then back on.
 
 Delays use the frames' own timestamps (sample time of the setpoints, tick time of the platform
 feedback), so the recorder's polling does not blur them.  Command figures cover the motion (from
@@ -267,13 +269,13 @@ def _at_limit_share(u: np.ndarray, rate_hz: float, a_max: float,
     return float(np.mean(at[ok]))
 
 
-def _phase_config(cfg: ServiceConfig, rails_bypassed: bool) -> ServiceConfig:
-    """``cfg`` with the rails' bypass as the demo's admin call sets it in a phase (the other
-    axes keep the config's, as in the live run)."""
-    axes = dict(cfg.axes)
-    for a in RAILS:
-        if a in axes:
-            axes[a] = axes[a].model_copy(update={"bypass": rails_bypassed})
+def _phase_config(cfg: ServiceConfig, off: bool) -> ServiceConfig:
+    """``cfg`` as the demo's admin call sets it in a phase: compensation off (``off``: every
+    axis bypassed, prediction off) or the config's own."""
+    if not off:
+        return cfg
+    axes = {a: ax.model_copy(update={"bypass": True, "predict": False})
+            for a, ax in cfg.axes.items()}
     return cfg.model_copy(update={"axes": axes})
 
 
@@ -375,10 +377,10 @@ def run_demo(out_dir: Path, quiet: bool = False, keep_logs: bool = True) -> Demo
             seq = 0
             for phase in PHASES:
                 bypass = phase == "off"
-                admin("bypass", {"on": bypass, "axes": list(RAILS)})
+                admin("bypass", {"on": bypass})  # every driven axis / those compensated
                 sat0, stale0, _ = counters()
-                say(f"phase {phase}: compensation {'OFF (bypass)' if bypass else 'ON'} on the "
-                    f"rails, {duration:.1f} s of motion")
+                say(f"phase {phase}: compensation {'OFF (bypass)' if bypass else 'ON'} "
+                    f"(rails: PID; hexapod: prediction), {duration:.1f} s of motion")
                 t0 = time.time()
                 src = _spawn(["source", "--signal", "demo", "--seq-start", str(seq), "-e",
                               loopback(p_svc), "-e", loopback(p_me), "-l", loopback(p_src),
@@ -491,7 +493,7 @@ def report(res: DemoResult) -> str:
                 f"{_g(ideal_hf):>8} {_ratio(ratio):>6}  {_g(live_j):>7} {_g(ideal_j):>7}  "
                 f"{_pct(at):>8} {_pct(ideal_at):>8}  "
                 f"{res.saturation.get(axis, {}).get(ph, 0):>5}")
-    bypassed = [a for a in res.delays if a in set(res.status.get("bypass", []))]
+    predicted = [a for a in res.delays if a in (res.status.get("prediction") or {})]
     motions = "; ".join(f"{a} {SIGNAL_OF[a]}" for a in res.delays if a in SIGNAL_OF)
     limits = ", ".join(f"{a} {v:g} {unit(a)}/s^2" for a, v in res.acc_limit.items())
     acted = ", ".join(f"{a} {_pct(c['on'].ideal_acted)} %" for a, c in res.command.items()
@@ -506,8 +508,8 @@ def report(res: DemoResult) -> str:
 
     lines += ["", *_wrap(f"motion: {motions}."),
               *_wrap("delay: setpoint -> feedback by cross-correlation (sub-sample); gained: "
-                     "off - on." + (f"  {', '.join(bypassed)}: bypassed in both phases "
-                                    "(delay-dominated)." if bypassed else "")),
+                     "off - on." + (f"  {', '.join(predicted)}: compensated by prediction "
+                                    "(PID bypassed: delay-dominated)." if predicted else "")),
               *_wrap(f"HF acc, jerk: RMS of the command's acceleration above {HF_ABOVE_HZ:g} Hz "
                      "and of its jerk (motcomp.core.quality.command_quality) over the motion, on "
                      "the service's tick grid; ratio: live HF acc over the ideal run's."),

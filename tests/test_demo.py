@@ -30,6 +30,10 @@ live command's at most by this factor (the two are sampled with a sub-tick phase
 MIN_RECORDED_SHARE = 0.9
 """Sanity: the command figures mean something only if most ticks' frames were recorded."""
 HEXAPOD = ("hex_z", "hex_roll", "hex_pitch")
+MAX_PREDICTED_HEXAPOD_MS = 10.0
+"""The hexapod's sines through the example config's prediction, measured on the feedback: the
+issue's bound on the worst delay over the band (the design's phase delay at 0.25-0.5 Hz is
+about 4 ms, plus the input reconstruction's 1.1 ms)."""
 
 
 @pytest.fixture(scope="module")
@@ -49,8 +53,10 @@ def test_demo_reports_the_delay_gained(demo: DemoResult) -> None:
     else:  # the input stalled beyond stale_after_s (a starved host): the report says so
         assert "the delay of that phase includes it" in text
         assert off - on > 100 and off_x - on_x > 50, text
-    for axis in HEXAPOD:  # bypassed: unchanged
-        assert abs(ms[axis][0] - ms[axis][1]) < 5, text
+    for axis in HEXAPOD:  # PID bypassed; compensated by prediction in phase "on"
+        assert ms[axis][0] > 30, text  # the platform's own ~38 ms
+        if demo.stale.get("on", 0) == 0:
+            assert ms[axis][1] <= MAX_PREDICTED_HEXAPOD_MS, text
     assert set(demo.saturation) >= set(RAILS)  # counts per phase, from the service
     assert "Platform hard-limit violations: 0" in text
 
@@ -76,10 +82,6 @@ def test_demo_records_the_command_and_sets_it_beside_the_floor(demo: DemoResult)
             assert c.ideal.acc_peak <= a_max * (1 + 1e-9), (axis, ph, c)  # the limiter's bound
             assert c.ideal.hf_acc_rms <= IDEAL_ABOVE_LIVE_FACTOR * c.live.hf_acc_rms, (axis, ph, c)
             assert c.live.jerk_rms > 0 and c.live.acc_peak > 0, (axis, ph, c)  # it moved
-        if axis in HEXAPOD:  # bypassed in both phases: the same ideal run (its figures are
-            # taken over each phase's recorded stretches)
-            off, on = per_phase["off"], per_phase["on"]
-            assert (off.ideal_acted, off.ideal_at_limit) == (on.ideal_acted, on.ideal_at_limit)
     for axis in RAILS:  # the floor of the setpoint itself (bypass) never touches the limit
         assert demo.command[axis]["off"].ideal_at_limit == 0.0
         assert demo.command[axis]["off"].ideal.acc_peak < demo.acc_limit[axis]

@@ -39,9 +39,11 @@ Band monitor and fallback (the rule; docs/TUNING.md "Predictive prefilter" has t
 ``r' = r + w (r_pred - r)``; ``w`` moves along the minimum-jerk blend from wherever it is, so
 the switch is continuous in position and velocity both ways.  The filter runs in fallback too,
 so that it is warm when prediction resumes.  A change of the parameters (a reload) starts the new
-filter at rest at the current reference and fades the difference between the old and the new
-output out over ``fade_in_s``: no jump.  Non-finite reference: the filter is not advanced (the
-compensator holds the last finite reference itself).
+filter of a changed axis at rest at the current reference, in fallback (prediction resumes as
+after a fallback), and fades the difference between the old and the new output out over
+``fade_in_s``: no jump; an unchanged axis keeps its state.  Non-finite reference on an axis: the
+filter and the monitor are advanced with its last finite value, and the value is returned as
+given (the compensator holds the last finite reference itself).
 """
 
 from __future__ import annotations
@@ -124,12 +126,18 @@ class PredictorParams:
         bad = [i for i, c in enumerate(self.coeffs) if not math.isfinite(c)]
         if bad:
             raise ConfigError(f"prediction.coeffs[{bad[0]}] is {self.coeffs[bad[0]]!r}")
+        if not self.pole < 1.0:
+            raise ConfigError(f"prediction.pole_hz = {self.pole_hz!r} is too small: the "
+                              "discrete pole rounds to 1 (an integrator)")
+        if len(self.band_hz) != 2:
+            raise ConfigError(f"prediction.band_hz must be [low, high], got "
+                              f"{list(self.band_hz)}")
         lo, hi = self.band_hz
-        if not (len(self.band_hz) == 2 and 0 < lo < hi < self.rate_hz / 8):
+        if not 0 < lo < hi < self.rate_hz / 8:
             raise ConfigError(f"prediction.band_hz must satisfy 0 < low < high < rate/8, got "
                               f"{list(self.band_hz)}")
         dc = self.dc_gain
-        if abs(dc - 1.0) > 1e-6:
+        if not abs(dc - 1.0) <= 1e-6:
             raise ConfigError(f"prediction: the filter's static gain F(1) is {dc:.9g}, not 1 "
                               "(a predictor must pass a constant reference unchanged)")
 
@@ -248,7 +256,7 @@ class Prediction:
         self.weight = [0.0] * self.n
         """Share of the prediction in the reference per axis: 1 predicting, 0 fallen back."""
         self.fallbacks = [0] * self.n
-        """Times each axis fell back."""
+        """Times the band monitor made each axis fall back (a switch-off is not counted)."""
         self._configure(params, None)
 
     # --- configuration ------------------------------------------------------------------------
@@ -261,6 +269,8 @@ class Prediction:
                 raise ConfigError(f"prediction of axis {i} was designed for {p.rate_hz:g} Hz, "
                                   f"the loop runs at {self.rate_hz:g} Hz: design it again")
         old_out = None if ref is None or not self.params else self._outputs(ref)
+        kept = {i: self._axis_state(j) for j, i in enumerate(self.idx)
+                if i < len(params) and params[i] == self.params[i]} if self.params else {}
         self.params = tuple(params)
         self.idx = [i for i, p in enumerate(params) if p is not None]
         m = len(self.idx)
@@ -297,8 +307,28 @@ class Prediction:
             new_out = self._outputs(ref)  # type: ignore[arg-type]
             self._offset = np.array([old_out[i] - new_out[i] for i in self.idx])
             self._offset_progress = np.zeros(m)
-        self.weight = [0.0] * self.n
-        self.ratio = [0.0] * self.n
+        for j, i in enumerate(self.idx):
+            if i in kept:
+                self._set_axis_state(j, kept[i])
+            else:
+                self.weight[i] = 0.0
+                self.ratio[i] = 0.0
+
+    _STATE = ("_r_last", "_hp_x", "_hp_y", "_lo_y", "_env_hi", "_env_lo", "_pred", "_w", "_w0",
+              "_progress", "_target", "_calm", "_offset", "_offset_progress")
+
+    def _axis_state(self, j: int) -> dict[str, object]:
+        """Every state of predicted axis ``j`` (row ``j`` of the arrays)."""
+        n = self.params[self.idx[j]].order  # type: ignore[union-attr]
+        out: dict[str, object] = {name: np.copy(getattr(self, name)[j]) for name in self._STATE}
+        out["_l"] = self._l[j, :n].copy()
+        return out
+
+    def _set_axis_state(self, j: int, st: dict[str, object]) -> None:
+        for name in self._STATE:
+            getattr(self, name)[j] = st[name]
+        lv = np.asarray(st["_l"])
+        self._l[j, :lv.size] = lv
 
     def _seed(self, r: FloatArray) -> None:
         """Every filter at rest at the reference ``r`` (predicted axes)."""
@@ -375,8 +405,8 @@ class Prediction:
                         np.where(self._calm >= mon.resume_after_s, 1.0, self._target))
         changed = want != self._target
         if changed.any():
-            for jj in np.nonzero(changed & (want == 0.0))[0].tolist():
-                self.fallbacks[self.idx[jj]] += 1
+            for jj in np.nonzero(changed & (want == 0.0) & on)[0].tolist():
+                self.fallbacks[self.idx[jj]] += 1  # the monitor's, not a switch-off
             self._w0 = np.where(changed, self._w, self._w0)
             self._progress = np.where(changed, 0.0, self._progress)
             self._target = want
