@@ -33,15 +33,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _bench import machine, write_section  # noqa: E402
+from _bench import machine, write_section
 
-from motcomp.config import ServiceConfig, load_config, resolve_axes  # noqa: E402
-from motcomp.core.axes import AXIS_INDEX  # noqa: E402
-from motcomp.core.minjerk import min_jerk  # noqa: E402
-from motcomp.core.models import simulate_axis  # noqa: E402
-from motcomp.core.quality import command_quality, estimate_delay  # noqa: E402
-from motcomp.sim.ideal import ideal_run  # noqa: E402
-from motcomp.sim.source import band_sweep, builtin, lane_change  # noqa: E402
+from motcomp.config import ServiceConfig, load_config, resolve_axes
+from motcomp.core.axes import AXIS_INDEX
+from motcomp.core.minjerk import min_jerk
+from motcomp.core.models import simulate_axis
+from motcomp.core.quality import command_quality, estimate_delay
+from motcomp.sim.ideal import ideal_run
+from motcomp.sim.source import band_sweep, builtin, lane_change
 
 RATE_HZ = 1000.0
 STEPS = ((0.1, 0.0), (0.1, 0.3), (0.02, 0.0), (0.02, 0.15), (0.02, 0.3), (0.002, 0.0),
