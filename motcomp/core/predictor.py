@@ -290,23 +290,23 @@ class Prediction:
             self._c[j, :n] = c
             self._d[j] = d
             hp.append(_highpass2(HIGH_CUT * p.band_hz[1], self.rate_hz))
-        self._hp = np.array(hp).reshape(m, 5)
+        self._hp = hp
         self._lo_a = math.exp(-2.0 * math.pi * LOW_CUT_HZ * self.dt_s)
         self._decay = math.exp(-self.dt_s / ENVELOPE_S)
         r = np.zeros(m) if ref is None else np.array([ref[i] for i in self.idx], dtype=float)
         self._seed(r)
         # per predicted axis: blend weight, its start and progress, the calm time, the mode
-        self._w = np.zeros(m)
-        self._w0 = np.zeros(m)
-        self._progress = np.ones(m)
-        self._target = np.zeros(m)
-        self._calm = np.zeros(m)
-        self._offset = np.zeros(m)
-        self._offset_progress = np.ones(m)
+        self._w = [0.0] * m
+        self._w0 = [0.0] * m
+        self._progress = [1.0] * m
+        self._target = [0.0] * m
+        self._calm = [0.0] * m
+        self._offset = [0.0] * m
+        self._offset_progress = [1.0] * m
         if old_out is not None and m:
             new_out = self._outputs(ref)  # type: ignore[arg-type]
-            self._offset = np.array([old_out[i] - new_out[i] for i in self.idx])
-            self._offset_progress = np.zeros(m)
+            self._offset = [old_out[i] - new_out[i] for i in self.idx]
+            self._offset_progress = [0.0] * m
         for j, i in enumerate(self.idx):
             if i in kept:
                 self._set_axis_state(j, kept[i])
@@ -320,7 +320,7 @@ class Prediction:
     def _axis_state(self, j: int) -> dict[str, object]:
         """Every state of predicted axis ``j`` (row ``j`` of the arrays)."""
         n = self.params[self.idx[j]].order  # type: ignore[union-attr]
-        out: dict[str, object] = {name: np.copy(getattr(self, name)[j]) for name in self._STATE}
+        out: dict[str, object] = {name: getattr(self, name)[j] for name in self._STATE}
         out["_l"] = self._l[j, :n].copy()
         return out
 
@@ -338,13 +338,13 @@ class Prediction:
             n = self.params[self.idx[j]].order  # type: ignore[union-attr]
             a = self._a[j, :n, :n]
             self._l[j, :n] = np.linalg.solve(np.eye(n) - a, self._b[j, :n]) * r[j]
-        self._r_last = r.copy()
-        self._hp_x = np.stack([r, r], axis=1) if m else np.zeros((0, 2))
-        self._hp_y = np.zeros((m, 2))
-        self._lo_y = np.zeros(m)
-        self._env_hi = np.zeros(m)
-        self._env_lo = np.zeros(m)
-        self._pred = r.copy()
+        self._r_last: list[float] = r.tolist()
+        self._hp_x: list[tuple[float, float]] = [(x, x) for x in r.tolist()]
+        self._hp_y: list[tuple[float, float]] = [(0.0, 0.0)] * m
+        self._lo_y = [0.0] * m
+        self._env_hi = [0.0] * m
+        self._env_lo = [0.0] * m
+        self._pred: list[float] = r.tolist()
 
     def set_params(self, params: Sequence[PredictorParams | None], monitor: MonitorParams,
                    reference: Sequence[float]) -> None:
@@ -371,66 +371,68 @@ class Prediction:
         reference is a hold, ramp or blend of the shaper's, or prediction is switched off."""
         if not self.idx:
             return list(reference)
-        r = np.array([reference[i] for i in self.idx], dtype=float)
-        finite = np.isfinite(r)
-        if not finite.all():
-            r = np.where(finite, r, self._r_last)
         mon = self.monitor
-        # the prefilter
-        self._l = np.einsum("jkl,jl->jk", self._a, self._l) + self._b * r[:, None]
-        pred = np.einsum("jk,jk->j", self._c, self._l) + self._d * r
+        dt = self.dt_s
+        idx = self.idx
+        r_last = self._r_last
+        r = [reference[i] for i in idx]
+        finite = [x == x and abs(x) != math.inf for x in r]
+        r = [x if ok else r_last[j] for j, (x, ok) in enumerate(zip(r, finite, strict=True))]
+        # the prefilter (all predicted axes at once)
+        ra = np.array(r)
+        self._l = np.einsum("jkl,jl->jk", self._a, self._l) + self._b * ra[:, None]
+        pred = (np.einsum("jk,jk->j", self._c, self._l) + self._d * ra).tolist()
         self._pred = pred
-        # band monitor
-        b0, b1, b2, a1, a2 = self._hp.T
-        x1, x2 = self._hp_x[:, 0], self._hp_x[:, 1]
-        y1, y2 = self._hp_y[:, 0], self._hp_y[:, 1]
-        hi = b0 * r + b1 * x1 + b2 * x2 - a1 * y1 - a2 * y2
-        self._hp_x = np.stack([r, x1], axis=1)
-        self._hp_y = np.stack([hi, y1], axis=1)
-        lo = self._lo_a * (self._lo_y + r - self._r_last)
-        self._lo_y = lo
-        self._r_last = r
-        self._env_hi = np.maximum(np.abs(hi), self._decay * self._env_hi)
-        self._env_lo = np.maximum(np.abs(lo), self._decay * self._env_lo)
-        ratio = self._env_hi / (self._env_lo + mon.floor)
-        # the rule
-        calm = ratio < mon.resume_ratio
-        self._calm = np.where(calm, self._calm + self.dt_s, 0.0)
-        if isinstance(live, bool):
-            on = np.full(len(self.idx), live)
-        else:
-            on = np.array([bool(live[i]) for i in self.idx])
-        self._calm = np.where(on, self._calm, 0.0)
-        want = np.where(~on | (ratio > mon.fallback_ratio), 0.0,
-                        np.where(self._calm >= mon.resume_after_s, 1.0, self._target))
-        changed = want != self._target
-        if changed.any():
-            for jj in np.nonzero(changed & (want == 0.0) & on)[0].tolist():
-                self.fallbacks[self.idx[jj]] += 1  # the monitor's, not a switch-off
-            self._w0 = np.where(changed, self._w, self._w0)
-            self._progress = np.where(changed, 0.0, self._progress)
-            self._target = want
-        moving = self._progress < 1.0
-        if moving.any():
-            dur = np.where(self._target > 0.5, mon.fade_in_s, mon.fade_out_s)
-            inc = np.where(dur > 0, self.dt_s / np.maximum(dur, 1e-300), 1.0)
-            self._progress = np.where(moving, np.minimum(self._progress + inc, 1.0),
-                                      self._progress)
-            s = min_jerk(self._progress)
-            self._w = np.where(moving, self._w0 + (self._target - self._w0) * s, self._w)
-        if (self._offset_progress < 1.0).any():
-            inc1 = self.dt_s / mon.fade_in_s if mon.fade_in_s > 0 else 1.0
-            self._offset_progress = np.minimum(self._offset_progress + inc1, 1.0)
+        # band monitor, rule and blend, per axis
+        lo_a, decay, floor = self._lo_a, self._decay, mon.floor
+        fb_ratio, rs_ratio, rs_after = mon.fallback_ratio, mon.resume_ratio, mon.resume_after_s
+        inc_in = dt / mon.fade_in_s if mon.fade_in_s > 0 else 1.0
+        inc_out = dt / mon.fade_out_s if mon.fade_out_s > 0 else 1.0
+        hp, hx, hy = self._hp, self._hp_x, self._hp_y
+        w, w0, prog, target, calm = self._w, self._w0, self._progress, self._target, self._calm
+        off, off_p = self._offset, self._offset_progress
         out = list(reference)
-        w = self._w
-        off = self._offset * (1.0 - min_jerk(self._offset_progress))
-        vals = (r + w * (pred - r) + off).tolist()
-        ratio_l = ratio.tolist()
-        w_l = w.tolist()
-        for j, i in enumerate(self.idx):
-            out[i] = vals[j] if finite[j] else reference[i]
-            self.ratio[i] = ratio_l[j]
-            self.weight[i] = w_l[j]
+        for j, i in enumerate(idx):
+            x = r[j]
+            b0, b1, b2, a1, a2 = hp[j]
+            x1, x2 = hx[j]
+            y1, y2 = hy[j]
+            hi = b0 * x + b1 * x1 + b2 * x2 - a1 * y1 - a2 * y2
+            hx[j] = (x, x1)
+            hy[j] = (hi, y1)
+            lo = lo_a * (self._lo_y[j] + x - r_last[j])
+            self._lo_y[j] = lo
+            e_hi = max(abs(hi), decay * self._env_hi[j])
+            e_lo = max(abs(lo), decay * self._env_lo[j])
+            self._env_hi[j] = e_hi
+            self._env_lo[j] = e_lo
+            ratio = e_hi / (e_lo + floor)
+            on = live if isinstance(live, bool) else bool(live[i])
+            calm[j] = calm[j] + dt if (on and ratio < rs_ratio) else 0.0
+            if not on or ratio > fb_ratio:
+                want = 0.0
+            elif calm[j] >= rs_after:
+                want = 1.0
+            else:
+                want = target[j]
+            if want != target[j]:
+                if want == 0.0 and on:
+                    self.fallbacks[i] += 1  # the monitor's, not a switch-off
+                w0[j] = w[j]
+                prog[j] = 0.0
+                target[j] = want
+            if prog[j] < 1.0:
+                prog[j] = min(prog[j] + (inc_in if target[j] > 0.5 else inc_out), 1.0)
+                w[j] = w0[j] + (target[j] - w0[j]) * min_jerk(prog[j])
+            o = 0.0
+            if off_p[j] < 1.0:
+                off_p[j] = min(off_p[j] + inc_in, 1.0)
+                o = off[j] * (1.0 - min_jerk(off_p[j]))
+            if finite[j]:
+                out[i] = x + w[j] * (pred[j] - x) + o
+            self.ratio[i] = ratio
+            self.weight[i] = w[j]
+        self._r_last = r
         return out
 
     def predicting(self) -> list[bool]:
