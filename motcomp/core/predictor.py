@@ -250,6 +250,8 @@ class Prediction:
         self.rate_hz = float(rate_hz)
         self.dt_s = 1.0 / self.rate_hz
         self.params: tuple[PredictorParams | None, ...] = ()
+        self.idx: list[int] = []
+        """The predicted axes."""
         self.monitor = monitor
         self.ratio = [0.0] * self.n
         """The band monitor's last ratio per axis (0 where not predicted)."""
@@ -272,7 +274,7 @@ class Prediction:
         kept = {i: self._axis_state(j) for j, i in enumerate(self.idx)
                 if i < len(params) and params[i] == self.params[i]} if self.params else {}
         self.params = tuple(params)
-        self.idx = [i for i, p in enumerate(params) if p is not None]
+        self.idx[:] = [i for i, p in enumerate(params) if p is not None]
         m = len(self.idx)
         order = max((p.order for p in params if p is not None), default=1)
         self._a = np.zeros((m, order, order))
