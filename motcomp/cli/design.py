@@ -19,6 +19,7 @@ from pathlib import Path
 from motcomp.cli._common import add_plant_args, non_negative_float, print_json, rate_arg
 from motcomp.core.models import P1D, parse_model
 from motcomp.design.optimal import Constraints, OptimalOptions, Uncertainty
+from motcomp.design.predictor import DEFAULT_ORDER, DEFAULT_POLE_HZ, PredictionOptions
 from motcomp.design.report import DESIGN_RULES, OPTIMAL
 from motcomp.design.timedomain import limits_for
 from motcomp.errors import ConfigError
@@ -69,6 +70,22 @@ def _add_optimal(p: argparse.ArgumentParser) -> None:
                    help="uncertainty set of --robust: relative K error, Td error (s), relative "
                         "time-constant error (default 0.1 0.005 0.2)")
     g.add_argument("--quiet", action="store_true", help="no progress bar on stderr")
+    q = p.add_argument_group("predictive prefilter (--rule optimal; docs/TUNING.md "
+                             "\"Predictive prefilter\")")
+    q.add_argument("--prediction", choices=("auto", "on", "off"), default=None,
+                   help="design the prefilter before the compensator: auto (design's default) "
+                        "where it gains the minimum worst-delay gain under the same bounds; on "
+                        "(pareto: draw the frontier with prediction too); off (pareto's "
+                        "default)")
+    q.add_argument("--prediction-order", type=int, default=DEFAULT_ORDER, metavar="N",
+                   help=f"number of Laguerre functions (default {DEFAULT_ORDER})")
+    q.add_argument("--prediction-pole-hz", type=float, default=DEFAULT_POLE_HZ, metavar="HZ",
+                   help=f"their pole (default {DEFAULT_POLE_HZ:g} Hz)")
+    q.add_argument("--step-rise-s", type=non_negative_float, default=None, metavar="S",
+                   help="bound the delivered response's overshoot on a minimum-jerk step of this "
+                        "rise time (0: the ideal step; default: no step bound)")
+    q.add_argument("--overshoot", type=non_negative_float, default=0.05, metavar="FRAC",
+                   help="that bound, as a fraction of the step (default 0.05)")
 
 
 _AXIS_HELP = (f"the axis: which [axes.NAME] of a --plant fragment to read (needed when it holds "
@@ -159,6 +176,12 @@ def _options(args: argparse.Namespace) -> OptimalOptions:
                           setpoint_weights=not args.plain_pid)
 
 
+def _prediction(args: argparse.Namespace, default: str) -> PredictionOptions:
+    return PredictionOptions(mode=args.prediction or default, order=args.prediction_order,
+                             pole_hz=args.prediction_pole_hz, step_rise_s=args.step_rise_s,
+                             overshoot=args.overshoot)
+
+
 @contextmanager
 def _progress(args: argparse.Namespace, label: str
               ) -> Iterator[Callable[[int, int, str], None] | None]:
@@ -181,7 +204,9 @@ def run_design(args: argparse.Namespace) -> int:
     with _progress(args, "optimal tuning") as progress:
         report = design_report(source.model, args.rule, args.rate, args.filter_n,
                                model=_internal(args), options=_options(args), progress=progress,
-                               input_lag_s=args.input_lag_ms / 1e3)
+                               input_lag_s=args.input_lag_ms / 1e3,
+                               prediction=_prediction(args, "auto" if args.rule == "optimal"
+                                                      else "off"))
     fragment = config_fragment(report, source.axis, source.label)
     if args.out is not None:
         _write_file_atomically(args.out, fragment)

@@ -278,7 +278,8 @@ def evaluate(gains: PIDGains | None, model: P1D | None, plant: ProcessModel | No
     if not 0 < lo < hi:
         raise ConfigError(f"band must satisfy 0 < low < high, got {band_hz}")
     band = np.geomspace(lo, hi, 400)
-    grid = default_grid(rate_hz, np.concatenate([band, report_hz, [hf_from_hz]]))
+    top_rate = rate_hz if rate_hz or predictor is None else predictor.rate_hz
+    grid = default_grid(top_rate, np.concatenate([band, report_hz, [hf_from_hz]]))
     resp = loop_response(gains, model, plant, grid, rate_hz, predictor)
     tau = resp.phase_delay("delivered")
     tau_p = resp.phase_delay("plant")

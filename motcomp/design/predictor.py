@@ -53,8 +53,18 @@ from motcomp.core.predictor import MAX_ORDER, PredictorParams, laguerre_basis
 from motcomp.design.frequency import HF_FROM_HZ, evaluate
 from motcomp.errors import ConfigError
 
-__all__ = ["DEFAULT_ORDER", "DEFAULT_POLE_HZ", "PredictorBounds", "PredictorCheck",
-           "PredictorDesign", "design_predictor", "series_tf", "step_overshoot"]
+__all__ = [
+    "DEFAULT_ORDER",
+    "DEFAULT_POLE_HZ",
+    "PredictionOptions",
+    "PredictorBounds",
+    "PredictorCheck",
+    "PredictorDesign",
+    "check_chain",
+    "design_predictor",
+    "series_tf",
+    "step_overshoot",
+]
 
 DEFAULT_ORDER = 30
 """Laguerre functions of a design (hexapod: 13.5 ms at 20, 5.4 ms at 30, 3.0 ms at 40 but 7x
@@ -115,6 +125,22 @@ class PredictorBounds:
         """The bounds of :class:`motcomp.design.optimal.Constraints` that apply here."""
         return cls(peak_db=c.peak_db, gain_error_db=c.gain_error_db, band_hz=tuple(c.band_hz),
                    hf_command_gain=c.hf_gain, hf_from_hz=c.hf_from_hz)
+
+
+@dataclass(frozen=True)
+class PredictionOptions:
+    """What ``motcomp design --rule optimal`` does about prediction: ``mode`` "auto" (use it
+    where it gains ``min_gain_ms`` of worst in-band delay under the same bounds), "on", "off"."""
+
+    mode: str = "auto"
+    order: int = DEFAULT_ORDER
+    pole_hz: float = DEFAULT_POLE_HZ
+    step_rise_s: float | None = None
+    overshoot: float = 0.05
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("auto", "on", "off"):
+            raise ConfigError(f"prediction must be auto, on or off, got {self.mode!r}")
 
 
 @dataclass
@@ -344,9 +370,11 @@ def _params(x: FloatArray, pole_hz: float, rate_hz: float,
                            band_hz=band_hz)
 
 
-def _check(plant: ProcessModel, rate_hz: float, series: tuple[PIDGains, P1D] | None,
-           p: PredictorParams | None, b: PredictorBounds, step_rise_s: float | None,
-           duration_s: float) -> PredictorCheck:
+def check_chain(plant: ProcessModel, rate_hz: float, series: tuple[PIDGains, P1D] | None,
+                p: PredictorParams | None, b: PredictorBounds, step_rise_s: float | None,
+                duration_s: float = 6.0) -> PredictorCheck:
+    """Dense-grid metrics of ``P F_pid F`` (either factor may be absent) against ``b``'s band
+    and HF range, and its step overshoots (ideal step; min-jerk step of ``step_rise_s``)."""
     gains, model = series if series is not None else (None, None)
     ev = evaluate(gains, model, plant, rate_hz=rate_hz, band_hz=b.band_hz,
                   hf_from_hz=b.hf_from_hz, predictor=p)
@@ -410,7 +438,7 @@ def design_predictor(plant: ProcessModel, rate_hz: float, *,
     lp = _LP(plant, rate_hz, series, order, pole, b0.band_hz, b0.hf_from_hz, step_rise_s,
              pole_hz)
     duration = 2.0 * (2 * order + SETTLE_POLES) / (2.0 * np.pi * pole_hz) + 1.0
-    without = _check(plant, rate_hz, series, None, b0, step_rise_s, duration)
+    without = check_chain(plant, rate_hz, series, None, b0, step_rise_s, duration)
     # the cone constraints need w tau < pi/2 over the band: the bracket's top
     tau_top = 0.24 / b0.band_hz[1]
     notes: list[str] = []
@@ -453,7 +481,7 @@ def design_predictor(plant: ProcessModel, rate_hz: float, *,
             x = lp.solve(tau, b, os_target)
         assert x is not None
         params = _params(x, pole_hz, rate_hz, b0.band_hz)
-        chk = _check(plant, rate_hz, series, params, b0, step_rise_s, duration)
+        chk = check_chain(plant, rate_hz, series, params, b0, step_rise_s, duration)
         over_peak = chk.peak_gain_db - b0.peak_db
         over_gain = chk.gain_error_db - b0.gain_error_db
         over_hf = chk.hf_command_gain / b0.hf_command_gain - 1.0

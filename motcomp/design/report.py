@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +28,13 @@ from motcomp.design.frequency import (
     default_grid,
     evaluate,
     loop_response,
+)
+from motcomp.design.predictor import (
+    PredictionOptions,
+    PredictorBounds,
+    PredictorDesign,
+    check_chain,
+    design_predictor,
 )
 from motcomp.design.timedomain import (
     SimulationResult,
@@ -73,7 +81,8 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
                   filter_n: float = 10.0, gains: PIDGains | None = None,
                   model: P1D | None = None, options: opt.OptimalOptions | None = None,
                   progress: Callable[[int, int, str], None] | None = None,
-                  input_lag_s: float = 0.0) -> dict[str, Any]:
+                  input_lag_s: float = 0.0,
+                  prediction: PredictionOptions | None = None) -> dict[str, Any]:
     """The ``motcomp design --json`` object.
 
     ``plant`` is the platform; the compensator's internal model is ``model`` or the plant's P1D
@@ -87,6 +96,9 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
     ``recommendation`` is ``"bypass"`` or ``"compensate"``: the optimiser's verdict, and for the
     rules the same criteria (worse than uncompensated, a gain under ``min_gain_ms``, a
     delay-dominated model, a low-frequency lag above the plant's).
+    ``prediction`` (``rule = "optimal"`` only; default off) adds the predictive prefilter
+    (:func:`_predict`): its block under ``"prediction"``, and ``corrected`` then describes the
+    whole chain the fragment deploys.
     """
     internal = model or plant.to_p1d()
     if not (math.isfinite(input_lag_s) and 0.0 <= input_lag_s <= 1.0):
@@ -98,6 +110,13 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
     std: dict[str, float] = {}
     design: opt.OptimalDesign | None = None
     band = opt.Constraints().band_hz
+    pred: dict[str, Any] | None = None
+    params = None
+    if prediction is not None and prediction.mode != "off" and (gains is not None
+                                                                or rule != OPTIMAL):
+        if prediction.mode == "on":
+            raise ConfigError("prediction is designed with --rule optimal only")
+        prediction = None
     if gains is None and rule == OPTIMAL:
         o = options or opt.OptimalOptions()
         band = o.constraints.band_hz
@@ -106,6 +125,13 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
         gains = design.gains
         warnings = list(design.warnings)
         std = gains.to_standard()
+        if prediction is not None and prediction.mode != "off":
+            pred, chosen = _predict(plant, internal, rate_hz, design, o, prediction)
+            if chosen is not None:
+                new_gains, params = chosen
+                if new_gains is not None and new_gains != gains:
+                    gains = new_gains
+                    std = gains.to_standard()
     elif gains is None:
         tuning = tune(rule, internal, filter_n=filter_n)
         gains = tuning.gains
@@ -114,6 +140,14 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
     ev = design.evaluation if design is not None else evaluate(gains, internal, plant,
                                                                 rate_hz=rate_hz)
     ev_c = evaluate(gains, internal, plant, rate_hz=None, band_hz=band)
+    if params is not None and design is not None:
+        c = design.constraints
+        # the deployed chain: the PID (none on a bypassed axis) after the prefilter
+        series = None if design.recommend_bypass else gains
+        ev = evaluate(series, internal, plant, rate_hz=rate_hz, band_hz=band,
+                      hf_from_hz=c.hf_from_hz, predictor=params)
+        ev_c = evaluate(series, internal, plant, rate_hz=None, band_hz=band,
+                        hf_from_hz=c.hf_from_hz, predictor=params)
     warnings += ev.notes
     worse = ev.max_residual_delay_ms > ev.uncorrected_max_delay_ms
     if design is not None:
@@ -147,12 +181,94 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
     }
     if design is not None:
         out["optimal"] = design.summary()
+    if pred is not None:
+        out["prediction"] = pred
     if not isinstance(platform, P1D) or platform != internal:
         out["plant"] = _model_json(platform)
         out["plant_spec"] = platform.spec()
     out["model_spec"] = internal.spec()
     out["input_lag_ms"] = input_lag_s * 1e3
     return out
+
+
+PID_HF_LADDER = (10.0, 4.0)
+"""HF command-gain bounds the PID is re-optimised for when the prefilter goes in series with
+it (``--prediction on`` on a compensated axis): the prefilter then supplies the lead."""
+
+
+def _predict(plant: ProcessModel, internal: P1D, rate_hz: float, design: opt.OptimalDesign,
+             o: opt.OptimalOptions, p: PredictionOptions
+             ) -> tuple[dict[str, Any], tuple[PIDGains | None, Any] | None]:
+    """The prefilter for an optimised design, and whether it is used.
+
+    Bypassed axis (the optimiser's recommendation): the prefilter alone, least worst delay.
+    Compensated axis, ``auto``: the prefilter in series with the optimal PID, least worst delay;
+    ``on``: the PID re-optimised for each HF bound of :data:`PID_HF_LADDER` below the given one
+    (and as optimised), each followed by the prefilter that holds the optimal PID's worst delay
+    with the least total command gain above ``hf_from_hz``; the quietest chain is kept.
+    ``auto`` uses the prefilter where it gains ``o.min_gain_ms`` of worst delay.  Returns the
+    report block and ``(gains or None, PredictorParams)`` if used.
+    """
+    c = design.constraints
+    bounds = PredictorBounds.from_constraints(c)
+    ev = design.evaluation
+    bypass = design.recommend_bypass
+    base_series = None if bypass else (design.gains, internal)
+    baseline = ev.uncorrected_max_delay_ms if bypass else ev.max_residual_delay_ms
+
+    def run(series: tuple[PIDGains, P1D] | None, max_delay_ms: float | None = None
+            ) -> PredictorDesign:
+        return design_predictor(plant, rate_hz, series=series, constraints=bounds,
+                                order=p.order, pole_hz=p.pole_hz, step_rise_s=p.step_rise_s,
+                                overshoot=p.overshoot, max_delay_ms=max_delay_ms)
+
+    block: dict[str, Any] = {"mode": p.mode, "used": False, "series": "bypass" if bypass
+                             else "pid", "baseline_delay_ms": baseline}
+    candidates: list[tuple[PIDGains | None, float | None, PredictorDesign]] = []
+    try:
+        if bypass:
+            candidates.append((None, None, run(None)))
+        elif p.mode == "auto":
+            if baseline < o.min_gain_ms:
+                block["note"] = (f"the optimal PID leaves {baseline:.2f} ms, less than the "
+                                 f"{o.min_gain_ms:g} ms a prefilter must gain: not designed")
+                return block, None
+            candidates.append((design.gains, None, run((design.gains, internal))))
+        else:
+            hfs: list[float | None] = [None] + [h for h in PID_HF_LADDER if h < c.hf_gain]
+            for hf in hfs:
+                g = design.gains if hf is None else opt.optimise(
+                    plant, internal, rate_hz, replace(c, hf_command_gain=hf), None,
+                    o.setpoint_weights, o.min_gain_ms).gains
+                try:
+                    candidates.append((g, hf, run((g, internal), baseline)))
+                except ConfigError:
+                    continue
+            if not candidates:
+                raise ConfigError(f"prediction: no prefilter in series with the PID holds "
+                                  f"{baseline:.2f} ms within the bounds")
+    except ConfigError as exc:
+        if p.mode == "on":
+            raise
+        block["note"] = str(exc)
+        return block, None
+    gains, hf, best = min(candidates, key=lambda t: (round(t[2].check.hf_command_gain, 6),
+                                                     t[2].worst_delay_ms))
+    without = check_chain(plant, rate_hz, base_series, None, bounds, p.step_rise_s)
+    gain_ms = baseline - best.worst_delay_ms
+    used = p.mode == "on" or gain_ms >= o.min_gain_ms
+    block.update({
+        "used": used,
+        "pid_hf_bound": hf,
+        "gain_ms": gain_ms,
+        "design": best.summary(),
+        "without": without.as_dict(),
+        "with": best.check.as_dict(),
+    })
+    if not used:
+        block["note"] = (f"the prefilter gains {gain_ms:.2f} ms of worst delay, less than "
+                         f"{o.min_gain_ms:g} ms: not used (--prediction on forces it)")
+    return block, ((gains, best.params) if used else None)
 
 
 def _toml_value(value: Any) -> str:
@@ -207,13 +323,32 @@ def config_fragment(report: dict[str, Any], axis: str, source: str = "") -> str:
         lines.append(f"# Designed for an input played back {report['input_lag_ms']:.3g} ms behind "
                      "its newest sample (input.reconstruction = \"smooth\").")
     bypass = report.get("recommendation") == "bypass"
+    used = report.get("prediction", {}).get("used", False)
     if bypass:
-        lines.append("# Recommendation: bypass (see the design's warnings); no gains.")
+        lines.append("# Recommendation: bypass (see the design's warnings); no gains"
+                     + ("; the predictive prefilter alone." if used else "."))
+    if used:
+        w = report["prediction"]["with"]
+        lines.append(f"# Prediction: worst delay {w['max_delay_ms']:.2f} ms over the band, "
+                     f"peak {w['peak_gain_db']:+.1f} dB, command gain {w['hf_command_gain']:.1f}"
+                     f" above {report['corrected']['hf_from_hz']:g} Hz.")
     lines += [f"[axes.{axis}]", f"model = {_toml_value(model_spec)}",
               f"bypass = {_toml_value(bypass)}"]
     if not bypass:
         gains = ", ".join(f"{k} = {_toml_value(float(v))}" for k, v in report["gains"].items())
         lines.append(f"gains = {{ {gains} }}")
+    pred = report.get("prediction", {})
+    if pred.get("used"):
+        table = pred["design"]["params"]  # PredictorParams.to_config(), full precision
+
+        def value(v: Any) -> str:
+            if isinstance(v, list):
+                return "[" + ", ".join(_toml_value(float(x)) for x in v) + "]"
+            return _toml_value(float(v))
+
+        body = ", ".join(f"{k} = {value(table[k])}"
+                         for k in ("pole_hz", "rate_hz", "band_hz", "coeffs"))
+        lines.append(f"prediction = {{ {body} }}")
     return "\n".join(lines) + "\n"
 
 
@@ -309,6 +444,8 @@ def markdown(report: dict[str, Any]) -> str:
     ]
     if "optimal" in report:
         lines += optimal_markdown(report["optimal"])
+    if "prediction" in report:
+        lines += prediction_markdown(report["prediction"])
     if "time_domain" in report:
         lines += ["", "| run | delay uncorrected | delay corrected | reduction | "
                       "saturated samples (corr./uncorr.) |", "|---|---|---|---|---|"]
@@ -320,6 +457,35 @@ def markdown(report: dict[str, Any]) -> str:
     if report["warnings"]:
         lines += ["", "## Warnings", ""] + [f"- {w}" for w in report["warnings"]]
     return "\n".join(lines) + "\n"
+
+
+def prediction_markdown(block: dict[str, Any]) -> list[str]:
+    """Lines comparing the chain with and without the predictive prefilter."""
+    lines = ["", f"## Predictive prefilter (--prediction {block['mode']})", ""]
+    if "with" not in block:
+        return [*lines, f"Not designed: {block.get('note', '')}"]
+    d = block["design"]
+    p = d["params"]
+    series = "after it, the PID" if block["series"] == "pid" else "alone (axis bypassed)"
+    if block.get("pid_hf_bound") is not None:
+        series += f" re-optimised for a command gain <= {block['pid_hf_bound']:g} above the band"
+    lines += [f"{d['order']} Laguerre functions, pole {p['pole_hz']:g} Hz, {series}; "
+              f"used: **{'yes' if block['used'] else 'no'}**.", "",
+              "| metric | without | with |", "|---|---|---|"]
+    wo, wi = block["without"], block["with"]
+    rows = [("worst phase delay in band", "max_delay_ms", "{:.2f} ms"),
+            ("in-band gain error", "gain_error_db", "{:.2f} dB"),
+            ("peak gain", "peak_gain_db", "{:+.2f} dB"),
+            ("command gain above the band (HF)", "hf_command_gain", "{:.2f}"),
+            ("ideal step: overshoot", "ideal_step_overshoot", "{:.1%}")]
+    if d["step_rise_s"] is not None:
+        rows.append((f"{d['step_rise_s']:g} s min-jerk step: overshoot",
+                     "design_step_overshoot", "{:.1%}"))
+    for label, key, fmt in rows:
+        lines.append(f"| {label} | {fmt.format(wo[key])} | {fmt.format(wi[key])} |")
+    if block.get("note"):
+        lines += ["", block["note"]]
+    return lines
 
 
 def optimal_markdown(block: dict[str, Any]) -> list[str]:
