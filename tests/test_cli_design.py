@@ -91,3 +91,46 @@ def test_evaluate_writes_report_and_figures(tmp_path: Path) -> None:
     assert report["time_domain"]["slalom"]["delay_reduction_ms"] > 150
     assert json.loads((out / "report.json").read_text())["rule"] == "zn"
     assert not list(out.glob(".tmp-*"))
+
+
+def test_hexapod_design_writes_the_prefilter_alone(tmp_path: Path) -> None:
+    """Delay-dominated: ``bypass = true`` plus a ``prediction`` table that round-trips."""
+    import tomllib
+
+    from motcomp.core.predictor import PredictorParams
+
+    out = tmp_path / "design.toml"
+    p = run("design", "--plant", "hexapod", "--rule", "optimal", "--peak-db", "6",
+            "--hf-gain", "3", "--quiet", "--json", "--out", str(out))
+    assert p.returncode == 0, p.stderr
+    report = json.loads(p.stdout)
+    pred = report["prediction"]
+    assert pred["used"] and pred["series"] == "bypass" and report["recommendation"] == "bypass"
+    assert pred["with"]["max_delay_ms"] <= 10.0 < pred["without"]["max_delay_ms"]
+    assert pred["with"]["hf_command_gain"] <= 3.0 * 1.001
+    assert report["corrected"]["max_residual_delay_ms"] == pytest.approx(
+        pred["with"]["max_delay_ms"], abs=1e-6)
+    table = tomllib.loads(out.read_text())["axes"]["hex_x"]
+    assert table["bypass"] is True and "gains" not in table
+    t = table["prediction"]
+    params = PredictorParams(pole_hz=t["pole_hz"], coeffs=tuple(t["coeffs"]),
+                             rate_hz=t["rate_hz"], band_hz=tuple(t["band_hz"]))
+    assert params.to_config() == pred["design"]["params"]  # full precision
+    assert abs(params.dc_gain - 1.0) < 1e-12
+
+
+def test_rails_prediction_on_keeps_delay_and_peak_with_a_quieter_command(
+        tmp_path: Path) -> None:
+    out = tmp_path / "design.toml"
+    p = run("design", "--plant", "rails", "--rule", "optimal", "--prediction", "on",
+            "--quiet", "--json", "--out", str(out))
+    assert p.returncode == 0, p.stderr
+    pred = json.loads(p.stdout)["prediction"]
+    wo, wi = pred["without"], pred["with"]
+    assert wi["max_delay_ms"] <= wo["max_delay_ms"] + 1e-3
+    assert wi["peak_gain_db"] <= max(wo["peak_gain_db"], 8.0) + 0.005
+    assert wi["hf_command_gain"] < 0.5 * wo["hf_command_gain"]
+    assert "prediction = {" in out.read_text() and "gains = {" in out.read_text()
+    auto = run("design", "--plant", "rails", "--rule", "optimal", "--quiet", "--json")
+    assert auto.returncode == 0, auto.stderr
+    assert json.loads(auto.stdout)["prediction"]["used"] is False
