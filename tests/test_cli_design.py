@@ -134,3 +134,15 @@ def test_rails_prediction_on_keeps_delay_and_peak_with_a_quieter_command(
     auto = run("design", "--plant", "rails", "--rule", "optimal", "--quiet", "--json")
     assert auto.returncode == 0, auto.stderr
     assert json.loads(auto.stdout)["prediction"]["used"] is False
+
+
+def test_pareto_with_prediction_draws_both_curves(tmp_path: Path) -> None:
+    out = tmp_path / "pareto"
+    p = run("pareto", "--plant", "hexapod", "--bounds", "6", "--hf-bounds", "3",
+            "--prediction", "on", "--out", str(out), "--quiet", "--json")
+    assert p.returncode == 0, p.stderr
+    assert (out / "pareto_prediction.png").stat().st_size > 10_000
+    points = {q["kind"]: q for q in json.loads(p.stdout)["prediction"]}
+    assert points["pid"]["series"] == "bypass"  # delay-dominated: the PID is not worth it
+    assert points["prediction"]["worst_delay_ms"] < 10.0 < points["pid"]["worst_delay_ms"]
+    assert "With and without the predictive prefilter" in (out / "pareto.md").read_text()

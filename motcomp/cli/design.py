@@ -138,7 +138,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     r = sub.add_parser("pareto", help="residual delay vs peak-gain bound, with the rules",
                        description="Optimise for each peak-gain bound (with and without "
                                    "setpoint weights), place ZN, CC, AMIGO and SIMC on the same "
-                                   "axes; write pareto.png, pareto.md and pareto.json to --out.")
+                                   "axes; write pareto.png, pareto.md and pareto.json to --out. "
+                                   "With --prediction on, also the worst delay vs the peak bound "
+                                   "for each --hf-bounds, with and without the predictive "
+                                   "prefilter (pareto_prediction.png).")
     add_plant_args(r)
     r.add_argument("--axis", default=None, metavar="NAME", help=_AXIS_HELP)
     r.add_argument("--rate", type=rate_arg, default=1000.0, metavar="HZ",
@@ -146,6 +149,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--internal", metavar="SPEC", help="internal P1D model (default: the plant's)")
     r.add_argument("--bounds", type=float, nargs="+", default=[1.0, 3.0, 6.0, 8.0, 10.0],
                    metavar="DB", help="peak-gain bounds (default 1 3 6 8 10 dB)")
+    r.add_argument("--hf-bounds", type=float, nargs="+", default=[3.0, 10.0, 60.0],
+                   metavar="GAIN",
+                   help="with --prediction on: the HF command-gain bounds of the frontier with "
+                        "and without prediction (default 3 10 60)")
     r.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory")
     r.add_argument("--json", action="store_true", help="print one JSON object")
     _add_optimal(r)
@@ -282,27 +289,50 @@ def run_evaluate(args: argparse.Namespace) -> int:
 
 
 def run_pareto(args: argparse.Namespace) -> int:
-    from motcomp.design.pareto import pareto, pareto_figure, pareto_json, pareto_markdown
+    from motcomp.design.pareto import (
+        pareto,
+        pareto_figure,
+        pareto_json,
+        pareto_markdown,
+        prediction_figure,
+        prediction_frontier,
+        prediction_markdown,
+    )
 
     plant = _source(args).model
     options = _options(args)
+    prediction = _prediction(args, "off")
     with _progress(args, "pareto frontier") as progress:
         result = pareto(plant, _internal(args), args.rate, tuple(args.bounds),
                         options.constraints, progress=progress)
+    points = []
+    if prediction.mode == "on":
+        with _progress(args, "frontier with prediction") as progress:
+            points = prediction_frontier(plant, _internal(args), args.rate, tuple(args.bounds),
+                                         tuple(args.hf_bounds), options.constraints,
+                                         prediction, progress)
+    text = pareto_markdown(result) + (
+        prediction_markdown(points, options.constraints.band_hz) if points else "")
+    data = pareto_json(result)
+    if points:
+        data["prediction"] = [p.as_dict() for p in points]
 
     def write(tmp: Path) -> list[Path]:
         paths = [tmp / "pareto.md", tmp / "pareto.json", tmp / "pareto.png"]
-        paths[0].write_text(pareto_markdown(result))
+        paths[0].write_text(text)
         import json
 
-        paths[1].write_text(json.dumps(pareto_json(result), indent=2) + "\n")
+        paths[1].write_text(json.dumps(data, indent=2) + "\n")
         pareto_figure(result, paths[2])
+        if points:
+            paths.append(prediction_figure(points, f"{plant.spec()} at {args.rate:g} Hz",
+                                           tmp / "pareto_prediction.png"))
         return paths
 
     written = _write_atomically(args.out, write)
     if args.json:
-        print_json(pareto_json(result))
+        print_json(data)
     else:
-        sys.stdout.write(pareto_markdown(result))
+        sys.stdout.write(text)
         print(f"\nwrote {', '.join(str(p) for p in written)}")
     return 0
