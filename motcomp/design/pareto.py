@@ -236,14 +236,14 @@ def prediction_frontier(plant: ProcessModel, model: P1D | None, rate_hz: float,
             ev = d.evaluation
             bypass = d.recommend_bypass
             series = "bypass" if bypass else "pid"
-            delay = ev.uncorrected_max_delay_ms if bypass else ev.max_residual_delay_ms
+            if bypass:  # the platform alone
+                ev = evaluate(None, None, plant, rate_hz=rate_hz, band_hz=c.band_hz,
+                              hf_from_hz=c.hf_from_hz)
             out.append(PredictionPoint(
                 peak_bound_db=float(peak), hf_bound=float(hf), kind="pid", series=series,
-                worst_delay_ms=delay,
-                peak_gain_db=ev.peak_gain_db if not bypass else float("nan"),
-                gain_error_db=ev.gain_error_db if not bypass else ev.uncorrected_gain_error_db,
-                hf_command_gain=ev.hf_command_gain if not bypass else 1.0,
-                feasible=d.feasible))
+                worst_delay_ms=ev.max_residual_delay_ms, peak_gain_db=ev.peak_gain_db,
+                gain_error_db=ev.gain_error_db, hf_command_gain=ev.hf_command_gain,
+                feasible=bypass or d.feasible))
             try:
                 pd = design_predictor(plant, rate_hz,
                                       series=None if bypass else (d.gains, internal),
