@@ -266,6 +266,9 @@ def _write_atomically(out: Path, write: Callable[[Path], list[Path]]) -> list[Pa
 def run_evaluate(args: argparse.Namespace) -> int:
     from motcomp.design.report import evaluation_report, markdown, write_figures, write_report
 
+    if args.prediction == "on":
+        raise ConfigError("motcomp evaluate does not simulate the predictive prefilter yet: "
+                          "use motcomp design for its frequency-domain metrics")
     source = _source(args)
     plant = source.model
     limits = source.limits

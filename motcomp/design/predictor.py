@@ -29,8 +29,8 @@ Examples
 >>> hexapod = parse_model("p2uzd:K=1,Td=0.0325,Tw=0.06399186527,Zeta=0.7,Tz=0.08764049978")
 >>> d = design_predictor(hexapod, 1000.0, constraints=PredictorBounds(peak_db=6.0,
 ...                      hf_command_gain=3.0))                      # doctest: +SKIP
->>> round(d.worst_delay_ms, 1)                                      # doctest: +SKIP
-3.7
+>>> round(d.worst_delay_ms, 1), d.params.order, d.params.pole_hz    # doctest: +SKIP
+(5.4, 30, 0.7)
 """
 
 from __future__ import annotations
