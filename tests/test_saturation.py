@@ -100,6 +100,26 @@ def test_a_smooth_target_lost_for_a_moment_is_caught_again() -> None:
     assert np.array_equal(out[caught:], ref[caught:])
 
 
+@pytest.mark.parametrize("rise_s", [0.05, 0.08, 0.1, 0.15])
+def test_a_stepping_target_is_not_overshot_by_its_wall(rise_s: float) -> None:
+    """A 20 mm minimum-jerk step on the hexapod's limits (7 m/s^2) rising in 50-150 ms needs
+    1.1-10x the acceleration there is.  While catching up the limiter aims at the target moving
+    at the wall's velocity; when the target stops, the wall stops with it (it slows down at
+    once, it speeds up by the catch-up budget a sample): the output passes the target by what
+    it cannot brake of its own speed, at most 11 % of the step here.  With the wall's slowing
+    down bounded by the budget too, it went on moving for 0.3 s: 29-62 % beyond the step."""
+    size = 0.02
+    n = round(rise_s / H)
+    ref = np.concatenate([np.zeros(100), size * min_jerk(np.arange(n) / n),
+                          np.full(1500, size)])
+    lim = AxisLimits([-0.25], [0.25], [0.6], [7.0])
+    sat = Saturator(lim, H)
+    out = np.array([sat.step([x])[0] for x in ref.tolist()])
+    check_sequence(out, 0.0, lim, H)
+    assert out.max() <= size * 1.11
+    assert out[-1] == pytest.approx(size, abs=1e-9)
+
+
 def test_braking_before_the_end_stop() -> None:
     # target far beyond the range: the axis must stop at p_max without exceeding it
     lim = AxisLimits([-1.0], [1.0], [3.0], [2.0])
