@@ -41,8 +41,6 @@ from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from scipy.optimize import linprog
-from scipy.signal import lfilter
 
 from motcomp.core.loop import model_tf, pid_tf
 from motcomp.core.lti import ComplexArray, FloatArray
@@ -218,6 +216,8 @@ def series_tf(plant: ProcessModel, rate_hz: float, series: tuple[PIDGains, P1D] 
 
 def _filt(num: FloatArray, den: FloatArray, x: FloatArray) -> FloatArray:
     """Apply ``num(z)/den(z)`` (polynomials in ``z``, proper) to ``x``."""
+    from scipy.signal import lfilter
+
     num = np.trim_zeros(np.asarray(num, float), "f")
     den = np.trim_zeros(np.asarray(den, float), "f")
     b = np.concatenate([np.zeros(len(den) - len(num)), num])
@@ -234,6 +234,8 @@ def _step_input(rise_s: float, n: int, rate_hz: float) -> FloatArray:
 
 def _basis_responses(s: FloatArray, pole: float, order: int) -> FloatArray:
     """``(len(s), order + 1)``: ``s`` through ``1, L_0, ..., L_{N-1}`` (the Laguerre recursion)."""
+    from scipy.signal import lfilter
+
     cols = [s, np.asarray(lfilter([math.sqrt(1.0 - pole * pole)], [1.0, -pole], s))]
     for _ in range(order - 1):
         cols.append(np.asarray(lfilter([-pole, 1.0], [1.0, -pole], cols[-1])))
@@ -312,6 +314,8 @@ class _LP:
               minimise_hf: bool = False) -> FloatArray | None:
         """Coefficients meeting every bound at delay ``tau_s`` (None if infeasible); with
         ``minimise_hf`` the ones of least command gain above ``hf_from_hz``."""
+        from scipy.optimize import linprog
+
         n = self.order + 1
         rows: list[FloatArray] = []
         rhs: list[FloatArray] = []
