@@ -482,16 +482,17 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> ServiceConfi
 
 # --- includes and provenance ----------------------------------------------------------------
 
-_WHOLE = frozenset({"gains"})
-"""Tables that a higher file replaces as a whole instead of key by key: a gain set is one design,
-and a site's ``gains = { kp, ki_per_s, kd_s, tf_s }`` must not keep an included file's b and c."""
+_WHOLE = frozenset({"gains", "prediction"})
+"""Tables that a higher file replaces as a whole instead of key by key: a gain set (and a
+prefilter) is one design, and a site's ``gains = { kp, ki_per_s, kd_s, tf_s }`` must not keep an
+included file's b and c."""
 _EITHER = {"rule": "gains", "gains": "rule"}
 """Keys that exclude each other in one table: a higher file's ``rule`` displaces a lower file's
 ``gains``, and the reverse."""
 _FRAGMENT_KEYS = frozenset({"axes"})
 """A file whose own keys are only these is a *fragment* (what ``motcomp identify`` and ``motcomp
 design --out`` write): a value of it that another file overrides is reported as lost."""
-_REPORTED_AXIS_KEYS = ("model", "gains", "rule", "bypass")
+_REPORTED_AXIS_KEYS = ("model", "gains", "rule", "bypass", "prediction")
 _COMMENTED_INCLUDE = re.compile(r"^\s*#+\s*include\s*=(.*)$")
 
 KeyPath = tuple[str, ...]
@@ -777,6 +778,10 @@ def source_report(path: str | Path, cfg: ServiceConfig | None = None
                     f"({tuning_key}) from {name(tuning_file)}: gains designed for another model; "
                     f"`motcomp design --plant {name(model_file)} --axis {axis} --out FILE` "
                     "designs them for this one (include FILE after it)")
+        pred_key = next((f"{layer}.prediction" for layer in ("axes." + axis, "defaults")
+                         if f"{layer}.prediction" in srcs.sources), None)
+        if pred_key is not None:
+            parts.append(f"prediction from {name(srcs.sources[pred_key])}")
         lines.append(f"  {axis:<10} {', '.join(parts)}")
     for o in srcs.overrides:
         key_parts = o.key.split(".")

@@ -9,6 +9,7 @@ import json
 import sys
 from pathlib import Path
 
+from motcomp.core.predictor import PredictorParams
 from motcomp.config import (
     RESTART_KEYS,
     config_hash,
@@ -73,7 +74,8 @@ def run_check(args: argparse.Namespace) -> int:
             print(f"  {name:<10} {'BYPASS ' if axes.bypass[i] else ''}model {axes.plants[i]} "
                   f"-> internal {axes.models[i]}; kp={g.kp:.4g} ki={g.ki:.4g} kd={g.kd:.4g} "
                   f"tf={g.tf:.4g}; pos [{lim.p_min[i]:g}, {lim.p_max[i]:g}] vel "
-                  f"{lim.v_max[i]:g} acc {lim.a_max[i]:g}")
+                  f"{lim.v_max[i]:g} acc {lim.a_max[i]:g}"
+                  + _prediction_text(axes.prediction[i], axes.predict[i]))
         print(f"restart-only keys: {', '.join(RESTART_KEYS)}; everything else can be reloaded")
     notes, source_warnings = source_report(args.file, cfg)
     if not args.json:
@@ -118,3 +120,11 @@ def run_example(args: argparse.Namespace) -> int:
         raise ConfigError(f"no shipped file {args.name!r}; shipped: {', '.join(names)}")
     sys.stdout.write(config_file(*Path(args.name).parts).read_text())
     return 0
+
+
+def _prediction_text(p: PredictorParams | None, used: bool) -> str:
+    """``; prediction ...`` for an axis' line (empty without one)."""
+    if p is None:
+        return ""
+    return (f"; prediction {p.order} Laguerre functions, pole {p.pole_hz:g} Hz, band "
+            f"{p.band_hz[0]:g}-{p.band_hz[1]:g} Hz{'' if used else ' (predict = false: unused)'}")
