@@ -57,16 +57,20 @@ def _step(size: float, rise_s: float, rest_s: float = 2.0, hold_s: float = 3.0) 
 
 
 def signals() -> list[tuple[str, str, np.ndarray, bool]]:
-    """(name, axis, samples at 1 kHz, judge the delay on velocities)."""
-    t = np.arange(int(20 * RATE_HZ)) / RATE_HZ
+    """(name, axis, samples at 1 kHz, judge the delay on velocities).  The hexapod's sines
+    and sweep start and end in 2 s minimum-jerk fades, as a motion source's would (a sine
+    that starts with its full speed is a velocity step: the limiter's, not the predictor's)."""
+    t = np.arange(int(24 * RATE_HZ)) / RATE_HZ
+    fade = np.clip(np.minimum(t, t[-1] - t) / 2.0, 0.0, 1.0)
+    env = min_jerk(fade)
     out = [("slalom", "rails_y", builtin("slalom", RATE_HZ).pos["rails_y"], False),
            ("bandsweep", "rails_x", band_sweep(RATE_HZ), False),
            ("lanechange", "rails_y", lane_change(RATE_HZ), True),
-           ("heave 0.5 Hz", "hex_z", 0.05 * np.sin(2 * np.pi * 0.5 * t), False),
-           ("roll 0.25 Hz", "hex_roll", 0.1 * np.sin(2 * np.pi * 0.25 * t), False),
-           ("pitch 0.35 Hz", "hex_pitch", 0.08 * np.sin(2 * np.pi * 0.35 * t), False),
-           ("sweep 0.1-2 Hz", "hex_y", 0.02 * np.sin(2 * np.pi * (0.1 * t + 1.9 / 40 * t * t)),
-            False)]
+           ("heave 0.5 Hz", "hex_z", 0.05 * env * np.sin(2 * np.pi * 0.5 * t), False),
+           ("roll 0.25 Hz", "hex_roll", 0.1 * env * np.sin(2 * np.pi * 0.25 * t), False),
+           ("pitch 0.35 Hz", "hex_pitch", 0.08 * env * np.sin(2 * np.pi * 0.35 * t), False),
+           ("sweep 0.1-2 Hz", "hex_y",
+            0.02 * env * np.sin(2 * np.pi * (0.1 * t + 1.9 / 48 * t * t)), False)]
     for size, rise in STEPS:
         out.append((f"step {size * 1e3:g} mm, rise {rise:g} s", "hex_x", _step(size, rise), True))
     for size, rise in ((0.5, 0.0), (0.5, 0.5), (0.1, 0.3)):

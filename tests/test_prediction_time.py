@@ -1,0 +1,128 @@
+"""The example config's hexapod prediction, as the platform receives it: the shipped prefilters
+against the issue's frequency bounds (exact discrete responses), and in time through the tick
+(:func:`motcomp.sim.ideal.ideal_run`, what the service runs) and the axis' true model: braking
+steps and a lane change overshoot the reference by the platform's own amount plus at most
+:data:`MAX_ADDED_OVERSHOOT` of the step, sines come out with the lead the design states."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.signal import freqz, lfilter
+
+from motcomp.config import ServiceConfig, load_config, resolve_axes
+from motcomp.core.axes import AXIS_INDEX
+from motcomp.core.minjerk import min_jerk
+from motcomp.core.predictor import PredictorParams
+from motcomp.core.quality import estimate_delay
+from motcomp.resources import config_file
+from motcomp.sim.ideal import ideal_run
+
+RATE = 1000.0
+HEX = ("hex_x", "hex_y", "hex_z", "hex_roll", "hex_pitch", "hex_yaw")
+MAX_ADDED_OVERSHOOT = 0.05
+"""Largest overshoot beyond the reference that prediction adds to the platform's own, as a share
+of the step (the issue's aim; measured at most 0.3 points: docs/PREDICTION.md)."""
+
+
+@pytest.fixture(scope="module")
+def cfg() -> ServiceConfig:
+    return load_config(config_file("motcomp.toml"))
+
+
+def _plain(cfg: ServiceConfig) -> ServiceConfig:
+    axes = {a: ax.model_copy(update={"predict": False}) for a, ax in cfg.axes.items()}
+    return cfg.model_copy(update={"axes": axes})
+
+
+def _laguerre_impulse(p: PredictorParams, n: int) -> np.ndarray:
+    """The prefilter's impulse response by the recursion of its factors, through lfilter."""
+    a = math.exp(-2 * math.pi * p.pole_hz / p.rate_hz)
+    x = np.zeros(n)
+    x[0] = 1.0
+    y = p.coeffs[0] * x
+    lk = lfilter([math.sqrt(1 - a * a)], [1.0, -a], x)
+    for c in p.coeffs[1:]:
+        y = y + c * lk
+        lk = lfilter([-a, 1.0], [1.0, -a], lk)
+    return np.asarray(y)
+
+
+def test_shipped_prefilters_meet_the_bounds(cfg: ServiceConfig) -> None:
+    """Worst phase delay over 0.1-2 Hz <= 10 ms (from 67.5), in-band gain error <= 1 dB, peak
+    of the delivered response <= +6 dB, command gain above 10 Hz <= 3: plant by freqz of its
+    discretisation, prefilter by freqz of its impulse response, phase unwrapped from 1 mHz."""
+    axes = resolve_axes(cfg)
+    for name in HEX:
+        i = AXIS_INDEX[name]
+        p = axes.prediction[i]
+        assert p is not None and axes.predict[i] and axes.bypass[i], name
+        num, den = axes.plants[i].discretize(RATE).tf()
+        b = np.concatenate([np.zeros(len(den) - len(num)), num])
+        f = np.concatenate([np.geomspace(1e-3, 0.1, 400), np.linspace(0.1, 499.0, 40_000)])
+        _, plant = freqz(b, den, worN=f, fs=RATE)
+        _, pre = freqz(_laguerre_impulse(p, 200_000), worN=f, fs=RATE)
+        t = plant * pre
+        band = (f >= 0.1) & (f <= 2.0)
+        tau = -np.unwrap(np.angle(t))[band] / (2 * np.pi * f[band])
+        mag_db = 20 * np.log10(np.abs(t))
+        assert np.max(np.abs(tau)) <= 0.010, (name, np.max(np.abs(tau)))
+        assert np.max(np.abs(mag_db[band])) <= 1.0 + 0.01, name
+        assert mag_db.max() <= 6.0 + 0.01, name
+        assert np.abs(pre[f >= 10.0]).max() <= 3.0 * 1.001, name
+
+
+def _step(size: float, rise_s: float) -> np.ndarray:
+    n = max(round(rise_s * RATE), 1)
+    return np.concatenate([np.zeros(1000), size * min_jerk(np.arange(n) / n),
+                           np.full(2500, size)])
+
+
+def _lane_change(width: float) -> np.ndarray:
+    n = 2000
+    move = width * min_jerk(np.arange(n) / n)
+    return np.concatenate([np.zeros(1000), move, np.full(2000, width), move[::-1],
+                           np.zeros(1500)])
+
+
+def _delivered(cfg: ServiceConfig, axis: str, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    from motcomp.core.models import simulate_axis
+
+    res = ideal_run(cfg, {axis: r}, RATE)
+    u = res.u[axis]
+    return u, simulate_axis(resolve_axes(cfg).plants[AXIS_INDEX[axis]], u, RATE)
+
+
+def _overshoot(r: np.ndarray, y: np.ndarray) -> float:
+    n = min(r.size, y.size)
+    return max(float(y[:n].max() - r.max()), float(r.min() - y[:n].min()), 0.0) / float(
+        np.ptp(r))
+
+
+@pytest.mark.parametrize(("size", "rise_s"), [(0.1, 0.0), (0.02, 0.0), (0.02, 0.15),
+                                              (0.02, 0.3), (0.002, 0.3), (0.05, 0.6)])
+def test_braking_step_overshoot_added_by_prediction_is_bounded(cfg: ServiceConfig, size: float,
+                                                               rise_s: float) -> None:
+    r = _step(size, rise_s)
+    u_on, y_on = _delivered(cfg, "hex_x", r)
+    _, y_off = _delivered(_plain(cfg), "hex_x", r)
+    added = _overshoot(r, y_on) - _overshoot(r, y_off)
+    assert added <= MAX_ADDED_OVERSHOOT, (size, rise_s, _overshoot(r, y_on), _overshoot(r, y_off))
+    lim = resolve_axes(cfg).limits
+    i = AXIS_INDEX["hex_x"]
+    assert lim.p_min[i] <= u_on.min() and u_on.max() <= lim.p_max[i]
+
+
+def test_lane_change_overshoot_and_lead(cfg: ServiceConfig) -> None:
+    """A 10 cm sway in 2 s and back on hex_y: prediction adds at most the bound to the
+    platform's own overshoot and takes most of its lag off (velocities' cross-correlation)."""
+    r = _lane_change(0.1)
+    _, y_on = _delivered(cfg, "hex_y", r)
+    _, y_off = _delivered(_plain(cfg), "hex_y", r)
+    assert _overshoot(r, y_on) - _overshoot(r, y_off) <= MAX_ADDED_OVERSHOOT
+    n = min(r.size, y_on.size, y_off.size)
+    d_on = estimate_delay(np.diff(r[:n]), np.diff(y_on[:n]), RATE, 0.2, -0.1)
+    d_off = estimate_delay(np.diff(r[:n]), np.diff(y_off[:n]), RATE, 0.2, -0.1)
+    assert d_off > 0.030 and d_on < 0.012, (d_off, d_on)
