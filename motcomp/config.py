@@ -116,7 +116,7 @@ class PredictionConfig(BaseModel):
     fallback_ratio: float = Field(0.3, gt=0.0, le=10.0)
     resume_ratio: float = Field(0.15, gt=0.0, le=10.0)
     resume_after_s: float = Field(0.5, ge=0.0, le=60.0)
-    fade_out_s: float = Field(0.03, ge=0.0, le=10.0)
+    fade_out_s: float = Field(0.02, ge=0.0, le=10.0)
     fade_in_s: float = Field(0.5, ge=0.0, le=10.0)
     floor: float = Field(1e-4, gt=0.0, le=1.0)
 

@@ -195,7 +195,9 @@ def test_the_command_is_the_output_in_force_not_the_input(mixed: Path) -> None:
     assert s.inputs is not None
     t_in = s.inputs.log_ns / 1e9 - cols.start_s
     received = s.inputs.pos[(t_in > 2.0) & (t_in < 8.0), 1]
-    assert np.ptp(rec.cmd) > 4 * np.ptp(received[np.isfinite(received)])
+    # the compensated command, limited on most samples, spans 3x the input (over 4x before the
+    # limiter's wall stopped with a stopping target): another motion than the one received
+    assert np.ptp(rec.cmd) > 2 * np.ptp(received[np.isfinite(received)])
 
 
 def test_all_axes_leaves_out_those_without_usable_data(

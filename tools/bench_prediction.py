@@ -13,12 +13,14 @@ dynamics).  Per run, on the axis the signal moves:
 * HF acc: the command's acceleration RMS above 5 Hz; limited: share of ticks the limiter acted;
 * fallbacks: how often the band monitor fell back.
 
-Signals: the slalom (rails_y), the band sweep (rails_x), the lane change (rails_y), heave /
-roll / pitch sines and a 0.1-2 Hz sweep on the hexapod, and braking steps (minimum-jerk, rise
-0-0.6 s, 2 mm-0.1 m) on hex_x and rails_x.  Writes docs/BENCHMARKS.md's "prediction-time"
-section (not with ``--no-write``) and ``prediction_time.json`` into ``--out``.
+Signals: the slalom (rails_y), the band sweep (rails_x), the lane change (rails_y; and a
+10 cm sway on hex_y), heave / roll / pitch sines and a 0.1-2 Hz sweep on the hexapod, and
+braking steps (minimum-jerk, rise 0-0.6 s, 2 mm-0.1 m) on hex_x and rails_x.  Writes
+docs/BENCHMARKS.md's "prediction-time" section (not with ``--no-write``) and
+``prediction_time.json`` into ``--out``.
 
-Usage: ``python tools/bench_prediction.py [--config config/demo.toml] [--out DIR] [--no-write]``
+Usage: ``python tools/bench_prediction.py [--config config/motcomp.toml] [--out DIR]
+[--no-write]``
 """
 
 from __future__ import annotations
@@ -71,6 +73,10 @@ def signals() -> list[tuple[str, str, np.ndarray, bool]]:
            ("pitch 0.35 Hz", "hex_pitch", 0.08 * env * np.sin(2 * np.pi * 0.35 * t), False),
            ("sweep 0.1-2 Hz", "hex_y",
             0.02 * env * np.sin(2 * np.pi * (0.1 * t + 1.9 / 48 * t * t)), False)]
+    n = 2000  # a 10 cm sway in 2 s and back (the lane change, as the hexapod's cue)
+    move = 0.1 * min_jerk(np.arange(n) / n)
+    out.append(("lane change 10 cm", "hex_y", np.concatenate(
+        [np.zeros(1000), move, np.full(2000, 0.1), move[::-1], np.zeros(1500)]), True))
     for size, rise in STEPS:
         out.append((f"step {size * 1e3:g} mm, rise {rise:g} s", "hex_x", _step(size, rise), True))
     for size, rise in ((0.5, 0.0), (0.5, 0.5), (0.1, 0.3)):
@@ -102,7 +108,7 @@ def run(cfg: ServiceConfig, axis: str, r: np.ndarray, on_velocity: bool) -> dict
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--config", default="config/demo.toml")
+    ap.add_argument("--config", default="config/motcomp.toml")
     ap.add_argument("--out", default="out/bench")
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args()

@@ -9,7 +9,6 @@ import json
 import sys
 from pathlib import Path
 
-from motcomp.core.predictor import PredictorParams
 from motcomp.config import (
     RESTART_KEYS,
     config_hash,
@@ -18,6 +17,7 @@ from motcomp.config import (
     resolve_axes,
     source_report,
 )
+from motcomp.core.predictor import PredictorParams
 from motcomp.errors import ConfigError
 
 ORDER = 5

@@ -79,6 +79,9 @@ LOW_CUT_HZ = 0.05
 """Corner of the in-band amplitude's high-pass (removes the reference's offset)."""
 ENVELOPE_S = 0.2
 """Decay time constant of the band monitor's peak-hold envelopes."""
+WARM_SETTLE_S = 0.5
+"""After :meth:`Prediction.warm`, the band monitor's filters start at rest under a moving
+reference: their transient is not judged for this long."""
 MAX_ORDER = 64
 """Largest number of Laguerre functions of a predictor."""
 
@@ -175,7 +178,7 @@ class MonitorParams:
     fallback_ratio: float = 0.3
     resume_ratio: float = 0.15
     resume_after_s: float = 0.5
-    fade_out_s: float = 0.03
+    fade_out_s: float = 0.02
     fade_in_s: float = 0.5
     floor: float = 1e-4
     """Added to the in-band amplitude (axis units): motion smaller than this is not judged."""
@@ -299,6 +302,7 @@ class Prediction:
         self._seed(r)
         # per predicted axis: blend weight, its start and progress, the calm time, the mode
         self._w = [0.0] * m
+        self._fallen = [False] * m
         self._w0 = [0.0] * m
         self._progress = [1.0] * m
         self._target = [0.0] * m
@@ -317,7 +321,7 @@ class Prediction:
                 self.ratio[i] = 0.0
 
     _STATE = ("_r_last", "_hp_x", "_hp_y", "_lo_y", "_env_hi", "_env_lo", "_pred", "_w", "_w0",
-              "_progress", "_target", "_calm", "_offset", "_offset_progress")
+              "_progress", "_target", "_calm", "_offset", "_offset_progress", "_fallen")
 
     def _axis_state(self, j: int) -> dict[str, object]:
         """Every state of predicted axis ``j`` (row ``j`` of the arrays)."""
@@ -347,6 +351,7 @@ class Prediction:
         self._env_hi = [0.0] * m
         self._env_lo = [0.0] * m
         self._pred: list[float] = r.tolist()
+        self._settle = 0
 
     def set_params(self, params: Sequence[PredictorParams | None], monitor: MonitorParams,
                    reference: Sequence[float]) -> None:
@@ -393,6 +398,7 @@ class Prediction:
         hp, hx, hy = self._hp, self._hp_x, self._hp_y
         w, w0, prog, target, calm = self._w, self._w0, self._progress, self._target, self._calm
         off, off_p = self._offset, self._offset_progress
+        fallen = self._fallen
         out = list(reference)
         for j, i in enumerate(idx):
             x = r[j]
@@ -409,17 +415,25 @@ class Prediction:
             self._env_hi[j] = e_hi
             self._env_lo[j] = e_lo
             ratio = e_hi / (e_lo + floor)
+            judged = ratio
+            if self._settle:
+                judged = 0.0
             on = live if isinstance(live, bool) else bool(live[i])
-            calm[j] = calm[j] + dt if (on and ratio < rs_ratio) else 0.0
-            if not on or ratio > fb_ratio:
+            calm[j] = calm[j] + dt if (on and judged < rs_ratio) else 0.0
+            if not on or judged > fb_ratio:
                 want = 0.0
             elif calm[j] >= rs_after:
                 want = 1.0
             else:
                 want = target[j]
+            if not on:
+                fallen[j] = False  # held off by the caller, not by the monitor
             if want != target[j]:
                 if want == 0.0 and on:
                     self.fallbacks[i] += 1  # the monitor's, not a switch-off
+                    fallen[j] = True
+                elif want == 1.0:
+                    fallen[j] = False
                 w0[j] = w[j]
                 prog[j] = 0.0
                 target[j] = want
@@ -435,6 +449,34 @@ class Prediction:
             self.ratio[i] = ratio
             self.weight[i] = w[j]
         self._r_last = r
+        if self._settle:
+            self._settle -= 1
+        return out
+
+    def warm(self, reference: Sequence[float], predicting: Sequence[bool]) -> None:
+        """Every filter at rest at ``reference``, and the axes ``predicting`` predicting
+        already (``weight`` 1), the others held off: a start mid-run.  The monitor does not
+        judge for :data:`WARM_SETTLE_S` (its filters' transient)."""
+        r = np.array([reference[i] for i in self.idx], dtype=float)
+        self._seed(r)
+        self._settle = round(WARM_SETTLE_S / self.dt_s)
+        for j, i in enumerate(self.idx):
+            on = 1.0 if predicting[i] else 0.0
+            self._w[j] = self._w0[j] = self._target[j] = on
+            self._progress[j] = 1.0
+            self._calm[j] = 0.0
+            self._offset[j] = 0.0
+            self._offset_progress[j] = 1.0
+            self._fallen[j] = False
+            self.weight[i] = on
+            self.ratio[i] = 0.0
+
+    def fallen_back(self) -> list[bool]:
+        """Per axis: the band monitor holds the prediction off (since it last fell back, until
+        it resumes or the caller holds it off itself)."""
+        out = [False] * self.n
+        for j, i in enumerate(self.idx):
+            out[i] = self._fallen[j]
         return out
 
     def predicting(self) -> list[bool]:

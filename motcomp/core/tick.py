@@ -60,7 +60,10 @@ Rules for edge cases
   (a reload) is taken at the next tick, bumplessly.
 * Flags, in this order: the shaper's mode (``rejoin``, ``stale``, ``parking``) if any, then
   ``sat:<axis>`` per limited axis, then ``bypass:<axis>`` per driven axis in bypass, then
-  ``fallback:<axis>`` per axis whose prediction is wanted but fallen back.
+  ``fallback:<axis>`` per axis whose prediction the band monitor holds off (not while the
+  shaper's mode or a switch-off does), then ``nopredict:<axis>`` per axis whose configured
+  prediction is turned off with compensation (:func:`set_bypass`; what a replay needs to tell
+  it from the PID's bypass, which a config may set on a predicted axis).
 """
 
 from __future__ import annotations
@@ -91,6 +94,7 @@ __all__ = [
     "prediction_status",
     "set_bypass",
     "step",
+    "warm_start",
 ]
 
 MAX_SEQ_STEP = 1000
@@ -109,6 +113,7 @@ _HARD_BITS = POS | VEL
 _SAT_FLAGS = tuple(f"sat:{a}" for a in AXES)
 _BYPASS_FLAGS = tuple(f"bypass:{a}" for a in AXES)
 _FALLBACK_FLAGS = tuple(f"fallback:{a}" for a in AXES)
+_NOPREDICT_FLAGS = tuple(f"nopredict:{a}" for a in AXES)
 _unpackb = msgpack.unpackb
 
 
@@ -185,6 +190,7 @@ class TickState:
         self._pred_params_predict: tuple[bool, ...] = ()
         self._comp_off = [False] * n
         self._ref = [0.0] * n
+        self.nopredict_flags: list[str] = []
         _set_bypass_flags(self)
 
     @property
@@ -250,10 +256,10 @@ def step(state: TickState, p: TickParams, now_ns: int,
             flags.append(_SAT_FLAGS[i])
     flags.extend(state.bypass_flags)
     if state.pred.idx:
-        wanted = state._pred_wanted
-        for i, on in enumerate(state.pred.predicting()):
-            if wanted[i] and not on:
+        for i, fallen in enumerate(state.pred.fallen_back()):
+            if fallen:
                 flags.append(_FALLBACK_FLAGS[i])
+        flags.extend(state.nopredict_flags)
     out = TickOutput(state.ticks, state.src_seq, u, flags, limited, mode)
     state.ticks += 1
     state.mode = mode or "running"
@@ -270,6 +276,7 @@ def _sync_prediction(state: TickState, p: TickParams) -> None:
     predict = tuple(p.predict) + (False,) * (n - len(p.predict))
     state._pred_params_predict = predict
     _set_pred_wanted(state)
+    _set_bypass_flags(state)
 
 
 def _set_pred_wanted(state: TickState) -> None:
@@ -409,16 +416,21 @@ def set_bypass(state: TickState, mask: Sequence[bool],
 
 
 def prediction_status(state: TickState) -> dict[str, dict[str, object]]:
-    """Per axis with a prediction: ``state`` (``predicting``, ``fallback`` -- wanted but the
-    band monitor or the shaper's mode holds it off -- or ``off``), the prediction's share
-    ``weight`` (0-1), the monitor's ``ratio`` and the count of ``fallbacks``."""
+    """Per axis with a prediction: ``state`` -- ``predicting``, ``fallback`` (the band monitor
+    holds it off), ``held`` (wanted, but the reference is not live yet or again: start-up,
+    stale, rejoin, parking, or the calm time before prediction resumes) or ``off`` (``predict =
+    false``, or compensation turned off) --, the prediction's share ``weight`` (0-1), the
+    monitor's ``ratio`` and the count of ``fallbacks`` it caused."""
     pred = state.pred
     on = pred.predicting()
+    fallen = pred.fallen_back()
     out: dict[str, dict[str, object]] = {}
     for i in pred.idx:
-        wanted = state._pred_wanted[i]
-        out[AXES[i]] = {"state": ("predicting" if on[i] else "fallback") if wanted else "off",
-                        "weight": pred.weight[i], "ratio": pred.ratio[i],
+        if not state._pred_wanted[i]:
+            what = "off"
+        else:
+            what = "predicting" if on[i] else "fallback" if fallen[i] else "held"
+        out[AXES[i]] = {"state": what, "weight": pred.weight[i], "ratio": pred.ratio[i],
                         "fallbacks": pred.fallbacks[i]}
     return out
 
@@ -426,6 +438,18 @@ def prediction_status(state: TickState) -> dict[str, dict[str, object]]:
 def _set_bypass_flags(state: TickState) -> None:
     state.bypass_flags = [_BYPASS_FLAGS[i] for i, (b, d) in enumerate(zip(
         state.comp.bypass, state._driven, strict=True)) if b and d]
+    state.nopredict_flags = [_NOPREDICT_FLAGS[i] for i, p in enumerate(state.pred.params)
+                             if p is not None and state._driven[i] and state._comp_off[i]]
+
+
+def warm_start(state: TickState, p: TickParams, position: Sequence[float]) -> None:
+    """Start mid-run (a replay of a recording that begins after the service started): the
+    compensator at rest at ``position``, and each wanted prediction predicting, its prefilter
+    at rest there -- as near to the service's state as a recording tells."""
+    state.comp.reset(position)
+    _sync_prediction(state, p)
+    state._ref = [float(x) for x in position]
+    state.pred.warm(state._ref, state._pred_wanted)
 
 
 def park(state: TickState, p: TickParams, now_ns: int) -> None:

@@ -427,6 +427,8 @@ FLAG_BITS: dict[str, int] = {
     **{f"sat:{a}": 1 << i for i, a in enumerate(AXES)},
     **{f"bypass:{a}": 1 << (8 + i) for i, a in enumerate(AXES)},
     "stale": 1 << 16, "rejoin": 1 << 17, "parking": 1 << 18,
+    **{f"fallback:{a}": 1 << (24 + i) for i, a in enumerate(AXES)},
+    **{f"nopredict:{a}": 1 << (32 + i) for i, a in enumerate(AXES)},
 }
 """Bit of each output flag in :attr:`OutputColumns.flags`."""
 MODE_BITS = FLAG_BITS["stale"] | FLAG_BITS["rejoin"] | FLAG_BITS["parking"]

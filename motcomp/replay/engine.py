@@ -24,7 +24,8 @@ import numpy as np
 
 from motcomp.config import ResolvedAxes, ServiceConfig, new_tick, resolve_axes
 from motcomp.core.axes import AXES
-from motcomp.core.tick import TickParams, TickState, park, set_bypass, step
+from motcomp.core.tick import TickParams, TickState, park, set_bypass, step, warm_start
+from motcomp.record.frames import FLAG_BITS
 from motcomp.record.session import InputStream
 from motcomp.replay.plan import TickPlan, first_position
 
@@ -54,6 +55,9 @@ class EngineResult:
     """Compensation off (the tick's bypass mask at that step)."""
     emit: np.ndarray
     """An output was sent (False for the steps computed to catch up after a stall)."""
+    flags: np.ndarray | None = None
+    """The tick's output flags as :data:`~motcomp.record.frames.FLAG_BITS` (0 at catch-up
+    rows): comparable with a recording's bit for bit."""
     rejected: dict[str, int] = field(default_factory=dict)
     """Input frames the replay's tick rejected, by reason (those that occurred)."""
     timings: dict[str, float] = field(default_factory=dict)
@@ -88,7 +92,7 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
     params, state = new_tick(cfg, axes)
     current = params
     if plan.warm:
-        state.comp.reset(initial_position(plan, inp, axes, params))
+        warm_start(state, params, initial_position(plan, inp, axes, params))
         current = replace(params, shaper=replace(params.shaper, startup_s=0.0))
     known = _recorded_bypass_axes(plan, axes)
     if plan.bypass0 is not None:
@@ -120,6 +124,8 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
     limited = np.zeros((n, len(AXES)), dtype=bool)
     mode = np.zeros(n, dtype=np.int8)
     src_seq = np.full(n, -2, dtype=np.int64)
+    flags = np.zeros(n, dtype=np.int64)
+    flag_bit = FLAG_BITS
     data, bounds = inp.data, inp.bounds
     warm_pending = plan.warm
     shaper = state.shaper
@@ -141,6 +147,7 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
         lim_b: array[int] = array("b")
         mode_b: array[int] = array("b")
         src_b: array[int] = array("q")
+        flag_b: array[int] = array("q")
         for i in range(rows.size):
             hook = hooks.get(b0 + i)
             if hook is not None:
@@ -158,19 +165,21 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
             lim_b.extend(out.limited)
             mode_b.append(mode_index[out.mode])
             src_b.append(out.src_seq)
+            flag_b.append(sum(flag_bit.get(f, 0) for f in out.flags))
         m = rows.size
         u[rows] = np.frombuffer(u_b, dtype=np.float64).reshape(m, len(AXES))
         ref[rows] = np.frombuffer(ref_b, dtype=np.float64).reshape(m, len(AXES))
         limited[rows] = np.frombuffer(lim_b, dtype=np.int8).reshape(m, len(AXES)) != 0
         mode[rows] = np.frombuffer(mode_b, dtype=np.int8)
         src_seq[rows] = np.frombuffer(src_b, dtype=np.int64)
+        flags[rows] = np.frombuffer(flag_b, dtype=np.int64)
     bypass = np.zeros((n, len(AXES)), dtype=bool)
     for (r0, mask), (r1, _) in zip(bypass_from, [*bypass_from[1:], (n, None)], strict=True):
         bypass[r0:r1] = mask
     if progress is not None:
         progress(1.0)
     rejected = {k: v for k, v in state.rejected_by_reason.items() if v}
-    return EngineResult(ref, u, limited, mode, src_seq, bypass, emit.copy(), rejected,
+    return EngineResult(ref, u, limited, mode, src_seq, bypass, emit.copy(), flags, rejected,
                         {"engine_s": time.perf_counter() - t0,
                          "us_per_tick": (time.perf_counter() - t0) / max(ticks.size, 1) * 1e6})
 
@@ -195,7 +204,12 @@ def _recorded_bypass_axes(plan: TickPlan, axes: ResolvedAxes) -> tuple[bool, ...
 
 
 def _set_recorded_bypass(state: TickState, mask: np.ndarray, known: tuple[bool, ...]) -> None:
-    """The recorded bypass mask on the axes it applies to; the others keep theirs."""
+    """The recorded bypass mask (the PID's, then the prediction's, :class:`TickPlan`) on the
+    axes it applies to; the others keep theirs."""
+    n = len(AXES)
+    pid, off = mask[:n], mask[n:2 * n] if mask.size >= 2 * n else np.zeros(n, dtype=bool)
     set_bypass(state, [bool(m) if k else bool(b) for m, k, b in zip(
-        mask, known, state.comp.bypass, strict=True)])
+        pid, known, state.comp.bypass, strict=True)],
+        [bool(m) if k else bool(o) for m, k, o in zip(off, known, state.prediction_off,
+                                                       strict=True)])
 

@@ -63,9 +63,10 @@ class TickPlan:
     emit: np.ndarray
     """The step was a tick (it sent an output), not a catch-up."""
     bypass0: np.ndarray | None
-    """Bypass mask at the first row (None: the config's)."""
+    """Bypass mask at the first row (None: the config's): ``2 x len(AXES)`` booleans, the PID's
+    bypass (flags ``bypass:<axis>``) then the prediction turned off (``nopredict:<axis>``)."""
     bypass_events: list[tuple[int, np.ndarray]]
-    """``(row, mask)``: bypass set to ``mask`` before the row's step."""
+    """``(row, mask)``: bypass set to ``mask`` (as :attr:`bypass0`) before the row's step."""
     park: tuple[int, int] | None
     """``(row, now_ns)``: parking requested at ``now_ns``, before that row."""
     warm: bool
@@ -303,10 +304,10 @@ def _from_outputs(session: Session, cfg: ServiceConfig, params: TickParams, run:
     # bypass changes and parking, from the flags of the recorded ticks
     rec_rows = np.flatnonzero(output >= 0)
     flags_rows = out.flags[output[rec_rows]]
-    bits = flags_rows >> 8 & 0xFF
+    bits = (flags_rows >> 8 & 0xFF) | ((flags_rows >> 32 & 0xFF) << 8)
 
     def mask_of(k: int) -> np.ndarray:
-        return ((int(bits[k]) >> np.arange(len(AXES))) & 1).astype(bool)
+        return ((int(bits[k]) >> np.arange(2 * len(AXES))) & 1).astype(bool)
 
     bypass0 = mask_of(0)
     events = [(int(rec_rows[k]), mask_of(int(k)))

@@ -19,13 +19,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from pydantic import ValidationError
+
 from motcomp.config import (
     RESTART_KEYS,
     ResolvedAxes,
     ServiceConfig,
     config_hash,
-    load_config,
     new_tick,
+    parse_config,
+    read_toml,
     resolve_axes,
 )
 from motcomp.core.tick import TickParams
@@ -56,12 +59,16 @@ def restart_changes(old: ServiceConfig, new: ServiceConfig) -> list[str]:
     return [k for k in RESTART_KEYS if _get(old, k) != _get(new, k)]
 
 
-def _prepare(old: ServiceConfig, old_axes: ResolvedAxes, new: ServiceConfig, where: str
-             ) -> Prepared:
+def _refuse_restart_keys(old: ServiceConfig, new: ServiceConfig, where: str) -> None:
     changed = restart_changes(old, new)
     if changed:
         raise ConfigError(f"{where}: {', '.join(changed)} cannot change live (restart the "
                           "service)")
+
+
+def _prepare(old: ServiceConfig, old_axes: ResolvedAxes, new: ServiceConfig, where: str
+             ) -> Prepared:
+    _refuse_restart_keys(old, new, where)
     axes = resolve_axes(new)
     if axes.driven != old_axes.driven:
         raise ConfigError(f"{where}: the set of driven axes cannot change live")
@@ -79,7 +86,14 @@ def prepare_config(old: ServiceConfig, old_axes: ResolvedAxes, path: Path | None
     """
     if path is None:
         raise ConfigError("no config file to reload (the service was started without one)")
-    return _prepare(old, old_axes, load_config(path), str(path))
+    data = read_toml(path)
+    try:  # a key that needs a restart is the first thing to say (before what follows from it)
+        shallow = ServiceConfig.model_validate(data)
+    except ValidationError:
+        pass  # parse_config says what is wrong
+    else:
+        _refuse_restart_keys(old, shallow, str(path))
+    return _prepare(old, old_axes, parse_config(data, str(path)), str(path))
 
 
 def prepare_profile(old: ServiceConfig, old_axes: ResolvedAxes, name: str | None) -> Prepared:
