@@ -92,7 +92,7 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
     params, state = new_tick(cfg, axes)
     current = params
     if plan.warm:
-        warm_start(state, params, initial_position(plan, inp, axes, params))
+        warm_start(state, params, initial_position(plan, inp, axes, params).tolist())
         current = replace(params, shaper=replace(params.shaper, startup_s=0.0))
     known = _recorded_bypass_axes(plan, axes)
     if plan.bypass0 is not None:
