@@ -20,7 +20,7 @@ docs/BENCHMARKS.md's "prediction-time" section (not with ``--no-write``) and
 ``prediction_time.json`` into ``--out``.
 
 Usage: ``python tools/bench_prediction.py [--config config/motcomp.toml] [--out DIR]
-[--no-write]``
+[--no-write] [--section NAME]``
 """
 
 from __future__ import annotations
@@ -111,6 +111,8 @@ def main() -> int:
     ap.add_argument("--config", default="config/motcomp.toml")
     ap.add_argument("--out", default="out/bench")
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--section", default="prediction-time",
+                    help="the BENCHMARKS.md section written (default prediction-time)")
     args = ap.parse_args()
     cfg = load_config(args.config)
     plain = _without_prediction(cfg)
@@ -147,7 +149,7 @@ def main() -> int:
     text = "\n".join(lines)
     (out / "prediction_time.md").write_text(text + "\n")
     if not args.no_write:
-        write_section("prediction-time", text)
+        write_section(args.section, text)
     return 0
 
 
