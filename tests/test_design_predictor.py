@@ -5,17 +5,16 @@ uniform grids and step responses simulated sample by sample."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 from scipy.signal import freqz, lfilter
 
 from motcomp.core.models import parse_model
-from motcomp.core.predictor import PredictorParams, predictor_freqresp
+from motcomp.core.predictor import predictor_freqresp
 from motcomp.design.frequency import evaluate
 from motcomp.design.predictor import PredictorBounds, PredictorDesign, design_predictor
 from motcomp.errors import ConfigError
+from tests._laguerre import laguerre_filter
 
 RATE = 1000.0
 HEXAPOD = parse_model("p2uzd:K=1,Td=0.0325,Tw=0.06399186527,Zeta=0.7,Tz=0.08764049978")
@@ -26,18 +25,6 @@ HAIR_DB = 0.01
 @pytest.fixture(scope="module")
 def hexapod() -> PredictorDesign:
     return design_predictor(HEXAPOD, RATE, constraints=BOUNDS)
-
-
-def laguerre_filter(p: PredictorParams, x: np.ndarray) -> np.ndarray:
-    """``F`` applied to ``x`` by the recursion ``L_0 = s / (1 - a z^-1)``,
-    ``L_k = L_{k-1} (z^-1 - a) / (1 - a z^-1)``: written here, not taken from the package."""
-    a = math.exp(-2 * math.pi * p.pole_hz / p.rate_hz)
-    y = p.coeffs[0] * x
-    lk = lfilter([math.sqrt(1 - a * a)], [1.0, -a], x)
-    for c in p.coeffs[1:]:
-        y = y + c * lk
-        lk = lfilter([-a, 1.0], [1.0, -a], lk)
-    return np.asarray(y)
 
 
 def plant_b_a() -> tuple[np.ndarray, np.ndarray]:

@@ -6,19 +6,17 @@ steps and a lane change overshoot the reference by the platform's own amount plu
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
-from scipy.signal import freqz, lfilter
+from scipy.signal import freqz
 
 from motcomp.config import ServiceConfig, load_config, resolve_axes
 from motcomp.core.axes import AXIS_INDEX
 from motcomp.core.minjerk import min_jerk
-from motcomp.core.predictor import PredictorParams
 from motcomp.core.quality import estimate_delay
 from motcomp.resources import config_file
 from motcomp.sim.ideal import ideal_run
+from tests._laguerre import laguerre_filter
 
 RATE = 1000.0
 HEX = ("hex_x", "hex_y", "hex_z", "hex_roll", "hex_pitch", "hex_yaw")
@@ -37,19 +35,6 @@ def _plain(cfg: ServiceConfig) -> ServiceConfig:
     return cfg.model_copy(update={"axes": axes})
 
 
-def _laguerre_impulse(p: PredictorParams, n: int) -> np.ndarray:
-    """The prefilter's impulse response by the recursion of its factors, through lfilter."""
-    a = math.exp(-2 * math.pi * p.pole_hz / p.rate_hz)
-    x = np.zeros(n)
-    x[0] = 1.0
-    y = p.coeffs[0] * x
-    lk = lfilter([math.sqrt(1 - a * a)], [1.0, -a], x)
-    for c in p.coeffs[1:]:
-        y = y + c * lk
-        lk = lfilter([-a, 1.0], [1.0, -a], lk)
-    return np.asarray(y)
-
-
 def test_shipped_prefilters_meet_the_bounds(cfg: ServiceConfig) -> None:
     """Worst phase delay over 0.1-2 Hz <= 10 ms (from 67.5), in-band gain error <= 1 dB, peak
     of the delivered response <= +6 dB, command gain above 10 Hz <= 3: plant by freqz of its
@@ -63,7 +48,9 @@ def test_shipped_prefilters_meet_the_bounds(cfg: ServiceConfig) -> None:
         b = np.concatenate([np.zeros(len(den) - len(num)), num])
         f = np.concatenate([np.geomspace(1e-3, 0.1, 400), np.linspace(0.1, 499.0, 40_000)])
         _, plant = freqz(b, den, worN=f, fs=RATE)
-        _, pre = freqz(_laguerre_impulse(p, 200_000), worN=f, fs=RATE)
+        impulse = np.zeros(200_000)
+        impulse[0] = 1.0
+        _, pre = freqz(laguerre_filter(p, impulse), worN=f, fs=RATE)
         t = plant * pre
         band = (f >= 0.1) & (f <= 2.0)
         tau = -np.unwrap(np.angle(t))[band] / (2 * np.pi * f[band])

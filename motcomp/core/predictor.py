@@ -26,7 +26,7 @@ they are.  Realisation (``l_k`` the output of ``L_k``, computed in order of ``k`
 written as ``l[n] = A l[n-1] + B r[n]`` (A lower triangular).  A designed filter has
 ``F(1) = 1``: a constant reference is passed unchanged.
 
-Band monitor and fallback (the rule; docs/TUNING.md "Predictive prefilter" has the why)::
+Band monitor and fallback (the rule; docs/PREDICTION.md has the why and the measurements)::
 
     hi[n]   = |HP2(r)|,  2nd-order Butterworth high-pass at HIGH_CUT x the design band's top
     lo[n]   = |HP1(r)|,  1st-order high-pass at LOW_CUT_HZ (removes the offset)
@@ -34,7 +34,8 @@ Band monitor and fallback (the rule; docs/TUNING.md "Predictive prefilter" has t
     ratio   = env_hi / (env_lo + floor)
     ratio > fallback_ratio                         -> fallback (w fades to 0 over fade_out_s)
     ratio < resume_ratio for resume_after_s        -> predict  (w fades to 1 over fade_in_s)
-    the reference not live (start-up, stale, rejoin, parking)  -> fallback, forced
+    the caller's ``live`` False (the shaper's mode, a switch-off) -> held off (no fallback
+                                                                   counted or flagged)
 
 ``r' = r + w (r_pred - r)``; ``w`` moves along the minimum-jerk blend from wherever it is, so
 the switch is continuous in position and velocity both ways.  The filter runs in fallback too,

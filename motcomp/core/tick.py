@@ -267,8 +267,9 @@ def step(state: TickState, p: TickParams, now_ns: int,
 
 
 def _sync_prediction(state: TickState, p: TickParams) -> None:
-    """Take the params' prediction (first tick, reload), bumplessly; a set the loop cannot use
-    (designed for another rate) was refused by the config already and is ignored here."""
+    """Take the params' prediction (first tick, reload), bumplessly.  A prefilter designed for
+    another rate raises :class:`~motcomp.errors.ConfigError`: the config refuses one before a
+    tick sees it."""
     n = state.comp.n
     params = tuple(p.prediction) + (None,) * (n - len(p.prediction))
     state.pred.set_params(params, p.monitor, state._ref)
