@@ -184,7 +184,7 @@ def main() -> None:
                      f"{min(blocks[name]):.1f}-{max(blocks[name]):.1f} |")
     lines += [
         "",
-        f"The tick beyond the compensator (frame checks, reference, verdicts) costs "
+        f"The tick beyond the compensator (frame checks, reference, prediction, verdicts) costs "
         f"{med[names[1]] - med[names[0]]:.1f} us at the median; the tick accepted "
         f"{check['accepted']} of {check['ticks']} frames (rejected {check['rejected']}), mode "
         f"{check['mode']!r} at the end, largest |command| {check['u_max']:.3g}.  numpy sketch / "
