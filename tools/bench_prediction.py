@@ -15,7 +15,8 @@ dynamics).  Per run, on the axis the signal moves:
 
 Signals: the slalom (rails_y), the band sweep (rails_x), the lane change (rails_y; and a
 10 cm sway on hex_y), heave / roll / pitch sines and a 0.1-2 Hz sweep on the hexapod, and
-braking steps (minimum-jerk, rise 0-0.6 s, 2 mm-0.1 m) on hex_x and rails_x.  Writes
+braking steps (minimum-jerk, rise 0-0.6 s, 2 mm-0.1 m) on hex_x and rails_x, and sudden reversals
+(0.5 s at 0.02-0.3 m/s, then back) on hex_x.  Writes
 docs/BENCHMARKS.md's "prediction-time" section (not with ``--no-write``) and
 ``prediction_time.json`` into ``--out``.
 
@@ -79,6 +80,11 @@ def signals() -> list[tuple[str, str, np.ndarray, bool]]:
         [np.zeros(1000), move, np.full(2000, 0.1), move[::-1], np.zeros(1500)]), True))
     for size, rise in STEPS:
         out.append((f"step {size * 1e3:g} mm, rise {rise:g} s", "hex_x", _step(size, rise), True))
+    for speed in (0.02, 0.1, 0.3):  # sudden reversals: 0.5 s at speed, then back at once
+        up = speed * np.arange(500) / RATE_HZ
+        out.append((f"reversal at {speed:g} m/s", "hex_x", np.concatenate(
+            [np.zeros(1000), up, up[-1] - speed * np.arange(1, 501) / RATE_HZ,
+             np.zeros(2000)]), True))
     for size, rise in ((0.5, 0.0), (0.5, 0.5), (0.1, 0.3)):
         out.append((f"step {size * 1e3:g} mm, rise {rise:g} s", "rails_x", _step(size, rise),
                     True))
