@@ -250,7 +250,9 @@ def test_status_table_from_a_status_map() -> None:
                      "rejected_by_reason": {"range": 2, "decode": 1}, "last_reject": "x"},
           "stale_s": 0.0, "stale_total_s": 1.5, "stale_episodes": 2,
           "saturation": dict.fromkeys(AXES, 0) | {"rails_y": 7},
-          "bypass": ["hex_z"], "driven": ["rails_x", "rails_y", "hex_z"]}
+          "bypass": ["hex_z"], "driven": ["rails_x", "rails_y", "hex_z"],
+          "prediction": {"hex_z": {"state": "fallback", "weight": 0.0, "ratio": 0.4,
+                                   "fallbacks": 2}}}
     text = format_status(st)
     assert "{" not in text and "[" not in text  # no Python reprs
     assert "hash abc123  version 3  profile fast" in text
@@ -259,9 +261,9 @@ def test_status_table_from_a_status_map() -> None:
     assert "now 0.00 s  total 1.50 s  episodes 2" in text
     rows = {ln.split()[0]: ln.split()[1:] for ln in text.splitlines()}
     assert rows["compute"] == ["10.0", "20.0", "30.0", "40.0"]
-    assert rows["rails_y"] == ["yes", "no", "7"]
-    assert rows["hex_z"] == ["yes", "yes", "0"]
-    assert rows["hex_yaw"] == ["no", "-", "0"]
+    assert rows["rails_y"] == ["yes", "no", "-", "-", "7"]
+    assert rows["hex_z"] == ["yes", "yes", "fallback", "2", "0"]
+    assert rows["hex_yaw"] == ["no", "-", "-", "-", "0"]
 
 
 @pytest.mark.slow
@@ -275,10 +277,12 @@ def test_status_of_a_running_service_as_table_json_and_watch(tmp_path: Path) -> 
         lines = p.stdout.splitlines()
         assert lines[0].startswith("mode ")
         header = next(ln for ln in lines if ln.startswith("axis"))
-        assert header.split() == ["axis", "driven", "bypass", "saturation"]
+        assert header.split() == ["axis", "driven", "bypass", "prediction", "fallbacks",
+                                  "saturation"]
         rows = {ln.split()[0]: ln.split()[1:] for ln in lines[lines.index(header) + 1:]}
         assert set(rows) == set(AXES)
-        assert rows["rails_x"][0] == "yes" and rows["rails_x"][2].isdigit()
+        assert rows["rails_x"][0] == "yes" and rows["rails_x"][4].isdigit()
+        assert rows["hex_z"][2] in ("held", "predicting") and rows["hex_z"][3].isdigit()
         assert "loop times (us" in p.stdout and "{" not in p.stdout
         p = cli("status", "-e", ep, "--json")
         assert p.returncode == 0 and json.loads(p.stdout)["ticks"] > 0

@@ -286,7 +286,9 @@ def test_reload_refused_when_admin_is_off(tmp_path: Path) -> None:
 
 def test_bypass_off_without_axes_keeps_the_config_bypass(tmp_path: Path) -> None:
     """``motcomp bypass off`` with no axes re-enables only the axes the running config
-    compensates: the hexapod, bypassed by the example config, stays bypassed."""
+    compensates: the hexapod, whose PID the example config bypasses, keeps it bypassed and gets
+    its prediction back; named, an axis whose PID the config bypasses gets its PID back only
+    where it has no prediction (there, compensation is the prediction)."""
     path = tmp_path / "motcomp.toml"
     path.write_text(BASE)
     svc = Service(load_config(path), ZenohEndpoints(), config_path=path)
@@ -296,6 +298,19 @@ def test_bypass_off_without_axes_keeps_the_config_bypass(tmp_path: Path) -> None
         assert sorted(svc.request_bypass(True)) == sorted(
             a for a, d in zip(AXES, svc.axes.driven, strict=True) if d)
         assert sorted(svc.request_bypass(False)) == sorted(hexapod)
+        assert all(st["state"] != "off" for st in svc.status()["prediction"].values())
+        assert svc.request_bypass(True, ["hex_z"]) == hexapod
+        assert svc.status()["prediction"]["hex_z"]["state"] == "off"
+        assert svc.request_bypass(False, ["hex_z"]) == hexapod  # predicted: PID stays off
+        assert svc.status()["prediction"]["hex_z"]["state"] != "off"
+        run.wait(10)
+    base = tmp_path / "base.toml"  # the hexapod without prediction: named, its PID comes on
+    base.write_text("\n".join(line for line in config_file("motcomp.toml").read_text()
+                              .splitlines() if not line.startswith("prediction = ")))
+    plain = tmp_path / "plain.toml"
+    plain.write_text(f'include = ["{base}"]\n[admin]\nenabled = true\n')
+    svc = Service(load_config(plain), ZenohEndpoints(), config_path=plain)
+    with running(svc) as run:
         assert svc.request_bypass(False, ["hex_z"]) == [a for a in hexapod if a != "hex_z"]
         run.wait(10)
     reply = svc.admin("bypass", msgpack.packb({"on": False, "axes": ["rails_q"]}))

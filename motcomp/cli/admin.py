@@ -52,7 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="on: compensation off (the reference passes through); off: back on")
     b.add_argument("--axes", nargs="+", metavar="AXIS",
                    help="default: 'on' every driven axis; 'off' the driven axes the running "
-                        "config compensates (an axis it bypasses stays bypassed)")
+                        "config compensates (an axis it bypasses stays bypassed; one it "
+                        "predicts gets its prediction back, its PID staying bypassed)")
     _service_args(b, "motcomp/admin", 3.0)
     b.set_defaults(func=run_bypass)
 
@@ -218,12 +219,17 @@ def format_status(st: dict[str, Any]) -> str:
     driven = set(st.get("driven") or [])
     bypass = set(st.get("bypass") or [])
     sat = st.get("saturation") or {}
-    lines.append(f"{'axis':<12}{'driven':<8}{'bypass':<8}saturation")
+    pred = st.get("prediction") or {}
+    lines.append(f"{'axis':<12}{'driven':<8}{'bypass':<8}{'prediction':<12}{'fallbacks':<11}"
+                 "saturation")
     for axis in [a for a in AXES if a in driven or a in sat] + sorted(
             set(sat) - set(AXES)):
         on = axis in driven
+        p = pred.get(axis)
+        state, falls = ((str(p.get("state", "?")), str(p.get("fallbacks", 0)))
+                        if isinstance(p, dict) else ("-", "-"))
         lines.append(f"{axis:<12}{_yes(on):<8}{(_yes(axis in bypass) if on else '-'):<8}"
-                     f"{sat.get(axis, 0)}")
+                     f"{state:<12}{falls:<11}{sat.get(axis, 0)}")
     return "\n".join(lines)
 
 

@@ -4,7 +4,8 @@ Steps, each on the real processes (the service must run with ``[admin] enabled =
 other motion source may publish meanwhile)::
 
     1  ask the service's status: which axes it drives and bypasses, which config it runs
-    2  bypass the axis (compensation off): the platform receives the excitation itself
+    2  bypass the axis (compensation off, its prediction too): the platform receives the
+       excitation itself
     3  record inputs, outputs, feedback and status (motcomp.record.recorder) to an MCAP file
     4  play the excitation (motcomp.ident.excitation, a multisine by default) on the service's
        input at 1 kHz on wall time, at a fraction of the axis' limits the limiter leaves alone
@@ -113,7 +114,10 @@ def run_live(opts: LiveOptions, endpoints: ZenohEndpoints) -> LiveRun:
         if opts.axis not in status.get("driven", []):
             raise ServiceError(f"the service does not drive {opts.axis} (driven: "
                                f"{', '.join(status.get('driven', [])) or 'none'})")
-        was_bypassed = opts.axis in status.get("bypass", [])
+        pred = (status.get("prediction") or {}).get(opts.axis) or {}
+        # compensation off: the PID bypassed and no prediction acting on the axis
+        was_bypassed = (opts.axis in status.get("bypass", [])
+                        and pred.get("state", "off") == "off")
         limits = _limits(status, opts.axis)
         exc = excitation(opts.kind, opts.axis, limits, duration_s=opts.duration_s,
                          band_hz=opts.band_hz, seed=opts.seed, usage=opts.usage)

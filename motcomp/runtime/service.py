@@ -245,11 +245,12 @@ class Service:
     # --- configuration changes (main thread builds, loop thread swaps) ---------------------
     def request_bypass(self, on: bool, axes: list[str] | None = None) -> list[str]:
         """Queue a bumpless bypass change for the given driven axes; returns the axes in bypass
-        once the loop applied it.  Bypass on turns the axis' PID and its prediction off.  Without
-        ``axes``: bypass on for every driven axis, bypass off (compensation back on) only for the
-        driven axes that the running config compensates -- an axis the config bypasses on
-        purpose (e.g. a delay-dominated one) keeps its PID bypassed and gets its prediction back
-        (if it has one)."""
+        once the loop applied it.  Bypass on turns the axis' PID and its prediction off.  Bypass
+        off gives an axis its prediction back and turns its PID on -- except on an axis whose
+        PID the config bypasses while it predicts (a delay-dominated one): there compensation
+        is the prediction, and the PID stays bypassed.  Without ``axes``: bypass on for every
+        driven axis, bypass off only for the driven axes that the running config compensates
+        (by its PID or by prediction)."""
         cfg_axes = self.axes
         names = list(axes) if axes is not None else [
             a for a, d, b, p in zip(AXES, cfg_axes.driven, cfg_axes.bypass, cfg_axes.predict,
@@ -263,13 +264,14 @@ class Service:
 
         def apply() -> None:
             # compensation off: PID and prediction; back on: prediction, and the PID unless
-            # the config bypasses it and no axis was named
+            # the config bypasses it (and predicts, or no axis was named)
             pid = list(self.state.comp.bypass)
             off = list(self.state.prediction_off)
             for i, a in enumerate(AXES):
                 if a in names:
                     off[i] = on
-                    pid[i] = on or (axes is None and cfg_axes.bypass[i])
+                    pid[i] = on or (cfg_axes.bypass[i]
+                                    and (axes is None or cfg_axes.predict[i]))
             result.extend(set_bypass(self.state, pid, off))
             done.set()
 
