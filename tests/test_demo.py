@@ -85,7 +85,7 @@ def test_demo_records_the_command_and_sets_it_beside_the_floor(demo: DemoResult)
             # coming from the stale gap between the phases, rejoins (0.5 s), waits for calm
             # (0.5 s) and fades prediction in (0.5 s) during the motion's first 1.5 s; the two
             # commands differ there by design, and that onset holds most of the hexapod's tiny
-            # HF acceleration (measured: ideal 1.3-1.6x live)
+            # HF acceleration (measured: the ideal 0.6-1.6x the live)
             if not (axis in HEXAPOD and ph == "on"):
                 assert c.ideal.hf_acc_rms <= IDEAL_ABOVE_LIVE_FACTOR * c.live.hf_acc_rms, (
                     axis, ph, c)
