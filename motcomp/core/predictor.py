@@ -42,7 +42,8 @@ the switch is continuous in position and velocity both ways.  The filter runs in
 so that it is warm when prediction resumes.  A change of the parameters (a reload) starts the new
 filter of a changed axis at rest at the current reference, in fallback (prediction resumes as
 after a fallback), and fades the difference between the old and the new output out over
-``fade_in_s``: no jump; an unchanged axis keeps its state.  Non-finite reference on an axis: the
+``fade_in_s``: no jump; an unchanged axis keeps its state (a prefilter removed altogether
+drops its axis' lead at once: set ``predict = false`` first).  Non-finite reference on an axis: the
 filter and the monitor are advanced with its last finite value, and the value is returned as
 given (the compensator holds the last finite reference itself).
 """
