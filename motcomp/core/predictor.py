@@ -58,7 +58,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from motcomp.core.lti import ComplexArray, FloatArray
-from motcomp.core.minjerk import min_jerk
+from motcomp.core.minjerk import min_jerk, min_jerk_weight
 from motcomp.errors import ConfigError
 
 __all__ = [
@@ -369,7 +369,7 @@ class Prediction:
         """What :meth:`step` returned last, given the reference it was stepped with."""
         out = list(ref)
         for j, i in enumerate(self.idx):
-            off = self._offset[j] * (1.0 - min_jerk(self._offset_progress[j]))
+            off = self._offset[j] * min_jerk_weight(self._offset_progress[j])
             out[i] = ref[i] + self._w[j] * (self._pred[j] - ref[i]) + off
         return out
 
@@ -445,7 +445,7 @@ class Prediction:
             o = 0.0
             if off_p[j] < 1.0:
                 off_p[j] = min(off_p[j] + inc_in, 1.0)
-                o = off[j] * (1.0 - min_jerk(off_p[j]))
+                o = off[j] * min_jerk_weight(off_p[j])
             if finite[j]:
                 out[i] = x + w[j] * (pred[j] - x) + o
             self.ratio[i] = ratio

@@ -294,9 +294,8 @@ def _predicted(state: TickState, ref: list[float], mode: str) -> list[float]:
     pred = state.pred
     if not pred.idx:
         return ref
-    wanted = state._pred_wanted
-    live = [w and not mode for w in wanted]
-    return pred.step(ref, live)
+    # live: as wanted while the shaper's mode is live; held off otherwise (no list per tick)
+    return pred.step(ref, False if mode else state._pred_wanted)
 
 
 def _take(state: TickState, p: TickParams, now: float, payload: bytes) -> None:
