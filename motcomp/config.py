@@ -29,6 +29,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from motcomp.core.axes import AXES
+from motcomp.core.bandlimit import BAND_HZ_DEFAULT, band_limit_params
 from motcomp.core.compensator import Compensator
 from motcomp.core.models import P1D, ProcessModel, parse_model
 from motcomp.core.pid import PIDGains
@@ -221,6 +222,7 @@ class InputConfig(BaseModel):
     reconstruction: Literal["smooth", "linear", "hold"] = "smooth"
     max_extrapolation_s: float = Field(0.02, ge=0.0, le=1.0)
     lead_s: float = Field(0.0, ge=0.0, le=0.1)
+    band_hz: float = Field(BAND_HZ_DEFAULT, ge=0.0, le=1000.0)
     max_frame_bytes: int = Field(4096, ge=64, le=1_048_576)
 
 
@@ -838,7 +840,8 @@ def tick_params(cfg: ServiceConfig, axes: ResolvedAxes) -> TickParams:
         reach_lo=lo, reach_hi=hi, stale_after_s=loop.stale_after_s, hold_s=loop.hold_s,
         rejoin_s=loop.rejoin_s, startup_s=loop.startup_s,
         reconstruction=cfg.input.reconstruction, tick_s=1.0 / loop.rate_hz,
-        max_extrapolation_s=cfg.input.max_extrapolation_s, lead_s=cfg.input.lead_s)
+        max_extrapolation_s=cfg.input.max_extrapolation_s, lead_s=cfg.input.lead_s,
+        band=band_limit_params(cfg.input.band_hz, loop.rate_hz))
     return TickParams(loop.rate_hz, shaper, cfg.status.saturation_tolerance,
                       cfg.input.max_frame_bytes, prediction=axes.prediction,
                       predict=axes.predict, monitor=cfg.prediction.to_params())

@@ -111,6 +111,7 @@ from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from motcomp.core.bandlimit import BandLimit, BandLimitParams
 from motcomp.core.minjerk import PEAK_SPEED_FACTOR, min_jerk, min_jerk_rate, min_jerk_weight
 
 __all__ = ["OFFSET_LEAK", "ReferenceShaper", "ShaperParams"]
@@ -158,6 +159,14 @@ for a stamp on the grid MAX_SKIP periods on at most."""
 HISTORY = 64
 """Samples kept per axis (at least): a burst of up to :data:`~motcomp.io.zenoh_io.MAX_BURST`
 frames leaves the playback instant among them."""
+SPAN_DECAY = 1e-3
+SPAN_MAX_PERIODS = 4.0
+"""The playback's span (:meth:`ReferenceShaper._track_span`) decays by this a sample, and
+ignores intervals longer than this many periods (stalls)."""
+MA_MIN_TICKS = 2.0
+"""No moving average for an input period shorter than this many ticks (a 1 kHz sender, or an
+irregular one of 0.5-2 ms steps): its length would follow the period's jitter, and every change
+of length is a step of the playback instant; the band limit takes the roughness out."""
 MA_HYSTERESIS = 0.02
 """The moving average's length follows the period only when it moved by more than this
 fraction (a length that flickers would warp time)."""
@@ -196,6 +205,8 @@ class ShaperParams:
     """The loop's period (the moving average of ``smooth`` counts ticks)."""
     min_dt_s: float = 1e-5
     """Two samples of an axis closer than this on the sender's timeline are one sample."""
+    band: BandLimitParams | None = None
+    """``smooth``: the reference band limit (:mod:`motcomp.core.bandlimit`; None: none)."""
 
     def __post_init__(self) -> None:
         if not self.min_dt_s > 0:
@@ -242,6 +253,7 @@ class ReferenceShaper:
         self._line_n = 0  # and the frames on it since it was anchored
         self._odd: list[float] = []  # unusual intervals in a row
         self._ma_len = 0.0  # length of the moving average (ticks)
+        self._span = 0.0  # the longest recent interval between samples (_track_span)
         self._t_last: float | None = None  # sender time of the last frame
         self._fast: float | None = None  # smallest transit, leaking upwards
         self._fast_at = 0.0
@@ -259,6 +271,8 @@ class ReferenceShaper:
         self._fix_step: tuple[float, float, tuple[float, ...]] = (0.0, 0.0, ())
         self._rings: list[deque[float]] = [deque() for _ in range(n)]  # moving average
         self._ma_delay_s = 0.0
+        self._band = BandLimit(n)
+        self._band_delay_s = 0.0
         self._lin_t = [0.0] * n  # linear: sender time of each axis' last value, its slope,
         self._lin_slope = [0.0] * n
         self._lin_period = [0.0] * n  # the average interval between its frames,
@@ -295,7 +309,7 @@ class ReferenceShaper:
         what the reconstruction adds to the delay (negative when the lead exceeds the lag)."""
         if self._delay is None or self._fast is None:
             return 0.0
-        return self._delay - self._fast + self._ma_delay_s - self._lead_s
+        return self._delay - self._fast + self._ma_delay_s + self._band_delay_s - self._lead_s
 
     # --- events ---------------------------------------------------------------------------
     def is_stale(self, p: ShaperParams, now: float) -> bool:
@@ -379,11 +393,14 @@ class ReferenceShaper:
             self._excess = 0.0
             for r in self._rings:
                 r.clear()
+            self._band.reset()
             n = self.n
             self._extra = [None] * n
             self._fix = [None] * n
         else:
             self._excess += JITTER_GAIN * (max(transit - fast, 0.0) - self._excess)
+        if tl is not None and not rejoin and t > tl:
+            self._track_span((t - tl) / frames, p.stale_after_s)
         if tl is None or t - tl >= p.min_dt_s or t < tl:
             self._t_last = t
         driven, live, hist = p.driven, self.live, self._hist
@@ -485,7 +502,20 @@ class ReferenceShaper:
         self._line, self._line_n, self._period = pred + alpha * err, n, new_q
         if not skipped:
             self._odd.clear()
-        return tl + frames * new_q, rejoin
+        return (tl + frames * new_q if t_sender is None else x), rejoin
+
+    def _track_span(self, dt: float, stale_after_s: float) -> None:
+        """The longest recent interval between samples (per seq step): the playback must stay
+        that far behind the newest sample to interpolate an irregular stream (a variable-step
+        solver's steps, a sender that computes each sample when it wakes up).  A new longest
+        one is taken at once, and the span decays to the period by :data:`SPAN_DECAY` a
+        sample; a stall (longer than :data:`SPAN_MAX_PERIODS` periods, or half the stale
+        time) is not sampling and is left to the extrapolation."""
+        q = self._period
+        if q <= 0.0 or dt > SPAN_MAX_PERIODS * q or dt > 0.5 * stale_after_s:
+            return
+        span = self._span
+        self._span = dt if dt > span else span + SPAN_DECAY * (max(q, dt) - span)
 
     def _learn_period(self, dt: float) -> bool:
         """One interval between frames (per frame): averaged when within half to 1.5 times the
@@ -570,13 +600,15 @@ class ReferenceShaper:
         fast = self._fast
         if p.reconstruction != "smooth" or fast is None or q == 0.0:
             self._delay = None  # (re)starts once the input's period is known
+            self._band.reset()
             return self.live[:]
         at = self._at
         dt = 0.0 if at is None else max(now - at, 0.0)
         self._at = now
         blend_s = max(GAP_BLEND_S, GAP_BLEND_PERIODS * q)
         phi = self._fade_step(dt, blend_s)
-        target = fast + min(q + JITTER_FACTOR * self._excess, q + 0.5 * p.stale_after_s)
+        span = max(self._span, q)
+        target = fast + min(span + JITTER_FACTOR * self._excess, span + 0.5 * p.stale_after_s)
         d = self._delay
         if d is None:
             d, self._delay_rate = target, 0.0
@@ -625,13 +657,19 @@ class ReferenceShaper:
         length = q / p.tick_s
         if abs(length - self._ma_len) > MA_HYSTERESIS * max(self._ma_len, 1.0):
             self._ma_len = length  # only a real change of the input's rate moves it
-        return self._average(out, p.tick_s, self._ma_len)
+        out = self._average(out, p.tick_s, self._ma_len)
+        band = p.band
+        if band is None:
+            self._band_delay_s = 0.0
+            return out
+        self._band_delay_s = band.delay_s
+        return self._band.step(band, out)
 
     def _average(self, x: list[float], tick_s: float, length: float) -> list[float]:
         """Moving average of each axis over the last ``length`` ticks (fractional: the oldest
         tick weighs what is left), i.e. one input period: zero gain at the input's rate and its
         harmonics, where the playback's roughness lies."""
-        if length <= 1.0 + MA_HYSTERESIS:
+        if length < MA_MIN_TICKS:
             self._ma_delay_s = 0.0
             for r in self._rings:
                 r.clear()
