@@ -17,6 +17,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from motcomp.cli._common import add_plant_args, non_negative_float, print_json, rate_arg
+from motcomp.core.bandlimit import BAND_HZ_DEFAULT
 from motcomp.core.models import P1D, parse_model
 from motcomp.design.optimal import Constraints, OptimalOptions, Uncertainty
 from motcomp.design.predictor import DEFAULT_ORDER, DEFAULT_POLE_HZ, PredictionOptions
@@ -110,6 +111,12 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help="lag of the input reconstruction before the compensator, cancelled "
                         "with the platform's delay (input.reconstruction = \"smooth\": about "
                         "one input period; `motcomp status` shows it as input lag; default 0)")
+    p.add_argument("--input-band-hz", type=non_negative_float, default=BAND_HZ_DEFAULT,
+                   metavar="HZ",
+                   help="the service's reference band limit (input.band_hz; default "
+                        f"{BAND_HZ_DEFAULT:g}; 0: none): its delay is added to --input-lag-ms "
+                        "and cancelled, and the report gives what input noise does to the "
+                        "command with it (docs/WIRE.md)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     _add_optimal(p)
 
@@ -212,6 +219,7 @@ def run_design(args: argparse.Namespace) -> int:
         report = design_report(source.model, args.rule, args.rate, args.filter_n,
                                model=_internal(args), options=_options(args), progress=progress,
                                input_lag_s=args.input_lag_ms / 1e3,
+                               input_band_hz=args.input_band_hz,
                                prediction=_prediction(args, "auto" if args.rule == "optimal"
                                                       else "off"))
     fragment = config_fragment(report, source.axis, source.label)
@@ -278,7 +286,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
     with _progress(args, "optimal tuning") as progress:
         report, runs = evaluation_report(plant, args.rule, limits, args.rate, args.filter_n,
                                          model=_internal(args), options=_options(args),
-                                         progress=progress, input_lag_s=args.input_lag_ms / 1e3)
+                                         progress=progress, input_lag_s=args.input_lag_ms / 1e3,
+                                         input_band_hz=args.input_band_hz)
     written = _write_atomically(
         args.out, lambda tmp: write_report(report, tmp) + write_figures(report, runs, plant, tmp))
     if args.json:

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from motcomp.core.bandlimit import BandLimitParams, band_limit_freqresp
 from motcomp.core.loop import Poly, model_tf, pid_tf, stability
 from motcomp.core.lti import (
     ComplexArray,
@@ -54,6 +55,7 @@ __all__ = [
     "LoopResponse",
     "evaluate",
     "loop_response",
+    "noise_figures",
     "pid_continuous",
     "predictor_phase",
 ]
@@ -326,3 +328,48 @@ def residual_lag_s(gains: PIDGains, model: P1D) -> float:
     if gains.ki <= 0:
         return math.inf
     return 1.0 / (model.K * gains.ki)
+
+
+NOISE_RMS_M = 1e-7
+"""The input noise of the noise figures: 0.1 um RMS, white, one value a tick (float32 rounding
+at 2.6 m is 0.07 um RMS; epoch-second stamps at 1 m/s, 0.07 um)."""
+NOISE_ACC_ABOVE_HZ = 5.0
+
+
+def noise_figures(gains: PIDGains | None, model: P1D | None, rate_hz: float,
+                  band: BandLimitParams | None = None,
+                  predictor: PredictorParams | None = None,
+                  hf_from_hz: float = HF_FROM_HZ) -> dict[str, float]:
+    """What white noise on the input values does to the command, through the band limit, the
+    prefilter and the compensator: ``N = L F_pred Cr / (1 + Cy M)`` at the loop rate.
+
+    Returns ``hf_gain`` (max ``|N|`` at and above ``hf_from_hz``: um of command per um of input
+    noise there), ``rms_gain`` (command noise RMS per input noise RMS, white over the whole
+    band up to the loop's Nyquist frequency), and for :data:`NOISE_RMS_M` of input noise the
+    command's ``acc_hf_rms_m_s2`` (acceleration above 5 Hz) and ``jerk_rms_m_s3`` (third
+    difference), as :func:`motcomp.core.quality.command_quality` measures them.
+    """
+    n = 20000
+    f = np.arange(1, n) * (0.5 * rate_hz / n)  # uniform up to Nyquist (excluded)
+    if gains is None:
+        cmd: ComplexArray = np.ones(f.size, dtype=complex)
+        if predictor is not None:
+            cmd = predictor_freqresp(predictor, f)
+    else:
+        assert model is not None
+        cmd = loop_response(gains, model, model, f, rate_hz, predictor).command
+    resp = cmd * band_limit_freqresp(band, f)
+    zi = np.exp(-2j * np.pi * f / rate_hz)
+    diff = np.abs((1.0 - zi) * rate_hz)
+    power = np.abs(resp) ** 2
+
+    def rms(weight: FloatArray, where: np.ndarray | None = None) -> float:
+        w = power * weight if where is None else np.where(where, power * weight, 0.0)
+        return float(np.sqrt(np.mean(w)))  # the mean over a uniform grid of (0, pi)
+
+    return {
+        "hf_gain": float(np.max(np.abs(resp[f >= hf_from_hz]))),
+        "rms_gain": rms(np.ones(f.size)),
+        "acc_hf_rms_m_s2": NOISE_RMS_M * rms(diff ** 4, f >= NOISE_ACC_ABOVE_HZ),
+        "jerk_rms_m_s3": NOISE_RMS_M * rms(diff ** 6),
+    }

@@ -18,12 +18,15 @@ from typing import Any
 
 import numpy as np
 
+from motcomp.core.bandlimit import band_limit_params
 from motcomp.core.models import P1D, ProcessModel, parse_model
 from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import AxisLimits
 from motcomp.core.tuning import RULE_NAMES, RULES, check_lag, tune
 from motcomp.design import optimal as opt
 from motcomp.design.frequency import (
+    NOISE_RMS_M,
+    noise_figures,
     Evaluation,
     default_grid,
     evaluate,
@@ -82,7 +85,8 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
                   model: P1D | None = None, options: opt.OptimalOptions | None = None,
                   progress: Callable[[int, int, str], None] | None = None,
                   input_lag_s: float = 0.0,
-                  prediction: PredictionOptions | None = None) -> dict[str, Any]:
+                  prediction: PredictionOptions | None = None,
+                  input_band_hz: float = 0.0) -> dict[str, Any]:
     """The ``motcomp design --json`` object.
 
     ``plant`` is the platform; the compensator's internal model is ``model`` or the plant's P1D
@@ -99,10 +103,18 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
     ``prediction`` (``rule = "optimal"`` only; default off) adds the predictive prefilter
     (:func:`_predict`): its block under ``"prediction"``, and ``corrected`` then describes the
     whole chain the fragment deploys.
+    ``input_band_hz`` is the service's reference band limit (``input.band_hz``,
+    :mod:`motcomp.core.bandlimit`; 0: none): its delay is added to ``input_lag_s``, and
+    ``"noise"`` gives what input noise does to the deployed command
+    (:func:`motcomp.design.frequency.noise_figures`) with and without it.
     """
     internal = model or plant.to_p1d()
     if not (math.isfinite(input_lag_s) and 0.0 <= input_lag_s <= 1.0):
         raise ConfigError(f"input lag must be 0-1000 ms, got {input_lag_s * 1e3:g} ms")
+    band_limit = band_limit_params(input_band_hz, rate_hz)
+    playback_lag_s = input_lag_s
+    if band_limit is not None:
+        input_lag_s += band_limit.delay_s
     platform = plant
     if input_lag_s > 0.0:
         plant = opt.perturb(plant, dead_time_s=input_lag_s)
@@ -188,6 +200,15 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
         out["plant_spec"] = platform.spec()
     out["model_spec"] = internal.spec()
     out["input_lag_ms"] = input_lag_s * 1e3
+    out["input_playback_lag_ms"] = playback_lag_s * 1e3
+    out["input_band_hz"] = input_band_hz
+    out["input_band_delay_ms"] = 0.0 if band_limit is None else band_limit.delay_s * 1e3
+    deployed = None if bypass else gains
+    out["noise"] = {
+        "input_rms_um": NOISE_RMS_M * 1e6,
+        "with_band_limit": noise_figures(deployed, internal, rate_hz, band_limit, params),
+        "without_band_limit": noise_figures(deployed, internal, rate_hz, None, params),
+    }
     return out
 
 
@@ -320,8 +341,16 @@ def config_fragment(report: dict[str, Any], axis: str, source: str = "") -> str:
         else:
             lines.append(f"# Designed on the platform {plant_spec} with this internal model.")
     if report.get("input_lag_ms"):
+        band = (f" (of which {report['input_band_delay_ms']:.3g} ms the band limit input.band_hz"
+                f" = {report['input_band_hz']:g})" if report.get("input_band_delay_ms") else "")
         lines.append(f"# Designed for an input played back {report['input_lag_ms']:.3g} ms behind "
-                     "its newest sample (input.reconstruction = \"smooth\").")
+                     f"its newest sample{band}.")
+    noise = report.get("noise")
+    if noise is not None:
+        n = noise["with_band_limit"]
+        lines.append(f"# Input noise: {n['hf_gain']:.2g} um of command per um above "
+                     f"{report['corrected']['hf_from_hz']:g} Hz; {noise['input_rms_um']:g} um RMS "
+                     f"white -> jerk {n['jerk_rms_m_s3']:.2g} m/s^3 RMS.")
     bypass = report.get("recommendation") == "bypass"
     used = report.get("prediction", {}).get("used", False)
     if bypass:
@@ -373,13 +402,14 @@ def evaluation_report(plant: ProcessModel, rule: str, limits: AxisLimits, rate_h
                       model: P1D | None = None, sweep_amplitude: float | None = None,
                       options: opt.OptimalOptions | None = None,
                       progress: Callable[[int, int, str], None] | None = None,
-                      input_lag_s: float = 0.0,
+                      input_lag_s: float = 0.0, input_band_hz: float = 0.0,
                       ) -> tuple[dict[str, Any], dict[str, SimulationResult]]:
     """Design report plus time-domain runs on a 0.1-3 Hz swept sine and on the slalom (the
-    platform delayed by ``input_lag_s``: :func:`design_report`)."""
+    platform delayed by the input's lag and band limit: :func:`design_report`)."""
     internal = model or plant.to_p1d()
     report = design_report(plant, rule, rate_hz, filter_n, gains, internal, options, progress,
-                           input_lag_s)
+                           input_lag_s, input_band_hz=input_band_hz)
+    input_lag_s = report["input_lag_ms"] / 1e3
     if input_lag_s > 0.0:
         plant = opt.perturb(plant, dead_time_s=input_lag_s)
     g = PIDGains.from_config(report["gains"])
@@ -442,6 +472,8 @@ def markdown(report: dict[str, Any]) -> str:
         f"| discrete internal loop | {'stable' if c['stable'] else 'UNSTABLE'} "
         f"(max pole modulus {c['max_pole_modulus']:.4f}) |",
     ]
+    if "noise" in report:
+        lines += noise_markdown(report)
     if "optimal" in report:
         lines += optimal_markdown(report["optimal"])
     if "prediction" in report:
@@ -457,6 +489,29 @@ def markdown(report: dict[str, Any]) -> str:
     if report["warnings"]:
         lines += ["", "## Warnings", ""] + [f"- {w}" for w in report["warnings"]]
     return "\n".join(lines) + "\n"
+
+
+def noise_markdown(report: dict[str, Any]) -> list[str]:
+    """The input-noise table: the command's sensitivity, a designed figure (docs/WIRE.md)."""
+    noise = report["noise"]
+    w, wo = noise["with_band_limit"], noise["without_band_limit"]
+    band = report.get("input_band_hz") or 0.0
+    head = (f"band limit {band:g} Hz ({report['input_band_delay_ms']:.2f} ms, cancelled)"
+            if band else "no band limit")
+    hf = report["corrected"]["hf_from_hz"]
+    return [
+        "", f"## Input noise ({head})", "",
+        f"White noise of {noise['input_rms_um']:g} um RMS on the input values, one value a tick "
+        "(float32 rounding at 2.6 m is 0.07 um; epoch-second stamps at 1 m/s, 0.07 um), "
+        "through the deployed chain:", "",
+        "| figure | with the band limit | without |", "|---|---|---|",
+        f"| um of command per um of input above {hf:g} Hz (max) | {w['hf_gain']:.3g} | "
+        f"{wo['hf_gain']:.3g} |",
+        f"| command noise RMS per input noise RMS | {w['rms_gain']:.3g} | {wo['rms_gain']:.3g} |",
+        f"| command acceleration RMS above 5 Hz | {w['acc_hf_rms_m_s2']:.3g} m/s^2 | "
+        f"{wo['acc_hf_rms_m_s2']:.3g} m/s^2 |",
+        f"| command jerk RMS | {w['jerk_rms_m_s3']:.3g} m/s^3 | {wo['jerk_rms_m_s3']:.3g} m/s^3 |",
+    ]
 
 
 def prediction_markdown(block: dict[str, Any]) -> list[str]:
