@@ -223,7 +223,22 @@ class InputConfig(BaseModel):
     max_extrapolation_s: float = Field(0.02, ge=0.0, le=1.0)
     lead_s: float = Field(0.0, ge=0.0, le=0.1)
     band_hz: float = Field(BAND_HZ_DEFAULT, ge=0.0, le=1000.0)
+    axis_band_hz: dict[str, float] = Field(default_factory=dict)
     max_frame_bytes: int = Field(4096, ge=64, le=1_048_576)
+
+    @model_validator(mode="after")
+    def _axis_bands(self) -> InputConfig:
+        for name, hz in self.axis_band_hz.items():
+            if name not in AXES:
+                raise ValueError(f"input.axis_band_hz: unknown axis {name[:40]!r}; axes: "
+                                 f"{', '.join(AXES)}")
+            if not (math.isfinite(hz) and 0.0 <= hz <= 1000.0):
+                raise ValueError(f"input.axis_band_hz.{name} must be 0-1000 Hz, got {hz!r}")
+        return self
+
+    def bands_hz(self) -> tuple[float, ...]:
+        """Each axis' band limit (Hz, 0: none), in :data:`AXES` order."""
+        return tuple(self.axis_band_hz.get(a, self.band_hz) for a in AXES)
 
 
 class CanConfig(BaseModel):
@@ -825,6 +840,10 @@ def config_hash(cfg: ServiceConfig) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
+def _band_key(inp: InputConfig, axis: str) -> str:
+    return f"input.axis_band_hz.{axis}" if axis in inp.axis_band_hz else "input.band_hz"
+
+
 def tick_params(cfg: ServiceConfig, axes: ResolvedAxes) -> TickParams:
     """The tick's parameters of a config (:mod:`motcomp.core.tick`): input accepted, and the
     reference kept, within each axis' limits widened by ``input.reject_beyond_fraction`` of its
@@ -841,7 +860,8 @@ def tick_params(cfg: ServiceConfig, axes: ResolvedAxes) -> TickParams:
         rejoin_s=loop.rejoin_s, startup_s=loop.startup_s,
         reconstruction=cfg.input.reconstruction, tick_s=1.0 / loop.rate_hz,
         max_extrapolation_s=cfg.input.max_extrapolation_s, lead_s=cfg.input.lead_s,
-        band=band_limit_params(cfg.input.band_hz, loop.rate_hz))
+        band=tuple(band_limit_params(hz, loop.rate_hz, _band_key(cfg.input, a)) if d else None
+                   for a, hz, d in zip(AXES, cfg.input.bands_hz(), axes.driven, strict=True)))
     return TickParams(loop.rate_hz, shaper, cfg.status.saturation_tolerance,
                       cfg.input.max_frame_bytes, prediction=axes.prediction,
                       predict=axes.predict, monitor=cfg.prediction.to_params())

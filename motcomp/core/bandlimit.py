@@ -58,21 +58,22 @@ class BandLimitParams:
     sections: tuple[Section, Section]
 
 
-def band_limit_params(band_hz: float, rate_hz: float) -> BandLimitParams | None:
+def band_limit_params(band_hz: float, rate_hz: float, key: str = "input.band_hz"
+                      ) -> BandLimitParams | None:
     """The band limit with -3 dB at ``band_hz`` at the loop rate ``rate_hz`` (None for 0: off).
 
     Raises
     ------
     ConfigError
-        If ``band_hz`` is negative, not finite, or not below a quarter of the loop rate (the
+        If ``band_hz`` (named ``key`` in the message) is negative, not finite, or not below a quarter of the loop rate (the
         bilinear transform would bend its response too far from the Bessel's).
     """
     if not (math.isfinite(band_hz) and band_hz >= 0.0):
-        raise ConfigError(f"input.band_hz must be a finite number >= 0, got {band_hz!r}")
+        raise ConfigError(f"{key} must be a finite number >= 0, got {band_hz!r}")
     if band_hz == 0.0:
         return None
     if not band_hz <= rate_hz / 4.0:
-        raise ConfigError(f"input.band_hz = {band_hz:g} Hz must be at most a quarter of the loop "
+        raise ConfigError(f"{key} = {band_hz:g} Hz must be at most a quarter of the loop "
                           f"rate ({rate_hz / 4.0:g} Hz)")
     delay = BESSEL_W3DB / (2.0 * math.pi * band_hz)
     # poles of the analog prototype scaled to the delay, in conjugate pairs
@@ -105,7 +106,7 @@ def band_limit_freqresp(p: BandLimitParams | None, f_hz: ArrayLike) -> ComplexAr
 
 
 class BandLimit:
-    """The band limit's state for ``n`` axes; :meth:`step` filters one tick's values."""
+    """The band limits' state for ``n`` axes; :meth:`step` filters one tick's values."""
 
     def __init__(self, n: int) -> None:
         self.n = n
@@ -116,11 +117,15 @@ class BandLimit:
         """Forget the state: each axis starts at rest on its next value."""
         self._seeded = [False] * self.n
 
-    def step(self, p: BandLimitParams, x: list[float]) -> list[float]:
-        """The filtered values of this tick's ``x`` (one per axis, in place of ``x``)."""
-        (b0, b1, b2, a1, a2), (c0, c1, c2, d1, d2) = p.sections
-        for i, v in enumerate(x):
+    def step(self, bands: tuple[BandLimitParams | None, ...], x: list[float]) -> list[float]:
+        """The values of this tick's ``x`` (one per axis), each through its axis' band limit
+        (``bands``, None: passed through), in place of ``x``."""
+        for i, p in enumerate(bands):
+            if p is None:
+                continue
+            v = x[i]
             s = self._state[i]
+            (b0, b1, b2, a1, a2), (c0, c1, c2, d1, d2) = p.sections
             if not self._seeded[i]:  # at rest on v: both sections' output is v
                 self._seeded[i] = True
                 s[1] = b2 * v - a2 * v

@@ -205,8 +205,9 @@ class ShaperParams:
     """The loop's period (the moving average of ``smooth`` counts ticks)."""
     min_dt_s: float = 1e-5
     """Two samples of an axis closer than this on the sender's timeline are one sample."""
-    band: BandLimitParams | None = None
-    """``smooth``: the reference band limit (:mod:`motcomp.core.bandlimit`; None: none)."""
+    band: tuple[BandLimitParams | None, ...] = ()
+    """``smooth``: each axis' reference band limit (:mod:`motcomp.core.bandlimit`; None, or
+    an empty tuple: none)."""
 
     def __post_init__(self) -> None:
         if not self.min_dt_s > 0:
@@ -272,7 +273,6 @@ class ReferenceShaper:
         self._rings: list[deque[float]] = [deque() for _ in range(n)]  # moving average
         self._ma_delay_s = 0.0
         self._band = BandLimit(n)
-        self._band_delay_s = 0.0
         self._lin_t = [0.0] * n  # linear: sender time of each axis' last value, its slope,
         self._lin_slope = [0.0] * n
         self._lin_period = [0.0] * n  # the average interval between its frames,
@@ -306,10 +306,11 @@ class ReferenceShaper:
     @property
     def lag_s(self) -> float:
         """``smooth``: how far the playback lies behind the fastest transit (s), less the lead:
-        what the reconstruction adds to the delay (negative when the lead exceeds the lag)."""
+        what the reconstruction adds to the delay (negative when the lead exceeds the lag),
+        not including the band limit's delay (``input.band_hz``, shown apart)."""
         if self._delay is None or self._fast is None:
             return 0.0
-        return self._delay - self._fast + self._ma_delay_s + self._band_delay_s - self._lead_s
+        return self._delay - self._fast + self._ma_delay_s - self._lead_s
 
     # --- events ---------------------------------------------------------------------------
     def is_stale(self, p: ShaperParams, now: float) -> bool:
@@ -658,12 +659,9 @@ class ReferenceShaper:
         if abs(length - self._ma_len) > MA_HYSTERESIS * max(self._ma_len, 1.0):
             self._ma_len = length  # only a real change of the input's rate moves it
         out = self._average(out, p.tick_s, self._ma_len)
-        band = p.band
-        if band is None:
-            self._band_delay_s = 0.0
+        if not p.band:
             return out
-        self._band_delay_s = band.delay_s
-        return self._band.step(band, out)
+        return self._band.step(p.band, out)
 
     def _average(self, x: list[float], tick_s: float, length: float) -> list[float]:
         """Moving average of each axis over the last ``length`` ticks (fractional: the oldest
