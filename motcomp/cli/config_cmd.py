@@ -11,6 +11,7 @@ from pathlib import Path
 
 from motcomp.config import (
     RESTART_KEYS,
+    check_envelope,
     config_hash,
     load_config,
     new_tick,
@@ -56,6 +57,7 @@ def run_check(args: argparse.Namespace) -> int:
     axes = resolve_axes(cfg)
     # the stability of every gain/model pair, exactly as the service will check it
     new_tick(cfg, axes)
+    envelope_lines = check_envelope(args.file, cfg)[0]  # as `motcomp run` does at start
     effective = cfg.model_dump(mode="json")
     if args.json:
         json.dump({"hash": config_hash(cfg), "config": effective}, sys.stdout, indent=2)
@@ -79,7 +81,7 @@ def run_check(args: argparse.Namespace) -> int:
         print(f"restart-only keys: {', '.join(RESTART_KEYS)}; everything else can be reloaded")
     notes, source_warnings = source_report(args.file, cfg)
     if not args.json:
-        print("\n".join(notes))
+        print("\n".join([*notes, *envelope_lines]))
     for w in source_warnings:
         print(w, file=sys.stderr)
     for w in axes.warnings:

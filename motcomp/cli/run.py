@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 
 from motcomp.cli._common import add_log_arg, setup_logging
-from motcomp.config import load_config
+from motcomp.config import check_envelope, load_config
 from motcomp.io.zenoh_io import ZenohEndpoints, add_zenoh_args, endpoints_from_args
 
 ORDER = 1
@@ -20,6 +21,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "the platform at neutral and exit; SIGHUP reloads the config.")
     p.add_argument("--config", required=True, type=Path, metavar="FILE",
                    help="service config (TOML), e.g. config/motcomp.toml")
+    p.add_argument("--allow-writable-envelope", action="store_true",
+                   help="start even if a file of the hardware envelope ([envelope]) could be "
+                        "changed by others than root and the service user (a source checkout "
+                        "on a development machine; never on a platform): logged as a warning")
     add_zenoh_args(p)
     add_log_arg(p)
     p.set_defaults(func=run)
@@ -30,6 +35,9 @@ def run(args: argparse.Namespace) -> int:
 
     setup_logging(args.log_level)
     cfg = load_config(args.config)
+    _, warnings = check_envelope(args.config, cfg, allow_writable=args.allow_writable_envelope)
+    for w in warnings:
+        logging.getLogger("motcomp.run").warning("%s", w)
     z = cfg.zenoh
     zfile = z.config_file
     if zfile and not Path(zfile).is_absolute():  # relative to the service's config file
