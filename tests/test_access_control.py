@@ -160,6 +160,23 @@ def put_many(session: Any, key: str, payload: Callable[[int], bytes], n: int) ->
     pub.undeclare()
 
 
+def push_setpoints(session: Any, value: float, n: int = 1500) -> None:
+    """``n`` setpoint frames (rails_x = ``value``) at about 1 kHz, as a cueing computer sends."""
+    seq = int(time.time() * 1000)
+    pub = session.declare_publisher("sim/motion/setpoint")
+    for k in range(n):
+        pub.put(encode_input(seq + k, time.time(), {"rails_x": value}))
+        time.sleep(0.001)
+    pub.undeclare()
+
+
+def newest_rails_x(out_sub: Any) -> float:
+    """rails_x of the newest output frame held by a ``RingChannel(1)`` subscriber."""
+    s = out_sub.try_recv()
+    assert s is not None, "no output frame"
+    return float(decode_output(s.payload.to_bytes())["pos"]["rails_x"])
+
+
 def test_only_authorised_peers_move_the_platform(tmp_path: Path) -> None:
     import zenoh
 
@@ -170,33 +187,23 @@ def test_only_authorised_peers_move_the_platform(tmp_path: Path) -> None:
         platform = client(port, "platform", mode="client")
         out_sub = platform.declare_subscriber("platform/setpoint", zenoh.handlers.RingChannel(1))
 
-        def push(session: Any, value: float, n: int = 1500) -> None:
-            seq = int(time.time() * 1000)
-            pub = session.declare_publisher("sim/motion/setpoint")
-            for k in range(n):
-                pub.put(encode_input(seq + k, time.time(), {"rails_x": value}))
-                time.sleep(0.001)
-            pub.undeclare()
-
         def rails_x() -> float:
-            s = out_sub.try_recv()
-            assert s is not None
-            return float(decode_output(s.payload.to_bytes())["pos"]["rails_x"])
+            return newest_rails_x(out_sub)
 
         # authenticated peers in the wrong role: their setpoints are dropped before the service
         for role in ("operator", "platform"):
             session = operator if role == "operator" else client(port, role)
-            push(session, 0.4)
+            push_setpoints(session, 0.4)
             st = status(operator)
             assert st["frames"]["received"] == 0 and abs(rails_x()) < 1e-9, role
         # a peer without credentials is refused at connection: nothing it sends arrives
         anon = client(port, None)
-        push(anon, 0.4, 300)
+        push_setpoints(anon, 0.4, 300)
         anon.close()
         assert status(operator)["frames"]["received"] == 0 and abs(rails_x()) < 1e-9
         # the motion-cueing peer moves the platform
         cueing = client(port, "cueing")
-        push(cueing, 0.2)
+        push_setpoints(cueing, 0.2)
         assert status(cueing)["frames"]["accepted"] > 1000
         assert rails_x() == pytest.approx(0.2, abs=1e-3)
         # admin: the operator may reload, the cueing peer may not (its query is dropped: no

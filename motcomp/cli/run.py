@@ -8,7 +8,8 @@ from pathlib import Path
 
 from motcomp.cli._common import add_log_arg, setup_logging
 from motcomp.config import check_envelope, load_config
-from motcomp.io.zenoh_io import ZenohEndpoints, add_zenoh_args, endpoints_from_args
+from motcomp.io.zenoh_deploy import check_deployment, service_endpoints
+from motcomp.io.zenoh_io import add_zenoh_args, endpoints_from_args
 
 ORDER = 1
 
@@ -38,9 +39,6 @@ def run(args: argparse.Namespace) -> int:
     _, warnings = check_envelope(args.config, cfg, allow_writable=args.allow_writable_envelope)
     for w in warnings:
         logging.getLogger("motcomp.run").warning("%s", w)
-    z = cfg.zenoh
-    zfile = z.config_file
-    if zfile and not Path(zfile).is_absolute():  # relative to the service's config file
-        zfile = str(args.config.resolve().parent / zfile)
-    base = ZenohEndpoints(zfile, tuple(z.connect), tuple(z.listen), z.multicast_scouting)
-    return Service(cfg, endpoints_from_args(args, base), config_path=args.config).run()
+    ep = endpoints_from_args(args, service_endpoints(cfg.zenoh, args.config))
+    check_deployment(ep.config_file)  # the files it names and their modes: as `config check`
+    return Service(cfg, ep, config_path=args.config).run()
