@@ -12,6 +12,15 @@ design`` writes it, and ``predict`` to switch it), and the limits (``pos_min_m``
 ``pos_min_rad``...).
 A ``[defaults]`` table supplies any of these for every axis.  Axes not listed are not driven:
 they stay at neutral and are sent as such.
+
+The hardware envelope (``[envelope.<name>]``, the same four limit keys) is what the platform
+itself allows; it is a restart key, and every axis' limits must lie inside it (:func:`parse_config`
+refuses a config, a reload or a profile otherwise, naming the key, its value and the bound).  The
+tick clamps its every output to it as a second, independent layer
+(:mod:`motcomp.core.envelope`).  The service starts only with an envelope for every driven axis
+read from files that only root or the service user can write (:func:`check_envelope`);
+offline tools (replay, design) take :data:`~motcomp.limits_config.PLAUSIBLE` for an axis
+without one.
 """
 
 from __future__ import annotations
@@ -19,7 +28,9 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import re
+import stat
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +42,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from motcomp.core.axes import AXES
 from motcomp.core.bandlimit import BAND_HZ_DEFAULT, band_limit_params
 from motcomp.core.compensator import Compensator
+from motcomp.core.envelope import EnvelopeParams
 from motcomp.core.models import P1D, ProcessModel, parse_model
 from motcomp.core.pid import PIDGains
 from motcomp.core.predictor import MonitorParams, PredictorParams
@@ -39,7 +51,7 @@ from motcomp.core.shaper import ShaperParams
 from motcomp.core.tick import TickParams, TickState
 from motcomp.core.tuning import RULES, tune
 from motcomp.errors import ConfigError
-from motcomp.limits_config import LimitsConfig
+from motcomp.limits_config import PLAUSIBLE, LimitsConfig, limit_keys
 
 __all__ = [
     "RESTART_KEYS",
@@ -50,8 +62,10 @@ __all__ = [
     "ProfileConfig",
     "ResolvedAxes",
     "ServiceConfig",
+    "check_envelope",
     "config_hash",
     "config_sources",
+    "envelope_params",
     "load_config",
     "merge",
     "parse_config",
@@ -308,12 +322,17 @@ class ServiceConfig(BaseModel):
     axes: dict[str, AxisConfig] = {}
     profile: str | None = None
     profiles: dict[str, ProfileConfig] = {}
+    envelope: dict[str, LimitsConfig] = {}
+    """The hardware envelope per axis (restart only; see the module docstring)."""
 
     @model_validator(mode="after")
     def _axes(self) -> ServiceConfig:
         for name in self.axes:
             if name not in AXES:
                 raise ValueError(f"unknown axis {name!r}; axes: {', '.join(AXES)}")
+        for name in self.envelope:
+            if name not in AXES:
+                raise ValueError(f"envelope.{name}: unknown axis; axes: {', '.join(AXES)}")
         if not self.axes:
             raise ValueError("no axis configured: add at least one [axes.<name>] table")
         for pname, prof in self.profiles.items():
@@ -330,7 +349,7 @@ class ServiceConfig(BaseModel):
 RESTART_KEYS: tuple[str, ...] = (
     "loop.rate_hz", "loop.sync_to_input", "loop.poll_us", "loop.spin_us", "loop.sleep_max_us",
     "loop.realtime_priority", "loop.slice_us", "loop.cpu", "input", "output", "feedback",
-    "status.key", "status.period_s", "status.window_s", "admin", "zenoh",
+    "status.key", "status.period_s", "status.window_s", "admin", "zenoh", "envelope",
 )
 """Top-level keys (or sub-keys) that a live reload may not change: they need a restart."""
 
@@ -351,6 +370,8 @@ class ResolvedAxes:
     """Per axis, the predictive prefilter (None: none)."""
     predict: tuple[bool, ...] = ()
     """Per axis, whether its prefilter is used (``predict``, default true)."""
+    envelope: tuple[tuple[float, float, float, float] | None, ...] = ()
+    """Per axis, the hardware envelope ``(p_min, p_max, v_max, a_max)`` (None: none given)."""
 
 
 _UNDRIVEN_LIMITS = (-1.0, 1.0, 1.0, 1.0)  # an undriven axis is held at neutral
@@ -405,6 +426,7 @@ def resolve_axes(cfg: ServiceConfig, profile: str | None = "") -> ResolvedAxes:
     driven: list[bool] = []
     rows: list[tuple[float, float, float, float]] = []
     warnings: list[str] = []
+    envelope = _envelope_rows(cfg)
     for name in AXES:
         if name not in cfg.axes:
             models.append(P1D(K=1.0, Td=0.0, Tp1=0.01))
@@ -455,6 +477,7 @@ def resolve_axes(cfg: ServiceConfig, profile: str | None = "") -> ResolvedAxes:
             rows.append(limits_cfg.resolve(name))
         except ConfigError as exc:
             raise ConfigError(f"{where}: {exc}") from None
+        _inside_envelope(cfg, name, rows[-1], envelope[AXES.index(name)])
         models.append(model)
         plants.append(plant)
         gains.append(g)
@@ -465,7 +488,37 @@ def resolve_axes(cfg: ServiceConfig, profile: str | None = "") -> ResolvedAxes:
     arr = np.array(rows, dtype=float)
     limits = AxisLimits(arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3], AXES)
     return ResolvedAxes(AXES, tuple(driven), tuple(models), tuple(plants), tuple(gains), limits,
-                        tuple(bypass), tuple(warnings), tuple(prediction), tuple(predict))
+                        tuple(bypass), tuple(warnings), tuple(prediction), tuple(predict),
+                        envelope)
+
+
+def _envelope_rows(cfg: ServiceConfig) -> tuple[tuple[float, float, float, float] | None, ...]:
+    """Per axis (:data:`AXES` order), its envelope checked as limits are (None: none)."""
+    out: list[tuple[float, float, float, float] | None] = []
+    for name in AXES:
+        env = cfg.envelope.get(name)
+        if env is None:
+            out.append(None)
+            continue
+        try:
+            out.append(env.resolve(name))
+        except ConfigError as exc:
+            raise ConfigError(f"envelope.{name}: {exc}") from None
+    return tuple(out)
+
+
+def _inside_envelope(cfg: ServiceConfig, name: str, row: tuple[float, float, float, float],
+                     env: tuple[float, float, float, float] | None) -> None:
+    """Refuse limits of ``name`` outside its envelope, naming the key that sets them."""
+    if env is None:
+        return
+    keys = limit_keys(name)
+    for j, (key, value, bound) in enumerate(zip(keys, row, env, strict=True)):
+        if (value < bound) if j == 0 else (value > bound):
+            given = getattr(cfg.axes[name], key) is not None
+            where = f"axes.{name}.{key}" if given else f"defaults.{key}"
+            raise ConfigError(f"{where} = {value!r} lies outside envelope.{name}.{key} = "
+                              f"{bound!r} (the hardware envelope, a restart key)")
 
 
 def _format_error(source: str, exc: ValidationError) -> str:
@@ -829,6 +882,57 @@ def source_report(path: str | Path, cfg: ServiceConfig | None = None
     return lines, warnings
 
 
+def _unsafe(p: Path, what: str) -> str | None:
+    """Why ``p`` could be changed by someone else than root and the service user, or None."""
+    try:
+        st = p.stat()
+    except OSError as exc:
+        return f"{p}: cannot stat the {what}: {exc.strerror}"
+    if st.st_uid not in (0, os.geteuid()):
+        return (f"{p}: the {what} is owned by uid {st.st_uid}, neither root nor the service "
+                f"user (uid {os.geteuid()})")
+    sticky_dir = stat.S_ISDIR(st.st_mode) and st.st_mode & stat.S_ISVTX
+    if st.st_mode & 0o022 and not sticky_dir:
+        return (f"{p}: the {what} is writable by group or others (mode "
+                f"{stat.S_IMODE(st.st_mode):04o}): chmod go-w {p}")
+    return None
+
+
+def check_envelope(path: str | Path, cfg: ServiceConfig | None = None,
+                   allow_writable: bool = False) -> tuple[list[str], list[str]]:
+    """The start-up check of the hardware envelope of the config file ``path``.
+
+    Every driven axis must have an ``[envelope.<axis>]``; each file that sets an envelope key
+    (an included one too), and its directory, must be owned by root or the service user (the
+    current user) and not writable by group or others (a directory with the sticky bit may be).
+    ``allow_writable`` turns the file findings into warnings (a checkout of the sources run
+    by a developer).  Returns ``(lines, warnings)`` for ``motcomp config check``.
+
+    Raises
+    ------
+    ConfigError
+        A driven axis without an envelope; a file finding unless ``allow_writable``.
+    """
+    cfg = cfg if cfg is not None else load_config(path)
+    missing = [a for a in AXES if a in cfg.axes and a not in cfg.envelope]
+    if missing:
+        keys = ", ".join(limit_keys(missing[0]))
+        raise ConfigError(f"{path}: envelope.{missing[0]}: missing: every driven axis needs its "
+                          f"hardware envelope ([envelope.{missing[0]}] {keys})"
+                          + (f"; missing too: {', '.join(missing[1:])}" if missing[1:] else ""))
+    files = sorted({f for k, f in config_sources(path).sources.items()
+                    if k.startswith("envelope.")})
+    findings = [w for f in files for w in (_unsafe(f, "envelope file"),
+                                           _unsafe(f.parent, "envelope file's directory")) if w]
+    if findings and not allow_writable:
+        raise ConfigError(f"{findings[0]}; the hardware envelope must come from files that "
+                          "only root or the service user can change"
+                          + (f" [and {len(findings) - 1} more]" if findings[1:] else ""))
+    shown = ", ".join(str(f) for f in files)
+    lines = [f"envelope of {', '.join(a for a in AXES if a in cfg.envelope)} from {shown}"]
+    return lines, [f"warning: {w} (allowed: --allow-writable-envelope)" for w in findings]
+
+
 def load_config(path: str | Path) -> ServiceConfig:
     """Read (with includes) and validate a TOML config file (see module docstring)."""
     return parse_config(read_toml(path), str(path))
@@ -864,7 +968,27 @@ def tick_params(cfg: ServiceConfig, axes: ResolvedAxes) -> TickParams:
                    for a, hz, d in zip(AXES, cfg.input.bands_hz(), axes.driven, strict=True)))
     return TickParams(loop.rate_hz, shaper, cfg.status.saturation_tolerance,
                       cfg.input.max_frame_bytes, prediction=axes.prediction,
-                      predict=axes.predict, monitor=cfg.prediction.to_params())
+                      predict=axes.predict, monitor=cfg.prediction.to_params(),
+                      envelope=envelope_params(axes, loop.rate_hz))
+
+
+def envelope_params(axes: ResolvedAxes, rate_hz: float) -> EnvelopeParams:
+    """The envelope guard's parameters (:mod:`motcomp.core.envelope`): each driven axis'
+    ``[envelope]``, or :data:`~motcomp.limits_config.PLAUSIBLE` without one (an offline tool;
+    the service refuses to start so, :func:`check_envelope`); an undriven axis at neutral."""
+    rows = []
+    for name, driven, env in zip(axes.names, axes.driven,
+                                 axes.envelope or (None,) * len(axes.names), strict=True):
+        if not driven:
+            rows.append((0.0, 0.0, 0.0, 0.0))
+        elif env is not None:
+            rows.append(env)
+        else:
+            keys = limit_keys(name)
+            rows.append((PLAUSIBLE[keys[0]][0], PLAUSIBLE[keys[1]][1], PLAUSIBLE[keys[2]][1],
+                         PLAUSIBLE[keys[3]][1]))
+    lo, hi, v, a = (tuple(float(r[j]) for r in rows) for j in range(4))
+    return EnvelopeParams(lo, hi, v, a, rate_hz)
 
 
 def new_tick(cfg: ServiceConfig, axes: ResolvedAxes | None = None

@@ -4,6 +4,12 @@ Translational axes (``rails_*``, ``hex_x/y/z``) take ``pos_min_m``, ``pos_max_m`
 ``vel_max_m_s``, ``acc_max_m_s2``; rotational axes (``hex_roll/pitch/yaw``) take
 ``pos_min_rad``, ``pos_max_rad``, ``vel_max_rad_s``, ``acc_max_rad_s2``.  Giving metres to a
 rotation (or radians to a translation) is an error, which catches unit mix-ups at load time.
+
+Every number is checked for plausibility, whatever table it is in (an axis' limits, ``[defaults]``,
+the hardware ``[envelope]``, a plant preset): finite, and within what a motion platform can be
+(:data:`PLAUSIBLE`): ``|pos| <= 10 m`` or ``3.2 rad`` (a turn of slightly more than pi either
+way), ``0 < vel <= 10 m/s`` or ``10 rad/s``, ``0 < acc <= 100 m/s^2`` (about 10 g) or
+``200 rad/s^2``.  A value beyond is a typo or an attack, never a platform.
 """
 
 from __future__ import annotations
@@ -11,16 +17,32 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, field_validator
+from pydantic import BaseModel, ConfigDict, ValidationInfo, field_validator
 
 from motcomp.core.axes import ROTATIONAL
 from motcomp.core.saturation import AxisLimits
 from motcomp.errors import ConfigError
 
-__all__ = ["LimitsConfig", "axis_limits"]
+__all__ = ["LIMIT_KEYS", "PLAUSIBLE", "LimitsConfig", "axis_limits", "limit_keys"]
 
 _LIN = ("pos_min_m", "pos_max_m", "vel_max_m_s", "acc_max_m_s2")
 _ROT = ("pos_min_rad", "pos_max_rad", "vel_max_rad_s", "acc_max_rad_s2")
+LIMIT_KEYS = (*_LIN, *_ROT)
+"""Every limit key, translations first."""
+
+PLAUSIBLE: dict[str, tuple[float, float, str]] = {
+    "pos_min_m": (-10.0, 10.0, "m"), "pos_max_m": (-10.0, 10.0, "m"),
+    "vel_max_m_s": (0.0, 10.0, "m/s"), "acc_max_m_s2": (0.0, 100.0, "m/s^2"),
+    "pos_min_rad": (-3.2, 3.2, "rad"), "pos_max_rad": (-3.2, 3.2, "rad"),
+    "vel_max_rad_s": (0.0, 10.0, "rad/s"), "acc_max_rad_s2": (0.0, 200.0, "rad/s^2"),
+}
+"""Per limit key, ``(lowest, highest, unit)`` a motion platform can have (a velocity or an
+acceleration must moreover be > 0, which :meth:`LimitsConfig.resolve` checks)."""
+
+
+def limit_keys(axis: str) -> tuple[str, str, str, str]:
+    """The four limit keys of ``axis`` (``pos_min``, ``pos_max``, ``vel_max``, ``acc_max``)."""
+    return _ROT if axis in ROTATIONAL else _LIN
 
 
 class LimitsConfig(BaseModel):
@@ -39,9 +61,15 @@ class LimitsConfig(BaseModel):
 
     @field_validator(*_LIN, *_ROT)
     @classmethod
-    def _finite(cls, v: float | None) -> float | None:
-        if v is not None and not math.isfinite(v):
+    def _plausible(cls, v: float | None, info: ValidationInfo) -> float | None:
+        if v is None:
+            return v
+        if not math.isfinite(v):
             raise ValueError(f"must be a finite number, got {v!r}")
+        lo, hi, unit = PLAUSIBLE[str(info.field_name)]
+        if not lo <= v <= hi:
+            raise ValueError(f"lies outside [{lo:g}, {hi:g}] {unit}, the plausible range of a "
+                             "motion platform")
         return v
 
     def resolve(self, axis: str) -> tuple[float, float, float, float]:

@@ -415,7 +415,7 @@ def test_status_table_shows_the_figures_with_units() -> None:
 @pytest.mark.slow
 def test_status_delay_of_a_running_service_agrees_with_the_recording(tmp_path: Path) -> None:
     """``motcomp hil`` + ``motcomp run`` + ``motcomp source --signal slalom``, rails_y bypassed
-    and given limits it never reaches: its output frames are then the reference itself, tick
+    and given limits (and an envelope) it never reaches: its output frames are then the reference itself, tick
     for tick, whatever the host's load does to the input's timing.  After the slalom the
     status' apparent delay of rails_y over a 30 s window (the whole slalom and the rest around
     it) is valid and within 2 ms of :func:`estimate_delay` of the recorded output frames vs
@@ -425,7 +425,9 @@ def test_status_delay_of_a_running_service_agrees_with_the_recording(tmp_path: P
 
     p_hil, p_svc, p_me = free_tcp_port(), free_tcp_port(), free_tcp_port()
     cfg = write_config(tmp_path, "[status]\nwindow_s = 30.0\n[axes.rails_y]\nbypass = true\n"
-                                 "vel_max_m_s = 100.0\nacc_max_m_s2 = 1e6\n")
+                                 "vel_max_m_s = 10.0\nacc_max_m_s2 = 100.0\n"
+                                 "[envelope.rails_y]\npos_min_m = -2.6\npos_max_m = 2.6\n"
+                                 "vel_max_m_s = 10.0\nacc_max_m_s2 = 100.0\n")
     hil_ep, svc_ep = loopback(p_hil), loopback(p_svc)
     with process(["hil", "-l", hil_ep, "--log-level", "warning"], tmp_path / "hil.log"), \
             process(["run", "--config", str(cfg), "-l", svc_ep, "-e", hil_ep],

@@ -70,7 +70,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "FILE); prints the outcome, exits 1 if it was rejected. "
                                    "Needs [admin] enabled = true.")
     r.add_argument("--config", type=Path, metavar="FILE",
-                   help="file to load instead of the one the service was started with")
+                   help="file to load instead of the config in force; it must lie in the "
+                        "service's config directory (the directory of the file it was started "
+                        "with), and once accepted it is the config in force (SIGHUP and "
+                        "`reload` re-read it)")
     _service_args(r, "motcomp/admin", 5.0)
     r.set_defaults(func=run_reload)
 
@@ -120,7 +123,10 @@ def _command(args: argparse.Namespace, name: str, body: dict[str, Any]) -> dict[
     """Call the admin endpoint ``name``; ``None`` (with the reason on stderr) if rejected."""
     out = _request(args, f"{args.key}/{name}", body)
     if not out.get("ok"):
-        print(f"motcomp {name}: rejected: {out.get('error')}", file=sys.stderr)
+        error = out.get("error")
+        if error == "busy":
+            error = "busy (the service is serving other admin requests: try again shortly)"
+        print(f"motcomp {name}: rejected: {error}", file=sys.stderr)
         return None
     return out
 
@@ -284,7 +290,8 @@ def run_bypass(args: argparse.Namespace) -> int:
 
 
 def run_reload(args: argparse.Namespace) -> int:
-    body = {"path": str(args.config.resolve())} if args.config else {}
+    # absolute, not resolved: the service resolves it and judges where it leads
+    body = {"path": str(args.config.absolute())} if args.config else {}
     try:
         out = _command(args, "reload", body)
     except NoPeerError as exc:

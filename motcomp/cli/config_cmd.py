@@ -11,6 +11,7 @@ from pathlib import Path
 
 from motcomp.config import (
     RESTART_KEYS,
+    check_envelope,
     config_hash,
     load_config,
     new_tick,
@@ -19,6 +20,7 @@ from motcomp.config import (
 )
 from motcomp.core.predictor import PredictorParams
 from motcomp.errors import ConfigError
+from motcomp.io.zenoh_deploy import check_service_zenoh
 
 ORDER = 5
 
@@ -56,6 +58,8 @@ def run_check(args: argparse.Namespace) -> int:
     axes = resolve_axes(cfg)
     # the stability of every gain/model pair, exactly as the service will check it
     new_tick(cfg, axes)
+    envelope_lines = check_envelope(args.file, cfg)[0]  # as `motcomp run` does at start
+    zenoh_note = check_service_zenoh(cfg.zenoh, args.file)  # as the service opens zenoh
     effective = cfg.model_dump(mode="json")
     if args.json:
         json.dump({"hash": config_hash(cfg), "config": effective}, sys.stdout, indent=2)
@@ -79,7 +83,7 @@ def run_check(args: argparse.Namespace) -> int:
         print(f"restart-only keys: {', '.join(RESTART_KEYS)}; everything else can be reloaded")
     notes, source_warnings = source_report(args.file, cfg)
     if not args.json:
-        print("\n".join(notes))
+        print("\n".join([*notes, zenoh_note, *envelope_lines]))
     for w in source_warnings:
         print(w, file=sys.stderr)
     for w in axes.warnings:
@@ -92,7 +96,8 @@ _ABOUT = {
     "demo.toml": "the config `motcomp demo` runs",
     "motcomp.dbc": "CAN frame definitions (output.can)",
     "motcomp.service": "systemd unit",
-    "zenoh-acl.json5": "zenoh access control and authentication example",
+    "zenoh-acl.json5": "zenoh access control, user/password authentication over TCP",
+    "zenoh-tls.json5": "zenoh access control, mutual TLS (certificates)",
     "plants/rails.toml": "plant preset: X-Y rails (P1D)",
     "plants/hexapod.toml": "plant preset: hexapod (P2UZD)",
 }

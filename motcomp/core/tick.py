@@ -18,8 +18,11 @@ and nothing else of the tick, so a replay computes with the very code that ran::
                                          (motcomp.core.predictor:  (motcomp.core.compensator:
                                           prefilter, band monitor,  PID, internal model,
                                           fallback)                 limiter)
-                                     saturation verdict, flags --> TickOutput(seq, src_seq, u,
-                                                                   flags, limited, mode)
+                                                                    |
+               EnvelopeGuard.apply (motcomp.core.envelope: the hardware envelope) <--------+
+                    |
+                    v
+                 saturation verdict, flags --> TickOutput(seq, src_seq, u, flags, limited, mode)
 
 No I/O, no clock, no threads: time comes in as ``now_ns`` (the tick's instant on the loop's
 clock), bytes come in, a :class:`TickOutput` goes out; the caller encodes and sends it.
@@ -38,8 +41,12 @@ Rules for edge cases
   frame is accepted: then it reads its newest only (the backlog of a sender that started first
   is not history).
 * Sequence: ``seq`` must increase (``duplicate``, ``old``), except after the input was stale,
-  when any ``seq`` is accepted (a restarted sender).  A jump forward counts the skipped frames
-  as ``superseded`` (a regress of more than a million counts nothing: a restart).
+  when any ``seq`` is accepted (a restarted sender).  A step forward of at most
+  :data:`MAX_SEQ_STEP` counts the skipped frames as ``superseded``; a larger one while the input
+  is live is rejected (``jump``): frames sent meanwhile could not be missed in less than the
+  stale time, so it is another sender (or a forged frame) that would lock the live one out;
+  once the input is stale it is accepted as a restart (a regress of more than a million counts
+  nothing as superseded: a restart).
 * Catch-up: when the caller missed deadlines (``skipped`` > 0, a stall of its thread), the
   compensator is first stepped at the ``min(skipped, MAX_CATCH_UP)`` deadlines just before
   ``now_ns``, with the reference of each (before this tick's frame is taken) and no output, so
@@ -48,6 +55,11 @@ Rules for edge cases
   36 ms stall of a loaded host, caught up over its last 20 periods only, kicked the rails'
   command 0.4 m off and the limiter acted for 0.9 s).  A stall longer than ``MAX_CATCH_UP``
   periods is caught up over its last ones.  One output per call, never a burst.
+* Envelope: every command of the compensator (catch-up steps included) goes through the
+  envelope guard (:mod:`motcomp.core.envelope`, ``TickParams.envelope``, built from the
+  config's hardware envelope by :func:`motcomp.config.tick_params`), a no-op while the limiter
+  works; an axis it changes is flagged ``envelope:<axis>`` and counted
+  (:attr:`TickState.envelope_clamps`, per axis :attr:`TickState.envelope_acted`).
 * Saturation verdict (flag ``sat:<axis>``, ``limited``): a position or velocity bound acted
   (holding the end of the range for a target beyond it included), or the command departs from
   its target by more than ``saturation_tolerance`` on a 20 ms exponential average; the limiter
@@ -59,7 +71,8 @@ Rules for edge cases
   the plain reference, bumplessly (:mod:`motcomp.core.predictor`).  A change of its parameters
   (a reload) is taken at the next tick, bumplessly.
 * Flags, in this order: the shaper's mode (``rejoin``, ``stale``, ``parking``) if any, then
-  ``sat:<axis>`` per limited axis, then ``bypass:<axis>`` per driven axis in bypass, then
+  ``sat:<axis>`` per limited axis, then ``envelope:<axis>`` per axis the envelope guard
+  changed (also marked limited), then ``bypass:<axis>`` per driven axis in bypass, then
   ``fallback:<axis>`` per axis whose prediction the band monitor holds off (not while the
   shaper's mode or a switch-off does), then ``nopredict:<axis>`` per axis whose configured
   prediction is turned off with compensation (:func:`set_bypass`; what a replay needs to tell
@@ -76,6 +89,7 @@ import msgpack
 
 from motcomp.core.axes import AXES, AXIS_INDEX
 from motcomp.core.compensator import Compensator
+from motcomp.core.envelope import EnvelopeGuard, EnvelopeParams
 from motcomp.core.predictor import MonitorParams, Prediction, PredictorParams
 from motcomp.core.saturation import POS, VEL
 from motcomp.core.shaper import ReferenceShaper, ShaperParams
@@ -84,6 +98,7 @@ from motcomp.errors import FrameError
 __all__ = [
     "MAX_CATCH_UP",
     "MAX_ERROR_CHARS",
+    "MAX_SEQ_STEP",
     "REJECT_REASONS",
     "TickOutput",
     "TickParams",
@@ -98,9 +113,10 @@ __all__ = [
 ]
 
 MAX_SEQ_STEP = 1000
-"""A larger forward step of ``seq`` is not taken as frames the sender sent meanwhile."""
+"""A larger forward step of ``seq`` is not taken as frames the sender sent meanwhile, and is
+rejected (``jump``) while the input is live."""
 REJECT_REASONS: tuple[str, ...] = ("oversize", "decode", "schema", "type", "axis", "nonfinite",
-                                   "range", "duplicate", "old", "internal")
+                                   "range", "duplicate", "old", "jump", "internal")
 """Why an input frame was rejected (the status counts each)."""
 MAX_CATCH_UP = 100
 """Longest stall (in periods) whose samples are computed afterwards: a 100 ms stall costs the
@@ -111,6 +127,7 @@ MAX_ERROR_CHARS = 200
 _INPUT_KEYS = frozenset({"seq", "t", "pos"})
 _HARD_BITS = POS | VEL
 _SAT_FLAGS = tuple(f"sat:{a}" for a in AXES)
+_ENVELOPE_FLAGS = tuple(f"envelope:{a}" for a in AXES)
 _BYPASS_FLAGS = tuple(f"bypass:{a}" for a in AXES)
 _FALLBACK_FLAGS = tuple(f"fallback:{a}" for a in AXES)
 _NOPREDICT_FLAGS = tuple(f"nopredict:{a}" for a in AXES)
@@ -133,6 +150,9 @@ class TickParams:
     """Per axis, whether the prefilter is used (the config's ``predict``)."""
     monitor: MonitorParams = MonitorParams()  # noqa: RUF009 (frozen, immutable)
     """The prediction's band monitor and fallback."""
+    envelope: EnvelopeParams | None = None
+    """The hardware envelope every command is held in (:mod:`motcomp.core.envelope`);
+    :func:`motcomp.config.tick_params` always sets it (None: no guard, a bare core test)."""
 
     @property
     def period_ns(self) -> int:
@@ -191,7 +211,20 @@ class TickState:
         self._comp_off = [False] * n
         self._ref = [0.0] * n
         self.nopredict_flags: list[str] = []
+        self.guard = EnvelopeGuard(n)
+        """The envelope guard's state (:mod:`motcomp.core.envelope`)."""
         _set_bypass_flags(self)
+
+    @property
+    def envelope_clamps(self) -> int:
+        """Outputs (catch-up steps included) on which the envelope guard changed the command:
+        0 unless the limiter or what feeds it has a bug."""
+        return self.guard.clamps
+
+    @property
+    def envelope_acted(self) -> list[int]:
+        """Per axis, the outputs on which the envelope guard changed it."""
+        return list(self.guard.acted)
 
     @property
     def prediction_off(self) -> list[bool]:
@@ -219,11 +252,14 @@ def step(state: TickState, p: TickParams, now_ns: int,
     shaper, sp = state.shaper, p.shaper
     if p.prediction is not state._pred_src:
         _sync_prediction(state, p)
+    env = p.envelope
     if skipped > 0:  # before the frame: the ticks at those deadlines would not have seen it
         period = p.period_ns
         for j in range(min(skipped, MAX_CATCH_UP), 0, -1):
             r, m = shaper.reference(sp, (now_ns - j * period) / 1e9)
-            state.comp.step(_predicted(state, r, m))
+            u_c = state.comp.step(_predicted(state, r, m))
+            if env is not None:
+                state.guard.apply(env, u_c)
     if payload is not None:
         if isinstance(payload, bytes | bytearray | memoryview):
             _take(state, p, now, bytes(payload))
@@ -236,6 +272,7 @@ def step(state: TickState, p: TickParams, now_ns: int,
     ref, mode = shaper.reference(sp, now)
     comp = state.comp
     u = comp.step(_predicted(state, ref, mode))
+    guarded = env is not None and state.guard.apply(env, u)
     flags = [mode] if mode else []
     limited = [False] * len(u)
     sat, lp, dev, acted = state.sat, state._dev_lp, comp.deviation, state.acted
@@ -254,6 +291,8 @@ def step(state: TickState, p: TickParams, now_ns: int,
             sat[i] += 1
             limited[i] = True
             flags.append(_SAT_FLAGS[i])
+    if guarded:
+        _envelope_flags(state, flags, limited)
     flags.extend(state.bypass_flags)
     if state.pred.idx:
         for i, fallen in enumerate(state.pred.fallen_back()):
@@ -264,6 +303,15 @@ def step(state: TickState, p: TickParams, now_ns: int,
     state.ticks += 1
     state.mode = mode or "running"
     return out
+
+
+def _envelope_flags(state: TickState, flags: list[str], limited: list[bool]) -> None:
+    """Flag (and mark limited) the axes the envelope guard changed this tick."""
+    guard = state.guard
+    for i, stamp in enumerate(guard.acted_at):
+        if stamp == guard.applied:
+            limited[i] = True
+            flags.append(_ENVELOPE_FLAGS[i])
 
 
 def _sync_prediction(state: TickState, p: TickParams) -> None:
@@ -305,7 +353,11 @@ def _take(state: TickState, p: TickParams, now: float, payload: bytes) -> None:
     try:
         seq, t, pos = parse_input(payload, sp.reach_lo, sp.reach_hi, p.max_frame_bytes)
         last = state.last_seq
-        if last is not None and seq <= last and not shaper.is_stale(sp, now):
+        if last is not None and not 0 < seq - last <= MAX_SEQ_STEP \
+                and not shaper.is_stale(sp, now):
+            if seq > last:
+                raise FrameError("jump", f"seq {seq} is {seq - last} ahead of {last} (more than "
+                                         f"{MAX_SEQ_STEP}) while the input is live")
             raise FrameError("duplicate" if seq == last else "old", f"seq {seq} after {last}")
         step_ = seq - last if last is not None and 0 < seq - last <= MAX_SEQ_STEP else 1
         shaper.on_input(sp, pos, now, t, step_)
@@ -447,6 +499,7 @@ def warm_start(state: TickState, p: TickParams, position: Sequence[float]) -> No
     compensator at rest at ``position``, and each wanted prediction predicting, its prefilter
     at rest there -- as near to the service's state as a recording tells."""
     state.comp.reset(position)
+    state.guard.reset(position)
     _sync_prediction(state, p)
     state._ref = [float(x) for x in position]
     state.pred.warm(state._ref, state._pred_wanted)
@@ -462,4 +515,6 @@ def is_parked(state: TickState) -> bool:
     if not state.shaper.parked:
         return False
     st = state.comp.state()
-    return bool(max(abs(x) for x in st.u) < 1e-6 and max(abs(x) for x in st.v) < 1e-4)
+    g = state.guard
+    return bool(max(abs(x) for x in (*st.u, *g.u)) < 1e-6
+                and max(abs(x) for x in (*st.v, *g.v)) < 1e-4)

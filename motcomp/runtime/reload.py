@@ -1,9 +1,12 @@
 """Live reload of the service's configuration (SIGHUP, ``motcomp reload``, ``motcomp profile``).
 
-1. :func:`prepare_config` / :func:`prepare_profile` read and validate the new config in the main
-   thread, away from the loop: TOML, schema, every axis resolved (models, gains from rules,
-   limits), keys that need a restart unchanged, the set of driven axes unchanged, and the
-   stability of every new gain/model pair checked (a dry-run compensator).
+1. :func:`prepare_config` / :func:`prepare_profile` read and validate the new config away from
+   the loop, in a child process (:class:`Preparer`: the service's interpreter lock stays with
+   the loop; a file that hangs or bloats the reader costs the child, which is killed after
+   :data:`PREPARE_TIMEOUT_S`): the file and its includes confined to the config directory and
+   size-capped (:mod:`motcomp.runtime.confine`), TOML, schema, every axis resolved (models,
+   gains from rules, limits), keys that need a restart unchanged, the set of driven axes
+   unchanged, and the stability of every new gain/model pair checked (a dry-run compensator).
 2. :meth:`motcomp.runtime.service.Service.apply_config` swaps the result in between two ticks:
    one ``Compensator.reconfigure`` (bumpless: the integrator is re-seeded so that the raw output
    is continuous; the limiter keeps the output within the limits through any change) and one
@@ -15,9 +18,16 @@
 
 from __future__ import annotations
 
+import os
+import pickle
+import select
+import struct
+import subprocess
+import sys
+import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 from pydantic import ValidationError
 
@@ -33,8 +43,14 @@ from motcomp.config import (
 )
 from motcomp.core.tick import TickParams
 from motcomp.errors import ConfigError
+from motcomp.runtime.confine import Confinement
 
-__all__ = ["Prepared", "prepare_config", "prepare_profile", "restart_changes"]
+__all__ = ["PREPARE_TIMEOUT_S", "Prepared", "Preparer", "prepare_config", "prepare_profile",
+           "restart_changes"]
+
+PREPARE_TIMEOUT_S = 10.0
+"""Longest a reload or profile switch may take to prepare; then it is refused and the child
+process that prepares it is killed (a new one is started for the next)."""
 
 
 @dataclass(frozen=True)
@@ -76,16 +92,24 @@ def _prepare(old: ServiceConfig, old_axes: ResolvedAxes, new: ServiceConfig, whe
     return Prepared(new, axes, params, config_hash(new))
 
 
-def prepare_config(old: ServiceConfig, old_axes: ResolvedAxes, path: Path | None) -> Prepared:
-    """Read and validate the config file ``path`` against the running one.
+def prepare_config(old: ServiceConfig, old_axes: ResolvedAxes, path: Path | None,
+                   confinement: Confinement | None) -> Prepared:
+    """Read and validate the config file ``path`` against the running one; ``path`` and its
+    includes are read only as ``confinement`` allows (None: the service has no config
+    directory, nothing is read).
 
     Raises
     ------
     ConfigError
-        Nothing may change (the message names the file, key and value).
+        Nothing may change (the message names the file, key and value), or a file is refused
+        (the message names the request key or include and the rule, nothing read).
     """
     if path is None:
         raise ConfigError("no config file to reload (the service was started without one)")
+    if confinement is None:
+        raise ConfigError(f"reload path {str(path)[:200]!r}: refused: the service was started "
+                          "without a config file, so it has no config directory to read from")
+    path = confinement.check(path)
     data = read_toml(path)
     try:  # a key that needs a restart is the first thing to say (before what follows from it)
         shallow = ServiceConfig.model_validate(data)
@@ -108,3 +132,124 @@ def prepare_profile(old: ServiceConfig, old_axes: ResolvedAxes, name: str | None
         raise ConfigError(f"profile {name!r} is not defined; profiles: "
                           f"{', '.join(old.profiles) or 'none'}")
     return _prepare(old, old_axes, old.model_copy(update={"profile": name}), "config")
+
+
+# --- the child process -------------------------------------------------------------------------
+_HEADER = struct.Struct("!I")
+
+
+def _send(f: IO[bytes], obj: Any) -> None:
+    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+    f.write(_HEADER.pack(len(data)) + data)
+    f.flush()
+
+
+def _recv_exact(f: IO[bytes], n: int) -> bytes:
+    data = f.read(n)
+    if data is None or len(data) != n:
+        raise EOFError
+    return data
+
+
+def serve() -> None:
+    """The child's main: answer ``(kind, old cfg, old axes, arg, confinement)`` requests on
+    stdin with ``("ok", Prepared)`` or ``("error", text)`` on stdout until stdin closes."""
+    stdin = sys.stdin.buffer
+    stdout = os.fdopen(os.dup(1), "wb")  # the replies' own; anything printed goes to stderr
+    os.dup2(2, 1)
+    sys.stdout = sys.stderr
+    while True:
+        try:
+            (n,) = _HEADER.unpack(_recv_exact(stdin, _HEADER.size))
+            kind, old, old_axes, arg, confinement = pickle.loads(_recv_exact(stdin, n))
+        except EOFError:
+            return
+        try:
+            if kind == "config":
+                reply: tuple[str, Any] = ("ok", prepare_config(old, old_axes, arg, confinement))
+            else:
+                reply = ("ok", prepare_profile(old, old_axes, arg))
+        except ConfigError as exc:
+            reply = ("error", str(exc))
+        except Exception as exc:  # a bug: said, the child goes on
+            reply = ("error", f"internal error: {type(exc).__name__}: {exc}")
+        _send(stdout, reply)
+
+
+class Preparer:
+    """Prepares reloads and profile switches in a child process (started on first use or by
+    :meth:`start`; one request at a time; thread-safe)."""
+
+    def __init__(self) -> None:
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._lock = threading.Lock()
+
+    def start(self) -> None:
+        """Start the child now (it imports for about a second), if it is not running."""
+        with self._lock:
+            self._start()
+
+    def _start(self) -> subprocess.Popen[bytes]:
+        proc = self._proc
+        if proc is not None and proc.poll() is None:
+            return proc
+        import motcomp
+
+        env = dict(os.environ)
+        root = str(Path(motcomp.__file__).resolve().parent.parent)
+        env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+        self._proc = subprocess.Popen(
+            [sys.executable, "-c", "from motcomp.runtime.reload import serve; serve()"],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, close_fds=True,
+            start_new_session=True)  # a Ctrl-C of a terminal is the service's, not the child's
+        return self._proc
+
+    def close(self) -> None:
+        """Stop the child (safe to call twice)."""
+        with self._lock:
+            proc, self._proc = self._proc, None
+        if proc is not None:
+            proc.kill()
+            proc.wait()
+            for f in (proc.stdin, proc.stdout):
+                if f is not None:
+                    f.close()
+
+    def prepare_config(self, old: ServiceConfig, old_axes: ResolvedAxes, path: Path | None,
+                       confinement: Confinement | None) -> Prepared:
+        """:func:`prepare_config` in the child."""
+        return self._ask(("config", old, old_axes, path, confinement))
+
+    def prepare_profile(self, old: ServiceConfig, old_axes: ResolvedAxes, name: str | None
+                        ) -> Prepared:
+        """:func:`prepare_profile` in the child."""
+        return self._ask(("profile", old, old_axes, name, None))
+
+    def _ask(self, request: tuple[Any, ...]) -> Prepared:
+        with self._lock:
+            proc = self._start()
+            assert proc.stdin is not None and proc.stdout is not None
+            try:
+                _send(proc.stdin, request)
+                reply = self._read(proc.stdout, PREPARE_TIMEOUT_S)
+            except (OSError, EOFError, pickle.PickleError, TimeoutError) as exc:
+                proc.kill()
+                proc.wait()
+                self._proc = None
+                what = (f"took longer than {PREPARE_TIMEOUT_S:g} s"
+                        if isinstance(exc, TimeoutError) else "failed")
+                raise ConfigError(f"preparing the config {what} (the reader process was "
+                                  "stopped; the running config stays)") from None
+        kind, value = reply
+        if kind != "ok":
+            raise ConfigError(value)
+        assert isinstance(value, Prepared)
+        return value
+
+    @staticmethod
+    def _read(f: IO[bytes], timeout_s: float) -> Any:
+        """One reply, or TimeoutError after ``timeout_s`` (the wait releases the interpreter)."""
+        if not select.select([f], [], [], timeout_s)[0]:
+            raise TimeoutError
+        (n,) = _HEADER.unpack(_recv_exact(f, _HEADER.size))
+        return pickle.loads(_recv_exact(f, n))

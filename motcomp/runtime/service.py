@@ -11,26 +11,37 @@ Lifecycle::
              frame (never blocks), run :func:`motcomp.core.tick.step` on it (validation,
              reference, catch-up, compensator, verdict: the whole per-tick policy), send the
              output on every port; count, never log
-    main     the main thread: signals, status at 1 Hz (and on query), admin requests, the
-             systemd watchdog (only while the loop ticks), reloads, the motion-quality figures
-             (:mod:`motcomp.runtime.monitor`: the loop records r and u per tick, the feedback
-             subscriber queues each frame with its arrival instant, the main thread decodes
-             and estimates when it builds the status)
+    main     the main thread: signals, status at 1 Hz (and on query, from a copy at most
+             STATUS_MAX_AGE_S old), the systemd watchdog (only while the loop ticks), the
+             motion-quality figures (:mod:`motcomp.runtime.monitor`: the loop records r and u
+             per tick, the feedback subscriber queues each frame with its arrival instant, the
+             main thread decodes and estimates when it builds the status); admin requests and
+             SIGHUP are handed to the admin worker, or answered ``busy`` at once
+    admin    one worker thread: reloads, profile switches, bypass toggles, from a queue of at
+             most ADMIN_QUEUE requests, started at most ADMIN_RATE_HZ a second
     stop     SIGTERM/SIGINT -> park (ramp to neutral within the limits) -> exit 0; exit 1 if
-             parking did not finish within park_timeout_s
+             parking did not finish within park_timeout_s.  The loop thread parks on its own:
+             the stop never waits for the admin worker (a reload being read, a queue)
 
 Everything the loop needs from the outside world comes through two non-blocking doors: the
 input source's ``drain()`` and a command queue (a deque: appends and pops are atomic) through
 which the main thread hands it closures to run between two ticks -- bypass toggles and config
 swaps.  The loop thread is the only one that touches the tick's state.  Reloads are validated
-in the main thread (:mod:`motcomp.runtime.reload`) and swapped in by :meth:`Service.apply_config`.
+in the admin worker (:mod:`motcomp.runtime.reload`) and swapped in by :meth:`Service.apply_config`.
+
+The loop comes first: the interpreter's switch interval is set to SWITCH_INTERVAL_S, so that a
+loop thread waking at its deadline gets the interpreter lock within that time from a thread
+parsing a config or building a status (the default, 5 ms, cost several ticks each time).
+Measured cost of admin work to the loop: docs/BENCHMARKS.md ("admin").
 """
 
 from __future__ import annotations
 
 import gc
 import logging
+import queue
 import signal
+import sys
 import threading
 import time
 from collections import deque
@@ -41,7 +52,7 @@ from typing import Any
 import msgpack
 
 from motcomp import __version__
-from motcomp.config import ServiceConfig, config_hash, new_tick, resolve_axes
+from motcomp.config import ServiceConfig, config_hash, config_sources, new_tick, resolve_axes
 from motcomp.core.axes import AXES
 from motcomp.core.tick import (
     MAX_ERROR_CHARS,
@@ -58,8 +69,9 @@ from motcomp.io.ports import InputPort, OutputPort
 from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, ZenohSource, open_session
 from motcomp.resources import config_file
 from motcomp.runtime.clock import DeadlineClock
+from motcomp.runtime.confine import Confinement
 from motcomp.runtime.monitor import BIN_S, COMMAND_WINDOW_S, LAG_RANGE_S, MotionMonitor
-from motcomp.runtime.reload import Prepared, prepare_config, prepare_profile
+from motcomp.runtime.reload import Prepared, Preparer
 from motcomp.runtime.rt import pin_to_cpu, set_realtime, set_slice
 from motcomp.runtime.stats import LoopStats
 from motcomp.runtime.systemd import Notifier
@@ -115,6 +127,30 @@ class ModeLog:
 
 FEEDBACK_RING = 256
 """Feedback frames kept between two polls of the main thread (every 20 ms)."""
+QUERY_CHANNEL = 1024
+"""Status and admin queries kept between two polls of the main thread (a full channel would
+hold up zenoh's network thread, and with it the input)."""
+ADMIN_QUEUE = 16
+"""Admin requests waiting for the worker; one more is answered ``{"ok": False, "error":
+"busy"}`` at once."""
+ADMIN_RATE_HZ = 10.0
+"""The admin worker starts at most this many requests a second."""
+STATUS_MAX_AGE_S = 0.1
+"""A status query is answered with a status at most this old (rebuilt after an admin change)."""
+SWITCH_INTERVAL_S = 0.0002
+"""The interpreter's switch interval while the service runs (``sys.setswitchinterval``)."""
+RELOADS_KEPT = 10
+"""Reload attempts kept for the status."""
+BUSY = msgpack.packb({"ok": False, "error": "busy"})
+
+def _answer(query: Any, key: str, result: dict[str, Any] | bytes) -> None:
+    """Reply to an admin query and release it (never raises: the session may be closing)."""
+    try:
+        query.reply(key, result if isinstance(result, bytes) else msgpack.packb(result))
+        query.drop()
+    except Exception as exc:  # pragma: no cover - a closed session
+        log.debug("admin reply on %s failed: %r", key, exc)
+
 
 class Service:
     """See the module docstring.  ``run()`` blocks until stopped and returns the exit code."""
@@ -124,6 +160,10 @@ class Service:
         self.cfg = cfg
         self.endpoints = endpoints
         self.config_path = config_path
+        """The config in force: the start-up file, then the file of the last accepted
+        ``reload --config`` (what SIGHUP and ``reload`` re-read, and the status shows)."""
+        self.confinement = self._confine(config_path)
+        self.preparer = Preparer()
         self.axes = resolve_axes(cfg)
         for w in self.axes.warnings:
             log.warning("%s", w)
@@ -154,6 +194,19 @@ class Service:
         self._pending: list[bytes] = []
         self._feedback: Any = None  # the feedback subscriber (a ring), polled by _main
         self._perf = time.perf_counter_ns
+        self._admin_q: queue.Queue[tuple[str, Any] | None] = queue.Queue(ADMIN_QUEUE)
+        self._status_cache: tuple[float, bytes] | None = None
+
+    @staticmethod
+    def _confine(path: Path | None) -> Confinement | None:
+        """Where reloads may read (see :mod:`motcomp.runtime.confine`): None without a file."""
+        if path is None:
+            return None
+        try:
+            files: tuple[Path, ...] = config_sources(path).files
+        except MotcompError:  # read at start by the caller; only its directory then
+            files = ()
+        return Confinement(path, files)
 
     # --- the loop thread ------------------------------------------------------------------
     def attach(self, source: InputPort, ports: list[OutputPort], *, wall0: float | None = None,
@@ -289,6 +342,8 @@ class Service:
         ServiceError
             If the loop did not run it within ``timeout_s``.
         """
+        if self.stop_event.is_set():
+            raise ServiceError(f"stopping: {what} was not applied")
         self.commands.append(fn)
         if not done.wait(timeout_s):
             raise ServiceError(f"the loop did not apply {what} within {timeout_s:g} s")
@@ -300,7 +355,13 @@ class Service:
 
         def swap() -> None:
             comp = self.state.comp
-            comp.reconfigure(new.axes.models, new.axes.gains, new.axes.limits)
+            models, gains = new.axes.models, new.axes.gains
+            if tuple(models) == comp.models:  # each call checks the stability of every pair:
+                if tuple(gains) != comp.gains:  # the least of them (a few ms of the loop's)
+                    comp.set_gains(gains)
+                comp.set_limits(new.axes.limits)
+            else:
+                comp.reconfigure(models, gains, new.axes.limits)
             comp.set_fade(new.cfg.loop.bypass_fade_s)
             set_bypass(self.state, new.axes.bypass, [False] * len(AXES))
             self.params = new.params
@@ -348,7 +409,7 @@ class Service:
             "src_seq": st.src_seq,
             "can": ({"sent": self._can.sent, "errors": self._can.errors}
                     if self._can is not None else None),
-            "reloads": self.reloads[-10:],
+            "reloads": self.reloads[-RELOADS_KEPT:],
             "realtime": self.rt_report,
             "clock": self.tick_clock(),
             **self._quality(),
@@ -392,14 +453,48 @@ class Service:
         return time.perf_counter_ns() / 1e9
 
     # --- main thread ----------------------------------------------------------------------
-    def _serve_admin(self, query: Any) -> None:
-        name = str(query.key_expr).rsplit("/", 1)[-1]
+    def submit(self, kind: str, item: Any) -> bool:
+        """Hand a request to the admin worker (``("query", zenoh query)`` or ``("sighup",
+        None)``); False if its queue is full (the caller answers ``busy``)."""
         try:
-            body = query.payload.to_bytes() if query.payload is not None else b""
-            result = self.admin(name, body)
-        except Exception as exc:  # never let a request stop the main thread
-            result = {"ok": False, "error": f"internal error: {type(exc).__name__}"}
-        query.reply(str(query.key_expr), msgpack.packb(result))
+            self._admin_q.put_nowait((kind, item))
+        except queue.Full:
+            return False
+        return True
+
+    def _admin_worker(self) -> None:
+        """The admin worker thread: serves the queue, at most ADMIN_RATE_HZ requests a second,
+        until a None; after a stop request, answers what is left ``stopping``."""
+        gap = 1.0 / ADMIN_RATE_HZ
+        next_start = 0.0
+        while (item := self._admin_q.get()) is not None:
+            kind, obj = item
+            wait = next_start - time.monotonic()
+            if wait > 0:
+                self.stop_event.wait(wait)
+            next_start = time.monotonic() + gap
+            try:
+                if kind == "sighup":
+                    if not self.stop_event.is_set():
+                        self.reload()
+                else:
+                    self._serve_admin(obj)
+            except Exception as exc:  # never let a request stop the worker
+                log.error("admin request failed: %r", exc)
+            self._status_cache = None
+
+    def _serve_admin(self, query: Any) -> None:
+        key = str(query.key_expr)
+        name = key.rsplit("/", 1)[-1]
+        if self.stop_event.is_set():
+            result: dict[str, Any] = {"ok": False, "error": "stopping"}
+        else:
+            try:
+                body = query.payload.to_bytes() if query.payload is not None else b""
+                result = self.admin(name, body)
+            except Exception as exc:  # never let a request stop the worker
+                result = {"ok": False, "error": f"internal error: {type(exc).__name__}"}
+        _answer(query, key, result)
 
     def admin(self, name: str, body: bytes) -> dict[str, Any]:
         """Answer one admin request (``bypass``, ``reload``, ``profile``; msgpack ``body``):
@@ -435,19 +530,28 @@ class Service:
             return {"ok": False, "error": text[:MAX_ERROR_CHARS * 5]}
 
     def reload(self, path: str | None = None) -> dict[str, Any]:
-        """Validate and apply a config file (default: the one started with); returns
-        ``{"ok": bool, ...}`` and never raises for a bad config."""
+        """Validate and apply a config file (default: the config in force), read only as
+        :attr:`confinement` allows; returns ``{"ok": bool, ...}`` and never raises for a bad
+        config or a refused file.  An accepted ``path`` becomes the config in force."""
         source = Path(path) if path else self.config_path
+        if path and self.confinement is not None and not source.is_absolute():
+            source = self.confinement.root / source
         attempt: dict[str, Any] = {"t": time.time(), "kind": "reload",
                                    "path": str(source) if source else None}
-        return self._attempt(attempt, lambda: prepare_config(self.cfg, self.axes, source),
-                             "reload")
+        out = self._attempt(attempt, lambda: self.preparer.prepare_config(
+            self.cfg, self.axes, source, self.confinement), "reload")
+        if out["ok"] and path and source != self.config_path:
+            log.info("config in force is now %s (was %s): SIGHUP and reload re-read it",
+                     source, self.config_path)
+            self.config_path = source
+        return out
 
     def switch_profile(self, name: str | None) -> dict[str, Any]:
         """Make ``name`` the active scenario profile (None: none), bumplessly."""
         attempt: dict[str, Any] = {"t": time.time(), "kind": "profile", "path": None}
-        return self._attempt(attempt, lambda: prepare_profile(self.cfg, self.axes, name),
-                             f"switch to profile {name}")
+        return self._attempt(
+            attempt, lambda: self.preparer.prepare_profile(self.cfg, self.axes, name),
+            f"switch to profile {name}")
 
     def _attempt(self, attempt: dict[str, Any], prepare: Callable[[], Prepared], what: str
                  ) -> dict[str, Any]:
@@ -468,6 +572,7 @@ class Service:
         finally:
             self.notifier.ready()
         self.reloads.append(attempt)
+        del self.reloads[:-RELOADS_KEPT]
         return {"ok": attempt["ok"], **{k: v for k, v in attempt.items() if k != "ok"}}
 
     def run(self) -> int:
@@ -477,6 +582,10 @@ class Service:
             signal.signal(sig, lambda *_: self.stop_event.set())
         signal.signal(signal.SIGHUP, lambda *_: self.reload_event.set())
         import zenoh
+
+        self.preparer.start()
+        switch = sys.getswitchinterval()
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
 
         with open_session(self.endpoints) as session:
             self._source = ZenohSource(session, cfg.input.key)
@@ -491,18 +600,25 @@ class Service:
                                                       zenoh.handlers.RingChannel(FEEDBACK_RING))
             self._feedback = feedback_sub
             status_pub = session.declare_publisher(cfg.status.key)
-            status_q = session.declare_queryable(cfg.status.key, zenoh.handlers.FifoChannel(16))
+            status_q = session.declare_queryable(cfg.status.key,
+                                                 zenoh.handlers.FifoChannel(QUERY_CHANNEL))
             admin_q = (session.declare_queryable(f"{cfg.admin.key}/**",
-                                                 zenoh.handlers.FifoChannel(16))
+                                                 zenoh.handlers.FifoChannel(QUERY_CHANNEL))
                        if cfg.admin.enabled else None)
             thread = threading.Thread(target=self._loop, name="motcomp-loop", daemon=True)
+            worker = threading.Thread(target=self._admin_worker, name="motcomp-admin",
+                                      daemon=True)
             thread.start()
+            worker.start()
             try:
                 return self._main(thread, status_pub, status_q, admin_q)
             finally:
                 self.stop_event.set()
                 thread.join(timeout=cfg.loop.park_timeout_s + 2.0)
                 self.notifier.stopping()
+                self._stop_worker(worker)
+                self.preparer.close()
+                sys.setswitchinterval(switch)
                 for q in (status_q, admin_q, feedback_sub):
                     if q is not None:
                         q.undeclare()
@@ -512,6 +628,28 @@ class Service:
                 if self._source is not None:
                     self._source.close()
                 self.notifier.close()
+
+    def _stop_worker(self, worker: threading.Thread) -> None:
+        """Answer what is still queued ``stopping`` and end the admin worker (a request it is
+        busy with gets a second to finish; the worker is a daemon)."""
+        while True:
+            try:
+                item = self._admin_q.get_nowait()
+            except queue.Empty:
+                break
+            if item is not None and item[0] == "query":
+                _answer(item[1], str(item[1].key_expr), {"ok": False, "error": "stopping"})
+        self._admin_q.put_nowait(None)  # empty now: only this thread submits
+        worker.join(timeout=1.0)
+
+    def _status_bytes(self, now: float) -> bytes:
+        """The packed status, rebuilt when older than STATUS_MAX_AGE_S or after an admin
+        change."""
+        cached = self._status_cache
+        if cached is None or now - cached[0] > STATUS_MAX_AGE_S:
+            cached = (now, msgpack.packb(self.status()))
+            self._status_cache = cached
+        return cached[1]
 
     def _poll_feedback(self) -> None:
         """Hand the feedback frames received since the last poll to the monitor, stamped now
@@ -561,15 +699,14 @@ class Service:
             if healthy and now >= next_dog:
                 self.notifier.watchdog()
                 next_dog = now + dog_every
-            if self.reload_event.is_set():
-                self.reload_event.clear()
-                self.reload()
+            if self.reload_event.is_set() and self.submit("sighup", None):
+                self.reload_event.clear()  # else: kept for the next poll
             while (q := status_q.try_recv()) is not None:
-                q.reply(cfg.status.key, msgpack.packb(self.status()))
+                q.reply(cfg.status.key, self._status_bytes(time.monotonic()))
                 q.drop()
             while admin_q is not None and (q := admin_q.try_recv()) is not None:
-                self._serve_admin(q)
-                q.drop()
+                if not self.submit("query", q):
+                    _answer(q, str(q.key_expr), BUSY)
             if now >= next_status:
                 status_pub.put(msgpack.packb(self.status()))
                 next_status = now + cfg.status.period_s
