@@ -253,7 +253,8 @@ def test_a_cubic_is_played_back_exactly_through_a_stall() -> None:
     skipped by the sender, and a 12-period stall whose frames then come in a burst.  The
     knots and the quintic are exact on a cubic, and so is the constant-jerk bridge: the
     reference is x at the playback instant throughout, to rounding.  With epoch stamps at
-    1 kHz (rounded to 0.24 us) the instants still lie on an even grid."""
+    1 kHz (rounded to 0.24 us) the instants are the stamps, rounding and all: the sender's
+    ``t`` is the instant of its sample (docs/WIRE.md)."""
     p = _params()
     x = lambda t: 0.3 + t * (0.5 + t * (-0.6 + 0.2 * t))  # noqa: E731
     period = 2.0**-10
@@ -272,8 +273,10 @@ def test_a_cubic_is_played_back_exactly_through_a_stall() -> None:
             delay = sh.playback_delay_s
             if delay is not None and k > 300:  # the delay filter settled
                 errs.append(ref[Y] - x(now - delay))
-        steps = np.diff([knot[0] for knot in sh._hist[Y]])
-        assert np.all(np.abs(steps - q) < 1e-10)  # the stamps' rounding: up to 1.2e-7
+        instants = np.array([knot[0] for knot in sh._hist[Y]])
+        stamps = np.array([1.7e9 + q * j for j in range(2500)]) - 1.7e9
+        assert np.all(np.isin(instants, stamps))  # each the stamp itself
+        assert np.max(np.abs(np.diff(instants) - q)) < (2.4e-7 if rounded else 1e-12)  # 1 ulp
         assert bridged >= 10  # the stall was bridged
         if not rounded:
             assert max(map(abs, errs)) < 1e-9

@@ -743,6 +743,18 @@ def _knot(before: Sequence[Knot], t: float, v: float) -> Knot:
     """The sample ``(t, v)`` with the slope, acceleration and jerk at ``t`` of the polynomial
     through it and the (up to) three samples ``before`` it (a cubic, exact on cubics): causal,
     so never revised when the next sample comes."""
+    if len(before) >= 3:  # the usual case, written out: Newton's divided differences
+        (t1, v1, *_), (t2, v2, *_), (t3, v3, *_) = before[-1], before[-2], before[-3]
+        f01 = (v - v1) / (t - t1)
+        f12 = (v1 - v2) / (t1 - t2)
+        f23 = (v2 - v3) / (t2 - t3)
+        f012 = (f01 - f12) / (t - t2)
+        f123 = (f12 - f23) / (t1 - t3)
+        f0123 = (f012 - f123) / (t - t3)
+        d1 = t - t1
+        d2 = t - t2
+        return (t, v, f01 + f012 * d1 + f0123 * d1 * d2, 2.0 * f012 + 2.0 * f0123 * (d1 + d2),
+                6.0 * f0123)
     ts = [t]
     f = [v]  # Newton divided differences about the newest: f[0], f[0,1], f[0,1,2], f[0..3]
     col = [v]
