@@ -32,11 +32,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from math import sqrt
 
-__all__ = ["TOLERANCE_M", "EnvelopeGuard", "EnvelopeParams"]
+__all__ = ["CHASE_SHARE", "TOLERANCE_M", "EnvelopeGuard", "EnvelopeParams"]
 
 TOLERANCE_M = 1e-12
 """Slack of every bound, as a position (m or rad) within one period: the rounding of the
 limiter's arithmetic must not count as an action."""
+
+CHASE_SHARE = 0.5
+"""Share of ``a_max`` the guard plans its approach to the command with, once it acted."""
 
 
 @dataclass(frozen=True)
@@ -132,11 +135,14 @@ class EnvelopeGuard:
         ah = a * h
         vt = (x - x0) * inv_h
         want = (x - u0) * inv_h
-        # approach the command as a wall moving at vt, from where it was (x0)
+        # approach the command as a wall moving at vt, from where it was (x0), planning with
+        # half of a_max: the other half follows the command's own accelerations
+        ap = CHASE_SHARE * a
+        aph = ap * h
         if want > vt:
-            want = min(want, vt - ah + sqrt(ah * ah + 2.0 * a * max(0.0, x0 - u0)))
+            want = min(want, vt - aph + sqrt(aph * aph + 2.0 * ap * max(0.0, x0 - u0)))
         elif want < vt:
-            want = max(want, vt + ah - sqrt(ah * ah + 2.0 * a * max(0.0, u0 - x0)))
+            want = max(want, vt + aph - sqrt(aph * aph + 2.0 * ap * max(0.0, u0 - x0)))
         v_hi = min(vmax, v0 + ah, -ah + sqrt(ah * ah + 2.0 * a * max(0.0, hi - u0)))
         v_lo = max(-vmax, v0 - ah, ah - sqrt(ah * ah + 2.0 * a * max(0.0, u0 - lo)))
         v = min(max(want, v_lo), v_hi) if v_lo <= v_hi else min(max(0.0, v0 - ah), v0 + ah)
