@@ -130,6 +130,9 @@ FEEDBACK_RING = 256
 QUERY_CHANNEL = 1024
 """Status and admin queries kept between two polls of the main thread (a full channel would
 hold up zenoh's network thread, and with it the input)."""
+QUERIES_PER_POLL = 64
+"""Status queries, and admin queries, taken from their channels per poll (every 20 ms): a burst
+is answered over several polls, the main thread never holds the interpreter long."""
 ADMIN_QUEUE = 16
 """Admin requests waiting for the worker; one more is answered ``{"ok": False, "error":
 "busy"}`` at once."""
@@ -701,10 +704,14 @@ class Service:
                 next_dog = now + dog_every
             if self.reload_event.is_set() and self.submit("sighup", None):
                 self.reload_event.clear()  # else: kept for the next poll
-            while (q := status_q.try_recv()) is not None:
+            for _ in range(QUERIES_PER_POLL):
+                if (q := status_q.try_recv()) is None:
+                    break
                 q.reply(cfg.status.key, self._status_bytes(time.monotonic()))
                 q.drop()
-            while admin_q is not None and (q := admin_q.try_recv()) is not None:
+            for _ in range(QUERIES_PER_POLL if admin_q is not None else 0):
+                if (q := admin_q.try_recv()) is None:
+                    break
                 if not self.submit("query", q):
                     _answer(q, str(q.key_expr), BUSY)
             if now >= next_status:
