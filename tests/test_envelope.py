@@ -43,10 +43,11 @@ H = 1e-3  # s, the example's period
 EXAMPLE = config_file("motcomp.toml")
 Y, X, ROLL = AXES.index("rails_y"), AXES.index("rails_x"), AXES.index("hex_roll")
 # the shipped envelope, written out here (not read from the code under test)
-SHIPPED = {"rails_x": (-2.6, 2.6, 2.5, 8.0), "rails_y": (-2.6, 2.6, 2.5, 8.0),
-           "hex_x": (-0.3, 0.3, 0.8, 10.0), "hex_y": (-0.3, 0.3, 0.8, 10.0),
-           "hex_z": (-0.2, 0.2, 0.6, 10.0), "hex_roll": (-0.35, 0.35, 1.0, 8.0),
-           "hex_pitch": (-0.35, 0.35, 1.0, 8.0), "hex_yaw": (-0.4, 0.4, 1.0, 8.0)}
+SHIPPED: dict[str, tuple[float, float, float, float]] = {
+    "rails_x": (-2.6, 2.6, 2.5, 8.0), "rails_y": (-2.6, 2.6, 2.5, 8.0),
+    "hex_x": (-0.3, 0.3, 0.8, 10.0), "hex_y": (-0.3, 0.3, 0.8, 10.0),
+    "hex_z": (-0.2, 0.2, 0.6, 10.0), "hex_roll": (-0.35, 0.35, 1.0, 8.0),
+    "hex_pitch": (-0.35, 0.35, 1.0, 8.0), "hex_yaw": (-0.4, 0.4, 1.0, 8.0)}
 LIN = ("pos_min_m", "pos_max_m", "vel_max_m_s", "acc_max_m_s2")
 ROT = ("pos_min_rad", "pos_max_rad", "vel_max_rad_s", "acc_max_rad_s2")
 
@@ -118,12 +119,12 @@ def test_issue_reload_file_of_1e308_limits_is_refused() -> None:
     ("hex_z", 1, 0.25), ("hex_roll", 0, -0.5), ("hex_yaw", 2, 1.5), ("hex_pitch", 3, 8.5),
 ])
 def test_limit_outside_the_envelope_is_refused(axis: str, j: int, value: float) -> None:
-    row = list(SHIPPED[axis])
-    row = [row[0] * 0.5, row[1] * 0.5, row[2] * 0.5, row[3] * 0.5]
-    row[j] = value
+    half = [x * 0.5 for x in SHIPPED[axis]]
+    half[j] = value
+    row = (half[0], half[1], half[2], half[3])
     keys = ROT if axis in ("hex_roll", "hex_pitch", "hex_yaw") else LIN
     with pytest.raises(ConfigError) as exc:
-        parse_config(with_limits(**{axis: tuple(row)}), "site.toml")
+        parse_config(with_limits(**{axis: row}), "site.toml")
     assert (f"axes.{axis}.{keys[j]} = {value!r} lies outside envelope.{axis}.{keys[j]} = "
             f"{SHIPPED[axis][j]!r}") in str(exc.value)
 
@@ -348,7 +349,8 @@ def try_reload(state: TickState, params: TickParams, reload: Any) -> TickParams:
         lim = np.array([axes.limits.p_min, axes.limits.p_max, axes.limits.v_max,
                         axes.limits.a_max])
         lim[:, Y], lim[:, ROLL] = rows["rails_y"], rows["hex_roll"]
-        state.comp.reconfigure(axes.models, axes.gains, AxisLimits(*lim, AXES))
+        state.comp.reconfigure(axes.models, axes.gains,
+                               AxisLimits(lim[0], lim[1], lim[2], lim[3], AXES))
         return params
     inside = all(lo >= SHIPPED[a][0] and hi <= SHIPPED[a][1] and v <= SHIPPED[a][2]
                  and acc <= SHIPPED[a][3] for a, (lo, hi, v, acc) in rows.items())
