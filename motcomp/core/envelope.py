@@ -22,8 +22,8 @@ counts as its last value.  Each axis changed is counted (:attr:`EnvelopeGuard.ac
 
 An axis that is not driven has an envelope of zero width: it stays at neutral (0).
 
-Plain float math over the axis lists, no allocation: about 1.2 us for 8 axes (a quiet core),
-within the noise of ``tick.step`` (tools/bench_core.py).
+Plain float math over the axis lists, no allocation: 1-2 us for 8 axes on the 2-core host of
+docs/BENCHMARKS.md under load, about 2 % of ``tick.step`` (tools/bench_core.py).
 """
 
 from __future__ import annotations
