@@ -536,9 +536,11 @@ class Service:
         """Validate and apply a config file (default: the config in force), read only as
         :attr:`confinement` allows; returns ``{"ok": bool, ...}`` and never raises for a bad
         config or a refused file.  An accepted ``path`` becomes the config in force."""
-        source = Path(path) if path else self.config_path
-        if path and self.confinement is not None and not source.is_absolute():
-            source = self.confinement.root / source
+        source = self.config_path
+        if path:  # relative: to the config directory
+            source = Path(path)
+            if self.confinement is not None and not source.is_absolute():
+                source = self.confinement.root / source
         attempt: dict[str, Any] = {"t": time.time(), "kind": "reload",
                                    "path": str(source) if source else None}
         out = self._attempt(attempt, lambda: self.preparer.prepare_config(
