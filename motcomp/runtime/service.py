@@ -647,14 +647,31 @@ class Service:
         self._admin_q.put_nowait(None)  # empty now: only this thread submits
         worker.join(timeout=1.0)
 
-    def _status_bytes(self, now: float) -> bytes:
-        """The packed status, rebuilt when older than STATUS_MAX_AGE_S or after an admin
-        change."""
+    def _status_bytes(self, now: float, max_age_s: float = STATUS_MAX_AGE_S) -> bytes:
+        """The packed status, rebuilt when older than ``max_age_s`` or after an admin change;
+        never raises.
+
+        The status reads the loop's state while the loop changes it: a read that catches a
+        structure half rebuilt (a prediction reconfigured by a swap) raises, and is tried again
+        (three times, 1 ms apart), then the previous status is served, or a minimal one."""
         cached = self._status_cache
-        if cached is None or now - cached[0] > STATUS_MAX_AGE_S:
-            cached = (now, msgpack.packb(self.status()))
-            self._status_cache = cached
-        return cached[1]
+        if cached is not None and now - cached[0] <= max_age_s:
+            return cached[1]
+        error: Exception | None = None
+        for _ in range(3):
+            try:
+                data = msgpack.packb(self.status())
+            except Exception as exc:
+                error = exc
+                time.sleep(0.001)
+                continue
+            self._status_cache = (now, data)
+            return data
+        log.warning("status failed three times: %r", error)
+        if cached is not None:
+            return cached[1]
+        return msgpack.packb({"t": time.time(), "version": __version__, "mode": self.state.mode,
+                              "ticks": self.state.ticks, "error": f"status failed: {error!r}"})
 
     def _poll_feedback(self) -> None:
         """Hand the feedback frames received since the last poll to the monitor, stamped now
@@ -717,13 +734,12 @@ class Service:
                 if not self.submit("query", q):
                     _answer(q, str(q.key_expr), BUSY)
             if now >= next_status:
-                status_pub.put(msgpack.packb(self.status()))
+                status_pub.put(self._status_bytes(time.monotonic(), 0.0))
                 next_status = now + cfg.status.period_s
         if self._loop_error is not None:
             log.error("loop failed: %r", self._loop_error)
             return 1
-        st = self.status()
-        log.info("stopped after %d ticks (%d missed); exit %d", st["ticks"], st["missed_ticks"],
-                 self.exit_code)
+        log.info("stopped after %d ticks (%d missed); exit %d", self.state.ticks,
+                 self._clock.missed if self._clock else 0, self.exit_code)
         return self.exit_code
 
