@@ -120,12 +120,8 @@ def assert_no_forged_setpoints(bridge: Any, forgers: dict[str, Any], n: int = 20
 
     sub = bridge.declare_subscriber("platform/setpoint", zenoh.handlers.FifoChannel(1 << 16))
     try:
-        for role, session in forgers.items():
-            pub = session.declare_publisher("platform/setpoint")
-            t_end = time.monotonic() + 10
-            while not pub.matching_status.matching:
-                assert time.monotonic() < t_end, f"{role}: no subscriber of platform/setpoint"
-                time.sleep(0.05)
+        for session in forgers.values():
+            pub = matched_publisher(session, "platform/setpoint")
             for k in range(n):
                 pub.put(forged_frame(k))
                 time.sleep(0.01)
@@ -152,18 +148,40 @@ def received_on(session: Any, key: str) -> Callable[[], int]:
     return read
 
 
-def put_many(session: Any, key: str, payload: Callable[[int], bytes], n: int) -> None:
+def matched_publisher(session: Any, key: str, timeout_s: float = 10.0) -> Any:
+    """A publisher of ``key`` once it sees a subscriber (so what it puts is sent to the
+    service: the rules forward declarations to every authenticated peer)."""
     pub = session.declare_publisher(key)
+    t_end = time.monotonic() + timeout_s
+    while not pub.matching_status.matching:
+        assert time.monotonic() < t_end, f"no subscriber of {key} seen"
+        time.sleep(0.05)
+    return pub
+
+
+def put_many(session: Any, key: str, payload: Callable[[int], bytes], n: int) -> None:
+    pub = matched_publisher(session, key)
     for k in range(n):
         pub.put(payload(k))
         time.sleep(0.002)
     pub.undeclare()
 
 
-def push_setpoints(session: Any, value: float, n: int = 1500) -> None:
-    """``n`` setpoint frames (rails_x = ``value``) at about 1 kHz, as a cueing computer sends."""
+def eventually(read: Callable[[], int], expect: int, timeout_s: float = 10.0) -> int:
+    """``read()`` once it reaches ``expect`` or the time is up."""
+    t_end = time.monotonic() + timeout_s
+    while (value := read()) < expect and time.monotonic() < t_end:
+        time.sleep(0.1)
+    return value
+
+
+def push_setpoints(session: Any, value: float, n: int = 1500, matched: bool = True) -> None:
+    """``n`` setpoint frames (rails_x = ``value``) at about 1 kHz, as a cueing computer sends,
+    once the service's subscriber is seen (unless not ``matched``: a peer that could not
+    connect)."""
     seq = int(time.time() * 1000)
-    pub = session.declare_publisher("sim/motion/setpoint")
+    pub = (matched_publisher(session, "sim/motion/setpoint") if matched
+           else session.declare_publisher("sim/motion/setpoint"))
     for k in range(n):
         pub.put(encode_input(seq + k, time.time(), {"rails_x": value}))
         time.sleep(0.001)
@@ -198,7 +216,7 @@ def test_only_authorised_peers_move_the_platform(tmp_path: Path) -> None:
             assert st["frames"]["received"] == 0 and abs(rails_x()) < 1e-9, role
         # a peer without credentials is refused at connection: nothing it sends arrives
         anon = client(port, None)
-        push_setpoints(anon, 0.4, 300)
+        push_setpoints(anon, 0.4, 300, matched=False)
         anon.close()
         assert status(operator)["frames"]["received"] == 0 and abs(rails_x()) < 1e-9
         # the motion-cueing peer moves the platform
@@ -250,7 +268,6 @@ def test_platform_role_publishes_feedback_and_its_status_only(tmp_path: Path) ->
         sessions = {role: client(port, role, mode="client") for role in ROLES}
         try:
             platform_status = received_on(reader, "platform/status")
-            time.sleep(0.5)
             # feedback and platform status from other roles are dropped
             for role in ("operator", "cueing"):
                 put_many(sessions[role], "platform/feedback", feedback, 200)
@@ -261,9 +278,8 @@ def test_platform_role_publishes_feedback_and_its_status_only(tmp_path: Path) ->
             # the platform's own go through: feedback to the service, status to the operator
             put_many(sessions["platform"], "platform/feedback", feedback, 200)
             put_many(sessions["platform"], "platform/status", lambda k: b"x", 20)
-            time.sleep(0.5)
-            assert status(reader)["feedback"]["received"] > 150
-            assert platform_status() > 15
+            assert eventually(lambda: status(reader)["feedback"]["received"], 200) == 200
+            assert eventually(platform_status, 20) == 20
         finally:
             for s in (reader, *sessions.values()):
                 s.close()

@@ -151,6 +151,7 @@ def test_reload_in_process_keeps_the_old_config_on_failure(tmp_path: Path) -> No
     path = tmp_path / "motcomp.toml"
     path.write_text(BASE)
     svc = Service(load_config(path), ZenohEndpoints(), config_path=path)
+    svc.preparer.start(wait=True)  # the reloads' reader process: started as the service does
     with running(svc) as run:
         path.write_text('profile = "fast"\n' + BASE)  # optimised -> AMIGO gains on the rails
         r = svc.reload()
@@ -178,10 +179,16 @@ def test_reload_in_process_is_bumpless(tmp_path: Path) -> None:
     path = tmp_path / "motcomp.toml"
     path.write_text(BASE)
     svc = Service(load_config(path), ZenohEndpoints(), config_path=path)
+    # prepared first (in the reader process, while the loop runs on: its phase at the swap
+    # would depend on the machine), swapped in at the same instants of the motion every run
+    prepared = []
+    for profile in ("fast", "paper"):
+        path.write_text(f'profile = "{profile}"\n' + BASE)
+        prepared.append(svc.preparer.prepare_config(svc.cfg, svc.axes, path, svc.confinement))
+    svc.preparer.close()
     with running(svc) as run:
-        for profile in ("fast", "paper"):
-            path.write_text(f'profile = "{profile}"\n' + BASE)
-            assert svc.reload()["ok"]
+        for new in prepared:
+            svc.apply_config(new)
             run.wait(300)
     assert len(run.swaps()) == 2
     assert_within_limits(run, svc)

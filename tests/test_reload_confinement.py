@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
 import time
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,7 @@ from motcomp.io.zenoh_io import ZenohEndpoints, free_tcp_port, loopback, open_se
 from motcomp.record.recorder import service_info
 from motcomp.resources import config_file
 from motcomp.runtime.confine import MAX_CONFIG_BYTES, Confinement
+from tests.conftest import motcomp_cmd, subprocess_env
 from tests.test_reload import BASE, reload_cmd, status
 from tests.test_service_process import process, wait_status
 
@@ -155,6 +157,13 @@ def test_reload_config_file_becomes_the_config_in_force(tmp_path: Path) -> None:
         # a refused reload --config leaves the config in force as it was
         assert reload_cmd(p_svc, files["secret"]).returncode == 1
         in_force(status(session), other)
+        # a profile switch: the same file, its hash with the profile, still attached
+        r = subprocess.run(motcomp_cmd("profile", "fast", "-e", loopback(p_svc)),
+                           capture_output=True, text=True, env=subprocess_env(), timeout=60)
+        assert r.returncode == 0, r.stderr
+        st = status(session)
+        assert st["profile"] == "fast" and st["config"]["path"] == str(other)
+        assert service_info(st)[1] is not None
         svc.send_signal(signal.SIGTERM)
         assert svc.wait(timeout=30) == 0
     log = (tmp_path / "svc.log").read_text()

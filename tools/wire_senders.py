@@ -284,7 +284,8 @@ def main(conf: zenoh.Config, key: str, motion: Mapping[str, Callable[[float], fl
     with zenoh.open(conf) as session:
         publisher = session.declare_publisher(key)
         deadline = time.monotonic() + wait_peer_s
-        while wait_peer_s > 0 and not publisher.matching_status.matching:
+        # zenoh 1.x returns a MatchingStatus here (its type stub says bool)
+        while wait_peer_s > 0 and not publisher.matching_status.matching:  # type: ignore[attr-defined]
             if time.monotonic() > deadline:
                 raise TimeoutError(f"no subscriber of {key!r} within {wait_peer_s} s")
             time.sleep(0.05)

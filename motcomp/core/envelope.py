@@ -22,8 +22,8 @@ counts as its last value.  Each axis changed is counted (:attr:`EnvelopeGuard.ac
 
 An axis that is not driven has an envelope of zero width: it stays at neutral (0).
 
-Plain float math over the axis lists, no allocation: the guard adds about 2 us to a tick
-(docs/BENCHMARKS.md, ``tick.step``).
+Plain float math over the axis lists, no allocation: 1-2 us for 8 axes on the 2-core host of
+docs/BENCHMARKS.md under load, about 2 % of ``tick.step`` (tools/bench_core.py).
 """
 
 from __future__ import annotations
@@ -32,11 +32,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from math import sqrt
 
-__all__ = ["TOLERANCE_M", "EnvelopeGuard", "EnvelopeParams"]
+__all__ = ["CHASE_SHARE", "TOLERANCE_M", "EnvelopeGuard", "EnvelopeParams"]
 
 TOLERANCE_M = 1e-12
 """Slack of every bound, as a position (m or rad) within one period: the rounding of the
 limiter's arithmetic must not count as an action."""
+
+CHASE_SHARE = 0.5
+"""Share of ``a_max`` the guard plans its approach to the command with, once it acted."""
 
 
 @dataclass(frozen=True)
@@ -50,22 +53,28 @@ class EnvelopeParams:
     v_max: tuple[float, ...]
     a_max: tuple[float, ...]
     rate_hz: float
-    const: tuple[tuple[float, ...], ...] = field(init=False, repr=False, compare=False)
+    fast: tuple[tuple[float, ...], ...] = field(init=False, repr=False, compare=False)
+    """Per axis, the bounds with their slack: ``(lo, hi, v_max, a_max h, 1 / (2 a_max),
+    1 / h)``."""
+    slow: tuple[tuple[float, ...], ...] = field(init=False, repr=False, compare=False)
+    """Per axis, ``(lo, hi, v_max, a_max, h, 1 / h)``."""
 
     def __post_init__(self) -> None:
         n = len(self.p_min)
         if not len(self.p_max) == len(self.v_max) == len(self.a_max) == n:
             raise ValueError("envelope: p_min, p_max, v_max and a_max must have the same length")
         h = 1.0 / self.rate_hz
-        rows = []
+        fast, slow = [], []
+        tol_v = TOLERANCE_M / h
         for lo, hi, v, a in zip(self.p_min, self.p_max, self.v_max, self.a_max, strict=True):
             if not (lo <= 0.0 <= hi and v >= 0.0 and a >= 0.0 and (v > 0.0) == (a > 0.0)
                     and (v > 0.0 or lo == hi == 0.0)):
                 raise ValueError(f"envelope: invalid axis ({lo}, {hi}, {v}, {a})")
-            tol_v = TOLERANCE_M / h
-            rows.append((lo - TOLERANCE_M, hi + TOLERANCE_M, v + tol_v, a * h + tol_v,
-                         0.5 / a if a > 0.0 else 0.0, lo, hi, v, a, h, 1.0 / h))
-        object.__setattr__(self, "const", tuple(rows))
+            fast.append((lo - TOLERANCE_M, hi + TOLERANCE_M, v + tol_v, a * h + tol_v,
+                         0.5 / a if a > 0.0 else 0.0, 1.0 / h))
+            slow.append((lo, hi, v, a, h, 1.0 / h))
+        object.__setattr__(self, "fast", tuple(fast))
+        object.__setattr__(self, "slow", tuple(slow))
 
     @property
     def n(self) -> int:
@@ -81,7 +90,8 @@ class EnvelopeGuard:
         self.v = [0.0] * n
         """Last output's velocity per axis."""
         self.target = [0.0] * n
-        """Last command per axis (clamped to the range), the wall the guard chases."""
+        """Per axis, the last command it changed (clamped to the range), the wall it chases
+        (the last output otherwise: it was the command)."""
         self.acted = [0] * n
         """Outputs on which the guard changed each axis."""
         self.clamps = 0
@@ -96,47 +106,49 @@ class EnvelopeGuard:
         for i, x in enumerate(position):
             self.u[i] = self.target[i] = float(x)
             self.v[i] = 0.0
+            self.acted_at[i] = -1
 
     def apply(self, p: EnvelopeParams, u: list[float]) -> bool:
         """Bound the command ``u`` in place (see the module docstring); True if it acted."""
-        us, vs, ts = self.u, self.v, self.target
+        us, vs = self.u, self.v
         self.applied += 1
         acted = False
-        for i, c in enumerate(p.const):
-            x = u[i]
+        i = 0  # a counter beside zip: cheaper than enumerate over nested tuples
+        for x, (lo_t, hi_t, vmax_t, ah_t, k, inv_h) in zip(u, p.fast, strict=True):
             u0 = us[i]
-            v0 = vs[i]
-            lo_t, hi_t, vmax_t, ah_t, k = c[0], c[1], c[2], c[3], c[4]
-            v = (x - u0) * c[10]
-            dv = v - v0
+            v = (x - u0) * inv_h
+            dv = v - vs[i]
             if (lo_t <= x <= hi_t and -vmax_t <= v <= vmax_t and -ah_t <= dv <= ah_t
-                    and (v <= 0.0 or x + v * v * k <= hi_t)
-                    and (v >= 0.0 or x - v * v * k >= lo_t)):
+                    and (x + v * v * k <= hi_t if v > 0.0 else x - v * v * k >= lo_t)):
                 us[i] = x
                 vs[i] = v
-                ts[i] = x
-                continue
-            u[i] = self._chase(i, x, c)
-            self.acted[i] += 1
-            self.acted_at[i] = self.applied
-            acted = True
+            else:
+                u[i] = self._chase(i, x, p.slow[i])
+                self.acted[i] += 1
+                self.acted_at[i] = self.applied
+                acted = True
+            i += 1  # noqa: SIM113
         if acted:
             self.clamps += 1
         return acted
 
     def _chase(self, i: int, x: float, c: tuple[float, ...]) -> float:
         """The output nearest the command ``x`` that meets every bound."""
-        lo, hi, vmax, a, h, inv_h = c[5], c[6], c[7], c[8], c[9], c[10]
-        u0, v0, x0 = self.u[i], self.v[i], self.target[i]
+        lo, hi, vmax, a, h, inv_h = c
+        u0, v0 = self.u[i], self.v[i]
+        x0 = self.target[i] if self.acted_at[i] == self.applied - 1 else u0
         x = x0 if x != x else min(max(x, lo), hi)  # NaN: the last command
         ah = a * h
         vt = (x - x0) * inv_h
         want = (x - u0) * inv_h
-        # approach the command as a wall moving at vt, from where it was (x0)
+        # approach the command as a wall moving at vt, from where it was (x0), planning with
+        # half of a_max: the other half follows the command's own accelerations
+        ap = CHASE_SHARE * a
+        aph = ap * h
         if want > vt:
-            want = min(want, vt - ah + sqrt(ah * ah + 2.0 * a * max(0.0, x0 - u0)))
+            want = min(want, vt - aph + sqrt(aph * aph + 2.0 * ap * max(0.0, x0 - u0)))
         elif want < vt:
-            want = max(want, vt + ah - sqrt(ah * ah + 2.0 * a * max(0.0, u0 - x0)))
+            want = max(want, vt + aph - sqrt(aph * aph + 2.0 * ap * max(0.0, u0 - x0)))
         v_hi = min(vmax, v0 + ah, -ah + sqrt(ah * ah + 2.0 * a * max(0.0, hi - u0)))
         v_lo = max(-vmax, v0 - ah, ah - sqrt(ah * ah + 2.0 * a * max(0.0, u0 - lo)))
         v = min(max(want, v_lo), v_hi) if v_lo <= v_hi else min(max(0.0, v0 - ah), v0 + ah)

@@ -252,8 +252,9 @@ class RecordSummary:
 def service_info(status: dict[str, Any] | None) -> tuple[dict[str, str], bytes | None]:
     """Metadata entries and the config attachment from a status reply.
 
-    The config file named in the status is read and attached only if it still hashes to the
-    config the service runs (it may have been edited since)."""
+    The config file named in the status (the config in force: the start-up file or the last
+    accepted ``reload --config``), with the status' active profile, is read and attached only if
+    it still hashes to the config the service runs (it may have been edited since)."""
     if not status:
         return {}, None
     cfg = status.get("config") or {}
@@ -272,6 +273,9 @@ def service_info(status: dict[str, Any] | None) -> tuple[dict[str, str], bytes |
         except MotcompError as exc:
             log.warning("config %s named by the service does not load: %s", path, exc)
         else:
+            profile = status.get("profile", loaded.profile)  # `motcomp profile` switches it
+            if profile != loaded.profile and (profile is None or profile in loaded.profiles):
+                loaded = loaded.model_copy(update={"profile": profile})
             if config_hash(loaded) == cfg.get("hash"):
                 attachment = json.dumps(loaded.model_dump(mode="json"), indent=1).encode()
             else:

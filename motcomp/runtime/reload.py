@@ -165,8 +165,10 @@ def serve() -> None:
         except EOFError:
             return
         try:
-            if kind == "config":
-                reply: tuple[str, Any] = ("ok", prepare_config(old, old_axes, arg, confinement))
+            if kind == "ping":
+                reply: tuple[str, Any] = ("ok", None)
+            elif kind == "config":
+                reply = ("ok", prepare_config(old, old_axes, arg, confinement))
             else:
                 reply = ("ok", prepare_profile(old, old_axes, arg))
         except ConfigError as exc:
@@ -184,10 +186,20 @@ class Preparer:
         self._proc: subprocess.Popen[bytes] | None = None
         self._lock = threading.Lock()
 
-    def start(self) -> None:
-        """Start the child now (it imports for about a second), if it is not running."""
-        with self._lock:
-            self._start()
+    def start(self, wait: bool = False) -> None:
+        """Start the child now, if it is not running (it imports for a second or two); with
+        ``wait``, return once it answers.
+
+        Raises
+        ------
+        ConfigError
+            ``wait`` and the child did not answer within :data:`PREPARE_TIMEOUT_S`.
+        """
+        if wait:
+            self._call(("ping", None, None, None, None))
+        else:
+            with self._lock:
+                self._start()
 
     def _start(self) -> subprocess.Popen[bytes]:
         proc = self._proc
@@ -226,6 +238,11 @@ class Preparer:
         return self._ask(("profile", old, old_axes, name, None))
 
     def _ask(self, request: tuple[Any, ...]) -> Prepared:
+        value = self._call(request)
+        assert isinstance(value, Prepared)
+        return value
+
+    def _call(self, request: tuple[Any, ...]) -> Any:
         with self._lock:
             proc = self._start()
             assert proc.stdin is not None and proc.stdout is not None
@@ -243,7 +260,6 @@ class Preparer:
         kind, value = reply
         if kind != "ok":
             raise ConfigError(value)
-        assert isinstance(value, Prepared)
         return value
 
     @staticmethod

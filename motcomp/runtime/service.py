@@ -130,6 +130,9 @@ FEEDBACK_RING = 256
 QUERY_CHANNEL = 1024
 """Status and admin queries kept between two polls of the main thread (a full channel would
 hold up zenoh's network thread, and with it the input)."""
+QUERIES_PER_POLL = 64
+"""Status queries, and admin queries, taken from their channels per poll (every 20 ms): a burst
+is answered over several polls, the main thread never holds the interpreter long."""
 ADMIN_QUEUE = 16
 """Admin requests waiting for the worker; one more is answered ``{"ok": False, "error":
 "busy"}`` at once."""
@@ -533,9 +536,11 @@ class Service:
         """Validate and apply a config file (default: the config in force), read only as
         :attr:`confinement` allows; returns ``{"ok": bool, ...}`` and never raises for a bad
         config or a refused file.  An accepted ``path`` becomes the config in force."""
-        source = Path(path) if path else self.config_path
-        if path and self.confinement is not None and not source.is_absolute():
-            source = self.confinement.root / source
+        source = self.config_path
+        if path:  # relative: to the config directory
+            source = Path(path)
+            if self.confinement is not None and not source.is_absolute():
+                source = self.confinement.root / source
         attempt: dict[str, Any] = {"t": time.time(), "kind": "reload",
                                    "path": str(source) if source else None}
         out = self._attempt(attempt, lambda: self.preparer.prepare_config(
@@ -642,14 +647,31 @@ class Service:
         self._admin_q.put_nowait(None)  # empty now: only this thread submits
         worker.join(timeout=1.0)
 
-    def _status_bytes(self, now: float) -> bytes:
-        """The packed status, rebuilt when older than STATUS_MAX_AGE_S or after an admin
-        change."""
+    def _status_bytes(self, now: float, max_age_s: float = STATUS_MAX_AGE_S) -> bytes:
+        """The packed status, rebuilt when older than ``max_age_s`` or after an admin change;
+        never raises.
+
+        The status reads the loop's state while the loop changes it: a read that catches a
+        structure half rebuilt (a prediction reconfigured by a swap) raises, and is tried again
+        (three times, 1 ms apart), then the previous status is served, or a minimal one."""
         cached = self._status_cache
-        if cached is None or now - cached[0] > STATUS_MAX_AGE_S:
-            cached = (now, msgpack.packb(self.status()))
-            self._status_cache = cached
-        return cached[1]
+        if cached is not None and now - cached[0] <= max_age_s:
+            return cached[1]
+        error: Exception | None = None
+        for _ in range(3):
+            try:
+                data = msgpack.packb(self.status())
+            except Exception as exc:
+                error = exc
+                time.sleep(0.001)
+                continue
+            self._status_cache = (now, data)
+            return data
+        log.warning("status failed three times: %r", error)
+        if cached is not None:
+            return cached[1]
+        return msgpack.packb({"t": time.time(), "version": __version__, "mode": self.state.mode,
+                              "ticks": self.state.ticks, "error": f"status failed: {error!r}"})
 
     def _poll_feedback(self) -> None:
         """Hand the feedback frames received since the last poll to the monitor, stamped now
@@ -701,20 +723,23 @@ class Service:
                 next_dog = now + dog_every
             if self.reload_event.is_set() and self.submit("sighup", None):
                 self.reload_event.clear()  # else: kept for the next poll
-            while (q := status_q.try_recv()) is not None:
+            for _ in range(QUERIES_PER_POLL):
+                if (q := status_q.try_recv()) is None:
+                    break
                 q.reply(cfg.status.key, self._status_bytes(time.monotonic()))
                 q.drop()
-            while admin_q is not None and (q := admin_q.try_recv()) is not None:
+            for _ in range(QUERIES_PER_POLL if admin_q is not None else 0):
+                if (q := admin_q.try_recv()) is None:
+                    break
                 if not self.submit("query", q):
                     _answer(q, str(q.key_expr), BUSY)
             if now >= next_status:
-                status_pub.put(msgpack.packb(self.status()))
+                status_pub.put(self._status_bytes(time.monotonic(), 0.0))
                 next_status = now + cfg.status.period_s
         if self._loop_error is not None:
             log.error("loop failed: %r", self._loop_error)
             return 1
-        st = self.status()
-        log.info("stopped after %d ticks (%d missed); exit %d", st["ticks"], st["missed_ticks"],
-                 self.exit_code)
+        log.info("stopped after %d ticks (%d missed); exit %d", self.state.ticks,
+                 self._clock.missed if self._clock else 0, self.exit_code)
         return self.exit_code
 
