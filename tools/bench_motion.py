@@ -347,6 +347,26 @@ class Bench:
     def run(self, signal_name: str, sender: Sender, seed: int, duration_s: float,
             tick: Callable[[float], None] | None = None) -> Recording:
         """One run of the source; what was received from its start to its end plus a tail."""
+        rec = self.record(
+            [sys.executable, "-m", "motcomp", "source", "--signal", signal_name,
+             *sender.args(), "--seed", str(seed), "--seq-start", str(self.seq), "--key",
+             self.cfg.input.key, "-e", loopback(self.p_svc), "-e", loopback(self.p_me),
+             "-l", loopback(self.p_src), "--lead-in", "0.3", "--json", "--quiet"],
+            "motcomp source", tick)
+        self.seq = int(rec.source["next_seq"]) + 1
+        return rec
+
+    def record(self, command: list[str], name: str,
+               tick: Callable[[float], None] | None = None) -> Recording:
+        """Run the sender ``command`` (its last line on stdout a JSON summary: the
+        recording's ``source``) to its end; what was received from its start to its end plus
+        a tail.
+
+        Raises
+        ------
+        SystemExit
+            If the sender exits with an error (``name`` says which).
+        """
         outputs: list[bytes] = []
         feedback: list[bytes] = []
         self._drain([], [])
@@ -355,12 +375,7 @@ class Bench:
         host0 = cpu_times()
         log = self.logs / f"{self.label}-source.log"
         with log.open("ab") as err:
-            src = subprocess.Popen(
-                [sys.executable, "-m", "motcomp", "source", "--signal", signal_name,
-                 *sender.args(), "--seed", str(seed), "--seq-start", str(self.seq), "--key",
-                 self.cfg.input.key, "-e", loopback(self.p_svc), "-e", loopback(self.p_me),
-                 "-l", loopback(self.p_src), "--lead-in", "0.3", "--json", "--quiet"],
-                stdout=subprocess.PIPE, stderr=err, env=child_env())
+            src = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=err, env=child_env())
             t0 = time.monotonic()
             while src.poll() is None:
                 time.sleep(0.05)
@@ -373,9 +388,8 @@ class Bench:
                 self._drain(outputs, feedback)
         out = src.stdout.read().decode() if src.stdout is not None else ""
         if src.returncode != 0:
-            raise SystemExit(f"motcomp source exited with {src.returncode}; see {log}")
+            raise SystemExit(f"{name} exited with {src.returncode}; see {log}")
         stats = json.loads(out.strip().splitlines()[-1])
-        self.seq = int(stats["next_seq"]) + 1
         host = [b - a for a, b in zip(host0, cpu_times(), strict=True)]
         return Recording(list(self.inputs), outputs, feedback, stats, before, self.status(),
                          100 * host[7] / max(sum(host), 1), os.getloadavg()[0])
@@ -392,6 +406,16 @@ def segments(seq: np.ndarray, t: np.ndarray, rate_hz: float) -> list[slice]:
     cut = (np.diff(seq) != 1) | (np.abs(np.diff(t) * rate_hz - 1.0) > 0.5)
     edges = np.concatenate([[0], np.flatnonzero(cut) + 1, [seq.size]])
     return [slice(int(a), int(b)) for a, b in itertools.pairwise(edges) if b > a]
+
+
+def frame_gaps(seq: np.ndarray, t: np.ndarray, rate_hz: float) -> tuple[int, int]:
+    """Output frames lost on the way (gaps in ``seq``) and deadlines the service missed (its
+    frames' ``t`` stepping by more than one period beyond the lost frames)."""
+    if not seq.size:
+        return 0, 0
+    lost = np.clip(np.diff(seq) - 1, 0, None)
+    steps = np.rint(np.diff(t) * rate_hz).astype(np.int64)
+    return int(lost.sum()), int(np.clip(steps - 1 - lost, 0, None).sum())
 
 
 def command_figures(u: np.ndarray, parts: list[slice], rate_hz: float,
@@ -460,10 +484,7 @@ def analyse(rec: Recording, signal_name: str, sender: Sender, axis: str, a_max: 
     # (stale at the motion's start is the pause before it, not an episode begun during it)
     stale = np.array([True] + ["stale" in f["flags"] for f in frames])
     expected = round(duration * loop_hz)
-    lost = int(np.clip(np.diff(seq) - 1, 0, None).sum()) if seq.size else 0
-    steps = np.rint(np.diff(t) * loop_hz).astype(np.int64) if t.size else np.zeros(0, int)
-    missed = int(np.clip(steps - 1 - np.clip(np.diff(seq) - 1, 0, None), 0, None).sum()) \
-        if seq.size else 0
+    lost, missed = frame_gaps(seq, t, loop_hz)
     parts = segments(seq, t, loop_hz) if seq.size else []
     fig = (command_figures(u, parts, loop_hz, a_max) if seq.size else
            dict.fromkeys(("at_limit", "hf_acc_rms", "jerk_rms", "acc_peak"), math.nan))

@@ -1,0 +1,488 @@
+"""Benchmark: the service driven by senders written from docs/WIRE.md alone (issue 25's targets).
+
+For each sender class of ``tools/wire_senders.py`` (:data:`CLASSES`: exact grid at 1 kHz, 250,
+100 and 60 Hz; float32 positions; epoch-stamped values; values computed at the wall time they
+are stamped with; a variable-step solver; no ``t``; stalls), each mode (on = the config as is;
+bypass = every driven axis bypassed, ``bench_motion.mode_config``) and each scenario (the
+sender's ``slalom`` on rails_y, ``heave`` on hex_z), ``motcomp hil`` and ``motcomp run`` run as
+in ``tools/bench_motion.py`` (its :class:`Bench`, once per class and mode) and the sender as a
+process (``wire_senders.py --kind K --rate R --signal S --json ...``, a seed shared by the two
+modes).  Over the motion without its first :data:`SKIP_S` s (the start-up blend and the sine's
+abrupt start), on the axis the scenario moves:
+
+* delay: the platform's feedback behind the motion the sender meant -- its motion function at
+  the received frames' ``t`` (without ``t``: at the sender's nominal instants ``t0 + k /
+  rate``, from its JSON summary) -- by cross-correlation on a 1 ms grid
+  (``bench_motion.resampled_delay``);
+* sat: the share of output frames flagged ``sat:<axis>``; at limit: the share of ticks whose
+  command acceleration (second difference on the output ``seq`` grid) is at the axis' limit;
+* HF acc RMS above 5 Hz and jerk RMS of the command over the stretches of consecutive ticks,
+  each beside the ideal run's over the same stretches and their ratio; the ideal run:
+  ``motcomp.sim.ideal.ideal_run`` of the same config and mode fed the motion function sampled
+  at 1 kHz;
+* missed deadlines (the output frames' ``t`` stepping by more than a period, and the service's
+  own ``missed_ticks`` over the run), lost frames, the 1-minute load at the run's end.
+
+Targets (issue 25), shown pass/fail: the limiter acting on <= 0.5 % of the ticks, sat flags and
+at-limit each (a bypassed axis: 0); HF acc within 2x and jerk within 3x of the ideal run's over
+the same stretches; the compensated slalom's delay <= 3 ms from the ~1 kHz senders.  Writes the
+"senders" section of docs/BENCHMARKS.md (not with ``--quick`` or ``--no-write``) and, into
+``--out``, ``senders.json`` (every number) and ``senders.md``.  The config, motcomp's code and
+the senders' script are frozen at the start (``bench_motion.snapshot_code``).
+
+Usage: ``python tools/bench_senders.py [--quick] [--kinds NAME ...] [--modes on bypass]
+[--scenarios slalom heave] [--duration S] [--no-write] [--out DIR]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+from _bench import machine, percentiles, write_section
+from bench_motion import (
+    CODE,
+    Bench,
+    Recording,
+    command_figures,
+    cpu_times,
+    display_path,
+    fmt,
+    frame_gaps,
+    mode_config,
+    pct,
+    resampled_delay,
+    seed_of,
+    segments,
+    snapshot_code,
+    snapshot_config,
+)
+from wire_senders import SIGNALS
+
+from motcomp.config import ServiceConfig, config_hash, load_config, resolve_axes
+from motcomp.core.axes import AXIS_INDEX
+from motcomp.core.models import simulate_axis
+from motcomp.core.quality import HF_ABOVE_HZ
+from motcomp.io.zenoh_io import loopback
+from motcomp.jsonsafe import finite
+from motcomp.sim.hil import default_truth
+from motcomp.sim.ideal import ideal_run
+
+ROOT = Path(__file__).resolve().parent.parent
+SENDER_SCRIPT = Path(__file__).resolve().parent / "wire_senders.py"
+DEFAULT_CONFIG = "config/demo.toml"
+MODES = ("on", "bypass")
+SCENARIOS = ("slalom", "heave")
+SKIP_S = 2.0
+"""Left out at the motion's start: the service's start-up blend and the sine's abrupt start."""
+IDEAL_RATE_HZ = 1000.0
+LIMITER_MAX = 0.005
+HF_RATIO_MAX = 2.0
+JERK_RATIO_MAX = 3.0
+DELAY_MAX_MS = 3.0
+RUN_OVERHEAD_S = 3.5
+GROUP_OVERHEAD_S = 6.0
+
+
+@dataclass(frozen=True)
+class SenderClass:
+    """A ``wire_senders.py`` kind at a rate."""
+
+    kind: str
+    rate_hz: float = 1000.0
+
+    def args(self) -> list[str]:
+        return ["--kind", self.kind, "--rate", f"{self.rate_hz:g}"]
+
+    @property
+    def one_khz(self) -> bool:
+        """Samples about every ms: the delay target applies (varstep: steps of 0.5-2 ms)."""
+        return self.rate_hz == 1000.0
+
+    def label(self) -> str:
+        rate = "1 kHz" if self.rate_hz == 1000 else f"{self.rate_hz:g} Hz"
+        return {"grid": f"grid {rate}", "varstep": "varstep 0.5-2 ms"}.get(
+            self.kind, f"{self.kind} {rate}")
+
+
+CLASSES = {
+    "grid-1k": SenderClass("grid"),
+    "grid-250": SenderClass("grid", 250.0),
+    "grid-100": SenderClass("grid", 100.0),
+    "grid-60": SenderClass("grid", 60.0),
+    "float32": SenderClass("float32"),
+    "epoch": SenderClass("epoch"),
+    "wallclock": SenderClass("wallclock"),
+    "varstep": SenderClass("varstep"),
+    "no_t": SenderClass("no_t"),
+    "stalls": SenderClass("stalls"),
+}
+QUICK = {"kinds": ["grid-1k", "wallclock", "no_t"], "scenarios": ["slalom"], "duration": 8.0}
+
+
+# --- ideal ------------------------------------------------------------------------------------
+@dataclass
+class Ideal:
+    """The ideal run of one scenario and mode: its command from the motion's start on the
+    loop's grid, and its figures over the motion without the first :data:`SKIP_S` s."""
+
+    u: np.ndarray
+    figures: dict[str, float]
+
+
+def ideal(cfg: ServiceConfig, scenario: str, duration_s: float, a_max: float,
+          truth: Any) -> Ideal:
+    """The ideal run of ``scenario`` through the config of a mode, ``cfg``."""
+    signal, axis = SIGNALS[scenario]
+    tau = np.arange(round(duration_s * IDEAL_RATE_HZ)) / IDEAL_RATE_HZ
+    ref = np.array([signal(x) for x in tau])
+    run = ideal_run(cfg, {axis: ref}, IDEAL_RATE_HZ)  # (the mode's config: its bypass)
+    u = run.u[axis]
+    y = simulate_axis(truth, u, run.rate_hz)
+    w_ref, w_out = tau >= SKIP_S, run.t >= SKIP_S
+    fig = command_figures(u, [slice(round(SKIP_S * run.rate_hz), u.size)], run.rate_hz, a_max)
+    delay = resampled_delay(tau[w_ref], ref[w_ref], run.t[w_out], y[w_out]) * 1e3
+    return Ideal(u, {"delay_ms": delay, **fig})
+
+
+# --- one run ----------------------------------------------------------------------------------
+def analyse(rec: Recording, cls: SenderClass, scenario: str, duration_s: float, a_max: float,
+            loop_hz: float, ideal_u: np.ndarray) -> dict[str, Any]:
+    """The figures of one live run (module docstring)."""
+    signal, axis = SIGNALS[scenario]
+    src = rec.source
+    t0 = float(src["t0_s"])
+    w0, w1 = t0 + SKIP_S, t0 + duration_s
+    # the motion the sender meant: its function at the frames' t, or at its nominal instants
+    sent = [(arrival, msgpack.unpackb(p)) for arrival, p in rec.inputs]
+    if cls.kind == "no_t":
+        t_ref = t0 + np.arange(math.ceil(duration_s * cls.rate_hz)) / cls.rate_hz
+        late = np.zeros(0)
+    else:
+        t_ref = np.unique([f["t"] for _, f in sent])
+        late = np.array([a - f["t"] for a, f in sent])
+    ref = np.array([signal(x - t0) for x in t_ref])
+    # the command on the output seq grid
+    frames = [msgpack.unpackb(p) for p in rec.outputs]
+    frames = sorted((f for f in frames if w0 <= f["t"] < w1), key=lambda f: f["seq"])
+    seq = np.array([f["seq"] for f in frames], dtype=np.int64)
+    t = np.array([f["t"] for f in frames])
+    u = np.array([f["pos"][axis] for f in frames])
+    sat = np.array([f"sat:{axis}" in f["flags"] for f in frames])
+    lost, missed = frame_gaps(seq, t, loop_hz)
+    parts = segments(seq, t, loop_hz) if seq.size else []
+    fig = (command_figures(u, parts, loop_hz, a_max) if seq.size else
+           dict.fromkeys(("at_limit", "hf_acc_rms", "jerk_rms", "acc_peak"), math.nan))
+    k = np.rint((t - t0) * loop_hz).astype(np.int64)
+    same = [slice(int(np.clip(k[p.start], 0, ideal_u.size)),
+                  int(np.clip(k[p.stop - 1] + 1, 0, ideal_u.size))) for p in parts]
+    floor = (command_figures(ideal_u, same, loop_hz, a_max) if same else
+             dict.fromkeys(("at_limit", "hf_acc_rms", "jerk_rms"), math.nan))
+    fb = [msgpack.unpackb(p) for p in rec.feedback]
+    t_fb = np.array([f["t"] for f in fb])
+    y_fb = np.array([f["pos"][axis] for f in fb])
+    sel_fb = (t_fb >= w0) & (t_fb <= w1)
+    sel_ref = (t_ref >= w0) & (t_ref <= w1)
+    before, after = rec.status_before, rec.status_after
+    fr0, fr1 = before.get("frames", {}), after.get("frames", {})
+    return {
+        "delay_ms": resampled_delay(t_ref[sel_ref], ref[sel_ref], t_fb[sel_fb],
+                                    y_fb[sel_fb]) * 1e3,
+        "sat": float(sat.mean()) if sat.size else math.nan,
+        **fig,
+        "ideal_same": {k: floor[k] for k in ("at_limit", "hf_acc_rms", "jerk_rms")},
+        "hf_ratio": fig["hf_acc_rms"] / floor["hf_acc_rms"],
+        "jerk_ratio": fig["jerk_rms"] / floor["jerk_rms"],
+        "frames": {"expected": round((duration_s - SKIP_S) * loop_hz),
+                   "recorded": int(seq.size), "lost": lost, "missed_deadlines": missed,
+                   "stretches": len(parts)},
+        "service": {
+            "missed_ticks": after.get("missed_ticks", 0) - before.get("missed_ticks", 0),
+            "accepted": fr1.get("accepted", 0) - fr0.get("accepted", 0),
+            "rejected": fr1.get("rejected", 0) - fr0.get("rejected", 0),
+        },
+        "source": {**src, "received_here": len(sent),
+                   "lateness_ms": ({str(q): v * 1e3 for q, v in percentiles(late).items()}
+                                   if late.size else {})},
+        "steal_pct": rec.steal,
+        "load": rec.load,
+    }
+
+
+def targets(row: dict[str, Any], cls: SenderClass, bypassed: bool) -> dict[str, bool | None]:
+    """Pass (True) / fail (False) / not applicable (None) of each target of issue 25."""
+    lim = 0.0 if bypassed else LIMITER_MAX
+    return {
+        "limiter": bool(row["sat"] <= lim and row["at_limit"] <= lim),
+        "hf": bool(row["hf_ratio"] <= HF_RATIO_MAX),
+        "jerk": bool(row["jerk_ratio"] <= JERK_RATIO_MAX),
+        "delay": (bool(row["delay_ms"] <= DELAY_MAX_MS)
+                  if row["scenario"] == "slalom" and not bypassed and cls.one_khz else None),
+    }
+
+
+# --- report -----------------------------------------------------------------------------------
+def verdict(ok: bool | None) -> str:
+    return "-" if ok is None else "pass" if ok else "**FAIL**"
+
+
+def report(args: argparse.Namespace, runs: list[dict[str, Any]], ideals: list[dict[str, Any]],
+           elapsed_s: float, machine_line: str, load_end: tuple[float, ...], steal: float,
+           cfg: ServiceConfig, code: str) -> str:
+    loads = [r["load"] for r in runs]
+    opts = " ".join(
+        (["--quick"] if args.quick else [])
+        + ([f"--kinds {' '.join(args.kinds)}"] if args.kinds != list(CLASSES) else [])
+        + ([f"--modes {' '.join(args.modes)}"] if args.modes != list(MODES) else [])
+        + ([f"--scenarios {' '.join(args.scenarios)}"] if args.scenarios != list(SCENARIOS)
+           else [])
+        + ([f"--duration {args.duration:g}"] if args.duration != 20.0 else []))
+    axes = resolve_axes(cfg)
+    lines = [
+        "## Motion quality against outside senders",
+        "",
+        "The service driven by the senders of `tools/wire_senders.py`, written from "
+        "docs/WIRE.md alone (issue 25): `motcomp hil`, `motcomp run` and the sender as "
+        "processes on loopback.  Re-run: `python tools/bench_senders.py` (`--quick` for a "
+        "smoke run, `--out DIR` keeps every number as JSON).",
+        "",
+        f"Machine: {machine_line}; 1-minute load average at the runs' ends "
+        f"{min(loads, default=math.nan):.1f}-{max(loads, default=math.nan):.1f} (median "
+        f"{float(np.median(loads)) if loads else math.nan:.1f}; the benchmark itself keeps "
+        f"three processes busy), at the end {load_end[0]:.2f}; the host's steal {steal:.1f} % "
+        "of the CPU time during the runs.",
+        "",
+        f"`python tools/bench_senders.py{' ' + opts if opts else ''}` ({elapsed_s / 60:.1f} "
+        f"min; config `{display_path(args.config)}` as it was at the start, hash "
+        f"{config_hash(cfg)}; code {code}; loop {cfg.loop.rate_hz:g} Hz, input band limit "
+        f"{cfg.input.band_hz:g} Hz); {args.duration:g} s of motion per run, figures over the "
+        f"motion without its first {SKIP_S:g} s.",
+        "",
+    ]
+    for scenario in args.scenarios:
+        signal, axis = SIGNALS[scenario]
+        a_max = float(axes.limits.a_max[AXIS_INDEX[axis]])
+        lines += [f"**{scenario}** ({axis}, {signal.amplitude:g} m at {signal.frequency_hz:g} Hz;"
+                  f" acceleration limit {a_max:g} m/s^2):", "",
+                  "| sender | mode | delay (ms) | sat (%) | at acc limit (%) | HF acc RMS > "
+                  f"{HF_ABOVE_HZ:g} Hz: live / ideal (m/s^2) | HF ratio | jerk RMS: live / "
+                  "ideal (m/s^3) | jerk ratio | missed deadlines: frames / service | load | "
+                  "limiter | HF | jerk | delay |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for mode in args.modes:
+            i = next((r for r in ideals if r["scenario"] == scenario and r["mode"] == mode),
+                     None)
+            if i is not None:
+                lines.append(
+                    f"| ideal, 1 kHz | {mode} | {fmt(i['delay_ms'])} | - | {pct(i['at_limit'])}"
+                    f" | {fmt(i['hf_acc_rms'], '.3g')} | - | {fmt(i['jerk_rms'], '.3g')} | - | "
+                    "- | - | - | - | - | - |")
+        for name in args.kinds:
+            for mode in args.modes:
+                for r in runs:
+                    if (r["sender"], r["mode"], r["scenario"]) != (name, mode, scenario):
+                        continue
+                    ok, same = r["targets"], r["ideal_same"]
+                    mode_text = mode + (" (axis bypassed)" if mode == "on" and r["bypassed"]
+                                        else "")
+                    lines.append(
+                        f"| {CLASSES[name].label()} | {mode_text} | {fmt(r['delay_ms'])} | "
+                        f"{pct(r['sat'])} | {pct(r['at_limit'])} | "
+                        f"{fmt(r['hf_acc_rms'], '.3g')} / {fmt(same['hf_acc_rms'], '.3g')} | "
+                        f"{fmt(r['hf_ratio'], '.2f')} | {fmt(r['jerk_rms'], '.3g')} / "
+                        f"{fmt(same['jerk_rms'], '.3g')} | {fmt(r['jerk_ratio'], '.2f')} | "
+                        f"{r['frames']['missed_deadlines']} / "
+                        f"{r['service']['missed_ticks']} | {r['load']:.1f} | "
+                        f"{verdict(ok['limiter'])} | {verdict(ok['hf'])} | "
+                        f"{verdict(ok['jerk'])} | {verdict(ok['delay'])} |")
+        lines.append("")
+    failed = [r for r in runs if any(v is False for v in r["targets"].values())]
+    lines += [
+        f"Targets met by {len(runs) - len(failed)} of {len(runs)} runs." if runs else "",
+        "",
+        "What the figures mean.  *delay*: the platform's feedback (`motcomp hil`) behind the "
+        "motion the sender meant -- its motion function at the frames' `t` (without `t`, at "
+        "its nominal instants `t0 + k / rate`) -- by cross-correlation on a 1 ms grid; the "
+        "ideal rows: the ideal command through the platform simulator's true model.  *sat*: "
+        "output frames flagged `sat:<axis>`.  *at acc limit*: ticks whose command "
+        "acceleration, the second difference on the output `seq` grid, is within 1 % of the "
+        "axis' limit.  *HF acc RMS*: the command's acceleration above "
+        f"{HF_ABOVE_HZ:g} Hz; *jerk RMS*: its third difference; both over the stretches of "
+        "consecutive ticks (a missed deadline or a lost frame cuts a stretch, nothing is "
+        "bridged), beside the ideal run's command (`motcomp.sim.ideal.ideal_run`, the same "
+        "config and mode, the motion function sampled at 1 kHz, perfectly timed) cut into the "
+        "same stretches; *ratio* = live / ideal.  *missed deadlines*: in the window, steps of "
+        "the output frames' `t` by more than a period / over the whole run, the service's "
+        "own `missed_ticks`.  *load*: the 1-minute load average at the run's end.  Targets "
+        f"(issue 25): *limiter* sat and at-limit each <= {100 * LIMITER_MAX:g} % of the "
+        f"ticks (an axis bypassed: 0); *HF* ratio <= {HF_RATIO_MAX:g}; *jerk* ratio <= "
+        f"{JERK_RATIO_MAX:g}; *delay* <= {DELAY_MAX_MS:g} ms, compensated slalom from the "
+        "senders sampling about every ms (all but the 250/100/60 Hz grids).  The senders: "
+        "*grid* values at k/rate stamped with it, sent 0-600 us late; *float32* the same "
+        "with float32 positions; *epoch* each value computed at its epoch-second stamp; "
+        "*wallclock* each value computed at `time.time()`, 100-300 us after its deadline; "
+        "*varstep* steps of 0.5-2 ms; *no_t* grid without `t`; *stalls* grid, stalling "
+        "50-100 ms about every 3 s, then skipping to the newest sample.",
+    ]
+    return "\n".join(lines)
+
+
+# --- main -------------------------------------------------------------------------------------
+def words(items: list[str] | None) -> list[str]:
+    return [w for w in " ".join(items or []).replace(",", " ").split() if w]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--config", default=DEFAULT_CONFIG,
+                    help=f"the service's config (default {DEFAULT_CONFIG})")
+    ap.add_argument("--quick", action="store_true",
+                    help=f"a smoke run: {', '.join(QUICK['kinds'])} on "
+                         f"{', '.join(QUICK['scenarios'])}, {QUICK['duration']:g} s; does not "
+                         "write docs/BENCHMARKS.md")
+    ap.add_argument("--kinds", nargs="+", metavar="NAME",
+                    help=f"sender classes (default all: {', '.join(CLASSES)})")
+    ap.add_argument("--modes", nargs="+", metavar="MODE", help="on and/or bypass (default both)")
+    ap.add_argument("--scenarios", nargs="+", metavar="NAME",
+                    help=f"scenarios (default all: {', '.join(SCENARIOS)})")
+    ap.add_argument("--duration", type=float, default=None,
+                    help="seconds of motion per run (default 20; --quick 8)")
+    ap.add_argument("--no-write", action="store_true", help="do not write docs/BENCHMARKS.md")
+    ap.add_argument("--out", type=Path, default=ROOT / "out" / "bench_senders",
+                    help="directory for senders.json and senders.md (default out/bench_senders)")
+    args = ap.parse_args()
+    args.kinds = words(args.kinds) or (QUICK["kinds"] if args.quick else list(CLASSES))
+    args.modes = words(args.modes) or list(MODES)
+    args.scenarios = words(args.scenarios) or (QUICK["scenarios"] if args.quick
+                                               else list(SCENARIOS))
+    for what, got, known in (("sender class", args.kinds, CLASSES), ("mode", args.modes, MODES),
+                             ("scenario", args.scenarios, SCENARIOS)):
+        bad = [g for g in got if g not in known]
+        if bad:
+            ap.error(f"unknown {what} {bad[0]!r}; expected one of {', '.join(known)}")
+    if args.duration is None:
+        args.duration = float(QUICK["duration"]) if args.quick else 20.0
+    if not (math.isfinite(args.duration) and args.duration > SKIP_S + 2.0):
+        ap.error(f"--duration {args.duration!r}: expected more than {SKIP_S + 2.0:g} s")
+    cfg_path = Path(args.config)
+    if not cfg_path.is_absolute() and not cfg_path.exists():
+        cfg_path = ROOT / cfg_path
+    with tempfile.TemporaryDirectory() as tmp:
+        measure(args, ap, cfg_path, Path(tmp))
+
+
+def measure(args: argparse.Namespace, ap: argparse.ArgumentParser, cfg_path: Path,
+            tmp: Path) -> None:
+    cfg_file = snapshot_config(cfg_path, tmp)
+    cfg = load_config(cfg_file)
+    if cfg.output.transport == "can":
+        ap.error(f"{args.config}: output.transport is 'can': the benchmark reads the zenoh output")
+    machine_line = machine()
+    code = snapshot_code(tmp)
+    sender_script = CODE[0] / SENDER_SCRIPT.name
+    shutil.copy2(SENDER_SCRIPT, sender_script)
+    truth = default_truth()[0]
+    loop_hz = cfg.loop.rate_hz
+    configs = {m: mode_config(cfg_file, m, tmp) for m in args.modes}
+    bypassed = {m: resolve_axes(load_config(p)).bypass for m, p in configs.items()}
+    a_max = {s: float(resolve_axes(cfg).limits.a_max[AXIS_INDEX[SIGNALS[s][1]]])
+             for s in args.scenarios}
+    n_groups = len(args.kinds) * len(args.modes)
+    n_runs = n_groups * len(args.scenarios)
+    estimate = n_groups * (GROUP_OVERHEAD_S + len(args.scenarios)
+                           * (args.duration + RUN_OVERHEAD_S))
+    print(f"senders benchmark: {n_runs} runs ({len(args.kinds)} senders x "
+          f"{len(args.modes)} modes x {len(args.scenarios)} scenarios), about "
+          f"{estimate / 60:.0f} min; config {display_path(str(cfg_path))} (hash "
+          f"{config_hash(cfg)}), code {code}, both frozen for the runs", flush=True)
+    print(f"machine: {machine_line}", flush=True)
+    t_start = time.monotonic()
+    ideals: list[dict[str, Any]] = []
+    ideal_u: dict[tuple[str, str], np.ndarray] = {}
+    for scenario in args.scenarios:
+        axis = SIGNALS[scenario][1]
+        for mode in args.modes:
+            i = ideal(load_config(configs[mode]), scenario, args.duration,
+                      a_max[scenario], truth[AXIS_INDEX[axis]])
+            ideal_u[scenario, mode] = i.u
+            ideals.append({"scenario": scenario, "mode": mode, "axis": axis, **i.figures})
+            print(f"  ideal {scenario} {mode}: delay {fmt(i.figures['delay_ms'])} ms, at acc "
+                  f"limit {pct(i.figures['at_limit'])} %, HF acc "
+                  f"{fmt(i.figures['hf_acc_rms'], '.3g')}, jerk "
+                  f"{fmt(i.figures['jerk_rms'], '.3g')}", flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    logs = args.out / "logs"
+    logs.mkdir(exist_ok=True)
+    for old in logs.glob("*.log"):
+        old.unlink()
+    runs: list[dict[str, Any]] = []
+    host0 = cpu_times()
+    n = 0
+    for name in args.kinds:
+        cls = CLASSES[name]
+        for mode in args.modes:
+            with Bench(cfg, configs[mode], logs, f"{name}-{mode}").running() as bench:
+                for scenario in args.scenarios:
+                    n += 1
+                    axis = SIGNALS[scenario][1]
+                    print(f"[{n}/{n_runs}] {cls.label()}, {mode}, {scenario}: ", end="",
+                          flush=True)
+                    seq_start = bench.seq
+                    rec = bench.record(
+                        [sys.executable, str(sender_script), *cls.args(), "--signal", scenario,
+                         "--duration", f"{args.duration:g}", "--seed",
+                         str(seed_of(name, scenario, 0)), "--seq-start", str(seq_start),
+                         "--key", cfg.input.key, "--json", "-e", loopback(bench.p_svc), "-e",
+                         loopback(bench.p_me), "-l", loopback(bench.p_src)],
+                        "wire_senders.py")
+                    bench.seq = seq_start + int(rec.source["frames"]) + 1
+                    row: dict[str, Any] = {"sender": name, "kind": cls.kind,
+                                           "rate_hz": cls.rate_hz, "mode": mode,
+                                           "scenario": scenario, "axis": axis,
+                                           "bypassed": bool(bypassed[mode][AXIS_INDEX[axis]])}
+                    row.update(analyse(rec, cls, scenario, args.duration, a_max[scenario],
+                                       loop_hz, ideal_u[scenario, mode]))
+                    row["targets"] = targets(row, cls, row["bypassed"])
+                    runs.append(row)
+                    failed = [k for k, v in row["targets"].items() if v is False]
+                    print(f"delay {fmt(row['delay_ms'])} ms, sat {pct(row['sat'])} %, at "
+                          f"limit {pct(row['at_limit'])} %, HF x{fmt(row['hf_ratio'])}, jerk "
+                          f"x{fmt(row['jerk_ratio'])}, missed "
+                          f"{row['frames']['missed_deadlines']}/"
+                          f"{row['service']['missed_ticks']}, load {row['load']:.1f}; "
+                          f"{'failed: ' + ', '.join(failed) if failed else 'targets met'}; "
+                          f"{(time.monotonic() - t_start) / 60:.1f} min", flush=True)
+    host = [b - a for a, b in zip(host0, cpu_times(), strict=True)]
+    steal = 100 * host[7] / max(sum(host), 1)
+    elapsed = time.monotonic() - t_start
+    load_end = os.getloadavg()
+    text = report(args, runs, ideals, elapsed, machine_line, load_end, steal, cfg, code)
+    result = {"machine": machine_line, "load_end": load_end, "steal_pct": steal,
+              "elapsed_s": elapsed, "config": str(cfg_path), "config_hash": config_hash(cfg),
+              "config_toml": cfg_file.read_text(), "code": code, "skip_s": SKIP_S,
+              "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+              "ideal": ideals, "runs": runs}
+    (args.out / "senders.json").write_text(json.dumps(finite(result), indent=1) + "\n")
+    (args.out / "senders.md").write_text(text + "\n")
+    print()
+    print(text)
+    print(f"\nwritten: {args.out / 'senders.json'}, {args.out / 'senders.md'}")
+    if not (args.quick or args.no_write):
+        write_section("senders", text)
+        print("and the 'senders' section of docs/BENCHMARKS.md")
+
+
+if __name__ == "__main__":
+    main()
