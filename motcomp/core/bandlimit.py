@@ -14,8 +14,8 @@ known price::
 the Bessel polynomial normalised to the group delay ``D`` at DC: maximally flat delay, so that in
 the driver's band (0-3 Hz) ``L`` *is* a pure delay of ``D`` (to 1e-4 of it at 48 Hz), which the
 design cancels like any other (``motcomp design --input-band-hz``); its step response overshoots
-by 0.8 % (1.1 % once discretised, 48 Hz at 1 kHz).  The -3 dB frequency is ``2.1139 / (2 pi D)``: ``band_hz = 48`` costs ``D = 7.0 ms``.
-It is realised by the bilinear transform at the loop rate (which keeps the group delay at DC) as
+by 0.8 % (1.1 % once discretised, 48 Hz at 1 kHz).  The -3 dB frequency is
+``2.1139 / (2 pi D)``: ``band_hz = 48`` costs ``D = 7.0 ms``.  It is realised by the bilinear transform at the loop rate (which keeps the group delay at DC) as
 two second-order sections in transposed direct form II, with the DC gain exactly 1, and seeded
 at rest on the first value (:meth:`BandLimit.reset`), so that starting it is no step.
 
@@ -65,8 +65,9 @@ def band_limit_params(band_hz: float, rate_hz: float, key: str = "input.band_hz"
     Raises
     ------
     ConfigError
-        If ``band_hz`` (named ``key`` in the message) is negative, not finite, or not below a quarter of the loop rate (the
-        bilinear transform would bend its response too far from the Bessel's).
+        If ``band_hz`` (named ``key`` in the message) is negative, not finite, or above a
+        quarter of the loop rate (the bilinear transform would bend its response too far from
+        the Bessel's).
     """
     if not (math.isfinite(band_hz) and band_hz >= 0.0):
         raise ConfigError(f"{key} must be a finite number >= 0, got {band_hz!r}")
@@ -105,6 +106,9 @@ def band_limit_freqresp(p: BandLimitParams | None, f_hz: ArrayLike) -> ComplexAr
     return np.asarray(h, dtype=complex)
 
 
+_Plan = tuple[int, float, float, float, float, float, float, float, float, float, float]
+
+
 class BandLimit:
     """The band limits' state for ``n`` axes; :meth:`step` filters one tick's values."""
 
@@ -112,6 +116,8 @@ class BandLimit:
         self.n = n
         self._state = [[0.0] * 4 for _ in range(n)]  # per axis: (s1, s2) of each section
         self._seeded = [False] * n
+        self._bands: tuple[BandLimitParams | None, ...] = ()
+        self._plan: list[_Plan] = []
 
     def reset(self) -> None:
         """Forget the state: each axis starts at rest on its next value."""
@@ -120,14 +126,16 @@ class BandLimit:
     def step(self, bands: tuple[BandLimitParams | None, ...], x: list[float]) -> list[float]:
         """The values of this tick's ``x`` (one per axis), each through its axis' band limit
         (``bands``, None: passed through), in place of ``x``."""
-        for i, p in enumerate(bands):
-            if p is None:
-                continue
+        if bands is not self._bands:  # per axis: (index, coefficients), built once per bands
+            self._bands = bands
+            self._plan = [(i, *p.sections[0], *p.sections[1])  # type: ignore[misc]
+                          for i, p in enumerate(bands) if p is not None]
+        state, seeded = self._state, self._seeded
+        for i, b0, b1, b2, a1, a2, c0, c1, c2, d1, d2 in self._plan:
             v = x[i]
-            s = self._state[i]
-            (b0, b1, b2, a1, a2), (c0, c1, c2, d1, d2) = p.sections
-            if not self._seeded[i]:  # at rest on v: both sections' output is v
-                self._seeded[i] = True
+            s = state[i]
+            if not seeded[i]:  # at rest on v: both sections' output is v
+                seeded[i] = True
                 s[1] = b2 * v - a2 * v
                 s[0] = b1 * v - a1 * v + s[1]
                 s[3] = c2 * v - d2 * v
@@ -138,8 +146,8 @@ class BandLimit:
             w = c0 * y + s[2]
             s[2] = c1 * y - d1 * w + s[3]
             s[3] = c2 * y - d2 * w
-            if not math.isfinite(w):  # never kept: start again at rest on v
-                self._seeded[i] = False
+            if w - w != 0.0:  # not finite: never kept, start again at rest on v
+                seeded[i] = False
                 w = v
             x[i] = w
         return x

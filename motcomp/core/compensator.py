@@ -213,6 +213,8 @@ class Compensator:
         self._hist_m = zeros * length
         self._bypass = [False] * n
         self._lim: list[tuple[float, ...]] = []
+        self._window: list[tuple[float, ...] | None] = [None] * n
+        """Per axis, the limiter's constants with a window's bounds (:meth:`open_window`)."""
         self._set_lim(limits)
         self._models: tuple[P1D, ...] = ()
         self._gains: tuple[PIDGains, ...] = ()
@@ -242,6 +244,49 @@ class Compensator:
 
     def _set_lim(self, limits: AxisLimits) -> None:
         self._lim = axis_constants(limits, self.dt_s)
+        for i, win in enumerate(self._window):  # a window open keeps its bounds, within the new
+            if win is not None:                 # range
+                self._set_window(i, win[2], win[3])
+
+    # --- the window (input loss) ----------------------------------------------------------------
+    @property
+    def window(self) -> list[tuple[float, float] | None]:
+        """Per axis, the bounds of the window the limiter holds the command in (None: none)."""
+        return [None if w is None else (w[2], w[3]) for w in self._window]
+
+    def open_window(self, axes: Sequence[bool], reference: Sequence[float]) -> None:
+        """Hold each of ``axes`` within the hull of its command ``u``, its braking point
+        ``u + v |v| / (2 a_max)`` (``v`` the command's velocity) and ``reference``: the
+        limiter brakes at the braking point as at an end stop (the braking point is within the
+        reach of braking at ``a_max`` from ``(u, v)``, see :mod:`motcomp.core.saturation`), so
+        the command never travels further in the direction of its velocity.  Kept until
+        :meth:`close_window`; :meth:`widen_window` lets a reference through."""
+        for i, on in enumerate(axes):
+            if not on:
+                continue
+            u, v, lim = self._u[i], self._v[i], self._lim[i]
+            stop = u + v * abs(v) * lim[8]  # lim[8] = 1 / (2 a_max)
+            r = reference[i]
+            self._set_window(i, min(u, stop, r), max(u, stop, r))
+
+    def widen_window(self, reference: Sequence[float]) -> None:
+        """Widen each open window to take in ``reference`` (a ramp to neutral is never
+        blocked); no allocation unless a bound moves."""
+        for i, win in enumerate(self._window):
+            if win is not None:
+                r = reference[i]
+                if r < win[2] or r > win[3]:
+                    self._set_window(i, min(r, win[2]), max(r, win[3]))
+
+    def close_window(self) -> None:
+        """Remove every window: the limiter holds the axes' own limits again."""
+        self._window[:] = [None] * self.n
+
+    def _set_window(self, i: int, lo: float, hi: float) -> None:
+        lim = self._lim[i]
+        lo = min(max(lo, lim[2]), lim[3])
+        hi = min(max(hi, lo), lim[3])
+        self._window[i] = (*lim[:2], lo, hi, *lim[4:])
 
     def _set_models(self, models: Sequence[P1D]) -> None:
         if len(models) != self.n:
@@ -377,6 +422,7 @@ class Compensator:
         self._dr[:] = zeros
         self._dy[:] = zeros
         self._track[:] = [at_rest(pi) for pi in p]
+        self._window[:] = [None] * n
         hist = [x for pi in p for x in [pi] * self._hist_len]
         self._hist_c[:] = hist
         self._hist_m[:] = hist
@@ -447,8 +493,12 @@ class Compensator:
         out = [0.0] * self.n
         flags = [0] * self.n
         dev = self.deviation
+        windows = self._window
         for i, ((kp, kih, ad, q, kd, b, c), (phi, g0, g1, off0, off1), lim) in enumerate(zip(
                 self._gain_p, self._model_p, self._lim, strict=True)):
+            win = windows[i]
+            if win is not None:
+                lim = win
             r = ref[i]
             r_prev = rr[i]
             if isfinite(r):
@@ -473,12 +523,14 @@ class Compensator:
                     self._fade_progress[i] = min(progress + self._fade_step, 1.0)
                 else:
                     target = r
+            elif win is not None:
+                target = r  # input lost: the shaper's hold and ramp, not compensated
             else:
                 target = v
             u, vs[i], trk[i], sat = limit_axis(target, us[i], vs[i], trk[i], lim)
             us[i] = u
             dev[i] = u - target
-            if bypass[i]:
+            if bypass[i] or win is not None:
                 # tracking: the PID's raw output follows the command being sent
                 ints[i] += u - v
                 v = u

@@ -213,6 +213,7 @@ class TickState:
         self.nopredict_flags: list[str] = []
         self.guard = EnvelopeGuard(n)
         """The envelope guard's state (:mod:`motcomp.core.envelope`)."""
+        self._windowed = False  # the compensator holds the input-loss window (_window)
         _set_bypass_flags(self)
 
     @property
@@ -257,6 +258,8 @@ def step(state: TickState, p: TickParams, now_ns: int,
         period = p.period_ns
         for j in range(min(skipped, MAX_CATCH_UP), 0, -1):
             r, m = shaper.reference(sp, (now_ns - j * period) / 1e9)
+            if m or state._windowed:
+                _window(state, r, m)
             u_c = state.comp.step(_predicted(state, r, m))
             if env is not None:
                 state.guard.apply(env, u_c)
@@ -271,6 +274,8 @@ def step(state: TickState, p: TickParams, now_ns: int,
                 _take(state, p, now, frame)
     ref, mode = shaper.reference(sp, now)
     comp = state.comp
+    if mode or state._windowed:
+        _window(state, ref, mode)
     u = comp.step(_predicted(state, ref, mode))
     guarded = env is not None and state.guard.apply(env, u)
     flags = [mode] if mode else []
@@ -303,6 +308,21 @@ def step(state: TickState, p: TickParams, now_ns: int,
     state.ticks += 1
     state.mode = mode or "running"
     return out
+
+
+def _window(state: TickState, ref: list[float], mode: str) -> None:
+    """The input-loss window (module docstring): opened when the input stops being live
+    (``stale``, ``parking``), widened by the reference while it is not, closed when it is."""
+    comp = state.comp
+    if mode == "stale" or mode == "parking":
+        if state._windowed:
+            comp.widen_window(ref)
+        else:
+            comp.open_window(state._driven, ref)
+            state._windowed = True
+    elif state._windowed:
+        comp.close_window()
+        state._windowed = False
 
 
 def _envelope_flags(state: TickState, flags: list[str], limited: list[bool]) -> None:
@@ -498,7 +518,8 @@ def warm_start(state: TickState, p: TickParams, position: Sequence[float]) -> No
     """Start mid-run (a replay of a recording that begins after the service started): the
     compensator at rest at ``position``, and each wanted prediction predicting, its prefilter
     at rest there -- as near to the service's state as a recording tells."""
-    state.comp.reset(position)
+    state.comp.reset(position)  # no window: the next tick opens one if the input is not live
+    state._windowed = False
     state.guard.reset(position)
     _sync_prediction(state, p)
     state._ref = [float(x) for x in position]

@@ -26,11 +26,11 @@ from motcomp.core.tuning import RULE_NAMES, RULES, check_lag, tune
 from motcomp.design import optimal as opt
 from motcomp.design.frequency import (
     NOISE_RMS_M,
-    noise_figures,
     Evaluation,
     default_grid,
     evaluate,
     loop_response,
+    noise_figures,
 )
 from motcomp.design.predictor import (
     PredictionOptions,

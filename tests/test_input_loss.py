@@ -1,0 +1,192 @@
+"""The path to rest after an input loss (:mod:`motcomp.core.tick`, the input-loss window), as a
+property over random stop instants and speeds of a slalom-like motion, the tick run offline
+with encoded frames (a 1 kHz sender stamping ``t``).
+
+Axes: rails_y compensated (the example config as is), rails_x bypassed (``bypass = true``
+added), hex_z predicted with its PID bypassed (the example's).  When the input is declared
+stale, with the command at ``p`` moving at ``v`` (``s`` the sign of ``v``), for every later
+tick of the episode::
+
+    s (u - p) <= max(v^2 / (2 a_max), max over the references r since then of s (r - p)) + SLACK
+
+(the braking distance, widened only by the ramp to neutral); every command within the axis'
+limits from the start of the run (:func:`tests.test_saturation.check_sequence`); the axis at
+neutral, at rest, at the end of the ramp.  The bypassed and predicted axes also keep the
+documented hold-then-ramp: at ``hold_s`` after ``stale`` the command is back at the held
+reference (within HOLD_TOL), and from then on its speed stays within the ramp's peak speed
+(``ramp_speed_fraction x vel_max``, plus RAMP_SPEED_TOL).
+
+On the previous behaviour (no window) the travel bound fails: the compensated rails_y ran on
+0.16-0.45 m past its braking distance on the examples tried (e.g. 0.33 m past a 0.07 m bound,
+stopping 8.1 s into the slalom), which :func:`test_without_the_window_the_bound_fails` pins.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from collections.abc import Callable
+from functools import cache
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, example, given, settings
+from hypothesis import strategies as st
+
+from motcomp.config import ServiceConfig, new_tick, parse_config, read_toml
+from motcomp.core.axes import AXES
+from motcomp.core.compensator import Compensator
+from motcomp.core.tick import TickParams, TickState, step
+from motcomp.io.wire import encode_input
+from tests.test_saturation import check_sequence
+from tests.test_tick import EXAMPLE, MS, H
+
+RY, RX, HZ = (AXES.index(a) for a in ("rails_y", "rails_x", "hex_z"))
+SLACK = 1e-9
+"""Travel beyond the bound allowed (m): rounding of the limiter's arithmetic."""
+HOLD_TOL = 1e-4
+"""How near the held reference a bypassed or predicted axis must be at ``hold_s`` (m)."""
+RAMP_SPEED_TOL = 0.01
+"""Speed allowed beyond the ramp's peak speed (fraction of it) after ``hold_s``."""
+SNAP_EVERY = 50
+"""Live ticks between two snapshots of the tick state (each example starts from one)."""
+FIRST_STOP_S, LAST_STOP_S = 3.0, 8.0
+AFTER_S = 3.3
+"""Ticks run after the stop: stale, hold and the longest ramp (0.6 m at 0.5 m/s, 2.25 s)."""
+
+
+@cache
+def config() -> ServiceConfig:
+    """The example config, rails_x bypassed."""
+    data = read_toml(EXAMPLE)
+    data["axes"]["rails_x"]["bypass"] = True
+    return parse_config(data)
+
+
+def motion(k: int, speed: float) -> dict[str, float]:
+    """The slalom-like sender at tick ``k``, amplitudes rising over 2 s; ``speed`` scales the
+    rails' frequency (1: 0.31 Hz, 0.5 m: about 1 m/s at the centre line)."""
+    t = k * H
+    env = min(t / 2.0, 1.0)
+    env = env * env * (3.0 - 2.0 * env)
+    f = 0.31 * speed
+    return {"rails_y": 0.5 * env * math.sin(2 * math.pi * f * t),
+            "rails_x": 0.4 * env * math.sin(2 * math.pi * 0.8 * f * t + 1.0),
+            "hex_z": 0.1 * env * math.sin(2 * math.pi * 0.5 * speed * t)}
+
+
+Snapshot = tuple[int, TickState, list[list[float]]]
+
+
+@cache
+def live_run(speed: float) -> tuple[TickParams, list[Snapshot]]:
+    """The live motion up to LAST_STOP_S, a deep copy of the tick state (and the outputs so
+    far) every SNAP_EVERY ticks from FIRST_STOP_S."""
+    params, state = new_tick(config())
+    outs: list[list[float]] = []
+    snaps: list[Snapshot] = []
+    first = round(FIRST_STOP_S / H)
+    for k in range(round(LAST_STOP_S / H) + 1):
+        if k >= first and (k - first) % SNAP_EVERY == 0:
+            snaps.append((k, copy.deepcopy(state), list(outs)))
+        outs.append(step(state, params, k * MS, encode_input(k, k * H, motion(k, speed))).u)
+    return params, snaps
+
+
+@dataclasses.dataclass
+class Episode:
+    u: np.ndarray
+    """Every command of the run (ticks x axes)."""
+    ref: np.ndarray
+    """The shaper's reference after the stop."""
+    k_stale: int
+    """Index in :attr:`u` of the first stale tick; ``ref[0]`` is its reference."""
+    state: TickState
+    params: TickParams
+
+
+def stop_at(speed: float, stop_s: float) -> Episode:
+    """The sender stops at ``stop_s``; the tick runs on without input for AFTER_S."""
+    params, snaps = live_run(speed)
+    k_stop = round(stop_s / H)
+    j = min((k_stop - snaps[0][0]) // SNAP_EVERY, len(snaps) - 1)
+    k, snap, head = snaps[j]
+    state = copy.deepcopy(snap)
+    outs = list(head)
+    for k in range(k, k_stop):
+        outs.append(step(state, params, k * MS, encode_input(k, k * H, motion(k, speed))).u)
+    k_stale = None
+    refs = []
+    for k in range(k_stop, k_stop + round(AFTER_S / H)):
+        o = step(state, params, k * MS)
+        outs.append(o.u)
+        if k_stale is None and o.mode == "stale":
+            k_stale = len(outs) - 1
+        if k_stale is not None:
+            refs.append(list(state.shaper.ref))
+    assert k_stale is not None
+    return Episode(np.array(outs), np.array(refs), k_stale, state, params)
+
+
+def excess_travel(ep: Episode, i: int) -> tuple[float, float]:
+    """``(worst travel beyond the bound, the braking distance)`` of axis ``i``: the bound is
+    the braking distance from the command's state when the input was declared stale, widened by
+    the references played since."""
+    u = ep.u[:, i]
+    k = ep.k_stale
+    p, v = u[k - 1], (u[k - 1] - u[k - 2]) / H
+    braking = v * v / (2.0 * ep.state.comp.limits.a_max[i])
+    s = 1.0 if v >= 0.0 else -1.0
+    reach = np.maximum(np.maximum.accumulate(s * (ep.ref[:, i] - p)), braking)
+    return float(np.max(s * (u[k:] - p) - reach)), braking
+
+
+def assert_path_to_rest(ep: Episode, i: int, hold_then_ramp: bool) -> float:
+    """The property of the module docstring for axis ``i``; returns the worst excess travel."""
+    excess, _ = excess_travel(ep, i)
+    assert excess <= SLACK, f"{AXES[i]}: {excess:.6f} m beyond the bound"
+    check_sequence(ep.u[:, i], 0.0, ep.state.comp.limits, H, i)
+    assert abs(ep.u[-1, i]) < 1e-9 and abs(ep.u[-1, i] - ep.u[-2, i]) < 1e-12, \
+        f"{AXES[i]}: not at rest at neutral after the ramp ({ep.u[-1, i]})"
+    if hold_then_ramp:
+        sp = ep.params.shaper
+        k_hold = ep.k_stale + round(sp.hold_s / H) - 1  # the last tick of the hold
+        held = ep.ref[0, i]
+        assert abs(ep.u[k_hold, i] - held) <= HOLD_TOL, \
+            f"{AXES[i]}: {ep.u[k_hold, i] - held:+.6f} off the held reference at hold_s"
+        speed = np.abs(np.diff(ep.u[k_hold:, i])) / H
+        assert np.max(speed) <= sp.ramp_speed[i] * (1.0 + RAMP_SPEED_TOL), \
+            f"{AXES[i]}: ramp at {np.max(speed):.4f} > {sp.ramp_speed[i]}"
+    return excess
+
+
+SPEEDS = (0.8, 1.0, 1.2)
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(speed=st.sampled_from(SPEEDS), stop_s=st.floats(FIRST_STOP_S, LAST_STOP_S - 0.01))
+@example(speed=1.0, stop_s=8.1 - 0.05)
+@example(speed=1.0, stop_s=6.0)
+def test_the_path_to_rest_after_an_input_loss_is_bounded(speed: float, stop_s: float) -> None:
+    ep = stop_at(speed, stop_s)
+    assert_path_to_rest(ep, RY, hold_then_ramp=False)
+    assert_path_to_rest(ep, RX, hold_then_ramp=True)
+    assert_path_to_rest(ep, HZ, hold_then_ramp=True)
+
+
+def test_without_the_window_the_bound_fails(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The scenario discriminates: with the window switched off (the previous behaviour) the
+    compensated axis runs far past its braking distance."""
+    def no_window(self: Compensator, axes: object, reference: object) -> None:
+        return None
+
+    noop: Callable[..., None] = no_window
+    monkeypatch.setattr(Compensator, "open_window", noop)
+    live_run.cache_clear()
+    try:
+        ep = stop_at(1.0, 8.05)
+    finally:
+        live_run.cache_clear()
+    excess, braking = excess_travel(ep, RY)
+    assert excess > 0.1 > braking / 2
