@@ -15,9 +15,10 @@ the Bessel polynomial normalised to the group delay ``D`` at DC: maximally flat 
 the driver's band (0-3 Hz) ``L`` *is* a pure delay of ``D`` (to 1e-4 of it at 48 Hz), which the
 design cancels like any other (``motcomp design --input-band-hz``); its step response overshoots
 by 0.8 % (1.1 % once discretised, 48 Hz at 1 kHz).  The -3 dB frequency is
-``2.1139 / (2 pi D)``: ``band_hz = 48`` costs ``D = 7.0 ms``.  It is realised by the bilinear transform at the loop rate (which keeps the group delay at DC) as
-two second-order sections in transposed direct form II, with the DC gain exactly 1, and seeded
-at rest on the first value (:meth:`BandLimit.reset`), so that starting it is no step.
+``2.1139 / (2 pi D)``: ``band_hz = 48`` costs ``D = 7.0 ms``.  It is realised by the bilinear
+transform at the loop rate (which keeps the group delay at DC) as two second-order sections in
+transposed direct form II, with the DC gain exactly 1, and seeded at rest on the first value
+(:meth:`BandLimit.reset`), so that starting it is no step.
 
 :func:`band_limit_freqresp` is the exact response of the discrete realisation, for the design's
 noise figures (docs/WIRE.md, docs/TUNING.md).
