@@ -215,6 +215,7 @@ class Compensator:
         self._lim: list[tuple[float, ...]] = []
         self._window: list[tuple[float, ...] | None] = [None] * n
         """Per axis, the limiter's constants with a window's bounds (:meth:`open_window`)."""
+        self._window_speed = [0.0] * n
         self._set_lim(limits)
         self._models: tuple[P1D, ...] = ()
         self._gains: tuple[PIDGains, ...] = ()
@@ -251,27 +252,34 @@ class Compensator:
     # --- the window (input loss) ----------------------------------------------------------------
     @property
     def window(self) -> list[tuple[float, float] | None]:
-        """Per axis, the bounds of the window the limiter holds the command in (None: none)."""
+        """Per axis, the bounds of the input-loss window (:meth:`open_window`; None: none)."""
         return [None if w is None else (w[2], w[3]) for w in self._window]
 
-    def open_window(self, axes: Sequence[bool], reference: Sequence[float]) -> None:
-        """Hold each of ``axes`` within the hull of its command ``u``, its braking point
-        ``u + v |v| / (2 a_max)`` (``v`` the command's velocity) and ``reference``: the
-        limiter brakes at the braking point as at an end stop (the braking point is within the
-        reach of braking at ``a_max`` from ``(u, v)``, see :mod:`motcomp.core.saturation`), so
-        the command never travels further in the direction of its velocity.  Kept until
-        :meth:`close_window`; :meth:`widen_window` lets a reference through."""
+    def open_window(self, axes: Sequence[bool], reference: Sequence[float],
+                    speed: Sequence[float]) -> None:
+        """The input is lost: hold each of ``axes`` within the hull of its command ``u``, its
+        braking point ``u + v |v| / (2 a_max)`` (``v`` the command's velocity) and
+        ``reference``, at no more than ``speed`` (the ramp's peak speed) once it has braked to
+        it, its target the reference itself (the PID tracks the command, as in bypass).
+
+        The limiter brakes at the braking point as at an end stop: it lies within the reach of
+        braking at ``a_max`` from ``(u, v)`` (:mod:`motcomp.core.saturation`), so the command
+        never travels further in the direction of its velocity; a speed above ``speed`` is
+        braked at ``a_max`` (the acceleration limit wins).  Kept until :meth:`close_window`;
+        :meth:`widen_window` lets the reference through."""
         for i, on in enumerate(axes):
             if not on:
                 continue
             u, v, lim = self._u[i], self._v[i], self._lim[i]
             stop = u + v * abs(v) * lim[8]  # lim[8] = 1 / (2 a_max)
             r = reference[i]
+            cap = speed[i]
+            self._window_speed[i] = cap if 0.0 < cap < lim[4] else lim[4]
             self._set_window(i, min(u, stop, r), max(u, stop, r))
 
     def widen_window(self, reference: Sequence[float]) -> None:
         """Widen each open window to take in ``reference`` (a ramp to neutral is never
-        blocked); no allocation unless a bound moves."""
+        blocked); allocates only when a bound moves."""
         for i, win in enumerate(self._window):
             if win is not None:
                 r = reference[i]
@@ -279,14 +287,15 @@ class Compensator:
                     self._set_window(i, min(r, win[2]), max(r, win[3]))
 
     def close_window(self) -> None:
-        """Remove every window: the limiter holds the axes' own limits again."""
+        """The input is live again: every axis back to its limits and its compensation (the
+        PID starts from the command being sent, as after a bypass)."""
         self._window[:] = [None] * self.n
 
     def _set_window(self, i: int, lo: float, hi: float) -> None:
         lim = self._lim[i]
         lo = min(max(lo, lim[2]), lim[3])
         hi = min(max(hi, lo), lim[3])
-        self._window[i] = (*lim[:2], lo, hi, *lim[4:])
+        self._window[i] = (*lim[:2], lo, hi, self._window_speed[i], *lim[5:])
 
     def _set_models(self, models: Sequence[P1D]) -> None:
         if len(models) != self.n:

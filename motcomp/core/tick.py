@@ -259,7 +259,7 @@ def step(state: TickState, p: TickParams, now_ns: int,
         for j in range(min(skipped, MAX_CATCH_UP), 0, -1):
             r, m = shaper.reference(sp, (now_ns - j * period) / 1e9)
             if m or state._windowed:
-                _window(state, r, m)
+                _window(state, sp, r, m)
             u_c = state.comp.step(_predicted(state, r, m))
             if env is not None:
                 state.guard.apply(env, u_c)
@@ -275,7 +275,7 @@ def step(state: TickState, p: TickParams, now_ns: int,
     ref, mode = shaper.reference(sp, now)
     comp = state.comp
     if mode or state._windowed:
-        _window(state, ref, mode)
+        _window(state, sp, ref, mode)
     u = comp.step(_predicted(state, ref, mode))
     guarded = env is not None and state.guard.apply(env, u)
     flags = [mode] if mode else []
@@ -310,7 +310,7 @@ def step(state: TickState, p: TickParams, now_ns: int,
     return out
 
 
-def _window(state: TickState, ref: list[float], mode: str) -> None:
+def _window(state: TickState, sp: ShaperParams, ref: list[float], mode: str) -> None:
     """The input-loss window (module docstring): opened when the input stops being live
     (``stale``, ``parking``), widened by the reference while it is not, closed when it is."""
     comp = state.comp
@@ -318,7 +318,7 @@ def _window(state: TickState, ref: list[float], mode: str) -> None:
         if state._windowed:
             comp.widen_window(ref)
         else:
-            comp.open_window(state._driven, ref)
+            comp.open_window(state._driven, ref, sp.ramp_speed)
             state._windowed = True
     elif state._windowed:
         comp.close_window()

@@ -429,6 +429,7 @@ FLAG_BITS: dict[str, int] = {
     "stale": 1 << 16, "rejoin": 1 << 17, "parking": 1 << 18,
     **{f"fallback:{a}": 1 << (24 + i) for i, a in enumerate(AXES)},
     **{f"nopredict:{a}": 1 << (32 + i) for i, a in enumerate(AXES)},
+    **{f"envelope:{a}": 1 << (40 + i) for i, a in enumerate(AXES)},
 }
 """Bit of each output flag in :attr:`OutputColumns.flags`."""
 MODE_BITS = FLAG_BITS["stale"] | FLAG_BITS["rejoin"] | FLAG_BITS["parking"]
