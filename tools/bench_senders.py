@@ -128,7 +128,9 @@ CLASSES = {
     "no_t": SenderClass("no_t"),
     "stalls": SenderClass("stalls"),
 }
-QUICK = {"kinds": ["grid-1k", "wallclock", "no_t"], "scenarios": ["slalom"], "duration": 8.0}
+QUICK_KINDS = ["grid-1k", "wallclock", "no_t"]
+QUICK_SCENARIOS = ["slalom"]
+QUICK_DURATION_S = 8.0
 
 
 # --- ideal ------------------------------------------------------------------------------------
@@ -349,8 +351,8 @@ def main() -> None:
     ap.add_argument("--config", default=DEFAULT_CONFIG,
                     help=f"the service's config (default {DEFAULT_CONFIG})")
     ap.add_argument("--quick", action="store_true",
-                    help=f"a smoke run: {', '.join(QUICK['kinds'])} on "
-                         f"{', '.join(QUICK['scenarios'])}, {QUICK['duration']:g} s; does not "
+                    help=f"a smoke run: {', '.join(QUICK_KINDS)} on "
+                         f"{', '.join(QUICK_SCENARIOS)}, {QUICK_DURATION_S:g} s; does not "
                          "write docs/BENCHMARKS.md")
     ap.add_argument("--kinds", nargs="+", metavar="NAME",
                     help=f"sender classes (default all: {', '.join(CLASSES)})")
@@ -363,9 +365,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "bench_senders",
                     help="directory for senders.json and senders.md (default out/bench_senders)")
     args = ap.parse_args()
-    args.kinds = words(args.kinds) or (QUICK["kinds"] if args.quick else list(CLASSES))
+    args.kinds = words(args.kinds) or (QUICK_KINDS if args.quick else list(CLASSES))
     args.modes = words(args.modes) or list(MODES)
-    args.scenarios = words(args.scenarios) or (QUICK["scenarios"] if args.quick
+    args.scenarios = words(args.scenarios) or (QUICK_SCENARIOS if args.quick
                                                else list(SCENARIOS))
     for what, got, known in (("sender class", args.kinds, CLASSES), ("mode", args.modes, MODES),
                              ("scenario", args.scenarios, SCENARIOS)):
@@ -373,7 +375,7 @@ def main() -> None:
         if bad:
             ap.error(f"unknown {what} {bad[0]!r}; expected one of {', '.join(known)}")
     if args.duration is None:
-        args.duration = float(QUICK["duration"]) if args.quick else 20.0
+        args.duration = QUICK_DURATION_S if args.quick else 20.0
     if not (math.isfinite(args.duration) and args.duration > SKIP_S + 2.0):
         ap.error(f"--duration {args.duration!r}: expected more than {SKIP_S + 2.0:g} s")
     cfg_path = Path(args.config)
