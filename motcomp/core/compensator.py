@@ -86,6 +86,16 @@ Rules for edge cases
   reached through a minimum-jerk fade of the offset over ``fade_s``; while bypassed the PID
   tracks the output (its integrator is re-seeded every sample so that ``v = u``), so switching
   back on starts from the command being sent: bumpless both ways.
+* Input loss (:meth:`open_window`, the tick's rule: :mod:`motcomp.core.tick`): each axis is held
+  in a window, the hull of its command, its braking point ``u + v |v| / (2 a_max)`` and the
+  reference (widened by later references, :meth:`widen_window`), by the limiter itself: the
+  window's bounds replace the axis' position limits and the ramp's peak speed its velocity
+  limit, so that the limiter's braking condition, which keeps the end of the range, keeps the
+  window's edge.  The braking point is reachable from ``(u, v)`` at ``a_max`` (the exact
+  discrete distance is ``v^2/(2 a_max) - a_max h^2/2`` at most, :mod:`motcomp.core.saturation`),
+  so the command never goes beyond it.  Meanwhile the target is the reference and the PID
+  tracks the command as in bypass; :meth:`close_window` switches compensation back on from the
+  command being sent, bumplessly.
 """
 
 from __future__ import annotations

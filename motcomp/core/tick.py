@@ -55,6 +55,18 @@ Rules for edge cases
   36 ms stall of a loaded host, caught up over its last 20 periods only, kicked the rails'
   command 0.4 m off and the limiter acted for 0.9 s).  A stall longer than ``MAX_CATCH_UP``
   periods is caught up over its last ones.  One output per call, never a burst.
+* Input loss (the shaper's mode ``stale`` or ``parking``, catch-up steps included): at the
+  first such tick every driven axis gets a window (:meth:`Compensator.open_window
+  <motcomp.core.compensator.Compensator.open_window>`): the hull of its command ``p``, its
+  braking point ``p + v |v| / (2 a_max)`` (``v`` the command's velocity) and the reference,
+  widened by each later reference (the ramp to neutral is never blocked); its limiter brakes at
+  the window's edge as at an end stop, its target is the shaper's reference (the PID tracks
+  the command, as in bypass; the prefilter runs on, unused) and, once braked, its speed is at
+  most the ramp's (``ramp_speed``).  So no axis, compensated, predicted or bypassed, travels
+  beyond ``v^2 / (2 a_max)`` in the direction of its velocity at the loss (plus rounding), it
+  only returns towards the held reference during the hold, and it ramps to neutral at the
+  ramp's speed (tests/test_input_loss.py).  The window is removed when the input is live again
+  (``rejoin`` starts from the command being sent, bumplessly).
 * Envelope: every command of the compensator (catch-up steps included) goes through the
   envelope guard (:mod:`motcomp.core.envelope`, ``TickParams.envelope``, built from the
   config's hardware envelope by :func:`motcomp.config.tick_params`), a no-op while the limiter
@@ -68,8 +80,10 @@ Rules for edge cases
   config's ``predict`` is true and compensation is on (:func:`set_bypass` turns it off with the
   PID; an axis the config bypasses keeps its prediction when compensation is turned back on);
   otherwise, and while the band monitor finds the reference outside the band, it falls back to
-  the plain reference, bumplessly (:mod:`motcomp.core.predictor`).  A change of its parameters
-  (a reload) is taken at the next tick, bumplessly.
+  the plain reference, bumplessly (:mod:`motcomp.core.predictor`), except on an input loss:
+  then the compensator takes the plain reference at once (the window below; the limiter
+  smooths the step).  A change of its parameters (a reload) is taken at the next tick,
+  bumplessly.
 * Flags, in this order: the shaper's mode (``rejoin``, ``stale``, ``parking``) if any, then
   ``sat:<axis>`` per limited axis, then ``envelope:<axis>`` per axis the envelope guard
   changed (also marked limited), then ``bypass:<axis>`` per driven axis in bypass, then
@@ -363,7 +377,8 @@ def _predicted(state: TickState, ref: list[float], mode: str) -> list[float]:
     if not pred.idx:
         return ref
     # live: as wanted while the shaper's mode is live; held off otherwise (no list per tick)
-    return pred.step(ref, False if mode else state._pred_wanted)
+    out = pred.step(ref, False if mode else state._pred_wanted)
+    return ref if state._windowed else out  # input lost: the plain reference (module docstring)
 
 
 def _take(state: TickState, p: TickParams, now: float, payload: bytes) -> None:
