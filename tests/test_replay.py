@@ -139,15 +139,23 @@ def test_warm_start_lost_outputs_and_parking(tmp_path: Path) -> None:
     # difference from the recording dies out
     assert res.mode[0] == 0
     late = plan.now_ns[rows] - plan.now_ns[0] > 1.0e9
-    pid = [AXES.index(a) for a in ("rails_x", "rails_y")]
-    assert np.abs(res.u[rows][late][:, pid] - rec[late][:, pid]).max() < 1e-3
-    # the hexapod's prefilters (40 Laguerre functions at 1 Hz: a memory of seconds) start at
-    # rest under a moving reference: their difference decays more slowly
-    hexa = [AXES.index(a) for a in AXES if a.startswith("hex_")]
-    first = plan.now_ns[rows] - plan.now_ns[0] < 0.2e9
-    assert (np.abs(res.u[rows][late][:, hexa] - rec[late][:, hexa]).max()
-            < 0.5 * np.abs(res.u[rows][first][:, hexa] - rec[first][:, hexa]).max())
-    assert np.abs(res.u[rows][late][:, hexa] - rec[late][:, hexa]).max() < 0.01
+    predicted = [i for i, p in enumerate(AXES_CFG.prediction) if p is not None]
+    pid = [i for i, d in enumerate(AXES_CFG.driven) if d and i not in predicted]
+    if pid:
+        assert np.abs(res.u[rows][late][:, pid] - rec[late][:, pid]).max() < 1e-3
+    # the prefilters (the hexapod's 40 Laguerre functions at 1 Hz, the rails' 31 at 0.7 Hz: a
+    # memory of seconds) and the band limit start at rest under a moving reference: their
+    # difference decays more slowly -- the rails' by 100x in the first second, the hexapod's
+    # (whose motion here is small) stays below where it started
+    assert predicted
+    first = plan.now_ns[rows] - plan.now_ns[0] < 0.25e9
+    for i in predicted:
+        early = np.abs(res.u[rows][first][:, i] - rec[first][:, i]).max()
+        assert np.abs(res.u[rows][late][:, i] - rec[late][:, i]).max() <= early, AXES[i]
+    for i in (AXES.index("rails_x"), AXES.index("rails_y")):
+        early = np.abs(res.u[rows][first][:, i] - rec[first][:, i]).max()
+        assert np.abs(res.u[rows][late][:, i] - rec[late][:, i]).max() < 0.02 * early
+    assert np.abs(res.u[rows][late][:, predicted] - rec[late][:, predicted]).max() < 0.01
     assert np.abs(res.u[-1]).max() < 1e-6  # parked at neutral at the end
 
 
