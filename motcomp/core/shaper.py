@@ -8,7 +8,10 @@ Rules (all times from the loop's clock, passed in)::
                  reconstructed between frames (below)
     no valid frame for stale_after_s
                  hold the reference for ``hold_s``, then move each axis to neutral  "stale"
-                 in a minimum-jerk ramp whose peak speed is ``ramp_speed`` (per axis)
+                 in a minimum-jerk ramp whose peak speed is ``ramp_speed`` (per axis);
+                 the command's own path to rest (braking within v^2 / (2 a_max), then
+                 this hold and ramp, uncompensated) is the tick's rule
+                 (:mod:`motcomp.core.tick`, "Input loss")
     frames again blend from the held/ramped reference to the live input over
                  ``rejoin_s``                                                       "rejoin"
     park         (stop requested) ramp every axis to neutral as above, ignoring
