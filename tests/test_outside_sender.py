@@ -340,11 +340,11 @@ def measure(names: list[str], log_dir: Path) -> None:
     acceleration and jerk RMS of the command, delay to the feedback, the input frames' own
     offset from the motion, the fit's R^2, output ticks missing); then the service's status
     taken 1 s before the end (its delay, limited share, HF acceleration and jerk over the last
-    2 s, missed ticks since start, input lag).
+    2 s, missed ticks since start, input lag), and the host's 1-minute load average.
     """
     print(f"{'sender':<14}{'frames':>7}{'skip':>6}{'sat %':>7}{'hf acc':>9}{'jerk':>9}"
           f"{'delay ms':>9}{'in ms':>7}{'R2':>8}{'gaps':>6} |{'delay':>7}{'lim %':>7}"
-          f"{'hf acc':>8}{'jerk':>8}{'missed':>7}{'lag ms':>7}", flush=True)
+          f"{'hf acc':>8}{'jerk':>8}{'missed':>7}{'lag ms':>7}{'load':>6}", flush=True)
     for name in names:
         spec, _, rate = name.partition("@")
         kind, _, policy = spec.partition(":")
@@ -358,7 +358,8 @@ def measure(names: list[str], log_dir: Path) -> None:
               f"{fig.ticks_missing:>6} |{q.get('apparent_delay_ms', math.nan):>7.2f}"
               f"{100 * q.get('limited_share', math.nan):>7.2f}{q.get('hf_acc_rms', math.nan):>8.3f}"
               f"{q.get('jerk_rms', math.nan):>8.1f}{fig.status.get('missed_ticks', -1):>7}"
-              f"{fig.status.get('input', {}).get('lag_ms', math.nan):>7.2f}", flush=True)
+              f"{fig.status.get('input', {}).get('lag_ms', math.nan):>7.2f}"
+              f"{Path('/proc/loadavg').read_text().split()[0]:>6}", flush=True)
 
 
 if __name__ == "__main__":
