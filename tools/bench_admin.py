@@ -235,6 +235,93 @@ def report(args: argparse.Namespace, rows: list[dict[str, Any]], elapsed_s: floa
     return "\n".join(lines)
 
 
+INTERP_MODES = ("quiet", "inline", "child")
+
+
+def interpreter_child(site: str, mode: str, seconds: float) -> dict[str, Any]:
+    """Child process: ``Service.tick`` paced by the loop's clock in a thread (in-memory ports,
+    a valid 8-axis frame each tick, GC frozen: the loop without transport) for ``seconds``,
+    while the main thread prepares 20 reloads 1 s in: ``inline`` in this interpreter, the way
+    reloads were prepared before (switch interval 5 ms), ``child`` by :class:`Preparer` (the
+    service's way, switch interval 0.2 ms); nothing is swapped in.  The loop's missed ticks."""
+    import gc
+    import math
+    import threading
+
+    from motcomp.config import load_config
+    from motcomp.core.axes import AXES
+    from motcomp.io.memory import MemorySink, MemorySource
+    from motcomp.io.wire import encode_input
+    from motcomp.runtime.clock import DeadlineClock
+    from motcomp.runtime.reload import prepare_config
+    from motcomp.runtime.service import SWITCH_INTERVAL_S, Service
+
+    path = Path(site)
+    svc = Service(load_config(path), ZenohEndpoints(), config_path=path)
+    if mode == "child":
+        svc.preparer.start(wait=True)
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
+    src = MemorySource(burst=True)
+    svc.attach(src, [MemorySink(keep=1)])
+    loop = svc.cfg.loop
+    done = threading.Event()
+    missed = []
+
+    def run_loop() -> None:
+        gc.collect()
+        gc.freeze()
+        clock = DeadlineClock(loop.rate_hz, loop.spin_us, sleep_max_us=loop.sleep_max_us)
+        k = 0
+        t_end = time.monotonic() + seconds
+        while time.monotonic() < t_end:
+            deadline, _ = clock.wait()
+            src.push(encode_input(k, k / 1e3, {a: 0.05 * math.sin(k / 300 + i)
+                                               for i, a in enumerate(AXES)}))
+            svc.tick(deadline, clock.skipped)
+            k += 1
+        missed.append(clock.missed)
+        done.set()
+
+    thread = threading.Thread(target=run_loop)
+    thread.start()
+    time.sleep(1.0)
+    t0 = time.monotonic()
+    files = [path.with_name("site-a.toml"), path.with_name("site-b.toml")]
+    for k in range(RELOADS if mode != "quiet" else 0):
+        if mode == "inline":
+            prepare_config(svc.cfg, svc.axes, files[k % 2], svc.confinement)
+        else:
+            svc.preparer.prepare_config(svc.cfg, svc.axes, files[k % 2], svc.confinement)
+    span = time.monotonic() - t0 if mode != "quiet" else 0.0
+    thread.join()
+    svc.preparer.close()
+    return {"mode": mode, "missed": missed[0], "span": span,
+            "load": os.getloadavg()[0]}
+
+
+def interpreter_report(rows: list[dict[str, Any]], seconds: float) -> str:
+    lines = [
+        f"Machine: {machine()}.",
+        "",
+        f"`python tools/bench_admin.py --interpreter --seconds {seconds:g} --repeats "
+        f"{len(rows) // len(INTERP_MODES)}`: the loop without transport (`Service.tick` paced by "
+        "its clock in a thread, in-memory ports, GC frozen) in a process of its own for "
+        f"{seconds:g} s, the main thread preparing {RELOADS} reloads 1 s in, nothing swapped: "
+        "*inline* in the same interpreter, as before (switch interval 5 ms), *child* in the "
+        "reader process, as now (switch interval 0.2 ms), *quiet* none; modes interleaved.",
+        "",
+        "| mode | runs | missed ticks (per run) | preparing 20 took (s, max) | load |",
+        "|---|---|---|---|---|",
+    ]
+    for mode in INTERP_MODES:
+        runs = [r for r in rows if r["mode"] == mode]
+        lines.append(f"| {mode} | {len(runs)} | {sum(r['missed'] for r in runs)} "
+                     f"({', '.join(str(r['missed']) for r in runs)}) | "
+                     f"{max(r['span'] for r in runs):.2f} | "
+                     f"{min(r['load'] for r in runs):.2f}-{max(r['load'] for r in runs):.2f} |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -247,10 +334,34 @@ def main() -> None:
     ap.add_argument("--save", type=Path, metavar="JSON", help="also save the runs' numbers")
     ap.add_argument("--report", type=Path, metavar="JSON",
                     help="no runs: the report of runs saved with --save")
+    ap.add_argument("--interpreter", action="store_true",
+                    help="instead: what preparing reloads costs a loop in the same process, "
+                         "inline (as before) or in the reader process (as now)")
     ap.add_argument("--publisher", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--interp-child", nargs=2, metavar=("SITE", "MODE"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.publisher:
         publisher(args.publisher, args.seconds)
+        return
+    if args.interp_child:
+        print(json.dumps(interpreter_child(*args.interp_child, args.seconds)))
+        return
+    if args.interpreter:
+        rows = []
+        with tempfile.TemporaryDirectory() as tmp:
+            site, _, _ = write_configs(Path(tmp), args.seconds, False)
+            for rep in range(args.repeats):
+                for mode in INTERP_MODES if rep % 2 == 0 else INTERP_MODES[::-1]:
+                    out = subprocess.run([sys.executable, __file__, "--interp-child", str(site),
+                                          mode, "--seconds", str(args.seconds)],
+                                         env=child_env(), capture_output=True, text=True,
+                                         check=True)
+                    rows.append(json.loads(out.stdout))
+                    print(f"round {rep + 1} {mode}: {rows[-1]}", file=sys.stderr)
+        text = interpreter_report(rows, args.seconds)
+        print(text)
+        if not args.no_write:
+            write_section("admin-interpreter", text)
         return
     if args.quick:
         args.seconds, args.repeats = 10.0, 1
