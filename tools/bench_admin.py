@@ -25,6 +25,12 @@ on the machine's cores (the reader process, zenoh's threads) slows both; what th
 apart is what it costs the target's loop alone (its interpreter, its process).  Writes the
 "admin" section of docs/BENCHMARKS.md.
 
+With ``--interpreter`` instead: the loop without transport (``Service.tick`` paced by its clock
+in a thread, in-memory ports) in a process of its own while its main thread prepares 20 reloads,
+in the same interpreter as before this design or in the reader process as now (the twin cannot
+tell work that loads the cores apart from work that holds the interpreter); the
+"admin-interpreter" section.
+
 Usage: ``python tools/bench_admin.py [--seconds 20] [--repeats 3] [--quick] [--no-write]
 [--save JSON]`` (``--report JSON``: the report of saved runs).
 """
