@@ -350,7 +350,8 @@ def main() -> None:
         publisher(args.publisher, args.seconds)
         return
     if args.interp_child:
-        print(json.dumps(interpreter_child(*args.interp_child, args.seconds)))
+        site, mode = args.interp_child
+        print(json.dumps(interpreter_child(site, mode, args.seconds)))
         return
     if args.interpreter:
         rows = []
