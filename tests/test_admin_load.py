@@ -62,8 +62,9 @@ def test_admin_burst_gets_busy_beyond_the_queue(tmp_path: Path) -> None:
         queries = fire(session, [("motcomp/status", None)] * n)
         got = kinds(bypass)
         assert got["ok"] + got["busy"] == n, got  # every request answered, ok or busy
-        # the queue filled and was served; the rest was refused at once, not queued
-        assert ADMIN_QUEUE <= got["ok"] <= ADMIN_QUEUE + 5, got
+        # the queue filled and was served; the rest was refused at once, not queued (beyond the
+        # queue, the worker serves ADMIN_RATE_HZ a second while the burst is taken in)
+        assert ADMIN_QUEUE <= got["ok"] < n // 2 and got["busy"] > 0, got
         assert kinds(queries) == Counter(ok=n)
         st = status(session)
         assert st["mode"] == st0["mode"] and st["ticks"] > st0["ticks"]

@@ -12,8 +12,9 @@ first sample to 0.25 s before its last) the figures are:
   ``t0``) to the feedback position of rails_y, each frame placed at its own ``t`` plus the
   smallest transit seen (feedback ``t`` to arrival here, as docs/DEPLOYMENT.md places it); the
   reference is the sender's motion, phase 0 at ``t0`` on the same clock (time.time()); the delay
-  is ``-atan2(b, a) / w``.  The fit must explain the feedback (R^2 >= 0.99, amplitude within
-  10 % of the reference's), or the delay is not trusted;
+  is ``-atan2(b, a) / w``, and must lie within +-3 ms (early counts as off time too).  The fit
+  must explain the feedback (R^2 >= 0.99, amplitude within 10 % of the reference's), or the
+  delay is not trusted;
 - the share of output frames flagged ``sat:rails_y``;
 - the command's acceleration RMS above 5 Hz: rails_y of the output frames on the tick grid
   (ticks numbered from the frames' ``t``; ticks not received, missed by a stalled host or lost,
@@ -28,6 +29,7 @@ by one and prints these figures with the service's own status figures beside the
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import math
 import signal
@@ -49,8 +51,6 @@ import zenoh
 from conftest import ROOT, motcomp_cmd, subprocess_env
 from scipy import signal as sps
 from scipy.interpolate import CubicSpline
-
-pytestmark = pytest.mark.slow
 
 AXIS = "rails_y"
 SLALOM_HZ = 0.31
@@ -298,9 +298,13 @@ def check_run_is_sound(fig: Figures) -> None:
 
 
 def follows_on_time(fig: Figures) -> bool:
-    """The feedback is the slalom (R^2 >= 0.99, amplitude within 10 %), late <= 3 ms."""
+    """The feedback is the slalom (R^2 >= 0.99, amplitude within 10 %), within 3 ms of it.
+
+    Two-sided: a platform ahead of the sender's motion (measured up to 13 ms ahead on a loaded
+    host) is off time as much as one behind it.
+    """
     return (fig.feedback.r2 >= 0.99 and abs(fig.feedback.amplitude / SLALOM_M - 1.0) <= 0.1
-            and fig.feedback.delay_ms <= MAX_DELAY_MS)
+            and abs(fig.feedback.delay_ms) <= MAX_DELAY_MS)
 
 
 def describe(fig: Figures) -> str:
@@ -311,6 +315,7 @@ def describe(fig: Figures) -> str:
             f"sender {fig.sender}; service's figures {q}")
 
 
+@pytest.mark.slow
 def test_grid_sender_is_on_time(runs: Runs) -> None:
     """The reference sender (exact grid, jittered sends) gets the documented compensation."""
     grid = runs.get("grid")
@@ -319,6 +324,7 @@ def test_grid_sender_is_on_time(runs: Runs) -> None:
     assert grid.sat_share <= MAX_SAT_SHARE, describe(grid)
 
 
+@pytest.mark.slow
 def test_wallclock_sender_is_on_time_and_smooth(runs: Runs) -> None:
     """Samples computed and stamped at time.time(): as on time and as smooth as the grid's."""
     grid = runs.get("grid")
@@ -327,6 +333,77 @@ def test_wallclock_sender_is_on_time_and_smooth(runs: Runs) -> None:
     assert follows_on_time(wall), describe(wall)
     assert wall.sat_share <= MAX_SAT_SHARE, describe(wall)
     assert wall.hf_acc_rms <= MAX_HF_RATIO * grid.hf_acc_rms, (describe(wall), describe(grid))
+
+
+def load_senders() -> Any:
+    """tools/wire_senders.py as a module (tools/ is not a package)."""
+    if "wire_senders" not in sys.modules:
+        path = ROOT / "tools" / "wire_senders.py"
+        spec = importlib.util.spec_from_file_location("wire_senders", path)
+        assert spec is not None and spec.loader is not None
+        sys.modules["wire_senders"] = module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    return sys.modules["wire_senders"]
+
+
+class FakeClock:
+    """Time that moves only when the sender sleeps: every sleep ends exactly on time."""
+
+    def __init__(self, t0_s: float) -> None:
+        self.t = t0_s
+
+    def now(self) -> float:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        self.t += seconds
+
+
+def sent_frames(kind: str, rate_hz: float = 1000.0, duration_s: float = 1.0,
+                **spec: Any) -> tuple[list[bytes], Any]:
+    ws = load_senders()
+    fake = FakeClock(1.8e9)
+    frames: list[bytes] = []
+    log = ws.run_sender(frames.append, {AXIS: ws.Sine(SLALOM_M, SLALOM_HZ)},
+                        ws.SenderSpec(kind, rate_hz, seed=SEED, **spec), duration_s,
+                        ws.Clock(fake.now, fake.sleep))
+    return frames, log
+
+
+def test_grid_sender_stamps_the_exact_grid() -> None:
+    """seq 0, 1, ...; t = t0 + k/rate; pos = 0.4 sin(2 pi 0.31 k/rate), all float64."""
+    frames, log = sent_frames("grid", 250.0)
+    decoded = [msgpack.unpackb(f) for f in frames]
+    assert len(decoded) == 250 and log.skipped == 0
+    for k, frame in enumerate(decoded):
+        assert frame == {"seq": k, "t": log.t0_s + k / 250.0,
+                         "pos": {AXIS: SLALOM_M * math.sin(2 * math.pi * SLALOM_HZ * (k / 250.0))}}
+    assert frames[0].count(b"\xcb") == 2  # t and pos as msgpack float 64
+
+
+def test_float32_sender_packs_positions_as_float32() -> None:
+    frames, _ = sent_frames("float32", 100.0)
+    value = msgpack.unpackb(frames[7])["pos"][AXIS]
+    assert b"\xca" in frames[7] and frames[7].count(b"\xcb") == 1  # t stays float64
+    assert value == float(np.float32(SLALOM_M * math.sin(2 * math.pi * SLALOM_HZ * 0.07)))
+
+
+def test_wallclock_sender_samples_100_to_300_us_late() -> None:
+    frames, log = sent_frames("wallclock")
+    t = np.array([msgpack.unpackb(f)["t"] for f in frames])
+    late_us = (t - (log.t0_s + np.arange(t.size) / 1000.0)) * 1e6
+    assert t.size == 1000 and late_us.min() >= 100.0 - 1e-3 and late_us.max() <= 300.0 + 1e-3
+
+
+def test_stalled_sender_skips_to_the_newest_sample() -> None:
+    """After a 50-100 ms stall the next frame is the newest due sample; seq stays consecutive."""
+    frames, log = sent_frames("stalls", stall_every_s=0.3)
+    decoded = [msgpack.unpackb(f) for f in frames]
+    steps = np.rint(np.diff([f["t"] for f in decoded]) * 1000.0)
+    assert [f["seq"] for f in decoded] == list(range(len(decoded)))
+    assert log.stalls >= 1 and sorted(set(steps))[0] == 1
+    assert all(50 <= s <= 102 for s in steps if s > 1), steps[steps > 1]
+    assert len(decoded) + log.skipped == 1000
 
 
 MEASURE_DEFAULT = ("grid@60", "grid@100", "grid@250", "grid@1000", "float32", "epoch",
@@ -340,11 +417,11 @@ def measure(names: list[str], log_dir: Path) -> None:
     acceleration and jerk RMS of the command, delay to the feedback, the input frames' own
     offset from the motion, the fit's R^2, output ticks missing); then the service's status
     taken 1 s before the end (its delay, limited share, HF acceleration and jerk over the last
-    2 s, missed ticks since start, input lag).
+    2 s, missed ticks since start, input lag), and the host's 1-minute load average.
     """
     print(f"{'sender':<14}{'frames':>7}{'skip':>6}{'sat %':>7}{'hf acc':>9}{'jerk':>9}"
           f"{'delay ms':>9}{'in ms':>7}{'R2':>8}{'gaps':>6} |{'delay':>7}{'lim %':>7}"
-          f"{'hf acc':>8}{'jerk':>8}{'missed':>7}{'lag ms':>7}", flush=True)
+          f"{'hf acc':>8}{'jerk':>8}{'missed':>7}{'lag ms':>7}{'load':>6}", flush=True)
     for name in names:
         spec, _, rate = name.partition("@")
         kind, _, policy = spec.partition(":")
@@ -358,7 +435,8 @@ def measure(names: list[str], log_dir: Path) -> None:
               f"{fig.ticks_missing:>6} |{q.get('apparent_delay_ms', math.nan):>7.2f}"
               f"{100 * q.get('limited_share', math.nan):>7.2f}{q.get('hf_acc_rms', math.nan):>8.3f}"
               f"{q.get('jerk_rms', math.nan):>8.1f}{fig.status.get('missed_ticks', -1):>7}"
-              f"{fig.status.get('input', {}).get('lag_ms', math.nan):>7.2f}", flush=True)
+              f"{fig.status.get('input', {}).get('lag_ms', math.nan):>7.2f}"
+              f"{Path('/proc/loadavg').read_text().split()[0]:>6}", flush=True)
 
 
 if __name__ == "__main__":

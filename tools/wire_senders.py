@@ -152,7 +152,7 @@ def encode_frame(seq: int, t_s: float | None, pos: Mapping[str, float],
     )
 
 
-class _Clock:
+class Clock:
     """The sender's wall clock and sleep (injectable for tests)."""
 
     def __init__(self, now: Callable[[], float] = time.time,
@@ -167,7 +167,7 @@ class _Clock:
 
 
 def run_sender(publish: Callable[[bytes], None], motion: Mapping[str, Callable[[float], float]],
-               spec: SenderSpec, duration_s: float, clock: _Clock | None = None) -> SendLog:
+               spec: SenderSpec, duration_s: float, clock: Clock | None = None) -> SendLog:
     """Publish ``motion`` (axis -> position at tau s) for ``duration_s`` the way ``spec`` says.
 
     Raises ValueError for an unknown axis or a non-positive duration.
@@ -177,7 +177,7 @@ def run_sender(publish: Callable[[bytes], None], motion: Mapping[str, Callable[[
         raise ValueError(f"motion axes {sorted(motion)!r}: expected a non-empty subset of {AXES}")
     if not (math.isfinite(duration_s) and duration_s > 0.0):
         raise ValueError(f"duration_s = {duration_s!r}: expected a positive number of seconds")
-    clock = clock or _Clock()
+    clock = clock or Clock()
     rng = np.random.default_rng(spec.seed)
     log = SendLog(spec)
     t0 = log.t0_s = clock.now()
@@ -202,7 +202,7 @@ def run_sender(publish: Callable[[bytes], None], motion: Mapping[str, Callable[[
     return log
 
 
-def _run_grid(send: Callable[[float, float | None, float], None], clock: _Clock,
+def _run_grid(send: Callable[[float, float | None, float], None], clock: Clock,
               rng: np.random.Generator, log: SendLog, spec: SenderSpec, t0: float,
               end: float) -> None:
     """grid, float32, epoch, no_t, stalls: samples on t0 + k/rate, sent 0-600 us late."""
@@ -232,7 +232,7 @@ def _run_grid(send: Callable[[float, float | None, float], None], clock: _Clock,
         k += 1
 
 
-def _run_wallclock(send: Callable[[float, float | None, float], None], clock: _Clock,
+def _run_wallclock(send: Callable[[float, float | None, float], None], clock: Clock,
                    rng: np.random.Generator, log: SendLog, rate_hz: float, t0: float,
                    end: float) -> None:
     """Wake 100-300 us after each deadline, compute and stamp at time.time()."""
@@ -250,7 +250,7 @@ def _run_wallclock(send: Callable[[float, float | None, float], None], clock: _C
         k += 1
 
 
-def _run_varstep(send: Callable[[float, float | None, float], None], clock: _Clock,
+def _run_varstep(send: Callable[[float, float | None, float], None], clock: Clock,
                  rng: np.random.Generator, log: SendLog, t0: float, end: float) -> None:
     """Steps of 0.5-2 ms at random; each sample sent at its instant, stamped with it."""
     t = t0

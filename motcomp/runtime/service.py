@@ -588,7 +588,6 @@ class Service:
         signal.signal(signal.SIGHUP, lambda *_: self.reload_event.set())
         import zenoh
 
-        self.preparer.start()
         switch = sys.getswitchinterval()
         sys.setswitchinterval(SWITCH_INTERVAL_S)
 
@@ -718,6 +717,7 @@ class Service:
                 self.notifier.ready(f"running at {cfg.loop.rate_hz:g} Hz")
                 log.info("running: %g Hz, config %s, %s", cfg.loop.rate_hz, self.config_id,
                          self.rt_report)
+                self.preparer.start()  # the reloads' reader, once start-up is done
             if healthy and now >= next_dog:
                 self.notifier.watchdog()
                 next_dog = now + dog_every
