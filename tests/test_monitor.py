@@ -328,8 +328,9 @@ def test_inbox_overflow_is_counted() -> None:
 # --- in the service's status ------------------------------------------------------------------
 def make_service(bypass_y: bool) -> tuple[Service, MemorySource, MemorySink]:
     data = read_toml(ROOT / "config" / "motcomp.toml")
-    if bypass_y:
+    if bypass_y:  # u = r: neither the PID nor the prefilter
         data["axes"]["rails_y"]["bypass"] = True
+        data["axes"]["rails_y"].pop("prediction", None)
     svc = Service(parse_config(data), ZenohEndpoints())
     src, sink = MemorySource(burst=True), MemorySink()
     svc.attach(src, [sink])
@@ -425,7 +426,7 @@ def test_status_delay_of_a_running_service_agrees_with_the_recording(tmp_path: P
 
     p_hil, p_svc, p_me = free_tcp_port(), free_tcp_port(), free_tcp_port()
     cfg = write_config(tmp_path, "[status]\nwindow_s = 30.0\n[axes.rails_y]\nbypass = true\n"
-                                 "vel_max_m_s = 10.0\nacc_max_m_s2 = 100.0\n"
+                                 "predict = false\nvel_max_m_s = 10.0\nacc_max_m_s2 = 100.0\n"
                                  "[envelope.rails_y]\npos_min_m = -2.6\npos_max_m = 2.6\n"
                                  "vel_max_m_s = 10.0\nacc_max_m_s2 = 100.0\n")
     hil_ep, svc_ep = loopback(p_hil), loopback(p_svc)
@@ -464,7 +465,7 @@ def test_status_delay_of_a_running_service_agrees_with_the_recording(tmp_path: P
     fig = st["axes_quality"]["rails_y"]
     q = st["quality"]
     assert fig["delay_valid"], fig
-    assert fig["limited_share"] == 0.0  # the command is the reference
+    assert fig["limited_share"] == 0.0, (st["stale_episodes"], st["missed_ticks"])  # u = r
     assert st["feedback"]["bad"] == 0 and st["feedback"]["received"] > 20_000
     to, uo = np.array(frames["platform/setpoint"]).T
     tf, yf = np.array(frames["platform/feedback"]).T

@@ -214,8 +214,19 @@ def format_status(st: dict[str, Any]) -> str:
                      f"{float(inp.get('period_ms', 0.0)):.2f} ms  lag "
                      f"{float(inp.get('lag_ms', 0.0)):.2f} ms (design --input-lag-ms)"
                      + (f"  lead {float(inp['lead_ms']):.2f} ms" if inp.get("lead_ms") else ""))
+        bands = sorted({(float(b["band_hz"]), float(b["delay_ms"]))
+                        for b in (inp.get("band") or {}).values()})
+        if bands:
+            lines.append("            band limit " + ", ".join(
+                f"{hz:g} Hz ({ms:.2f} ms)" for hz, ms in bands)
+                + " (design --input-band-hz; its delay is cancelled with the lag)")
     lines.append(f"stale       now {st.get('stale_s', 0.0):.2f} s  total "
                  f"{st.get('stale_total_s', 0.0):.2f} s  episodes {st.get('stale_episodes', 0)}")
+    env = st.get("envelope") or {}
+    if env.get("clamps"):
+        acted = ", ".join(f"{a} {n}" for a, n in (env.get("acted") or {}).items() if n)
+        lines.append(f"ENVELOPE    the guard changed {env['clamps']} command(s) ({acted}): "
+                     "a bug upstream of it (docs/DEPLOYMENT.md)")
     can = st.get("can")
     if can:
         lines.append(f"can         sent {can.get('sent', 0)}  errors {can.get('errors', 0)}")

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import math
 import queue
 import signal
 import sys
@@ -85,6 +86,10 @@ STAT_SERIES = ("tick", "compute", "io", "late")
 tick; ``io`` the part of it spent in the ports (taking the newest input; encoding and sending
 the outputs); ``compute`` the rest (commands, :func:`motcomp.core.tick.step`: catch-up steps,
 validation, reference, compensator, saturation verdicts); ``late`` waking after the deadline."""
+
+
+ENVELOPE_LOG_S = 10.0
+"""The envelope guard's actions are logged (ERROR) at most this often, with their count."""
 
 
 def _hand_over() -> None:
@@ -399,7 +404,12 @@ class Service:
                        "last_reject": st.last_reject, "superseded": st.superseded},
             "input": {"reconstruction": self.params.shaper.reconstruction,
                       "period_ms": shaper.period_s * 1e3, "lag_ms": shaper.lag_s * 1e3,
-                      "lead_ms": self.params.shaper.lead_s * 1e3},
+                      "lead_ms": self.params.shaper.lead_s * 1e3,
+                      "band": {a: {"band_hz": b.band_hz, "delay_ms": b.delay_s * 1e3}
+                               for a, b in zip(AXES, self.params.shaper.band, strict=False)
+                               if b is not None}},
+            "envelope": {"clamps": st.envelope_clamps,
+                         "acted": dict(zip(AXES, st.envelope_acted, strict=True))},
             "stale_s": shaper.stale_time(now),
             "stale_total_s": shaper.stale_total_s,
             "stale_episodes": shaper.stale_episodes,
@@ -705,12 +715,20 @@ class Service:
         dog_every = (self.notifier.watchdog_usec / 2e6) if self.notifier.watchdog_usec else 1.0
         ready = False
         seen = ModeLog(self.state)
+        clamps, clamps_logged = 0, -math.inf
         while not self.loop_done.is_set():
             self.loop_done.wait(0.02)
             now = time.monotonic()
             self._poll_feedback()
             self.monitor.drain()
             seen.update(self.state, self.params)
+            if self.state.envelope_clamps > clamps and now - clamps_logged >= ENVELOPE_LOG_S:
+                log.error("the hardware envelope's guard changed %d command(s) (per axis %s): "
+                          "the limiter let a command out of the envelope -- a bug upstream",
+                          self.state.envelope_clamps - clamps,
+                          {a: n for a, n in zip(AXES, self.state.envelope_acted, strict=True)
+                           if n})
+                clamps, clamps_logged = self.state.envelope_clamps, now
             healthy = self.state.ticks > 0 and now - self.last_tick_mono < 0.25
             if healthy and not ready:
                 ready = True
