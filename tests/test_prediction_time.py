@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.signal import freqz
 
-from motcomp.config import ServiceConfig, load_config, resolve_axes
+from motcomp.config import ServiceConfig, load_config, new_tick, resolve_axes
 from motcomp.core.axes import AXIS_INDEX
 from motcomp.core.minjerk import min_jerk
 from motcomp.core.quality import estimate_delay
@@ -36,10 +36,17 @@ def _plain(cfg: ServiceConfig) -> ServiceConfig:
 
 
 def test_shipped_prefilters_meet_the_bounds(cfg: ServiceConfig) -> None:
-    """Worst phase delay over 0.1-2 Hz <= 10 ms (from 67.5), in-band gain error <= 1 dB, peak
-    of the delivered response <= +6 dB, command gain above 10 Hz <= 3: plant by freqz of its
-    discretisation, prefilter by freqz of its impulse response, phase unwrapped from 1 mHz."""
+    """What the prefilters were designed for (config/motcomp.toml): the platform behind a 1 kHz
+    sender's 1.1 ms playback and the config's band limit; worst phase delay over 0.1-2 Hz
+    <= 5 ms (from 75.6), in-band gain error <= 1 dB, peak of the delivered response <= +6 dB,
+    command gain above 10 Hz <= 5: plant by freqz of its discretisation, prefilter by freqz of
+    its impulse response, the band limit by scipy's Bessel through the bilinear transform,
+    phase unwrapped from 1 mHz."""
+    from scipy.signal import bessel, bilinear
+
     axes = resolve_axes(cfg)
+    band_delay = 2.113917674904216 / (2 * np.pi * cfg.input.band_hz)  # the Bessel's -3 dB
+    bz, az = bilinear(*bessel(4, 1.0 / band_delay, norm="delay", analog=True), fs=RATE)
     for name in HEX:
         i = AXIS_INDEX[name]
         p = axes.prediction[i]
@@ -51,14 +58,15 @@ def test_shipped_prefilters_meet_the_bounds(cfg: ServiceConfig) -> None:
         impulse = np.zeros(200_000)
         impulse[0] = 1.0
         _, pre = freqz(laguerre_filter(p, impulse), worN=f, fs=RATE)
-        t = plant * pre
+        _, lim = freqz(bz, az, worN=f, fs=RATE)
+        t = plant * pre * lim * np.exp(-2j * np.pi * f * 0.0011)
         band = (f >= 0.1) & (f <= 2.0)
         tau = -np.unwrap(np.angle(t))[band] / (2 * np.pi * f[band])
         mag_db = 20 * np.log10(np.abs(t))
-        assert np.max(np.abs(tau)) <= 0.010, (name, np.max(np.abs(tau)))
+        assert np.max(np.abs(tau)) <= 0.005, (name, np.max(np.abs(tau)))
         assert np.max(np.abs(mag_db[band])) <= 1.0 + 0.01, name
         assert mag_db.max() <= 6.0 + 0.01, name
-        assert np.abs(pre[f >= 10.0]).max() <= 3.0 * 1.001, name
+        assert np.abs(pre[f >= 10.0]).max() <= 5.0 * 1.001, name
 
 
 def _step(size: float, rise_s: float) -> np.ndarray:
@@ -108,7 +116,9 @@ def test_sudden_reversal_overshoot_added_by_prediction_is_bounded(cfg: ServiceCo
     """hex_x moving at ``speed`` for 0.5 s turns back at once (a velocity step).  Nothing
     before the turn tells it, so a predictor that cancels a delay ``D`` runs past the turning
     point by ``speed x D``: prediction adds at most that to the platform's own overshoot, ``D``
-    the platform's low-frequency phase delay (35.5 ms at 0.2 Hz).  Measured: 0.55-0.94 of it
+    the delay its design cancels: the platform's low-frequency phase delay (35.5 ms at 0.2 Hz)
+    and what the service adds before it (the band limit's 7.0 ms and the 1 kHz playback's
+    1.1 ms, config/motcomp.toml).  Measured before the band limit: 0.55-0.94 of the platform's
     (0.4, 3.0 and 10 mm; 3.9-6.7 % of these 10-150 mm travels: a reversal after a short travel
     costs more than 5 % of it)."""
     up = speed * np.arange(500) / RATE
@@ -118,7 +128,10 @@ def test_sudden_reversal_overshoot_added_by_prediction_is_bounded(cfg: ServiceCo
     _, y_off = _delivered(_plain(cfg), "hex_x", r)
     travel = float(np.ptp(r))
     added_m = (_overshoot(r, y_on) - _overshoot(r, y_off)) * travel
-    delay_s = float(resolve_axes(cfg).plants[AXIS_INDEX["hex_x"]].phase_delay(0.2)[0])
+    band = new_tick(cfg)[0].shaper.band[AXIS_INDEX["hex_x"]]
+    assert band is not None
+    delay_s = (float(resolve_axes(cfg).plants[AXIS_INDEX["hex_x"]].phase_delay(0.2)[0])
+               + band.delay_s + 0.0011)
     assert added_m <= speed * delay_s, (speed, added_m, speed * delay_s)
 
 
