@@ -101,9 +101,10 @@ class SenderClass:
 
     kind: str
     rate_hz: float = 1000.0
+    extra: tuple[str, ...] = ()
 
     def args(self) -> list[str]:
-        return ["--kind", self.kind, "--rate", f"{self.rate_hz:g}"]
+        return ["--kind", self.kind, "--rate", f"{self.rate_hz:g}", *self.extra]
 
     @property
     def one_khz(self) -> bool:
@@ -126,7 +127,7 @@ CLASSES = {
     "wallclock": SenderClass("wallclock"),
     "varstep": SenderClass("varstep"),
     "no_t": SenderClass("no_t"),
-    "stalls": SenderClass("stalls"),
+    "stalls": SenderClass("stalls", extra=("--stall-ms", "2-15")),
 }
 QUICK_KINDS = ["grid-1k", "wallclock", "no_t"]
 QUICK_SCENARIOS = ["slalom"]
@@ -335,7 +336,8 @@ def report(args: argparse.Namespace, runs: list[dict[str, Any]], ideals: list[di
         "with float32 positions; *epoch* each value computed at its epoch-second stamp; "
         "*wallclock* each value computed at `time.time()`, 100-300 us after its deadline; "
         "*varstep* steps of 0.5-2 ms; *no_t* grid without `t`; *stalls* grid, stalling "
-        "50-100 ms about every 3 s, then skipping to the newest sample.",
+        "2-15 ms about every 3 s (within the 50 ms stale time: a longer stall is an input "
+        "loss, held and ramped by design), then skipping to the newest sample.",
     ]
     return "\n".join(lines)
 
