@@ -852,6 +852,13 @@ def source_report(path: str | Path, cfg: ServiceConfig | None = None
                          if f"{layer}.prediction" in srcs.sources), None)
         if pred_key is not None:
             parts.append(f"prediction from {name(srcs.sources[pred_key])}")
+            off_key = next((f"{layer}.predict" for layer in ("axes." + axis, "defaults")
+                            if f"{layer}.predict" in srcs.sources), None)
+            predict = cfg.axes[axis].predict
+            if predict is None:
+                predict = cfg.defaults.predict
+            if off_key is not None and predict is False:
+                parts.append(f"UNUSED (predict = false from {name(srcs.sources[off_key])})")
         lines.append(f"  {axis:<10} {', '.join(parts)}")
     for o in srcs.overrides:
         key_parts = o.key.split(".")

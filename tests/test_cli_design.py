@@ -94,14 +94,15 @@ def test_evaluate_writes_report_and_figures(tmp_path: Path) -> None:
 
 
 def test_hexapod_design_writes_the_prefilter_alone(tmp_path: Path) -> None:
-    """Delay-dominated: ``bypass = true`` plus a ``prediction`` table that round-trips."""
+    """Delay-dominated: ``bypass = true`` plus a ``prediction`` table that round-trips (the
+    platform alone: no band limit before it)."""
     import tomllib
 
     from motcomp.core.predictor import PredictorParams
 
     out = tmp_path / "design.toml"
     p = run("design", "--plant", "hexapod", "--rule", "optimal", "--peak-db", "6",
-            "--hf-gain", "3", "--quiet", "--json", "--out", str(out))
+            "--hf-gain", "3", "--input-band-hz", "0", "--quiet", "--json", "--out", str(out))
     assert p.returncode == 0, p.stderr
     report = json.loads(p.stdout)
     pred = report["prediction"]

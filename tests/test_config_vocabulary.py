@@ -77,7 +77,8 @@ def test_design_fragment_uses_the_config_keys(designed: tuple[Path, dict]) -> No
     table = tomllib.loads(text)
     assert list(table) == ["axes"] and list(table["axes"]) == ["rails_y"]
     axis = table["axes"]["rails_y"]
-    assert axis == {"model": IDENTIFIED, "bypass": False, "gains": report["gains"]}
+    assert axis == {"model": IDENTIFIED, "bypass": False, "gains": report["gains"],
+                    "predict": False}  # no prefilter in this design: an inherited one unused
     assert set(axis["gains"]) == {"kp", "ki_per_s", "kd_s", "tf_s", "b", "c"}
 
 
@@ -95,8 +96,13 @@ def test_site_config_including_example_and_design_runs_the_designed_gains(
     assert cfg.axes["rails_y"].model == IDENTIFIED and cfg.axes["rails_y"].bypass is False
     assert axis_gains(site, "rails_x") == axis_gains(EXAMPLE, "rails_x")  # the rest untouched
     lines, warnings = source_report(site)
-    assert "  rails_y    model from design.toml, gains from design.toml" in lines
-    assert f"  rails_x    model from {EXAMPLE}, gains from {EXAMPLE}" in lines
+    # the example's rails carry a prefilter designed with its own gains; a PID-only design
+    # switches it off for the axis it writes (predict = false)
+    assert ("  rails_y    model from design.toml, gains from design.toml, prediction from "
+            f"{EXAMPLE}, UNUSED (predict = false from design.toml)") in lines
+    assert (f"  rails_x    model from {EXAMPLE}, gains from {EXAMPLE}, prediction from "
+            f"{EXAMPLE}") in lines
+    assert load_config(site).axes["rails_y"].predict is False
     assert warnings == []
 
 
@@ -135,7 +141,8 @@ def test_identified_model_with_the_examples_gains_is_reported(tmp_path: Path) ->
     site = tmp_path / "site.toml"
     site.write_text(f'include = ["{EXAMPLE}", "rails_y.toml"]\n')
     lines, warnings = source_report(site)
-    assert f"  rails_y    model from rails_y.toml, gains from {EXAMPLE}" in lines
+    assert (f"  rails_y    model from rails_y.toml, gains from {EXAMPLE}, prediction from "
+            f"{EXAMPLE}") in lines
     assert len(warnings) == 1 and "gains designed for another model" in warnings[0]
     assert "motcomp design --plant rails_y.toml --axis rails_y --out FILE" in warnings[0]
 
@@ -171,7 +178,7 @@ def test_bypass_recommendation_writes_bypass_without_gains(tmp_path: Path) -> No
     assert json.loads(p.stdout)["recommendation"] == "bypass"
     axis = tomllib.loads((tmp_path / "hex.toml").read_text())["axes"]["hex_z"]
     assert axis == {"model": "p2uzd:K=1,Td=0.0325,Tw=0.06399186527,Zeta=0.7,Tz=0.08764049978",
-                    "bypass": True}
+                    "bypass": True, "predict": False}
     site = tmp_path / "site.toml"
     site.write_text(f'include = ["{EXAMPLE}", "hex.toml"]\n')
     assert run("config", "check", str(site)).returncode == 0

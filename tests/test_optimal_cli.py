@@ -37,8 +37,9 @@ def test_design_optimal_json_keeps_the_schema_and_adds_its_block() -> None:
 
 
 def test_design_optimal_fragment_is_the_example_configs_rails_tuning(tmp_path: Path) -> None:
-    """``--out`` writes the gains in the config's keys, exactly; the example config's rails
-    gains are this design for a 1 kHz sender played back 1.1 ms late (to its 8 digits)."""
+    """``--out`` writes the gains and the prefilter in the config's keys, exactly; the example
+    config's rails are this design -- a 1 kHz sender played back 1.1 ms late, the default 48 Hz
+    band limit, the PID and the prefilter in series over 0.03-2 Hz -- to the last digit."""
     import re
     import tomllib
 
@@ -49,26 +50,27 @@ def test_design_optimal_fragment_is_the_example_configs_rails_tuning(tmp_path: P
     from motcomp.resources import config_file
 
     frag = tmp_path / "design.toml"
-    p = run("design", "--plant", "rails", "--rule", "optimal", "--input-lag-ms", "1.1", "--json",
-            "--quiet", "--out", str(frag))
+    p = run("design", "--plant", "rails", "--rule", "optimal", "--input-lag-ms", "1.1",
+            "--prediction", "on", "--band", "0.03", "2", "--json", "--quiet", "--out", str(frag))
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
     text = frag.read_text()
-    assert re.match(r"# motcomp design: optimal, rails preset, 1000 Hz: residual 0\.\d\d ms, "
-                    r"peak \+8\.0 dB \(generated\)\n", text), text
-    assert "played back 1.1 ms behind its newest sample" in text
-    assert out["input_lag_ms"] == pytest.approx(1.1)
+    assert re.match(r"# motcomp design: optimal, rails preset, 1000 Hz: residual 2\.\d\d ms, "
+                    r"peak \+7\.9 dB \(generated\)\n", text), text
+    assert "played back 8.11 ms behind its newest sample (of which 7.01 ms the band limit" in text
+    assert out["input_lag_ms"] == pytest.approx(1.1 + 7.009, abs=1e-3)
+    assert out["noise"]["with_band_limit"]["hf_gain"] < 15.0  # the figure the docs quote
     axis = tomllib.loads(text)["axes"]["rails_y"]
-    assert axis == {"model": "p1d:K=1,Td=0.0175,Tp1=0.1857683128", "bypass": False,
-                    "gains": out["gains"]}
+    assert set(axis) == {"model", "bypass", "gains", "prediction"} and axis["bypass"] is False
+    assert axis["gains"] == out["gains"]
     site = tmp_path / "site.toml"
     site.write_text(f'include = ["{config_file("motcomp.toml")}", "design.toml"]\n')
     assert run("config", "check", str(site)).returncode == 0
     axes = resolve_axes(load_config(site))
-    designed = axes.gains[axes.names.index("rails_y")]
-    assert designed == PIDGains.from_config(out["gains"])
-    example = axes.gains[axes.names.index("rails_x")]  # from the example, untouched
-    assert designed.as_dict() == pytest.approx(example.as_dict(), rel=1e-6)
+    y, x = axes.names.index("rails_y"), axes.names.index("rails_x")
+    assert axes.gains[y] == PIDGains.from_config(out["gains"])
+    assert axes.gains[y] == axes.gains[x]  # rails_x: the example's, untouched
+    assert axes.prediction[y] == axes.prediction[x] and axes.prediction[y] is not None
 
 
 def test_design_optimal_options_reach_the_optimiser() -> None:

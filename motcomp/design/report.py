@@ -378,6 +378,8 @@ def config_fragment(report: dict[str, Any], axis: str, source: str = "") -> str:
         body = ", ".join(f"{k} = {value(table[k])}"
                          for k in ("pole_hz", "rate_hz", "band_hz", "coeffs"))
         lines.append(f"prediction = {{ {body} }}")
+    else:  # a prefilter an earlier file configures was designed with other gains
+        lines.append("predict = false  # this design has no prefilter: an inherited one is unused")
     return "\n".join(lines) + "\n"
 
 

@@ -9,7 +9,10 @@ above :data:`MIN_MOTION`) and the compensation state does not change, at most
 * *simulated*: the config's platform model (``plants``, the full models, not the compensator's
   P1D) driven by the replayed commands (``on``, windows where the replay compensated the axis)
   and by the reference through the limiter alone (``off``: no compensation,
-  :func:`motcomp.core.saturation.limit_axis`, the compensator's own limiter);
+  :func:`motcomp.core.saturation.limit_axis`, the compensator's own limiter), behind the tick's
+  reference plus the delay of the axis' band limit before it (``input.band_hz``: a pure delay
+  in the driver's band), so that both figures are behind the motion-cueing input as the
+  recorded ones are (the playback's own lag, about one input period, is not added);
 * *recorded*: the recorded feedback position behind the recorded input (both on the
   recorder's receive times), on windows where the service had compensation on, resp. off
   (from the bypass flags of the recorded outputs).
@@ -27,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from motcomp.config import ResolvedAxes, ServiceConfig
+from motcomp.config import ResolvedAxes, ServiceConfig, tick_params
 from motcomp.core.axes import AXES
 from motcomp.core.saturation import at_rest, axis_constants, limit_axis
 from motcomp.errors import ConfigError
@@ -180,6 +183,7 @@ def analyse(session: Session, plan: TickPlan, res: EngineResult, cfg: ServiceCon
     held = np.maximum.accumulate(np.where(emit, np.arange(plan.rows), 0))
     gi = held[_grid_rows(plan)]  # grid point -> the row whose output is in force
     lims = axis_constants(axes.limits, plan.period_ns / 1e9)
+    bands = tick_params(cfg, axes).shaper.band
     rec_rows = np.flatnonzero(plan.output >= 0)
     out = session.outputs
     compared: np.ndarray | None = rec_rows
@@ -216,8 +220,10 @@ def analyse(session: Session, plan: TickPlan, res: EngineResult, cfg: ServiceCon
             d_on = _estimate(ref[w], simulate_axis(axes.plants[a], cmd_on, rate)[cut:], rate)
             d_off = _estimate(ref[w], simulate_axis(axes.plants[a], cmd_off, rate)[cut:], rate)
             if d_on is not None and d_off is not None:
-                on_d.append(d_on)
-                off_d.append(d_off)
+                band = bands[a] if a < len(bands) else None
+                lag = 0.0 if band is None else band.delay_s
+                on_d.append(d_on + lag)
+                off_d.append(d_off + lag)
         rep.delay_on_ms, rep.delay_off_ms, rep.delay_windows = (_median_ms(on_d),
                                                                 _median_ms(off_d), len(on_d))
         if rec_flags is not None:
