@@ -23,8 +23,8 @@ Delays use the frames' own timestamps (sample time of the setpoints, tick time o
 feedback), so the recorder's polling does not blur them.  Command figures cover the motion (from
 the first setpoint of a phase, for the trajectory's duration) on the service's tick grid: an
 output frame's ``t`` is its tick's deadline, so its grid index is exact (own-clock pacing, as in
-the demo config).  Grid ticks without a frame -- lost (a gap in ``seq``) or never sent (a
-deadline the service missed) -- are counted and left out: the spectral figures are taken over the
+the demo config), from :data:`STARTUP_S` into the motion.  Grid ticks without a frame -- lost (a
+gap in ``seq``) or never sent (a deadline the service missed) -- are counted and left out: the spectral figures are taken over the
 stretches between them, the ideal run's over the same stretches (:func:`command_quality_over`;
 a linear bridge would add the command's own acceleration at each missing tick), and the
 acceleration-limit share counts only second differences of three recorded frames.
@@ -279,6 +279,13 @@ def _phase_config(cfg: ServiceConfig, off: bool) -> ServiceConfig:
     return cfg.model_copy(update={"axes": axes})
 
 
+STARTUP_S = 1.5
+"""The command figures leave out each phase's first seconds: the service blends from the held
+reference to the new input (``loop.rejoin_s``) and fades the prefilters back in
+(``prediction.resume_after_s``, ``fade_in_s``), a start-up the ideal run, settled before the
+motion, does not have."""
+
+
 def _ideal_runs(cfg: ServiceConfig, traj: Trajectory) -> dict[str, IdealRun]:
     """The ideal run of each phase: the demo's motion, perfectly timed, through the config's
     tick with the phase's bypass."""
@@ -291,11 +298,13 @@ def _command_figures(grid: _Command, ideal: IdealRun, axis: str, a_max: float
     rate = ideal.rate_hz
     n = min(grid.have.size, ideal.u[axis].size)
     u_live, u_ideal = grid.u[axis][:n], ideal.u[axis][:n]
-    parts = stretches(grid.have[:n])  # the recorded ticks, the ideal over the same ones
+    have = grid.have[:n].copy()
+    have[:round(STARTUP_S * rate)] = False  # the phase's start-up: the ideal run has none
+    parts = stretches(have)  # the recorded ticks, the ideal over the same ones
     return CommandFigures(
         live=command_quality_over(u_live, parts, rate, HF_ABOVE_HZ),
         ideal=command_quality_over(u_ideal, parts, rate, HF_ABOVE_HZ),
-        at_limit=_at_limit_share(u_live, rate, a_max, grid.have[:n]),
+        at_limit=_at_limit_share(u_live, rate, a_max, have),
         ideal_at_limit=_at_limit_share(u_ideal, rate, a_max),
         ideal_acted=float(np.mean(ideal.acted[axis][:n])))
 
@@ -511,8 +520,10 @@ def report(res: DemoResult) -> str:
                      "off - on." + (f"  {', '.join(predicted)}: compensated by prediction "
                                     "(PID bypassed: delay-dominated)." if predicted else "")),
               *_wrap(f"HF acc, jerk: RMS of the command's acceleration above {HF_ABOVE_HZ:g} Hz "
-                     "and of its jerk (motcomp.core.quality.command_quality) over the motion, on "
-                     "the service's tick grid; ratio: live HF acc over the ideal run's."),
+                     "and of its jerk (motcomp.core.quality.command_quality) over the motion "
+                     f"from {STARTUP_S:g} s in (the phase's start-up: rejoin blend, prefilters "
+                     "fading back in), on the service's tick grid; ratio: live HF acc over the "
+                     "ideal run's."),
               *_wrap(f"* at acc limit: share of the ticks whose |acceleration| (second difference "
                      f"of the command) is within {100 * (1 - AT_LIMIT_FRACTION):g} % of the "
                      f"axis' limit ({limits}): counted from the command, not from the output "

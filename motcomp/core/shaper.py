@@ -166,6 +166,11 @@ SPAN_DECAY = 1e-3
 SPAN_MAX_PERIODS = 4.0
 """The playback's span (:meth:`ReferenceShaper._track_span`) decays by this a sample, and
 ignores intervals longer than this many periods (stalls)."""
+STENCIL_S = 5e-3
+"""A sample's knot (slope, acceleration, jerk) is taken from samples at least this far apart
+(:func:`_stencil`): the cubic through them is as exact on cubics, and a 1 kHz sender's value
+noise reaches the jerk over 100 times less than over one period (what a late frame's
+extrapolation then carries: docs/TUNING.md)."""
 MA_MIN_TICKS = 2.0
 """No moving average for an input period shorter than this many ticks (a 1 kHz sender, or an
 irregular one of 0.5-2 ms steps): its length would follow the period's jitter, and every change
@@ -418,9 +423,9 @@ class ReferenceShaper:
                 h.clear()
                 h.append(_knot(h, t, v))
             elif t - h[-1][0] < min_dt:  # the same sample again: replace it
-                h[-1] = _knot(h[:-1][-3:], h[-1][0], v)
+                h[-1] = _knot(_stencil(h, len(h) - 1), h[-1][0], v)
             else:
-                h.append(_knot(h[-3:], t, v))
+                h.append(_knot(_stencil(h, len(h)), t, v))
                 if len(h) > 2 * HISTORY:  # (trimmed in batches: no shift per sample)
                     del h[:HISTORY]
 
@@ -740,6 +745,26 @@ class ReferenceShaper:
         last = self.last_input_s if self.last_input_s is not None else self.started_s
         return now - (last or now)
 
+
+
+def _stencil(h: Sequence[Knot], end: int) -> list[Knot]:
+    """The (up to) three samples before ``h[end]`` (or before a new one at ``end``) that its
+    knot is computed from: each at least :data:`STENCIL_S` before the next, going back, so that
+    the derivatives of a fast sender's samples are taken over a few ms rather than one period:
+    the noise of its values (float32, rounded stamps: 0.1 um) reaches the slope, acceleration
+    and jerk divided by the baseline, its cube for the jerk (docs/WIRE.md)."""
+    out: list[Knot] = []
+    if end == 0:
+        return out
+    t_next = h[end][0] if end < len(h) else math.inf
+    j = end - 1
+    while j >= 0 and len(out) < 3:
+        if t_next == math.inf or t_next - h[j][0] >= STENCIL_S or j == 0:
+            out.append(h[j])
+            t_next = h[j][0]
+        j -= 1
+    out.reverse()
+    return out
 
 
 def _knot(before: Sequence[Knot], t: float, v: float) -> Knot:
