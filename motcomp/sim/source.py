@@ -8,7 +8,9 @@ msgpack stream of input frames (what ``motcomp excite`` writes) or a CSV ``t,<ax
 Realistic senders (:class:`SenderTiming`): a live vehicle model is not perfectly timed.  Each
 frame can go out late by a random amount (jitter), the sender can stop now and then (stalls),
 and it can leave ``t`` out (the receiver then times the samples by their arrival).  Sample ``k``
-is due at its nominal instant ``t0 + k / rate``, which its frame's ``t`` always carries::
+is due at its nominal instant ``t0 + k / rate``, which its frame's ``t`` always carries (a float64
+epoch time, rounded by up to 0.12 us: the value sent is the sample's corrected by its slope for
+that rounding, so that it is the motion at ``t`` itself, as docs/WIRE.md asks)::
 
     nominal   |---------|---------|---------|---------|---------|---------|   (1 / rate)
     sent        *          *        [====== stall ======)***    *       *
@@ -465,6 +467,10 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
             signal.signal(sig, lambda *_: stop.set())
     axes = [a for a in AXES if a in traj.pos]
     columns = [traj.pos[a].tolist() for a in axes]
+    # each sample's slope: the value sent is the motion at the stamp itself (docs/WIRE.md), whose
+    # float64 epoch seconds round the nominal instant by up to 0.12 us
+    slopes = [(np.gradient(traj.pos[a]) * traj.rate_hz if traj.samples > 1
+               else np.zeros(traj.samples)).tolist() for a in axes]
     seq = seq_start
     total = traj.samples * repeat
     skipped = stalls = held = 0
@@ -509,11 +515,13 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
                         held += 1
                         stalls += send.at_ns != burst_at
                         burst_at = send.at_ns
-                    t = t_wall0 + (start_ns + k * period_ns - t_mono0) / 1e9  # nominal instant
+                    off = (start_ns + k * period_ns - t_mono0) / 1e9
+                    t = t_wall0 + off  # the nominal instant, as a float64 epoch time
+                    d = (t - t_wall0) - off if with_t else 0.0  # its rounding (exact)
                     i = k % traj.samples
                     sink.put(encode_input(seq, t if with_t else None,
-                                          {a: col[i] for a, col in zip(axes, columns,
-                                                                       strict=True)}))
+                                          {a: col[i] + d * sl[i] for a, col, sl in
+                                           zip(axes, columns, slopes, strict=True)}))
                     seq += 1
                 k += 1
                 if progress is not None and k % every == 0:
