@@ -129,7 +129,7 @@ class BandLimit:
         (``bands``, None: passed through), in place of ``x``."""
         if bands is not self._bands:  # per axis: (index, coefficients), built once per bands
             self._bands = bands
-            self._plan = [(i, *p.sections[0], *p.sections[1])  # type: ignore[misc]
+            self._plan = [(i, *p.sections[0], *p.sections[1])
                           for i, p in enumerate(bands) if p is not None]
         state, seeded = self._state, self._seeded
         for i, b0, b1, b2, a1, a2, c0, c1, c2, d1, d2 in self._plan:
