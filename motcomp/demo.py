@@ -20,14 +20,15 @@ axes are compensated by prediction instead (the config's ``prediction``,
 phase turns compensation off (PID and prediction) on every driven axis, then back on.
 
 Delays use the frames' own timestamps (sample time of the setpoints, tick time of the platform
-feedback), so the recorder's polling does not blur them.  Command figures cover the motion (from
-the first setpoint of a phase, for the trajectory's duration) on the service's tick grid: an
-output frame's ``t`` is its tick's deadline, so its grid index is exact (own-clock pacing, as in
-the demo config), from :data:`STARTUP_S` into the motion.  Grid ticks without a frame -- lost (a
-gap in ``seq``) or never sent (a deadline the service missed) -- are counted and left out: the
-spectral figures are taken over the stretches between them, the ideal run's over the same
-stretches (:func:`command_quality_over`; a linear bridge would add the command's own acceleration at each missing tick), and the
-acceleration-limit share counts only second differences of three recorded frames.
+feedback), so the recorder's polling does not blur them.  Command figures cover the motion (from the
+first setpoint of a phase, for the trajectory's duration) on the service's tick grid: an output
+frame's ``t`` is its tick's deadline, so its grid index is exact (own-clock pacing, as in the demo
+config), from :data:`STARTUP_S` into the motion.  Grid ticks without a frame -- lost (a gap in
+``seq``) or never sent (a deadline the service missed) -- are counted and left out: the spectral
+figures are taken over the stretches between them, the ideal run's over the same stretches
+(:func:`command_quality_over`; a linear bridge would add the command's own acceleration at each
+missing tick), and the acceleration-limit share counts only second differences of three recorded
+frames.
 """
 
 from __future__ import annotations

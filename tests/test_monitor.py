@@ -416,12 +416,12 @@ def test_status_table_shows_the_figures_with_units() -> None:
 @pytest.mark.slow
 def test_status_delay_of_a_running_service_agrees_with_the_recording(tmp_path: Path) -> None:
     """``motcomp hil`` + ``motcomp run`` + ``motcomp source --signal slalom``, rails_y bypassed
-    (its prefilter unused) and given limits (and an envelope) it never reaches: its output
-    frames are then the reference itself, tick for tick, whatever the host's load does to the
-    input's timing.  After the slalom the status' apparent delay of rails_y over a 30 s window (the whole slalom and the rest around
-    it) is valid and within 2 ms of :func:`estimate_delay` of the recorded output frames vs
-    feedback frames (their own timestamps) over the same span: a record that holds the whole
-    motion, which a plain correlation measures without bias."""
+    (its prefilter unused) and given limits (and an envelope) it never reaches: its output frames
+    are then the reference itself, tick for tick, whatever the host's load does to the input's
+    timing.  After the slalom the status' apparent delay of rails_y over a 30 s window (the whole
+    slalom and the rest around it) is valid and within 2 ms of :func:`estimate_delay` of the
+    recorded output frames vs feedback frames (their own timestamps) over the same span: a record
+    that holds the whole motion, which a plain correlation measures without bias."""
     import zenoh
 
     p_hil, p_svc, p_me = free_tcp_port(), free_tcp_port(), free_tcp_port()
