@@ -49,27 +49,24 @@ reference is the input *played back on the sender's timeline, a little behind it
 sample*, so that it is interpolated between samples already received instead of guessed::
 
     sender time  each frame's ``t``, relative to a whole second (float64 arithmetic on epoch
-                 times resolves only 0.24 us), on a grid: a least-squares line through (frame
-                 count, ``t``) whose gains fall to TRACK_ALPHA; a ``t`` within TIME_GATE_S of
-                 the line (the seq step, or a whole number of periods when the sender skipped
-                 samples) is on it, and the frame's instant is the previous one plus the period
-                 times that step -- the samples lie on an exact grid, so that neither the
-                 rounding of the stamps nor the line's own corrections reach the reference
-                 (0.24 us at 0.5 m/s is 0.1 um: 0.1 m/s^2 of acceleration from sample to
-                 sample, 6 m/s^2 once compensated); a ``t`` further off is the sender's real
-                 timing and is used as it is (the line is anchored there); a frame without
-                 ``t`` from a sender that stamps the others is put on its grid; from a sender
-                 that never stamps, the same line goes through (frame count, arrival on the
-                 loop's clock), with gains falling to NO_T_ALPHA (frames read in the same tick
-                 carry no timing news; an arrival further than stale_after_s/2 from the line
-                 re-anchors it)
+                 times resolves only 0.24 us): the instant of its sample, whatever the pattern
+                 (a regular grid, jittered instants, skipped samples, variable steps); a
+                 least-squares line through (frame count, ``t``) learns the period and, for a
+                 frame without ``t`` from a sender that stamps the others, puts it on the
+                 sender's grid; from a sender that never stamps, the same line goes through
+                 (frame count, arrival on the loop's clock), with gains falling to NO_T_ALPHA
+                 (frames read in the same tick carry no timing news; an arrival further than
+                 stale_after_s/2 from the line re-anchors it), and the line is the timeline
     period       the interval between frames per seq step (sender time, or arrivals without
                  t), averaged; a single unusual one (a stall) is ignored, PERIOD_RELEARN in a
                  row (a new rate) replace it
     offset       loop clock - sender clock: the smallest transit seen (leaking upwards by
                  SMOOTH_OFFSET_LEAK, 1000 ppm of clock drift; falling at most by
                  SMOOTH_OFFSET_DOWN after the first second: a late tick's frames look early)
-    lag          input period + JITTER_FACTOR x the mean transit beyond the smallest
+    lag          span + JITTER_FACTOR x the mean transit beyond the smallest; the span is the
+                 longest recent interval between samples (taken at once, decaying to the
+                 period by SPAN_DECAY a sample; stalls left out): an irregular stream is
+                 interpolated, not extrapolated
     playback     tau = now - delay + lead_s, where the delay follows offset + lag through a
                  critically damped filter of DELAY_TAU_S: neither jitter nor a new smallest
                  transit ever steps the playback instant, its changes warp time gently; a lead
@@ -78,7 +75,8 @@ sample*, so that it is interpolated between samples already received instead of 
                  compensator amplifies (docs/TUNING.md has the trade-off)
     per axis     the last HISTORY samples at least (the playback may lie several samples
                  behind the newest, after a burst), each with the slope, acceleration and jerk
-                 of the cubic through it and the three before it (exact on cubics, and causal:
+                 of the cubic through it and three before it at least STENCIL_S apart (exact on
+                 cubics, value noise divided by that baseline rather than one period, causal:
                  never revised by the next sample, so the curve under the playback never
                  changes); tau between two of them: the quintic Hermite that meets both with
                  their value, slope and acceleration (continuous acceleration); tau beyond the
@@ -91,20 +89,25 @@ sample*, so that it is interpolated between samples already received instead of 
                  through a critically damped triple pole, settled in about GAP_BLEND_PERIODS
                  input periods (at least GAP_BLEND_S): continuous to the acceleration, each
                  difference on its own schedule however often they come
-    average      then a moving average over one input period (fractional length, on the
-                 tick grid): zero gain at the input's rate and its harmonics, where the
-                 playback's roughness lies (the quintic's jerk changes at every sample, and the
-                 compensator multiplies it); nothing at the loop's own rate
+    average      then, for an input period of MA_MIN_TICKS ticks or more, a moving average over
+                 one input period (fractional length, on the tick grid): zero gain at the
+                 input's rate and its harmonics, where the playback's roughness lies (the
+                 quintic's jerk changes at every sample, and the compensator multiplies it)
+    band limit   then each axis' band limit (ShaperParams.band, :mod:`motcomp.core.bandlimit`):
+                 a 4th-order Bessel, a pure delay in the driver's band, that keeps what a
+                 sender's numbers carry above it (float32, rounded stamps) out of the
+                 compensator; started at rest on its first value, restarted with the playback
     on a frame   dt = t - t_prev (per axis): dt < min_dt_s is the same sample again (its
                  value replaces the previous one); a t that goes back, or a rejoin, restarts
                  the axis' history at the new sample
 
-The lag (:attr:`ReferenceShaper.lag_s`) is what the reconstruction costs: one input period plus
-the mean transit beyond the smallest, plus half a period of averaging below 1 kHz (1.0-1.2 ms
-for a 1 kHz sender with 300 us of jitter, 5.5 ms at 250 Hz, 14.5 ms at 100 Hz); a frame later
-than that is bridged by the extrapolation.  A design for such an input adds the lag to the
-delay the compensator cancels (``motcomp design --input-lag-ms``).  ``hold`` keeps the last
-value (for tests of the rest of the chain).
+The lag (:attr:`ReferenceShaper.lag_s`) is what the reconstruction costs: the span (one input
+period for a regular sender) plus the mean transit beyond the smallest, plus half a period of
+averaging from 500 Hz down (1.0-1.2 ms for a 1 kHz sender with 300 us of jitter, 5.5 ms at
+250 Hz, 14.5 ms at 100 Hz); a frame later than that is bridged by the extrapolation.  A design
+for such an input adds the lag to the delay the compensator cancels (``motcomp design
+--input-lag-ms``), and the band limit's delay besides (``--input-band-hz``).  ``hold`` keeps the
+last value (for tests of the rest of the chain).
 """
 
 from __future__ import annotations
@@ -141,8 +144,8 @@ through."""
 PERIOD_GAIN = 0.05
 """Weight of each interval in the input period's average."""
 TIME_GATE_S = 5e-6
-"""A frame ``t`` this close to the sender's regular grid is on it: the difference is the
-rounding of its stamp (a float64 epoch time resolves 0.24 us; many senders stamp whole us)."""
+"""A frame ``t`` this close to the line of the sender's grid a whole number of periods on is a
+sender that skipped samples (the line's grid goes on; the frame's instant is still its ``t``)."""
 TRACK_ALPHA = 0.01
 """The least-squares gains of the sender's grid fall to this (phase) and its square over 4
 (period); they move the line only, never a sample's instant."""
