@@ -535,10 +535,10 @@ def report(res: DemoResult) -> str:
               *_wrap("sat flags: ticks at which the service's limiter kept an axis' command "
                      "within its limits or away from the compensated target (flag sat:<axis>), "
                      "from its counters, whole phase.  The compensator amplifies the high "
-                     "frequencies of its input (up to 60x with the example tuning), so irregular "
-                     "input timing -- stalls and jitter of the processes on a busy machine -- "
-                     "reaches the acceleration limit: the ideal columns show what evenly timed "
-                     "input gives."),
+                     "frequencies of its input (13x above 10 Hz on the example rails), so "
+                     "irregular input timing -- stalls and jitter of the processes on a busy "
+                     "machine -- reaches the acceleration limit: the ideal columns show what "
+                     "evenly timed input gives."),
               *_wrap(f"Command frames over the motion, off / on: {per_phase('ticks')} ticks, "
                      f"{per_phase('recorded')} recorded, {per_phase('lost')} lost (gaps in seq), "
                      f"{per_phase('unsent')} not sent (missed deadlines); the spectral figures "
