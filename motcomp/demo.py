@@ -23,7 +23,8 @@ Delays use the frames' own timestamps (sample time of the setpoints, tick time o
 feedback), so the recorder's polling does not blur them.  Command figures cover the motion (from the
 first setpoint of a phase, for the trajectory's duration) on the service's tick grid: an output
 frame's ``t`` is its tick's deadline, so its grid index is exact (own-clock pacing, as in the demo
-config), from :data:`STARTUP_S` into the motion.  Grid ticks without a frame -- lost (a gap in
+config), from :data:`STARTUP_S` into the motion, or from where the service reported every prefilter
+at full weight if that came later.  Grid ticks without a frame -- lost (a gap in
 ``seq``) or never sent (a deadline the service missed) -- are counted and left out: the spectral
 figures are taken over the stretches between them, the ideal run's over the same stretches
 (:func:`command_quality_over`; a linear bridge would add the command's own acceleration at each
@@ -33,6 +34,7 @@ frames.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
@@ -165,6 +167,9 @@ class DemoResult:
     panels: tuple[str, ...] = ()
     """The figure's panels, ``"<axis> <quantity> (<unit>)"``, also written into the PNG's
     ``Description``."""
+    figures_from: dict[str, float] = field(default_factory=dict)
+    """Per phase, where the command figures start (s into the motion): :data:`STARTUP_S`, or
+    later where the service's prefilters reached full weight later."""
 
 
 def _spawn(args: list[str], log: Path) -> subprocess.Popen[bytes]:
@@ -281,26 +286,41 @@ def _phase_config(cfg: ServiceConfig, off: bool) -> ServiceConfig:
 
 
 STARTUP_S = 1.5
-"""The command figures leave out each phase's first seconds: the service blends from the held
-reference to the new input (``loop.rejoin_s``) and fades the prefilters back in
-(``prediction.resume_after_s``, ``fade_in_s``), a start-up the ideal run, settled before the
-motion, does not have."""
+"""The command figures leave out at least each phase's first seconds: the service blends from the
+held reference to the new input (``loop.rejoin_s``) and fades the prefilters back in
+(``prediction.resume_after_s``, ``fade_in_s``) -- and, where a phase uses prediction, they start
+only once the service reports every prefilter at full weight (:func:`_full_weight`): the
+monitor's calm time follows the live input, so the fade's instant varies from run to run."""
+IDEAL_GAP_S = 1.0
+"""The ideal run of the compensated phase starts after a stale gap this long (the live phase
+follows the first one: its motion rejoins a held reference, then prediction fades in)."""
+STATUS_POLL_S = 0.2
+"""The demo asks the service's status this often during a phase (prefilter weights)."""
+
+
+def _full_weight(status: dict[str, Any]) -> bool:
+    """Every prefilter the service uses is predicting at full weight (False: none in use)."""
+    pred = [v for v in (status.get("prediction") or {}).values()
+            if isinstance(v, dict) and v.get("state") != "off"]
+    return bool(pred) and all(v.get("state") == "predicting" and v.get("weight", 0) >= 1.0
+                              for v in pred)
 
 
 def _ideal_runs(cfg: ServiceConfig, traj: Trajectory) -> dict[str, IdealRun]:
     """The ideal run of each phase: the demo's motion, perfectly timed, through the config's
     tick with the phase's bypass."""
-    return {ph: ideal_run(_phase_config(cfg, ph == "off"), traj.pos, traj.rate_hz)
+    return {ph: ideal_run(_phase_config(cfg, ph == "off"), traj.pos, traj.rate_hz,
+                          gap_s=0.0 if ph == "off" else IDEAL_GAP_S)
             for ph in PHASES}
 
 
-def _command_figures(grid: _Command, ideal: IdealRun, axis: str, a_max: float
-                     ) -> CommandFigures:
+def _command_figures(grid: _Command, ideal: IdealRun, axis: str, a_max: float,
+                     start_s: float = STARTUP_S) -> CommandFigures:
     rate = ideal.rate_hz
     n = min(grid.have.size, ideal.u[axis].size)
     u_live, u_ideal = grid.u[axis][:n], ideal.u[axis][:n]
     have = grid.have[:n].copy()
-    have[:round(STARTUP_S * rate)] = False  # the phase's start-up: the ideal run has none
+    have[:round(start_s * rate)] = False  # the phase's start-up (STARTUP_S)
     parts = stretches(have)  # the recorded ticks, the ideal over the same ones
     return CommandFigures(
         live=command_quality_over(u_live, parts, rate, HF_ABOVE_HZ),
@@ -328,6 +348,7 @@ def run_demo(out_dir: Path, quiet: bool = False, keep_logs: bool = True) -> Demo
     phases: dict[str, tuple[float, float]] = {}
     saturation: dict[str, dict[str, int]] = {}
     stale: dict[str, int] = {}
+    faded: dict[str, float] = {}  # per phase: first status with every prefilter at full weight
     status: dict[str, Any] = {}
     hil_status: dict[str, Any] = {}
     say(f"motcomp demo: platform simulator on :{p_hil}, service on :{p_svc}, recorder on :{p_me}")
@@ -396,10 +417,17 @@ def run_demo(out_dir: Path, quiet: bool = False, keep_logs: bool = True) -> Demo
                               loopback(p_svc), "-e", loopback(p_me), "-l", loopback(p_src),
                               "--lead-in", "0.5"], logs / f"source-{phase}.log")
                 with Progress(f"phase {phase}", duration + 2.0, quiet=quiet) as bar:
+                    polled = 0.0
                     while src.poll() is None:
                         time.sleep(0.05)
                         drain()
                         bar.update(time.time() - t0)
+                        if phase not in faded and time.monotonic() - polled >= STATUS_POLL_S:
+                            polled = time.monotonic()
+                            with contextlib.suppress(Exception):  # a late reply: next poll
+                                if _full_weight(msgpack.unpackb(first_reply(
+                                        session, "motcomp/status", None, 0.5))):
+                                    faded[phase] = time.time()
                     t_end = time.time() + 1.0
                     while time.time() < t_end:  # let the platform settle, keep recording
                         time.sleep(0.05)
@@ -442,13 +470,16 @@ def run_demo(out_dir: Path, quiet: bool = False, keep_logs: bool = True) -> Demo
         grid = _command_grid(commands, motion[ph][0], n_ticks, cfg.loop.rate_hz)
         if grid is not None:
             grids[ph] = grid
-    command = {axis: {ph: _command_figures(grids[ph], ideal[ph], axis, acc_limit[axis])
+    figures_from = {ph: max(STARTUP_S, faded[ph] - motion[ph][0] if ph in faded else 0.0)
+                    for ph in grids}
+    command = {axis: {ph: _command_figures(grids[ph], ideal[ph], axis, acc_limit[axis],
+                                           figures_from[ph])
                       for ph in grids} for axis in axes}
     frames = {ph: g.frames for ph, g in grids.items()}
     fig, panels = _figure(setpoints, feedback, grids, ideal, motion, delays, acc_limit, command,
                           out_dir / "demo.png")
     result = DemoResult(delays, saturation, command, frames, acc_limit, motion, stale, status,
-                        hil_status, codes, fig, phases, panels)
+                        hil_status, codes, fig, phases, panels, figures_from)
     if not keep_logs:
         for f in logs.iterdir():
             f.unlink()
@@ -513,6 +544,9 @@ def report(res: DemoResult) -> str:
     fr = st.get("frames", {})
     out = [res.frames.get(ph) for ph in PHASES]
 
+    start = " / ".join(f"{res.figures_from[ph]:.1f}" if ph in res.figures_from else "n/a"
+                       for ph in PHASES)
+
     def per_phase(attr: str) -> str:
         return " / ".join(str(getattr(f, attr)) if f is not None else "n/a" for f in out)
 
@@ -522,9 +556,11 @@ def report(res: DemoResult) -> str:
                                     "(PID bypassed: delay-dominated)." if predicted else "")),
               *_wrap(f"HF acc, jerk: RMS of the command's acceleration above {HF_ABOVE_HZ:g} Hz "
                      "and of its jerk (motcomp.core.quality.command_quality) over the motion "
-                     f"from {STARTUP_S:g} s in (the phase's start-up: rejoin blend, prefilters "
-                     "fading back in), on the service's tick grid; ratio: live HF acc over the "
-                     "ideal run's."),
+                     f"from {start} s in, off / on (the phase's start-up: the rejoin blend, and "
+                     "with prediction until the service reported every prefilter at full "
+                     "weight), on the service's tick grid; ratio: live HF acc over the ideal "
+                     f"run's (the compensated one starting after a {IDEAL_GAP_S:g} s stale gap, "
+                     "as the live phase does)."),
               *_wrap(f"* at acc limit: share of the ticks whose |acceleration| (second difference "
                      f"of the command) is within {100 * (1 - AT_LIMIT_FRACTION):g} % of the "
                      f"axis' limit ({limits}): counted from the command, not from the output "

@@ -76,6 +76,11 @@ class TickPlan:
     period_ns: int
     missing_frames: int = 0
     notes: list[str] = field(default_factory=list)
+    seq_holes: int = 0
+    """Sequence numbers missing from the recorded input between the first and the last frame
+    the service used: frames the recorder may have lost while the service read them (a sender
+    counting its frames, as ``motcomp source`` does, leaves none); with any, the replay reads
+    a shorter history and is not bit-identical."""
     bypass_axes: np.ndarray | None = None
     """Axes whose recorded bypass state is known (driven by the recorded service; the output
     flags say nothing of the others).  None: all."""
@@ -289,6 +294,11 @@ def _from_outputs(session: Session, cfg: ServiceConfig, params: TickParams, run:
     if missing_frames:
         notes.append(f"{missing_frames} input frames the service used are not in the "
                      "recording: their ticks see no new input")
+    holes = _seq_holes(inp.seq, want)
+    if holes:
+        notes.append(f"{holes} sequence numbers between the first and the last frame the "
+                     "service used are not in the recording (lost to the recorder, or never "
+                     "sent): the replay reads the frames it has")
     # frames consumed in ticks the recorder lost: by arrival time (mapped to the tick clock),
     # newer than the frame in use before the gap and older than the one in use after it
     lost = np.flatnonzero((row_src == -2) | (row_src == -3))
@@ -329,7 +339,16 @@ def _from_outputs(session: Session, cfg: ServiceConfig, params: TickParams, run:
     rec_driven = [st["driven"] for _, st in session.status if isinstance(st.get("driven"), list)]
     by_axes = np.array([a in rec_driven[-1] for a in AXES]) if rec_driven else None
     return TickPlan(now_ns, frame, output, emit, bypass0, events, park, warm, method, period,
-                    missing_frames, notes, by_axes)
+                    missing_frames, notes, holes, by_axes)
+
+
+def _seq_holes(seq: np.ndarray, used: np.ndarray) -> int:
+    """Sequence numbers within ``[min(used), max(used)]`` that no recorded frame carries."""
+    if not used.size:
+        return 0
+    lo, hi = int(used.min()), int(used.max())
+    have = np.unique(seq[(seq >= lo) & (seq <= hi)]).size
+    return hi - lo + 1 - have
 
 
 def _assign_by_arrival(frame: np.ndarray, now_ns: np.ndarray, rows: np.ndarray,

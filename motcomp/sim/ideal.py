@@ -34,13 +34,17 @@ class IdealRun:
 
 
 def ideal_run(cfg: ServiceConfig, pos: Mapping[str, np.ndarray], rate_hz: float,
-              bypass: bool | None = None, settle_s: float = 2.0) -> IdealRun:
+              bypass: bool | None = None, settle_s: float = 2.0, gap_s: float = 0.0
+              ) -> IdealRun:
     """Run ``cfg``'s tick on the trajectory ``pos`` (axis -> samples at ``rate_hz``).
 
     The first sample is held for ``settle_s`` before the motion starts, sent at ``rate_hz``
     (the start-up blend and the input's period settle), and the returned traces start with the
-    motion.  ``bypass`` True/False forces compensation off/on on every driven axis; None keeps
-    the config's.
+    motion.  ``gap_s`` > 0 then sends nothing for that long before the motion: the input goes
+    stale and its reference is held, and the motion's first sample rejoins it -- the start of a
+    session that follows another (rejoin blend, the prediction's calm time and fade-in), as a
+    live service meets it.  ``bypass`` True/False forces compensation off/on on every driven
+    axis; None keeps the config's.
 
     Raises
     ------
@@ -75,14 +79,17 @@ def ideal_run(cfg: ServiceConfig, pos: Mapping[str, np.ndarray], rate_hz: float,
     n_settle = int(settle_ticks * period_ns / src_ns)  # at the trajectory's own rate
     j = -n_settle  # next settling sample (negative instants, before the motion)
     payload: bytes | None
+    gap_ticks = round(gap_s * loop_hz)
     for k in range(settle_ticks):
         payload = None
         while j < 0 and (j + n_settle) * src_ns <= k * period_ns + 1e-3:
-            payload = encode_input(seq, j / rate_hz, first)
+            payload = encode_input(seq, j / rate_hz - gap_ticks / loop_hz, first)
             seq += 1
             j += 1
         step(state, params, k * period_ns, payload)
-    t0_ns = settle_ticks * period_ns
+    for k in range(settle_ticks, settle_ticks + gap_ticks):  # nothing arrives: stale, held
+        step(state, params, k * period_ns, None)
+    t0_ns = (settle_ticks + gap_ticks) * period_ns
     j = 0  # next source sample
     for k in range(n_ticks):
         now_ns = t0_ns + k * period_ns
