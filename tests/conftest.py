@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from motcomp.core.models import P1D
+from motcomp.runtime.probe import HostClock
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -29,3 +30,13 @@ def subprocess_env() -> dict[str, str]:
     env = dict(os.environ)
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
     return env
+
+
+def judge_realtime(clock: HostClock | None, what: str) -> None:
+    """Skip the rest of a real-time test as *not judged*, with the host's figures, when the host
+    itself could not hold the loop rate while it was measured (:class:`HostProbe` around the
+    measurement; never a wider bound: docs/TESTING.md)."""
+    if clock is None:
+        raise AssertionError("the host probe has no result: judge after its run")
+    if not clock.holds():
+        pytest.skip(f"not judged ({what}): {clock.describe()}")

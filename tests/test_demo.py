@@ -4,8 +4,10 @@ Besides the delay gained, the demo records the command the service sends the pla
 sets it beside the ideal run (the config's tick fed the same motion perfectly timed: the floor).
 The sanity tests check that those figures exist and hang together; the motion-quality targets of
 the compensated command are :data:`MAX_LIMITED_SHARE_ON` and :data:`MAX_HF_RATIO_TO_IDEAL`,
-asserted in :func:`test_compensated_command_is_near_the_floor` (the same bounds however busy the
-machine: the figures are taken over the stretches of recorded ticks, live and ideal alike).
+asserted in :func:`test_compensated_command_is_near_the_floor` (the figures are taken over the
+stretches of recorded ticks, live and ideal alike).  The real-time figures are judged only if the
+host's bare loop clock, run beside the demo, held the loop rate; otherwise those tests report
+*not judged* with the host's figures (docs/TESTING.md), never a wider bound.
 """
 
 from __future__ import annotations
@@ -14,7 +16,11 @@ import math
 
 import pytest
 
+from motcomp.config import load_config
 from motcomp.demo import PHASES, RAILS, DemoResult, report, run_demo
+from motcomp.resources import config_file
+from motcomp.runtime.probe import HostClock, HostProbe
+from tests.conftest import judge_realtime
 
 pytestmark = pytest.mark.slow
 
@@ -37,13 +43,29 @@ about 4 ms, plus the input reconstruction's 1.1 ms)."""
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory: pytest.TempPathFactory) -> DemoResult:
-    return run_demo(tmp_path_factory.mktemp("demo"), quiet=True)
+def measured(tmp_path_factory: pytest.TempPathFactory) -> tuple[DemoResult, HostClock | None]:
+    """The demo, and the host's bare loop clock (the demo config's loop settings) beside it."""
+    loop = load_config(config_file("demo.toml")).loop
+    with HostProbe(loop.rate_hz, loop.spin_us, loop.sleep_max_us) as probe:
+        res = run_demo(tmp_path_factory.mktemp("demo"), quiet=True)
+    return res, probe.result
 
 
-def test_demo_reports_the_delay_gained(demo: DemoResult) -> None:
+@pytest.fixture(scope="module")
+def demo(measured: tuple[DemoResult, HostClock | None]) -> DemoResult:
+    return measured[0]
+
+
+@pytest.fixture(scope="module")
+def host(measured: tuple[DemoResult, HostClock | None]) -> HostClock | None:
+    return measured[1]
+
+
+def test_demo_reports_the_delay_gained(demo: DemoResult, host: HostClock | None) -> None:
     text = report(demo)
     assert all(code == 0 for code in demo.exit_codes.values()), text
+    assert "Platform hard-limit violations: 0" in text
+    judge_realtime(host, "the delays of the demo")
     ms = {a: (d["off"] * 1e3, d["on"] * 1e3) for a, d in demo.delays.items()}
     off, on = ms["rails_y"]  # the slalom, as in the paper's Fig. 4
     # the platform's 196 ms behind the setpoints, and the band limit's 7.0 ms before it
@@ -62,12 +84,16 @@ def test_demo_reports_the_delay_gained(demo: DemoResult) -> None:
     assert "Platform hard-limit violations: 0" in text
 
 
-def test_demo_records_the_command_and_sets_it_beside_the_floor(demo: DemoResult) -> None:
+def test_demo_records_the_command_and_sets_it_beside_the_floor(demo: DemoResult,
+                                                               host: HostClock | None) -> None:
     text = report(demo)
     assert set(demo.command) == set(demo.delays), text  # every axis of the table
     for ph in PHASES:
         f = demo.frames[ph]
         assert f.recorded + f.lost + f.unsent == f.ticks, f
+    judge_realtime(host, "the command frames of the demo")
+    for ph in PHASES:
+        f = demo.frames[ph]
         assert f.recorded >= MIN_RECORDED_SHARE * f.ticks, f
         m0, m1 = demo.motion[ph]
         assert f.ticks == pytest.approx((m1 - m0) * demo.status["rate_hz"], abs=1)
@@ -81,15 +107,10 @@ def test_demo_records_the_command_and_sets_it_beside_the_floor(demo: DemoResult)
             for share in (c.at_limit, c.ideal_at_limit, c.ideal_acted):
                 assert 0.0 <= share <= 1.0, (axis, ph, c)
             assert c.ideal.acc_peak <= a_max * (1 + 1e-9), (axis, ph, c)  # the limiter's bound
-            # not for the predicted hexapod in phase "on": the ideal run settles 2 s on the
-            # first sample and predicts from the motion's first tick, while the live service,
-            # coming from the stale gap between the phases, rejoins (0.5 s), waits for calm
-            # (0.5 s) and fades prediction in (0.5 s) during the motion's first 1.5 s; the two
-            # commands differ there by design, and that onset holds most of the hexapod's tiny
-            # HF acceleration (measured: the ideal 0.6-1.6x the live)
-            if not (axis in HEXAPOD and ph == "on"):
-                assert c.ideal.hf_acc_rms <= IDEAL_ABOVE_LIVE_FACTOR * c.live.hf_acc_rms, (
-                    axis, ph, c)
+            # (the figures start once the live prefilters are at full weight, after the ideal
+            # run's, which rejoins after a stale gap as the live phase does)
+            assert c.ideal.hf_acc_rms <= IDEAL_ABOVE_LIVE_FACTOR * c.live.hf_acc_rms, (
+                axis, ph, c)
             assert c.live.jerk_rms > 0 and c.live.acc_peak > 0, (axis, ph, c)  # it moved
     for axis in RAILS:  # the floor of the setpoint itself (bypass) never touches the limit
         assert demo.command[axis]["off"].ideal_at_limit == 0.0
@@ -111,7 +132,9 @@ def test_demo_figure_shows_the_command(demo: DemoResult) -> None:
         assert png.info["Description"] == "; ".join(demo.panels)
 
 
-def test_compensated_command_is_near_the_floor(demo: DemoResult) -> None:
+def test_compensated_command_is_near_the_floor(demo: DemoResult, host: HostClock | None
+                                               ) -> None:
+    judge_realtime(host, "the demo's compensated command")
     text = report(demo)
     for axis in RAILS:
         c = demo.command[axis]["on"]

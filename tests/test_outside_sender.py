@@ -40,7 +40,7 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -48,9 +48,11 @@ import msgpack
 import numpy as np
 import pytest
 import zenoh
-from conftest import ROOT, motcomp_cmd, subprocess_env
+from conftest import ROOT, judge_realtime, motcomp_cmd, subprocess_env
 from scipy import signal as sps
 from scipy.interpolate import CubicSpline
+
+from motcomp.runtime.probe import HostClock, HostProbe
 
 AXIS = "rails_y"
 SLALOM_HZ = 0.31
@@ -198,6 +200,8 @@ class Figures:
     input: Sine
     status: dict[str, Any]
     exit_codes: dict[str, int]
+    host: HostClock | None = None
+    """The host's bare loop clock over the run (:class:`HostProbe`)."""
 
 
 def figures(kind: str, rate_hz: float, sender: dict[str, Any], rec: Recording,
@@ -244,7 +248,7 @@ def figures(kind: str, rate_hz: float, sender: dict[str, Any], rec: Recording,
 def run_sender(kind: str, rate_hz: float, log_dir: Path, extra: tuple[str, ...] = ()) -> Figures:
     """One run on fresh processes: the sender drives the slalom, then everything stops."""
     log_dir.mkdir(parents=True, exist_ok=True)
-    with rig(log_dir) as (endpoint, session, rec, codes):
+    with HostProbe() as probe, rig(log_dir) as (endpoint, session, rec, codes):
         sender = subprocess.Popen(
             [sys.executable, str(ROOT / "tools" / "wire_senders.py"), "--kind", kind,
              "--rate", str(rate_hz), "--axis", AXIS, "--signal", "slalom",
@@ -265,7 +269,7 @@ def run_sender(kind: str, rate_hz: float, log_dir: Path, extra: tuple[str, ...] 
                                f"{out_bytes[1].decode(errors='replace')[-2000:]}")
         summary = json.loads(out_bytes[0].decode().strip().splitlines()[-1])
         time.sleep(0.3)  # the last outputs and feedback in flight
-    return figures(kind, rate_hz, summary, rec, status, codes)
+    return replace(figures(kind, rate_hz, summary, rec, status, codes), host=probe.result)
 
 
 class Runs:
@@ -292,10 +296,11 @@ def check_run_is_sound(fig: Figures) -> None:
     assert fig.status, "the service did not answer the status query during the run"
     assert fig.status["rate_hz"] == LOOP_RATE_HZ, fig.status["rate_hz"]
     assert fig.status["frames"]["rejected"] == 0, fig.status["frames"]
+    assert fig.exit_codes == {"service": 0, "hil": 0}, fig.exit_codes
+    judge_realtime(fig.host, f"{fig.kind}@{fig.rate_hz:g}")
     assert fig.ticks_missing <= 0.1 * (fig.outputs + fig.ticks_missing), (
         f"{fig.ticks_missing} of {fig.outputs + fig.ticks_missing} ticks without an output frame "
         f"(service's missed_ticks since start: {fig.status['missed_ticks']}): host overloaded")
-    assert fig.exit_codes == {"service": 0, "hil": 0}, fig.exit_codes
     skipped = fig.sender["skipped"] / (fig.sender["skipped"] + fig.sender["frames"])
     assert skipped <= MAX_SKIPPED_SHARE, f"the host could not run the sender: {fig.sender}"
 
@@ -420,11 +425,12 @@ def measure(names: list[str], log_dir: Path) -> None:
     acceleration and jerk RMS of the command, delay to the feedback, the input frames' own
     offset from the motion, the fit's R^2, output ticks missing); then the service's status
     taken 1 s before the end (its delay, limited share, HF acceleration and jerk over the last
-    2 s, missed ticks since start, input lag), and the host's 1-minute load average.
+    2 s, missed ticks since start, input lag), the host's 1-minute load average and the share
+    of deadlines its bare loop clock missed during the run (:class:`HostProbe`).
     """
     print(f"{'sender':<14}{'frames':>7}{'skip':>6}{'sat %':>7}{'hf acc':>9}{'jerk':>9}"
           f"{'delay ms':>9}{'in ms':>7}{'R2':>8}{'gaps':>6} |{'delay':>7}{'lim %':>7}"
-          f"{'hf acc':>8}{'jerk':>8}{'missed':>7}{'lag ms':>7}{'load':>6}", flush=True)
+          f"{'hf acc':>8}{'jerk':>8}{'missed':>7}{'lag ms':>7}{'load':>6}{'host %':>7}", flush=True)
     for name in names:
         spec, _, rate = name.partition("@")
         kind, _, policy = spec.partition(":")
@@ -439,7 +445,8 @@ def measure(names: list[str], log_dir: Path) -> None:
               f"{100 * q.get('limited_share', math.nan):>7.2f}{q.get('hf_acc_rms', math.nan):>8.3f}"
               f"{q.get('jerk_rms', math.nan):>8.1f}{fig.status.get('missed_ticks', -1):>7}"
               f"{fig.status.get('input', {}).get('lag_ms', math.nan):>7.2f}"
-              f"{Path('/proc/loadavg').read_text().split()[0]:>6}", flush=True)
+              f"{Path('/proc/loadavg').read_text().split()[0]:>6}"
+              f"{100 * (fig.host.missed_share if fig.host else math.nan):>7.2f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,8 @@ from motcomp.core.quality import estimate_delay
 from motcomp.io.zenoh_io import free_tcp_port, loopback
 from motcomp.record.session import read_session
 from motcomp.resources import config_file
-from tests.conftest import motcomp_cmd, subprocess_env
+from motcomp.runtime.probe import HostProbe
+from tests.conftest import judge_realtime, motcomp_cmd, subprocess_env
 from tests.test_service_process import process
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
@@ -57,8 +58,9 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
     site = tmp_path / "site.toml"
     admin = "[admin]\nenabled = true\n"
     site.write_text(f'include = ["{config_file("motcomp.toml")}"]\n{admin}')
-    with process(["hil", "-l", hil_ep, "--truth", f"rails_y={truth}", "--log-level", "info"],
-                 tmp_path / "hil.log") as hil, \
+    with HostProbe() as probe, \
+            process(["hil", "-l", hil_ep, "--truth", f"rails_y={truth}", "--log-level", "info"],
+                    tmp_path / "hil.log") as hil, \
             process(["run", "--config", str(site), "-l", svc_ep, "-e", hil_ep],
                     tmp_path / "svc.log") as svc:
         time.sleep(2.0)
@@ -112,6 +114,7 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
         assert svc.wait(timeout=30) == 0
         hil.send_signal(signal.SIGTERM)
         assert hil.wait(timeout=30) == 0
+    judge_realtime(probe.result, "the identified delay and the compensated slalom")
     # the platform as the service's stamps see it: the drawn delay plus the transport and the
     # simulator's tick phase, which the simulator measures (each setpoint's age when applied)
     age = re.search(r"applied (\S+) ms after their t \(median",

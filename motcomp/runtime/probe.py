@@ -1,0 +1,133 @@
+"""The host's own deadline misses: a bare loop clock in a child process, run beside a session.
+
+A real-time figure (a delay, the command's smoothness) says something about motcomp only if the
+host could hold the loop's rate while it was measured.  :class:`HostProbe` runs the loop's clock
+(:class:`~motcomp.runtime.clock.DeadlineClock`, the config's loop settings, no work, no I/O) in
+a process of its own for as long as its ``with`` block lasts, and returns what the machine
+itself imposed on it: deadlines missed, lateness percentiles, the longest stall.  A test or a
+benchmark then judges its real-time figures only if :meth:`HostClock.holds`, and otherwise
+reports them as not judged, with these figures (docs/TESTING.md).
+
+The probe costs what the loop's clock costs: its spin before each deadline (``spin_us`` of
+each period) and its naps.  ``python -m motcomp.runtime.probe RATE SPIN_US SLEEP_MAX_US``
+runs it until SIGTERM and prints one JSON line.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import subprocess
+import sys
+import threading
+from dataclasses import dataclass
+from types import TracebackType
+
+import numpy as np
+
+from motcomp.errors import ServiceError
+
+__all__ = ["MAX_MISSED_SHARE", "MAX_STALL_MS", "HostClock", "HostProbe"]
+
+MAX_MISSED_SHARE = 0.005
+"""The host holds a 1 kHz loop if its bare clock missed at most this share of the deadlines
+(a quiet host: 0-0.03 %; two CPU hogs beside the suite on 2 cores: about 0.1 %) ..."""
+MAX_STALL_MS = 50.0
+"""... and never stalled it longer than this (the service's default ``stale_after_s``: a
+longer stall holds the reference, which no real-time figure survives)."""
+
+
+@dataclass(frozen=True)
+class HostClock:
+    """What the bare clock met: ``ticks`` it ran, deadlines ``missed``, lateness (us)."""
+
+    ticks: int
+    missed: int
+    late_p99_us: float
+    late_p999_us: float
+    late_max_us: float
+
+    @property
+    def missed_share(self) -> float:
+        total = self.ticks + self.missed
+        return self.missed / total if total else math.nan
+
+    def holds(self) -> bool:
+        """The host held the loop rate (:data:`MAX_MISSED_SHARE`, :data:`MAX_STALL_MS`)."""
+        return (self.ticks > 0 and self.missed_share <= MAX_MISSED_SHARE
+                and self.late_max_us <= MAX_STALL_MS * 1e3)
+
+    def describe(self) -> str:
+        return (f"the host's bare loop clock missed {self.missed} of {self.ticks + self.missed} "
+                f"deadlines ({100 * self.missed_share:.2f} %; a host that holds the rate: <= "
+                f"{100 * MAX_MISSED_SHARE:g} %), lateness p99 {self.late_p99_us:.0f} us, "
+                f"p99.9 {self.late_p999_us:.0f} us, longest {self.late_max_us / 1e3:.1f} ms "
+                f"(<= {MAX_STALL_MS:g} ms)")
+
+
+class HostProbe:
+    """``with HostProbe(rate_hz, spin_us, sleep_max_us) as probe: ...``; then ``probe.result``
+    (:class:`HostClock`).
+
+    Raises
+    ------
+    ServiceError
+        On exit, if the probe process failed or printed no result.
+    """
+
+    def __init__(self, rate_hz: float = 1000.0, spin_us: float = 50.0,
+                 sleep_max_us: float = 100.0) -> None:
+        self.args = [str(rate_hz), str(spin_us), str(sleep_max_us)]
+        self._proc: subprocess.Popen[str] | None = None
+        self.result: HostClock | None = None
+
+    def __enter__(self) -> HostProbe:
+        self._proc = subprocess.Popen([sys.executable, "-m", "motcomp.runtime.probe", *self.args],
+                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        line = self._proc.stdout.readline() if self._proc.stdout else ""
+        if line.strip() != "ready":
+            self._proc.kill()
+            raise ServiceError(f"host probe did not start: {line!r} "
+                               f"{self._proc.stderr.read() if self._proc.stderr else ''}")
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        proc = self._proc
+        assert proc is not None
+        proc.send_signal(signal.SIGTERM)
+        try:
+            out, err = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, err = proc.communicate()
+        if kind is not None:
+            return
+        try:
+            self.result = HostClock(**json.loads(out))
+        except (ValueError, TypeError) as e:
+            raise ServiceError(f"host probe exited {proc.returncode} without a result: "
+                               f"{out!r} {err[-500:]!r}") from e
+
+
+def _run(rate_hz: float, spin_us: float, sleep_max_us: float) -> HostClock:
+    """The bare clock until SIGTERM (the process' main thread)."""
+    from motcomp.runtime.clock import DeadlineClock
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    late: list[int] = []
+    clock = DeadlineClock(rate_hz, spin_us, sleep_max_us=sleep_max_us)
+    print("ready", flush=True)
+    while not stop.is_set():
+        deadline, now = clock.wait()
+        late.append(now - deadline)
+    a = np.asarray(late, dtype=float) / 1e3 if late else np.zeros(1)
+    return HostClock(clock.ticks, clock.missed, float(np.percentile(a, 99)),
+                     float(np.percentile(a, 99.9)), float(a.max()))
+
+
+if __name__ == "__main__":
+    r = _run(*(float(x) for x in sys.argv[1:4]))
+    print(json.dumps(r.__dict__), flush=True)

@@ -1,0 +1,45 @@
+"""The host probe: a bare loop clock in a child process, and the rule that judges a host."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from motcomp.runtime.probe import MAX_MISSED_SHARE, MAX_STALL_MS, HostClock, HostProbe
+from tests.conftest import judge_realtime
+
+
+def test_probe_accounts_for_every_deadline_of_its_run() -> None:
+    t0 = time.monotonic()
+    with HostProbe(1000.0, 50.0, 100.0) as probe:
+        time.sleep(1.0)
+    elapsed = time.monotonic() - t0
+    r = probe.result
+    assert r is not None
+    # ticks run plus deadlines missed cover the probe's life (it started before t0 + its own
+    # start-up and stopped within the exit): never more than the elapsed time allows
+    assert 0.8 * 1000 <= r.ticks + r.missed <= elapsed * 1000 + 1
+    assert 0.0 <= r.late_p99_us <= r.late_p999_us <= r.late_max_us
+    assert "deadlines" in r.describe()
+
+
+@pytest.mark.parametrize(("missed", "late_max_ms", "holds"), [
+    (0, 0.1, True),
+    (round(MAX_MISSED_SHARE * 10_000), 1.0, True),
+    (round(MAX_MISSED_SHARE * 10_000) + 2, 1.0, False),
+    (0, MAX_STALL_MS + 1.0, False),
+])
+def test_a_host_holds_the_rate_within_both_bounds(missed: int, late_max_ms: float,
+                                                  holds: bool) -> None:
+    clock = HostClock(10_000 - missed, missed, 50.0, 100.0, late_max_ms * 1e3)
+    assert clock.holds() is holds
+
+
+def test_not_judged_is_a_skip_with_the_host_figures() -> None:
+    bad = HostClock(9000, 1000, 800.0, 5000.0, 80_000.0)
+    with pytest.raises(pytest.skip.Exception, match=r"not judged \(x\): .*missed 1000 of 10000"):
+        judge_realtime(bad, "x")
+    judge_realtime(HostClock(10_000, 0, 20.0, 40.0, 90.0), "x")  # judged: returns
+    with pytest.raises(AssertionError):
+        judge_realtime(None, "x")
