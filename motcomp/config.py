@@ -304,6 +304,8 @@ class ZenohConfig(BaseModel):
 class FeedbackConfig(BaseModel):
     model_config = _STRICT
     key: str = "platform/feedback"
+    status_key: str = "platform/status"
+    """The platform's own status (docs/WIRE.md); the service shows its stack figures."""
 
 
 class ServiceConfig(BaseModel):

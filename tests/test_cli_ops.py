@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import socket
 import subprocess
+import sys
 import time
 import tomllib
 from collections.abc import Iterator
@@ -252,8 +254,17 @@ def test_status_table_from_a_status_map() -> None:
           "saturation": dict.fromkeys(AXES, 0) | {"rails_y": 7},
           "bypass": ["hex_z"], "driven": ["rails_x", "rails_y", "hex_z"],
           "prediction": {"hex_z": {"state": "fallback", "weight": 0.0, "ratio": 0.4,
-                                   "fallbacks": 2}}}
+                                   "fallbacks": 2}},
+          "t": 1000.0,
+          "deadlines": {"window_s": 10.0, "due": 10000, "missed": 512, "share": 0.0512,
+                        "degraded": True, "windows_degraded": 1},
+          "platform": {"received_t": 999.5, "setpoint_age_ms": 1.62,
+                       "setpoint_age_mean_ms": 1.75, "missed_ticks": 3}}
     text = format_status(st)
+    assert ("deadlines   missed 512 of 10000 over the last 10 s (5.1 %)  DEGRADED: the host "
+            "does not give the loop its CPU") in text
+    assert ("platform    setpoints applied 1.62 ms after their t (median; mean 1.75 ms): the "
+            "stack's delay; its loop missed 3 ticks") in text
     assert "{" not in text and "[" not in text  # no Python reprs
     assert "hash abc123  version 3  profile fast" in text
     assert "1000 Hz  ticks 1234  missed 2" in text
@@ -294,6 +305,39 @@ def test_status_of_a_running_service_as_table_json_and_watch(tmp_path: Path) -> 
         out, err = w.communicate(timeout=10)
         assert w.returncode == 0, err
         assert out.count("\naxis ") >= 2 and out.count("--- ") >= 2, out
+
+
+@pytest.mark.slow
+def test_a_starved_loop_says_so_and_the_platform_s_stack_delay_is_shown(tmp_path: Path
+                                                                         ) -> None:
+    """The service's loop pinned to one CPU beside a CPU hog pinned there too: the deadlines it
+    misses are logged at WARNING and flagged in the status; the platform's own figure of the
+    stack's delay (hil's setpoint age) is in the status and its table."""
+    cpu = sorted(os.sched_getaffinity(0))[0]
+    cfg = tmp_path / "cpu.toml"
+    cfg.write_text(f'include = ["{config_file("motcomp.toml")}"]\n[loop]\ncpu = {cpu}\n')
+    p_hil, p_svc = free_tcp_port(), free_tcp_port()
+    hog = subprocess.Popen([sys.executable, "-c", f"import os\nos.sched_setaffinity(0, {{{cpu}}})"
+                            "\nwhile True: pass"])
+    try:
+        with process(["hil", "-l", loopback(p_hil), "--log-level", "warning"],
+                     tmp_path / "hil.log"), \
+                process(["run", "--config", str(cfg), "-l", loopback(p_svc), "-e",
+                         loopback(p_hil)], tmp_path / "svc.log"):
+            log = wait_for_text(tmp_path / "svc.log", "deadlines over the last", hog,
+                                timeout=40.0)
+            p = cli("status", "-e", loopback(p_svc), "--json")
+            assert p.returncode == 0, p.stderr
+            st = json.loads(p.stdout)
+            table = cli("status", "-e", loopback(p_svc)).stdout
+    finally:
+        hog.kill()
+        hog.wait()
+    assert "WARNING" in log and "the host does not give the loop its CPU" in log, log
+    assert st["deadlines"]["windows_degraded"] >= 1, st["deadlines"]
+    assert st["deadlines"]["due"] > 0
+    assert st["platform"]["setpoint_age_ms"] > 0, st["platform"]
+    assert "platform    setpoints applied" in table, table
 
 
 # --- config example -----------------------------------------------------------------------

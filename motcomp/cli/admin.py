@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -177,6 +178,22 @@ def _yes(flag: bool) -> str:
     return "yes" if flag else "no"
 
 
+def platform_line(plat: dict[str, Any], now_t: float) -> str:
+    """The platform's own figures of the stack, from its status (docs/WIRE.md)."""
+    age = plat.get("setpoint_age_ms")
+    text = "platform    " + (
+        f"setpoints applied {float(age):.2f} ms after their t (median; mean "
+        f"{float(plat.get('setpoint_age_mean_ms', float('nan'))):.2f} ms): the stack's delay"
+        if isinstance(age, int | float) and math.isfinite(age)
+        else "reports no setpoint age")
+    if isinstance(plat.get("missed_ticks"), int):
+        text += f"; its loop missed {plat['missed_ticks']} ticks"
+    seen = plat.get("received_t")
+    if isinstance(seen, int | float) and now_t - seen > 5.0:
+        text += f" ({now_t - seen:.0f} s ago)"
+    return text
+
+
 def format_status(st: dict[str, Any]) -> str:
     """The service's status map (``motcomp/status``) as a table for people."""
     cfg = st.get("config") or {}
@@ -189,6 +206,16 @@ def format_status(st: dict[str, Any]) -> str:
         f"{st.get('missed_ticks', 0)}" + ("  (ticks on input)" if st.get("sync_to_input")
                                           else ""),
     ]
+    dl = st.get("deadlines") or {}
+    if dl.get("due"):
+        share = 100 * float(dl.get("share", 0))
+        lines.append(f"deadlines   missed {dl.get('missed', 0)} of {dl['due']} over the last "
+                     f"{float(dl.get('window_s', 0)):.0f} s ({share:.1f} %)"
+                     + ("  DEGRADED: the host does not give the loop its CPU"
+                        if dl.get("degraded") else ""))
+    plat = st.get("platform")
+    if isinstance(plat, dict):
+        lines.append(platform_line(plat, float(st.get("t", 0.0))))
     loop = st.get("loop") or {}
     series = [k[:-len("_p50_us")] for k in loop if k.endswith("_p50_us")]
     if series:

@@ -137,11 +137,21 @@ def summarise(path: Path, gap_s: float | None = None) -> dict[str, Any]:
         "config_hash": meta.get("config_hash") or _status_hash(s.status),
         "recorded_config": s.config_json is not None,
         "metadata": meta,
+        "platform": _last_platform(s.status),
         "keys": keys,
         "modes": modes,
         "truncated": s.truncated,
         "warnings": list(s.warnings),
     }
+
+
+def _last_platform(status: list[tuple[int, dict[str, Any]]]) -> dict[str, Any] | None:
+    """The platform's figures in the last recorded service status that carries them."""
+    for _, st in reversed(status):
+        plat = st.get("platform")
+        if isinstance(plat, dict) and plat:
+            return {**plat, "status_t": st.get("t", 0.0)}
+    return None
 
 
 def _status_hash(status: list[tuple[int, dict[str, Any]]]) -> str | None:
@@ -166,7 +176,14 @@ def format_info(info: dict[str, Any]) -> str:
         head += f" (motcomp {meta['version']}"
         head += f", started {meta['started']})" if meta.get("started") else ")"
     lines = [head, f"config hash {info['config_hash'] or 'unknown'}"
-             + ("" if info["recorded_config"] else " (no config recorded)")]
+             + ("" if info["recorded_config"] else
+                " (no config recorded" + (f": {meta['config_missing']})"
+                                          if meta.get("config_missing") else ")"))]
+    if info.get("platform"):
+        from motcomp.cli.admin import platform_line
+
+        plat = info["platform"]
+        lines.append(platform_line(plat, float(plat.get("status_t", 0.0))))
     lines.append(f"{'key':<28}{'role':<10}{'messages':>9}{'rate Hz':>10}{'gaps':>6}  longest gap")
     # (rate: one over the median interval; mean_rate_hz in the JSON counts the gaps in)
     for k in info["keys"]:

@@ -141,6 +141,23 @@ class SessionWriter:
         self._part_t0 = now
         self._last_flush = now
 
+    def attach_service(self, info: dict[str, str], config_json: bytes | None) -> None:
+        """The service's metadata (and config) learnt after the file was opened: written into
+        the open part now (a later metadata record replaces the first for readers) and into
+        every later part."""
+        self.info.update(info)
+        if config_json is not None:
+            self.config_json = config_json
+        meta = {"version": __version__, "started": self.started, "keys": json.dumps(self.keys),
+                **self.info}
+        if self.rotating:
+            meta["part"] = str(len(self.parts))
+        self._writer.add_metadata(METADATA_NAME, meta)
+        if config_json is not None:
+            now = self.clock()
+            self._writer.add_attachment(now, now, CONFIG_ATTACHMENT, "application/json",
+                                        config_json)
+
     def _channel(self, key: str) -> int:
         cid = self._channels.get(key)
         if cid is None:
@@ -228,6 +245,10 @@ class RecordOptions:
     flush_s: float = 1.0
     status_key: str = DEFAULT_KEYS["status"]
     status_timeout_s: float = 0.5
+    """Each query of the service's status waits this long (0: never ask, attach no config)."""
+    status_retry_s: float = 2.0
+    """Until the config is attached: ask again this often, besides taking it from the status
+    frames the service publishes (when the status key is recorded)."""
     queue_max: int = 200_000
     poll_s: float = 0.005
 
@@ -239,11 +260,15 @@ class RecordSummary:
     dropped: int
     duration_s: float
     status: dict[str, Any] | None
+    config_missing: str | None = None
+    """Why the recording holds no config (None: it holds the service's)."""
 
     def text(self) -> str:
         lines = [f"recorded {sum(self.counts.values())} messages in {self.duration_s:.1f} s to "
                  + ", ".join(str(p) for p in self.parts)]
         lines += [f"  {k}: {n}" for k, n in sorted(self.counts.items())]
+        lines.append(f"  config: not recorded ({self.config_missing})" if self.config_missing
+                     else "  config: the service's, attached")
         if self.dropped:
             lines.append(f"  dropped (queue full): {self.dropped}")
         return "\n".join(lines)
@@ -305,32 +330,67 @@ def record(opts: RecordOptions, endpoints: ZenohEndpoints,
         queue.append((str(sample.key_expr), t, sample.payload.to_bytes()))
 
     status: dict[str, Any] | None = None
+    missing: str | None = None if opts.status_timeout_s > 0 else "not asked (--status-timeout 0)"
+    watch = opts.status_timeout_s > 0  # until the service's config is settled
+
+    def ask() -> dict[str, Any] | None:
+        nonlocal missing
+        try:
+            raw = first_reply(session, opts.status_key, None, opts.status_timeout_s)
+            st = msgpack.unpackb(raw, raw=False)
+        except (TransportError, ValueError, msgpack.UnpackException) as exc:
+            missing = f"no status from the service on {opts.status_key!r}: {exc}"
+            return None
+        queue.append((opts.status_key, time.time_ns(), raw))
+        return st if isinstance(st, dict) else None
+
+    def settle(st: dict[str, Any]) -> bool:
+        """Take the service's metadata and config from one status; True once settled (the
+        config attached, or refused for a reason the log gives)."""
+        nonlocal status, missing
+        info, attachment = service_info(st)
+        if not info:
+            missing = "the service's status names no config"
+            return False
+        status = st
+        writer.attach_service(info, attachment)
+        missing = None if attachment is not None else (
+            f"the config file {info.get('config_path')!r} named by the service is not the one "
+            "it runs (changed or unreadable since it loaded it)")
+        if attachment is not None:
+            log.info("config attached: %s (hash %s), from the service's status %.1f s into the "
+                     "recording", info.get("config_path"), info.get("config_hash"),
+                     time.monotonic() - t0)
+        return True
+
     with open_session(endpoints) as session:
         subs = []
         try:
             for key in opts.keys:
                 subs.append(session.declare_subscriber(key, on_sample))
-            if opts.status_timeout_s > 0:
-                try:
-                    raw = first_reply(session, opts.status_key, None, opts.status_timeout_s)
-                    status = msgpack.unpackb(raw, raw=False)
-                    queue.append((opts.status_key, time.time_ns(), raw))
-                except (TransportError, ValueError, msgpack.UnpackException) as exc:
-                    log.info("no status from the service (%s): recording without its config",
-                             exc)
-            info, attachment = service_info(status if isinstance(status, dict) else None)
-            writer = SessionWriter(opts.out, opts.keys, info, attachment, opts.compression,
+            first = ask() if watch else None
+            writer = SessionWriter(opts.out, opts.keys, None, None, opts.compression,
                                    opts.chunk_kb * 1024, int(opts.rotate_mb * 1e6),
                                    opts.rotate_s, opts.flush_s)
             t0 = time.monotonic()
+            if first is not None and settle(first):
+                watch = False
+            next_ask = t0 + opts.status_retry_s
             log.info("recording %s to %s", ", ".join(opts.keys), writer.path)
             try:
                 while not stop.is_set():
-                    if opts.duration_s > 0 and time.monotonic() - t0 >= opts.duration_s:
+                    now = time.monotonic()
+                    if opts.duration_s > 0 and now - t0 >= opts.duration_s:
                         break
                     while queue:
                         key, t_ns, payload = queue.popleft()
                         writer.write(key, t_ns, payload)
+                        if watch and key == opts.status_key:
+                            watch = not settle(_status_of(payload))
+                    if watch and now >= next_ask:  # the status key may not be recorded
+                        st = ask()
+                        watch = not (st is not None and settle(st))
+                        next_ask = time.monotonic() + opts.status_retry_s
                     writer.tick()
                     stop.wait(opts.poll_s)
             finally:
@@ -340,9 +400,27 @@ def record(opts: RecordOptions, endpoints: ZenohEndpoints,
                 while queue:
                     key, t_ns, payload = queue.popleft()
                     writer.write(key, t_ns, payload)
+                    if watch and key == opts.status_key:
+                        watch = not settle(_status_of(payload))
+                if missing is not None:
+                    if opts.status_timeout_s > 0:
+                        log.warning("recorded without the service's config (%s): a replay "
+                                    "needs --config FILE", missing)
+                    writer.attach_service({"config_missing": missing}, None)
                 writer.close()
         finally:
             for s in subs:
                 s.undeclare()
     return RecordSummary(writer.parts, dict(writer.counts), dropped[0], time.monotonic() - t0,
-                         status if isinstance(status, dict) else None)
+                         status, missing)
+
+
+def _status_of(payload: bytes) -> dict[str, Any]:
+    """A status frame as a dict ({} if it is not one)."""
+    import msgpack
+
+    try:
+        st = msgpack.unpackb(payload, raw=False)
+    except (ValueError, msgpack.UnpackException):
+        return {}
+    return st if isinstance(st, dict) else {}

@@ -90,6 +90,14 @@ validation, reference, compensator, saturation verdicts); ``late`` waking after 
 
 ENVELOPE_LOG_S = 10.0
 """The envelope guard's actions are logged (ERROR) at most this often, with their count."""
+PLATFORM_FIGURES = ("setpoint_age_ms", "setpoint_age_mean_ms", "ticks", "missed_ticks")
+"""The numbers the service takes from the platform's status frames (docs/WIRE.md)."""
+DEADLINE_WINDOW_S = 10.0
+"""The status' ``deadlines`` block counts the deadlines missed over windows this long ..."""
+DEADLINE_WARN_SHARE = 0.02
+"""... and a window with more than this share missed is logged at WARNING (one line per
+window at most): the delay, the command's smoothness and any identification run then are
+degraded by the host (docs/DEPLOYMENT.md)."""
 
 
 def _hand_over() -> None:
@@ -189,6 +197,10 @@ class Service:
         self.config_version = 1
         self.config_id = config_hash(cfg)
         self.reloads: list[dict[str, Any]] = []
+        self._deadlines: dict[str, Any] = {"window_s": DEADLINE_WINDOW_S, "due": 0, "missed": 0,
+                                           "share": 0.0, "degraded": False,
+                                           "windows_degraded": 0}
+        """The last closed window's deadlines (:meth:`_judge_deadlines`)."""
         self.rt_report = ""
         self._loop_error: BaseException | None = None
         self._source: InputPort | None = None
@@ -201,6 +213,9 @@ class Service:
         """Time the last :meth:`tick` spent in transport calls (input take, sends)."""
         self._pending: list[bytes] = []
         self._feedback: Any = None  # the feedback subscriber (a ring), polled by _main
+        self._platform_sub: Any = None  # the platform's status (a ring of 1), polled by _main
+        self._platform: dict[str, Any] | None = None
+        """The platform's own figures from its last status frame (:meth:`_poll_platform`)."""
         self._perf = time.perf_counter_ns
         self._admin_q: queue.Queue[tuple[str, Any] | None] = queue.Queue(ADMIN_QUEUE)
         self._status_cache: tuple[float, bytes] | None = None
@@ -397,6 +412,7 @@ class Service:
             "sync_to_input": self.cfg.loop.sync_to_input,
             "ticks": st.ticks,
             "missed_ticks": clock.missed if clock else 0,
+            "deadlines": dict(self._deadlines),
             "loop": self.stats.snapshot(),
             "loop_window_s": self.cfg.status.window_s,
             "frames": {"received": st.received, "accepted": st.accepted,
@@ -425,6 +441,7 @@ class Service:
             "reloads": self.reloads[-RELOADS_KEPT:],
             "realtime": self.rt_report,
             "clock": self.tick_clock(),
+            "platform": self._platform,
             **self._quality(),
         }
 
@@ -449,6 +466,26 @@ class Service:
                                                 for x in span)
         return {"feedback": {"key": self.cfg.feedback.key, **rep["feedback"]},
                 "quality": window, "axes_quality": rep["axes"]}
+
+    def _judge_deadlines(self, window: tuple[float, int, int], now: float
+                         ) -> tuple[float, int, int]:
+        """Close a deadline window: the status' ``deadlines`` block, and a WARNING when more
+        than :data:`DEADLINE_WARN_SHARE` of its deadlines were missed."""
+        t0, ticks0, missed0 = window
+        ticks, missed = self.state.ticks, self._clock.missed if self._clock else 0
+        due = (ticks - ticks0) + (missed - missed0)
+        share = (missed - missed0) / due if due > 0 else 0.0
+        degraded = share > DEADLINE_WARN_SHARE
+        self._deadlines = {"window_s": round(now - t0, 3), "due": due,
+                           "missed": missed - missed0, "share": share, "degraded": degraded,
+                           "windows_degraded": self._deadlines.get("windows_degraded", 0)
+                           + int(degraded)}
+        if degraded:
+            log.warning("missed %d of %d deadlines over the last %.0f s (%.1f %%): the host "
+                        "does not give the loop its CPU; delays, command smoothness and "
+                        "identification are degraded until it does", missed - missed0, due,
+                        now - t0, 100 * share)
+        return now, ticks, missed
 
     def tick_clock(self) -> dict[str, Any] | None:
         """How output ``t`` maps back to the loop's own tick instants (None before the loop
@@ -613,6 +650,8 @@ class Service:
             feedback_sub = session.declare_subscriber(cfg.feedback.key,
                                                       zenoh.handlers.RingChannel(FEEDBACK_RING))
             self._feedback = feedback_sub
+            self._platform_sub = session.declare_subscriber(cfg.feedback.status_key,
+                                                            zenoh.handlers.RingChannel(1))
             status_pub = session.declare_publisher(cfg.status.key)
             status_q = session.declare_queryable(cfg.status.key,
                                                  zenoh.handlers.FifoChannel(QUERY_CHANNEL))
@@ -633,7 +672,7 @@ class Service:
                 self._stop_worker(worker)
                 self.preparer.close()
                 sys.setswitchinterval(switch)
-                for q in (status_q, admin_q, feedback_sub):
+                for q in (status_q, admin_q, feedback_sub, self._platform_sub):
                     if q is not None:
                         q.undeclare()
                 status_pub.undeclare()
@@ -696,6 +735,21 @@ class Service:
                 payload = b""
             self.monitor.on_feedback(t_ns, payload)
 
+    def _poll_platform(self) -> None:
+        """Keep the figures of the platform's newest status frame (docs/WIRE.md: those it
+        reports of ``PLATFORM_FIGURES``, numbers only), with the instant it arrived."""
+        sub = self._platform_sub
+        if sub is None or (sample := sub.try_recv()) is None:
+            return
+        try:
+            st = msgpack.unpackb(sample.payload.to_bytes(), raw=False)
+        except Exception:  # not a status frame: nothing to show
+            return
+        if isinstance(st, dict):
+            self._platform = {"received_t": time.time(), **{
+                k: st[k] for k in PLATFORM_FIGURES
+                if isinstance(st.get(k), int | float) and not isinstance(st.get(k), bool)}}
+
     def _open_can(self) -> Any:
         from motcomp.io.can_io import CanSink, load_layouts, open_bus
 
@@ -716,10 +770,12 @@ class Service:
         ready = False
         seen = ModeLog(self.state)
         clamps, clamps_logged = 0, -math.inf
+        window = (time.monotonic(), 0, 0)  # start, ticks and missed at its start
         while not self.loop_done.is_set():
             self.loop_done.wait(0.02)
             now = time.monotonic()
             self._poll_feedback()
+            self._poll_platform()
             self.monitor.drain()
             seen.update(self.state, self.params)
             if self.state.envelope_clamps > clamps and now - clamps_logged >= ENVELOPE_LOG_S:
@@ -729,6 +785,8 @@ class Service:
                           {a: n for a, n in zip(AXES, self.state.envelope_acted, strict=True)
                            if n})
                 clamps, clamps_logged = self.state.envelope_clamps, now
+            if now - window[0] >= DEADLINE_WINDOW_S and self._clock is not None:
+                window = self._judge_deadlines(window, now)
             healthy = self.state.ticks > 0 and now - self.last_tick_mono < 0.25
             if healthy and not ready:
                 ready = True
