@@ -140,6 +140,11 @@ def test_recording_holds_the_session(live: dict[str, Any]) -> None:
     # transit to the recorder on a starved host
     used = set(s.outputs.src_seq.tolist()) - {-1}
     assert len(used - set(s.inputs.seq.tolist())) <= 0.1 * len(used)
+    # the stack's delay as the platform measured it, from the recorded service status
+    p = subprocess.run(motcomp_cmd("info", str(live["path"])), capture_output=True, text=True,
+                       env=subprocess_env(), timeout=60)
+    assert p.returncode == 0, p.stderr
+    assert "platform    setpoints applied" in p.stdout and "no config recorded" not in p.stdout
 
 
 def test_replay_reproduces_the_live_service(live: dict[str, Any]) -> None:
