@@ -68,6 +68,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--jitter-ms", type=non_negative_float, default=0.0, metavar="MS",
                    help="with --simulate: time-stamp jitter (default: 0)")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress on stderr (a bar on a terminal, else plain lines)")
     p.set_defaults(func=run_excite)
 
 
@@ -93,10 +95,13 @@ def run_excite(args: argparse.Namespace) -> int:
     if args.axis not in AXIS_INDEX:
         raise ConfigError(f"--axis: unknown axis {args.axis!r}; axes are {', '.join(AXIS_INDEX)}")
     limits, preset = _limits(args)
-    exc = excitation(args.kind, args.axis, limits, duration_s=args.duration,
-                     rate_hz=args.rate, band_hz=args.band, f_min_hz=args.f_min,
-                     f_max_hz=args.f_max, seed=args.seed, usage=args.usage, fade_s=args.fade,
-                     hold_s=args.hold, period_s=args.period)
+    from motcomp.progress import Progress
+
+    with Progress(f"excite {args.kind}", total=1.0, quiet=args.quiet):
+        exc = excitation(args.kind, args.axis, limits, duration_s=args.duration,
+                         rate_hz=args.rate, band_hz=args.band, f_min_hz=args.f_min,
+                         f_max_hz=args.f_max, seed=args.seed, usage=args.usage, fade_s=args.fade,
+                         hold_s=args.hold, period_s=args.period)
     sim = None
     if args.simulate:
         from motcomp.core.models import parse_model

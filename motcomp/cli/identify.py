@@ -149,7 +149,7 @@ def run_identify(args: argparse.Namespace) -> int:
     # every axis is identified before anything is written
     try:
         with _reader_log_muted(), \
-                Progress("identify", total=stages, quiet=args.quiet or args.json) as bar:
+                Progress("identify", total=stages, quiet=args.quiet) as bar:
             for name in axes:
                 try:
                     rec = load_recording(args.data, axis=name, rate_hz=args.rate,
@@ -230,7 +230,8 @@ def _run_live(args: argparse.Namespace) -> None:
         raise ConfigError("--live chooses the window itself (the excitation's): drop --window")
     run = run_live(LiveOptions(axis=args.axis, out=args.data, kind=args.excite,
                                duration_s=args.excite_s, usage=args.usage,
-                               admin_key=args.admin_key), endpoints_from_args(args))
+                               admin_key=args.admin_key, quiet=args.quiet),
+                   endpoints_from_args(args))
     cols = read_session(run.path).identification_columns(args.axis, "frame")
     t0, t1 = (t - cols.start_s for t in run.window_unix_s)
     inside = (cols.t - cols.start_s >= t0) & (cols.t - cols.start_s <= t1)

@@ -36,6 +36,7 @@ from motcomp.core.axes import AXES
 from motcomp.errors import ServiceError
 from motcomp.ident.excitation import AxisRange, excitation
 from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, open_session
+from motcomp.progress import Progress
 from motcomp.record.recorder import RecordOptions, record
 from motcomp.record.session import DEFAULT_KEYS
 
@@ -62,6 +63,8 @@ class LiveOptions:
     input_key: str = DEFAULT_KEYS["input"]
     keys: list[str] = field(default_factory=lambda: list(DEFAULT_KEYS.values()))
     timeout_s: float = 3.0
+    quiet: bool = False
+    """No progress of the excitation on stderr (:class:`~motcomp.progress.Progress`)."""
 
 
 @dataclass
@@ -146,7 +149,10 @@ def run_live(opts: LiveOptions, endpoints: ZenohEndpoints) -> LiveRun:
             time.sleep(1.0)  # the recorder's subscriptions reach the peers
             traj = Trajectory(rate_hz=exc.rate_hz, pos={opts.axis: np.asarray(exc.cmd)})
             t0 = time.time()
-            stats = publish(traj, endpoints, opts.input_key, wait_peer_s=opts.timeout_s)
+            with Progress(f"excitation on {opts.axis}", traj.duration_s, quiet=opts.quiet,
+                          unit="s") as bar:
+                stats = publish(traj, endpoints, opts.input_key, wait_peer_s=opts.timeout_s,
+                                progress=bar.update)
             t1 = time.time()
             time.sleep(0.5)  # the platform's last response and its feedback
         finally:
