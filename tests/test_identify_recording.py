@@ -213,3 +213,26 @@ def test_all_axes_leaves_out_those_without_usable_data(
     assert any(line.startswith(f"warning: left out: {mixed}: rails_x: no stretch of 5 s or more")
                and "compensated (no bypass:rails_x flag in the outputs)" in line
                for line in cap.err.splitlines()), cap.err
+
+
+def test_a_fit_that_explains_nothing_writes_no_fragment(tmp_path: Path) -> None:
+    """An acceleration unrelated to the command: the report is written, the config fragment
+    only with --force, and the exit code says it (2)."""
+    rng = np.random.default_rng(5)
+    t = np.arange(30_000) / 1000.0
+    cmd = sum(0.02 * np.sin(2 * np.pi * f * t + rng.uniform(0, 6))
+              for f in (0.3, 0.7, 1.3, 2.1, 3.3))
+    acc = rng.normal(0.0, 1.0, t.size)
+    data = tmp_path / "unrelated.csv"
+    data.write_text("t,cmd,acc\n" + "".join(f"{a:.3f},{b:.9f},{c:.6f}\n"
+                                            for a, b, c in zip(t, cmd, acc, strict=True)))
+    p = identify_json(data, tmp_path / "out")
+    assert p.returncode == 2, p.stderr
+    assert "validation fit is" in p.stderr and "below 50 %" in p.stderr, p.stderr
+    assert "no config fragment written" in p.stderr
+    assert (tmp_path / "out" / "report.md").is_file()
+    assert not (tmp_path / "out" / "rails_y.toml").exists()
+    p = identify_json(data, tmp_path / "forced", "--force")
+    assert p.returncode == 0, p.stderr
+    assert "written anyway (--force)" in p.stderr
+    assert (tmp_path / "forced" / "rails_y.toml").is_file()

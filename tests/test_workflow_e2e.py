@@ -84,6 +84,12 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
         # own lag as a second pole: the fragment says which and why)
         p1d = json.loads(p.stdout)["models"]["p1d"]["params"]
         assert abs(p1d["Tp1"] / tp1 - 1) <= 0.05, (p1d, truth, fragment.read_text())
+        # the same file identified offline, without options, gives the same answer: the
+        # recording holds the excitation's window and the reference's band
+        q = cli("identify", str(tmp_path / "live.mcap"), "--axis", "rails_y", "--out",
+                str(tmp_path / "offline"), "--json", "--quiet", "--no-figures")
+        assert q.returncode == 0, q.stderr[-3000:]
+        assert json.loads(q.stdout)["models"]["p1d"]["params"] == p1d
         # 2. design from the fragment, written as a fragment of the config
         design = tmp_path / "design.toml"
         p = cli("design", "--plant", str(fragment), "--rule", "optimal", "--out", str(design),

@@ -15,6 +15,9 @@ from motcomp.errors import ConfigError, DataError, MotcompError
 from motcomp.ident.data import DEFAULT_MAX_GAP_S
 from motcomp.io.zenoh_io import add_zenoh_args, endpoints_from_args
 
+MIN_FIT_PERCENT = 50.0
+"""A fit whose validation fit is below this (the model explains less than half the measured
+acceleration's deviation) is not written as a config fragment without ``--force``."""
 ORDER = 5
 
 
@@ -100,6 +103,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--force", action="store_true",
+                   help=f"write the config fragment even when the fit explains little of the "
+                        f"measurement (validation fit below {MIN_FIT_PERCENT:g} %%; exit 2 "
+                        "without it)")
     p.set_defaults(func=run_identify)
 
 
@@ -182,12 +189,16 @@ def run_identify(args: argparse.Namespace) -> int:
         raise DataError(f"no axis of {args.data} can be identified: {'; '.join(refused)}")
     data_warnings += [f"left out: {msg}" for msg in refused]
     out = args.out or args.data.with_name(args.data.stem + "_ident")
+    poor = {axis: ident.best.fit_percent for axis, ident in idents.items()
+            if not ident.best.fit_percent >= MIN_FIT_PERCENT}
+    held = frozenset(poor) if not args.force else frozenset()
     try:
         if len(idents) == 1:
             (axis, ident), = idents.items()
-            written = write_report(ident, out, axis=axis, figures=not args.no_figures)
+            written = write_report(ident, out, axis=axis, figures=not args.no_figures,
+                                   fragment=axis not in held)
         else:
-            written = write_reports(idents, out, figures=not args.no_figures)
+            written = write_reports(idents, out, figures=not args.no_figures, no_fragment=held)
     except OSError as exc:
         raise ConfigError(f"--out {out}: cannot write the report: {exc.strerror or exc}"
                           ) from None
@@ -213,14 +224,23 @@ def run_identify(args: argparse.Namespace) -> int:
             print(f"warning: {where}{kind} could not be fitted: {msg}", file=sys.stderr)
         for msg in ident.warnings:
             print(f"warning: {where}{msg}", file=sys.stderr)
-    return 0
+    for axis, fit in poor.items():
+        print(f"{'warning' if args.force else 'error'}: {axis}: the selected "
+              f"{idents[axis].selected}'s validation fit is {fit:.1f} %, below "
+              f"{MIN_FIT_PERCENT:g} %: the model does not explain the measurement; "
+              + ("its config fragment is written anyway (--force)" if args.force else
+                 f"no config fragment written (the report in {out} says why; check the "
+                 "window, the prefilter (--cutoff) and the excitation, or --force)"),
+              file=sys.stderr)
+    return 2 if held else 0
 
 
 def _run_live(args: argparse.Namespace) -> None:
     """``--live``: the identification run (:mod:`motcomp.ident.live`); then ``args`` points at
-    the recording and bounds the automatic window to the excitation (a sender's stall there
-    leaves the input stale and the limiter acting for a while: the window is the longest stretch
-    without that), and says whether the limiter acted in the excitation."""
+    the recording, which says where the excitation lies (the automatic window is searched
+    there: a sender's stall leaves the input stale and the limiter acting for a while, and the
+    window is the longest stretch without that), and says whether the limiter acted in the
+    excitation."""
     from motcomp.ident.live import LiveOptions, run_live
     from motcomp.record.session import read_session
 
@@ -242,11 +262,8 @@ def _run_live(args: argparse.Namespace) -> None:
           f"excitation {t0:.2f}-{t1:.2f} s; limiter acted on {limited} of {int(inside.sum())} "
           f"feedback samples, compensation on at {compensated}; axis "
           f"{'left bypassed' if run.was_bypassed else 'compensated again'}", file=sys.stderr)
-    args.within = (t0, t1)
-    if args.cutoff is None:  # the fit sees the band the excitation covers, not the limiter's
-        from motcomp.ident.excitation import default_band_hz  # chatter above it
-
-        args.cutoff = 2.0 * default_band_hz(args.axis)
+    # the window (the excitation's, written into the recording) and the prefilter (from the
+    # reference's band) are the recording's own: `identify FILE` on it gives the same answer
 
 
 def _print_warnings(warnings: list[str]) -> None:

@@ -59,6 +59,7 @@ The accelerometer's bias is not removed here: the fit estimates it as a free con
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import itertools
 import math
@@ -136,6 +137,12 @@ class RawRecording:
     """The command at any times (the output in force) and whether it is known there: fills
     the measurement's gaps, where the command is known (when the samples share one time
     array), instead of interpolating it across them."""
+    band_hz: float | None = None
+    """The top of the excitation's band, from the reference the platform was asked to follow
+    (a recording's input stream), if the format holds it."""
+    within_hint: tuple[float, float] | None = None
+    """Where the excitation lies (s from the recording's start), if the recording says so
+    (``identify --live`` writes it): the automatic window's bounds unless ``within`` is given."""
 
 
 @dataclass(frozen=True)
@@ -189,6 +196,8 @@ class Recording:
     gaps: Gaps = field(default_factory=Gaps)
     warnings: tuple[str, ...] = ()
     """The reader's and the window's (a file cut short, compensation in a given window...)."""
+    band_hz: float | None = None
+    """See :attr:`RawRecording.band_hz`; it sets the fit's prefilter (:func:`prepare`)."""
 
     @property
     def n(self) -> int:
@@ -445,6 +454,8 @@ def check_and_resample(raw: RawRecording, rate_hz: float | None = None,
     same = raw.t_cmd is raw.t_acc
     if not same:
         _check_time(raw.t_cmd, raw.cmd_place, src, "setpoint")
+    if within is None:
+        within = raw.within_hint
     i0, i1, win, warnings = select_window(raw, window, max_gap_s, within)
     t_acc, acc = raw.t_acc[i0:i1], raw.acc[i0:i1]
     if same:
@@ -490,7 +501,7 @@ def check_and_resample(raw: RawRecording, rate_hz: float | None = None,
     # (a regular record: every period within 0.1 % of the median, and the rate its own)
     common: dict[str, Any] = dict(rate_hz=rate, axis=raw.axis, source=src, window=win,
                                   gaps=gaps, warnings=(*raw.warnings, *warnings),
-                                  period_jitter_s=jitter)
+                                  period_jitter_s=jitter, band_hz=raw.band_hz)
     if regular:
         return Recording(t=t_acc - t_acc[0], cmd=cmd.copy(), acc=acc.copy(), resampled=False,
                          start_s=float(t_acc[0]), **common)
@@ -709,6 +720,38 @@ def _load_mcap(path: Path, axis: str | None, clock: str) -> RawRecording:
 
     def cmd_at(times: FloatArray) -> tuple[FloatArray, np.ndarray]:
         return session.command_in_force(axis, times + cols.start_s, clock)
+    hint = None
+    span = str(session.metadata.get("excitation_window", "")).split()
+    if len(span) == 2 and session.metadata.get("excitation_axis") == axis:
+        with contextlib.suppress(ValueError):
+            hint = (float(span[0]) - cols.start_s, float(span[1]) - cols.start_s)
     return RawRecording(source=src, t_acc=t, acc=cols.acc, t_cmd=t, cmd=cols.cmd, axis=axis,
                         acc_place=place, cmd_place=place, bypassed=cols.bypassed,
-                        limited=cols.limited, warnings=tuple(warnings), cmd_at=cmd_at)
+                        limited=cols.limited, warnings=tuple(warnings), cmd_at=cmd_at,
+                        band_hz=_reference_band(session, axis, hint, cols.start_s),
+                        within_hint=hint)
+
+
+def _reference_band(session: Session, axis: str, within: tuple[float, float] | None,
+                    start_s: float) -> float | None:
+    """The top of the band of the reference the service was asked to follow on ``axis`` (its
+    input stream, inside ``within`` if given): where its acceleration spectrum falls 10 dB
+    below its peak for good (:func:`~motcomp.ident.fit.spectrum_tops`; not 30 dB: the time
+    stamps' own rounding -- 0.24 us on epoch seconds -- puts a white floor there); None without
+    one."""
+    from motcomp.ident.fit import spectrum_tops
+
+    inp = session.inputs
+    if inp is None or len(inp) < MIN_SAMPLES:
+        return None
+    t, x = inp.t, inp.pos[:, AXIS_INDEX[axis]]
+    keep = np.isfinite(t) & np.isfinite(x)
+    if within is not None:
+        keep &= (t >= within[0] + start_s) & (t <= within[1] + start_s)
+    t, x = t[keep], x[keep]
+    if t.size < MIN_SAMPLES or not np.all(np.diff(t) > 0) or np.ptp(x) == 0:
+        return None
+    rate = 1.0 / float(np.median(np.diff(t)))
+    grid = np.arange(t[0], t[-1], 1.0 / rate)
+    _, f10 = spectrum_tops(np.diff(np.interp(grid, t, x), 2) * rate * rate, rate)
+    return f10 if 0 < f10 < rate / 4 else None

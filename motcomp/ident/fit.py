@@ -254,11 +254,31 @@ def _lines(y: FloatArray, v: FloatArray, rate_hz: float, f_hi: float) -> list[fl
     return out
 
 
+REFERENCE_CUTOFF_FACTOR = 2.0
+"""With the reference the platform was asked to follow in the recording (the excitation), the
+prefilter's cut-off is this many times its band's top (:attr:`Recording.band_hz`): the command
+the platform received also carries the limiter's and the stack's work above that band, which
+the fit must not try to explain (docs/IDENTIFICATION.md)."""
+
+
+def spectrum_tops(x: FloatArray, rate: float) -> tuple[float, float]:
+    """``(f30, f10)``: the frequencies above which the spectrum of ``x`` stays 30 dB and 10 dB
+    below its peak (Welch, 8 s segments); ``(0, 0)`` for a signal without content."""
+    f, px = _welch(x, rate, 8.0)
+    peak = float(px[1:].max()) if px.size > 1 else 0.0
+    if not peak > 0:
+        return 0.0, 0.0
+    return (float(f[np.nonzero(px >= 1e-3 * peak)[0][-1]]),
+            float(f[np.nonzero(px >= 0.1 * peak)[0][-1]]))
+
+
 def prepare(rec: Recording, options: FitOptions = FitOptions()) -> Prepared:
     """Second difference of the command, prefilter, split and decimation (module notes).
 
-    The prefilter cut-off is 1.25 times the frequency above which the spectrum of ``v`` stays
-    30 dB below its peak (at least 1 Hz, at most a fifth of the rate).  The decimated data used
+    The prefilter cut-off is :data:`REFERENCE_CUTOFF_FACTOR` times the excitation's band when
+    the recording holds the reference (:attr:`Recording.band_hz`), else 1.25 times the
+    frequency above which the spectrum of ``v`` stays 30 dB below its peak (at least 1 Hz, at
+    most a fifth of the rate).  The decimated data used
     by the coarse profile keep every ``M``-th sample, ``M = floor(rate / (4 f_c))``, with the
     command advanced by one coarse sample; a zero-order hold at the coarse period lags a smooth
     signal by half that period and the full-rate hold by half a full period, so a model of
@@ -273,14 +293,15 @@ def prepare(rec: Recording, options: FitOptions = FitOptions()) -> Prepared:
     v_raw = second_difference(rec.cmd, rate)
     acc_mean = float(np.mean(rec.acc))
     y_raw = rec.acc - acc_mean
-    f, pv = _welch(v_raw, rate, 8.0)
-    peak = float(pv[1:].max())
-    if not peak > 0:
+    f30, band = spectrum_tops(v_raw, rate)
+    if not f30 > 0:
         raise DataError(f"{rec.source}: column cmd: the command has no acceleration content")
-    above = np.nonzero(pv >= 1e-3 * peak)[0]
-    f30 = float(f[above[-1]])
-    band = float(f[np.nonzero(pv >= 0.1 * peak)[0][-1]])
-    cutoff = options.cutoff_hz or min(max(1.25 * f30, 1.0), rate / 5.0)
+    if rec.band_hz is not None:  # the excitation's own band, from the reference input
+        band = rec.band_hz
+        auto = min(max(REFERENCE_CUTOFF_FACTOR * band, 1.0), rate / 5.0)
+    else:
+        auto = min(max(1.25 * f30, 1.0), rate / 5.0)
+    cutoff = options.cutoff_hz or auto
     if cutoff >= rate / 2.0:
         raise ConfigError(f"prefilter cut-off {cutoff:g} Hz is above the Nyquist frequency "
                           f"{rate / 2:g} Hz")

@@ -154,6 +154,9 @@ def run_live(opts: LiveOptions, endpoints: ZenohEndpoints) -> LiveRun:
                 stats = publish(traj, endpoints, opts.input_key, wait_peer_s=opts.timeout_s,
                                 progress=bar.update)
             t1 = time.time()
+            # the recording says where the excitation lies: `identify FILE` finds it again
+            rec_opts.extra_info.update(excitation_axis=opts.axis,
+                                       excitation_window=f"{t0!r} {t1!r}")
             time.sleep(0.5)  # the platform's last response and its feedback
         finally:
             stop.set()

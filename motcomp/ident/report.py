@@ -363,14 +363,16 @@ def write_figures(ident: Identification, out_dir: Path) -> list[Path]:
     return written
 
 
-def _write_one(ident: Identification, directory: Path, axis: str | None, figures: bool
-               ) -> list[Path]:
+def _write_one(ident: Identification, directory: Path, axis: str | None, figures: bool,
+               fragment: bool = True) -> list[Path]:
     name = _axis(ident, axis)
     (directory / "report.json").write_text(
         json.dumps(report_json(ident, axis), indent=2, allow_nan=False) + "\n")
     (directory / "report.md").write_text(markdown(ident, axis))
-    (directory / f"{name}.toml").write_text(config_fragment(ident, axis))
-    files = [directory / "report.json", directory / "report.md", directory / f"{name}.toml"]
+    files = [directory / "report.json", directory / "report.md"]
+    if fragment:
+        (directory / f"{name}.toml").write_text(config_fragment(ident, axis))
+        files.append(directory / f"{name}.toml")
     if figures:
         files += write_figures(ident, directory)
     return files
@@ -389,21 +391,22 @@ def _commit(tmp_path: Path, out_dir: Path) -> list[Path]:
 
 
 def write_report(ident: Identification, out_dir: Path, axis: str | None = None,
-                 figures: bool = True) -> list[Path]:
-    """Write ``report.json``, ``report.md``, ``<axis>.toml`` and (optionally) the figures into
-    ``out_dir``, through a temporary directory: on any failure nothing is left behind."""
+                 figures: bool = True, fragment: bool = True) -> list[Path]:
+    """Write ``report.json``, ``report.md``, ``<axis>.toml`` (unless not ``fragment``) and
+    (optionally) the figures into ``out_dir``, through a temporary directory: on any failure
+    nothing is left behind."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out_dir, prefix=".tmp-") as tmp:
-        _write_one(ident, Path(tmp), axis, figures)
+        _write_one(ident, Path(tmp), axis, figures, fragment)
         return _commit(Path(tmp), out_dir)
 
 
-def write_reports(idents: dict[str, Identification], out_dir: Path, figures: bool = True
-                  ) -> list[Path]:
+def write_reports(idents: dict[str, Identification], out_dir: Path, figures: bool = True,
+                  no_fragment: frozenset[str] = frozenset()) -> list[Path]:
     """Several axes of one recording: a sub-directory per axis with its full report, and at the
-    top ``table1.md`` / ``table1.json`` (one row per axis) and ``axes.toml`` (every axis'
-    fragment), all written before any is moved into place."""
+    top ``table1.md`` / ``table1.json`` (one row per axis) and ``axes.toml`` (the fragment of
+    every axis not in ``no_fragment``), all written before any is moved into place."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = [table1(ident, axis) for axis, ident in idents.items()]
@@ -411,10 +414,11 @@ def write_reports(idents: dict[str, Identification], out_dir: Path, figures: boo
         tmp_path = Path(tmp)
         for axis, ident in idents.items():
             (tmp_path / axis).mkdir()
-            _write_one(ident, tmp_path / axis, axis, figures)
+            _write_one(ident, tmp_path / axis, axis, figures, axis not in no_fragment)
         (tmp_path / "table1.md").write_text(table1_markdown(rows) + "\n")
         (tmp_path / "table1.json").write_text(
             json.dumps(finite(rows), indent=2, allow_nan=False) + "\n")
         (tmp_path / "axes.toml").write_text(
-            "\n".join(config_fragment(ident, axis) for axis, ident in idents.items()))
+            "\n".join(config_fragment(ident, axis) for axis, ident in idents.items()
+                      if axis not in no_fragment))
         return _commit(tmp_path, out_dir)

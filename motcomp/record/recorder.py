@@ -249,6 +249,9 @@ class RecordOptions:
     status_retry_s: float = 2.0
     """Until the config is attached: ask again this often, besides taking it from the status
     frames the service publishes (when the status key is recorded)."""
+    extra_info: dict[str, str] = field(default_factory=dict)
+    """Metadata entries of the caller's, written with the service's when the recording ends
+    (they may be filled while it runs)."""
     queue_max: int = 200_000
     poll_s: float = 0.005
 
@@ -402,11 +405,14 @@ def record(opts: RecordOptions, endpoints: ZenohEndpoints,
                     writer.write(key, t_ns, payload)
                     if watch and key == opts.status_key:
                         watch = not settle(_status_of(payload))
+                end_info = dict(opts.extra_info)
                 if missing is not None:
                     if opts.status_timeout_s > 0:
                         log.warning("recorded without the service's config (%s): a replay "
                                     "needs --config FILE", missing)
-                    writer.attach_service({"config_missing": missing}, None)
+                    end_info["config_missing"] = missing
+                if end_info:
+                    writer.attach_service(end_info, None)
                 writer.close()
         finally:
             for s in subs:
