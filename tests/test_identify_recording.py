@@ -236,3 +236,29 @@ def test_a_fit_that_explains_nothing_writes_no_fragment(tmp_path: Path) -> None:
     assert p.returncode == 0, p.stderr
     assert "written anyway (--force)" in p.stderr
     assert (tmp_path / "forced" / "rails_y.toml").is_file()
+
+
+def test_the_run_s_conditions_come_from_the_recorded_status() -> None:
+    """Deadlines missed over the window, from the service's status frames around it, and the
+    platform's stack delay; a busy run is named in a warning."""
+    from types import SimpleNamespace
+
+    from motcomp.ident.data import MAX_MISSED_SHARE, run_conditions
+
+    def frame(t: float, ticks: int, missed: int) -> tuple[int, dict[str, object]]:
+        return 0, {"t": t, "ticks": ticks, "missed_ticks": missed,
+                   "platform": {"setpoint_age_ms": 1.25, "setpoint_age_mean_ms": 1.5}}
+
+    busy = SimpleNamespace(status=[frame(99.0, 0, 0), frame(100.0, 900, 100),
+                                   frame(120.0, 18_000, 2_100), frame(121.0, 19_000, 2_100)])
+    c = run_conditions(busy, 100.2, 119.8)  # type: ignore[arg-type]
+    assert (c["service_ticks"], c["service_missed"]) == (17_100, 2_000)
+    assert c["service_missed_share"] == pytest.approx(2_000 / 19_100)
+    assert c["platform_setpoint_age_ms"] == 1.25
+    assert len(c["warnings"]) == 1 and "missed 2000 of 19100 deadlines" in c["warnings"][0]
+    quiet = SimpleNamespace(status=[frame(100.0, 1000, 0), frame(120.0, 20_990, 10)])
+    c = run_conditions(quiet, 100.2, 119.8)  # type: ignore[arg-type]
+    assert c["service_missed_share"] == pytest.approx(10 / 20_000)
+    assert c["service_missed_share"] < MAX_MISSED_SHARE
+    assert c["warnings"] == []
+    assert run_conditions(SimpleNamespace(status=[]), 0.0, 1.0) == {}  # type: ignore[arg-type]

@@ -143,6 +143,9 @@ class RawRecording:
     within_hint: tuple[float, float] | None = None
     """Where the excitation lies (s from the recording's start), if the recording says so
     (``identify --live`` writes it): the automatic window's bounds unless ``within`` is given."""
+    conditions_at: Callable[[float, float], dict[str, Any]] | None = None
+    """The run's conditions over a window (s from the recording's start), if the recording
+    holds them: :func:`run_conditions`."""
 
 
 @dataclass(frozen=True)
@@ -198,6 +201,8 @@ class Recording:
     """The reader's and the window's (a file cut short, compensation in a given window...)."""
     band_hz: float | None = None
     """See :attr:`RawRecording.band_hz`; it sets the fit's prefilter (:func:`prepare`)."""
+    conditions: dict[str, Any] = field(default_factory=dict)
+    """How the run went over the window (:func:`run_conditions`; empty if unknown)."""
 
     @property
     def n(self) -> int:
@@ -457,6 +462,8 @@ def check_and_resample(raw: RawRecording, rate_hz: float | None = None,
     if within is None:
         within = raw.within_hint
     i0, i1, win, warnings = select_window(raw, window, max_gap_s, within)
+    conditions = raw.conditions_at(win.start_s, win.end_s) if raw.conditions_at else {}
+    warnings = [*warnings, *conditions.pop("warnings", [])]
     t_acc, acc = raw.t_acc[i0:i1], raw.acc[i0:i1]
     if same:
         t_cmd, cmd = t_acc, raw.cmd[i0:i1]
@@ -501,7 +508,8 @@ def check_and_resample(raw: RawRecording, rate_hz: float | None = None,
     # (a regular record: every period within 0.1 % of the median, and the rate its own)
     common: dict[str, Any] = dict(rate_hz=rate, axis=raw.axis, source=src, window=win,
                                   gaps=gaps, warnings=(*raw.warnings, *warnings),
-                                  period_jitter_s=jitter, band_hz=raw.band_hz)
+                                  period_jitter_s=jitter, band_hz=raw.band_hz,
+                                  conditions=conditions)
     if regular:
         return Recording(t=t_acc - t_acc[0], cmd=cmd.copy(), acc=acc.copy(), resampled=False,
                          start_s=float(t_acc[0]), **common)
@@ -729,7 +737,48 @@ def _load_mcap(path: Path, axis: str | None, clock: str) -> RawRecording:
                         acc_place=place, cmd_place=place, bypassed=cols.bypassed,
                         limited=cols.limited, warnings=tuple(warnings), cmd_at=cmd_at,
                         band_hz=_reference_band(session, axis, hint, cols.start_s),
-                        within_hint=hint)
+                        within_hint=hint,
+                        conditions_at=lambda a, b: run_conditions(session, a + cols.start_s,
+                                                                  b + cols.start_s))
+
+
+MAX_MISSED_SHARE = 0.02
+"""A window in which the service missed more than this share of its deadlines gets a warning:
+its delay and dynamics are the busy host's as much as the platform's."""
+
+
+def run_conditions(session: Session, t0: float, t1: float) -> dict[str, Any]:
+    """How the run went between ``t0`` and ``t1`` (the recording's clock, s), from the service
+    status frames it recorded (one before and one after the window at best): the deadlines the
+    service's loop missed, and the platform's own figures (its setpoint age: the stack's delay,
+    which an identified ``Td`` includes).  ``warnings`` name what makes the fit doubtful."""
+    frames = [st for _, st in session.status
+              if isinstance(st.get("t"), int | float) and isinstance(st.get("ticks"), int)
+              and isinstance(st.get("missed_ticks"), int)]
+    if not frames:
+        return {}
+    before = [st for st in frames if st["t"] <= t0 + 0.5]
+    after = [st for st in frames if st["t"] >= t1 - 0.5]
+    a = before[-1] if before else frames[0]
+    b = after[0] if after else frames[-1]
+    out: dict[str, Any] = {"from_t": a["t"], "to_t": b["t"]}
+    ticks, missed = b["ticks"] - a["ticks"], b["missed_ticks"] - a["missed_ticks"]
+    warnings = []
+    if b["t"] > a["t"] and ticks >= 0 and missed >= 0 and ticks + missed > 0:
+        share = missed / (ticks + missed)
+        out.update(service_ticks=ticks, service_missed=missed, service_missed_share=share)
+        if share > MAX_MISSED_SHARE:
+            warnings.append(f"the service missed {missed} of {ticks + missed} deadlines "
+                            f"({100 * share:.1f} %) while the data were recorded: the host "
+                            "took the loop's time, and the fitted delay and dynamics carry "
+                            "its stalls; identify again on a quiet host")
+    plat = b.get("platform") if isinstance(b.get("platform"), dict) else None
+    if plat:
+        for k in ("setpoint_age_ms", "setpoint_age_mean_ms"):
+            if isinstance(plat.get(k), int | float):
+                out[f"platform_{k}"] = float(plat[k])
+    out["warnings"] = warnings
+    return out
 
 
 def _reference_band(session: Session, axis: str, within: tuple[float, float] | None,

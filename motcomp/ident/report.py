@@ -93,7 +93,7 @@ def _window_json(rec: Recording) -> dict[str, Any]:
     w = rec.window
     return {"window": None if w is None else {"start_s": w.start_s, "end_s": w.end_s,
                                                "samples": w.samples, "how": w.how},
-            "gaps": rec.gaps.to_json()}
+            "gaps": rec.gaps.to_json(), "conditions": dict(rec.conditions)}
 
 
 def _window_text(d: dict[str, Any]) -> str:
@@ -106,6 +106,14 @@ def _window_text(d: dict[str, Any]) -> str:
                  f"{g['max_gap_s'] * 1e3:.0f} ms bridged).")
     else:
         text += "No gaps in the data."
+    c = d.get("conditions") or {}
+    if "service_missed" in c:
+        text += (f"  The service missed {c['service_missed']} of "
+                 f"{c['service_ticks'] + c['service_missed']} deadlines meanwhile "
+                 f"({100 * c['service_missed_share']:.2f} %)")
+        age = c.get("platform_setpoint_age_ms")
+        text += (f"; the platform applied its setpoints {age:.2f} ms after their t (median: the "
+                 "stack's delay, inside the fitted Td)." if age is not None else ".")
     return text
 
 
