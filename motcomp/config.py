@@ -524,13 +524,47 @@ def _inside_envelope(cfg: ServiceConfig, name: str, row: tuple[float, float, flo
 
 
 def _format_error(source: str, exc: ValidationError) -> str:
+    loc, msg = validation_message(exc, ServiceConfig)
+    more = f" [and {exc.error_count() - 1} more]" if exc.error_count() > 1 else ""
+    return f"{source}: {loc or '<top>'}: {msg}{more}"
+
+
+def validation_message(exc: ValidationError, root: type[BaseModel]) -> tuple[str, str]:
+    """``(dotted key, "<reason> (got <value>)")`` of the first error of validating ``root``;
+    an unknown key is named with the keys its table takes that come close ("did you mean")."""
     err = exc.errors()[0]
     loc = ".".join(str(p) for p in err["loc"])
     msg = err["msg"].removeprefix("Value error, ")
+    if err["type"] == "extra_forbidden" and err["loc"]:
+        msg = f"unknown key {err['loc'][-1]!r}" + _did_you_mean(err["loc"], root)
     value = err.get("input")
-    shown = "" if isinstance(value, dict) else f" (got {value!r})"
-    more = f" [and {exc.error_count() - 1} more]" if exc.error_count() > 1 else ""
-    return f"{source}: {loc or '<top>'}: {msg}{shown}{more}"
+    return loc, msg + ("" if isinstance(value, dict) else f" (got {value!r})")
+
+
+def _did_you_mean(loc: tuple[Any, ...], root: type[BaseModel]) -> str:
+    """``"; did you mean 'x'?"`` for an unknown key at ``loc`` below ``root``, from the keys
+    its table takes ("" if none is close)."""
+    import difflib
+    import typing
+
+    model: Any = root
+    for part in loc[:-1]:
+        field = model.model_fields.get(part) if isinstance(model, type) and issubclass(
+            model, BaseModel) else None
+        if field is None:  # a table of named entries (axes.<axis>): its values' model
+            continue
+        ann = field.annotation
+        args = [a for a in typing.get_args(ann) if a is not type(None)] or [ann]
+        if typing.get_origin(ann) is dict:
+            args = [typing.get_args(ann)[1]]
+        model = next((a for a in args if isinstance(a, type) and issubclass(a, BaseModel)),
+                     None)
+        if model is None:
+            return ""
+    if not (isinstance(model, type) and issubclass(model, BaseModel)):
+        return ""
+    close = difflib.get_close_matches(str(loc[-1]), list(model.model_fields), n=3, cutoff=0.6)
+    return f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
 
 
 def parse_config(data: dict[str, Any], source: str = "<config>") -> ServiceConfig:

@@ -353,8 +353,7 @@ def run_demo(out_dir: Path, quiet: bool = False, keep_logs: bool = True) -> Demo
     hil_status: dict[str, Any] = {}
     say(f"motcomp demo: platform simulator on :{p_hil}, service on :{p_svc}, recorder on :{p_me}")
     try:
-        procs["hil"] = _spawn(["hil", "-l", loopback(p_hil), "--log-level", "warning"],
-                              logs / "hil.log")
+        procs["hil"] = _spawn(["hil", "-l", loopback(p_hil)], logs / "hil.log")
         procs["service"] = _spawn(["run", "--config", str(cfg_path), "-l", loopback(p_svc), "-e",
                                    loopback(p_hil)], logs / "service.log")
         ep = ZenohEndpoints(connect=(loopback(p_hil), loopback(p_svc)), listen=(loopback(p_me),))

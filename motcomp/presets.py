@@ -59,11 +59,12 @@ class Preset:
                           lim.a_max[i:i + 1], (axis,))
 
 
-def _message(path: Path, prefix: str, exc: ValidationError) -> str:
-    err = exc.errors()[0]
-    where = (prefix + ".".join(str(p) for p in err["loc"])).rstrip(".") or "<top>"
-    msg = err["msg"].removeprefix("Value error, ")
-    return f"{path}: {where}: {msg} (got {err.get('input')!r})"
+def _message(path: Path, prefix: str, exc: ValidationError, root: type[BaseModel]) -> str:
+    from motcomp.config import validation_message
+
+    loc, msg = validation_message(exc, root)
+    where = (prefix + loc).rstrip(".") or "<top>"
+    return f"{path}: {where}: {msg}"
 
 
 def list_presets() -> list[str]:
@@ -92,7 +93,7 @@ def load_preset(name_or_path: str) -> Preset:
     try:
         doc = _PresetFile.model_validate(raw)
     except ValidationError as exc:
-        raise ConfigError(_message(path, "", exc)) from None
+        raise ConfigError(_message(path, "", exc, _PresetFile)) from None
     unknown = [a for a in doc.axes if a not in AXIS_INDEX]
     if unknown:
         raise ConfigError(f"{path}: axes: unknown axis {unknown[0]!r}")
@@ -183,7 +184,7 @@ def _fragment_source(path: Path, raw: dict[str, object], axis: str | None) -> Pl
         try:
             checked.append(AxisConfig.model_validate(table))
         except ValidationError as exc:
-            raise ConfigError(_message(path, f"{where}.", exc)) from None
+            raise ConfigError(_message(path, f"{where}.", exc, AxisConfig)) from None
     cfg, base = checked
     spec = cfg.model or base.model
     if spec is None:

@@ -340,6 +340,17 @@ def test_a_starved_loop_says_so_and_the_platform_s_stack_delay_is_shown(tmp_path
     assert "platform    setpoints applied" in table, table
 
 
+def test_record_and_identify_live_refuse_a_directory_that_does_not_exist(tmp_path: Path
+                                                                        ) -> None:
+    where = tmp_path / "no" / "such"
+    p = cli("record", "-o", str(where / "x.mcap"), "-e", dead_endpoint())
+    assert p.returncode == 2 and f"directory {where} does not exist" in p.stderr, p.stderr
+    p = cli("identify", "--live", "--axis", "rails_y", str(where / "live.mcap"), "-e",
+            dead_endpoint())
+    assert p.returncode == 2 and f"directory {where} does not exist" in p.stderr, p.stderr
+    assert not (tmp_path / "no").exists()
+
+
 # --- config example -----------------------------------------------------------------------
 def test_config_example_is_the_documented_config_and_lists_the_others() -> None:
     p = cli("config", "example")

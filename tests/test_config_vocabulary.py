@@ -211,7 +211,7 @@ def test_several_axes_need_axis(tmp_path: Path) -> None:
     ('[axes.rails_y]\nmodel = "p1d:K=1,Td=0.01"\n', None,
      "axes.rails_y.model: model spec 'p1d:K=1,Td=0.01': missing parameter(s) Tp1"),
     ('[axes.rails_y]\nmodle = "p1d:K=1,Td=0.01,Tp1=0.1"\n', None,
-     "axes.rails_y.modle: Extra inputs are not permitted"),
+     "axes.rails_y.modle: unknown key 'modle'; did you mean 'model'?"),
     ("[axes.rails_y]\nbypass = true\n", None, "axes.rails_y.model: missing"),
     (FRAGMENT, "hex_x", "axes.hex_x: no such table; axes in the file: rails_y"),
     (FRAGMENT + "pos_min_m = -1\n", None, "axes.rails_y: limits of rails_y: missing pos_max_m"),
@@ -307,3 +307,17 @@ def test_identify_design_include_check(tmp_path: Path) -> None:
     assert cfg.axes["rails_y"].model == identified
     assert axis_gains(site, "rails_y") == PIDGains.from_config(gains)
     assert source_report(site)[1] == []
+
+
+@pytest.mark.parametrize(("text", "msg"), [
+    ("[loop]\nrate_hx = 1000\n", "loop.rate_hx: unknown key 'rate_hx'; did you mean 'rate_hz'?"),
+    ("[envelope.rails_y]\npos_max = 1\n",
+     "envelope.rails_y.pos_max: unknown key 'pos_max'; did you mean 'pos_max_m'"),
+    ('profle = "fast"\n', "profle: unknown key 'profle'; did you mean 'profile' or 'profiles'?"),
+    ("[loop]\nzzz = 1\n", "loop.zzz: unknown key 'zzz' (got 1)"),
+])
+def test_config_check_suggests_the_key_meant(tmp_path: Path, text: str, msg: str) -> None:
+    site = tmp_path / "site.toml"
+    site.write_text(f'include = ["{EXAMPLE}"]\n{text}')
+    p = run("config", "check", str(site))
+    assert p.returncode == 2 and msg in p.stderr, p.stderr

@@ -44,9 +44,9 @@ about 4 ms, plus the input reconstruction's 1.1 ms)."""
 
 @pytest.fixture(scope="module")
 def measured(tmp_path_factory: pytest.TempPathFactory) -> tuple[DemoResult, HostClock | None]:
-    """The demo, and the host's bare loop clock (the demo config's loop settings) beside it."""
+    """The demo, and the host's bare loop clock (the demo config's rate and naps) beside it."""
     loop = load_config(config_file("demo.toml")).loop
-    with HostProbe(loop.rate_hz, loop.spin_us, loop.sleep_max_us) as probe:
+    with HostProbe(loop.rate_hz, sleep_max_us=loop.sleep_max_us) as probe:
         res = run_demo(tmp_path_factory.mktemp("demo"), quiet=True)
     return res, probe.result
 
@@ -117,6 +117,13 @@ def test_demo_records_the_command_and_sets_it_beside_the_floor(demo: DemoResult,
         assert demo.command[axis]["off"].ideal.acc_peak < demo.acc_limit[axis]
     assert "from the command*" in text and "ratio" in text
     assert "Command frames over the motion, off / on:" in text
+
+
+def test_demo_logs_the_platform_s_set_up_and_its_counters(demo: DemoResult) -> None:
+    assert demo.figure is not None
+    text = (demo.figure.parent / "logs" / "hil.log").read_text()
+    assert "simulated platform at 1000 Hz" in text and "truth p1d:" in text, text
+    assert "hard-limit violations: none" in text, text
 
 
 def test_demo_figure_shows_the_command(demo: DemoResult) -> None:

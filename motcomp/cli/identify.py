@@ -248,6 +248,9 @@ def _run_live(args: argparse.Namespace) -> None:
         raise ConfigError("--live needs --axis NAME (one axis)")
     if args.window is not None:
         raise ConfigError("--live chooses the window itself (the excitation's): drop --window")
+    if not args.data.parent.is_dir():  # before the axis is bypassed and excited
+        raise ConfigError(f"{args.data}: directory {args.data.parent} does not exist (create it "
+                          "first)")
     run = run_live(LiveOptions(axis=args.axis, out=args.data, kind=args.excite,
                                duration_s=args.excite_s, usage=args.usage,
                                admin_key=args.admin_key, quiet=args.quiet),

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from motcomp.cli._common import add_log_arg, non_negative_float, positive_int, setup_logging
+from motcomp.errors import ConfigError
 from motcomp.io.zenoh_io import add_zenoh_args, endpoints_from_args
 
 ORDER = 6
@@ -49,6 +50,9 @@ def run(args: argparse.Namespace) -> int:
     from motcomp.record.session import DEFAULT_KEYS
 
     setup_logging(args.log_level)
+    if not args.output.parent.is_dir():
+        raise ConfigError(f"--output {args.output}: directory {args.output.parent} does not "
+                          "exist (create it first)")
     keys = dict(DEFAULT_KEYS)
     if args.config:
         from motcomp.config import load_config

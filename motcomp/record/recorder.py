@@ -115,7 +115,8 @@ class SessionWriter:
         from mcap.writer import CompressionType, Writer
 
         path = part_path(self.path, len(self.parts) + 1) if self.rotating else self.path
-        path.parent.mkdir(parents=True, exist_ok=True)
+        if not path.parent.is_dir():  # a typo'd directory is not created behind the user
+            raise TransportError(f"{path}: cannot write: directory {path.parent} does not exist")
         try:
             self._file = path.open("wb")
         except OSError as exc:
