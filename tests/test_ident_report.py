@@ -104,9 +104,14 @@ def test_config_fragment_is_what_the_compensator_reads(rails_report: tuple[dict,
 def test_markdown_and_figures(rails_report: tuple[dict, Path]) -> None:
     _, out = rails_report
     md = (out / "report.md").read_text()
-    assert ("| axis | model | pure delay | phase delay at 0.2 Hz | bandwidth (-3 dB) | "
-            "bandwidth (-6 dB) |") in md
+    assert ("| axis | model | pure delay (held / smooth command) | phase delay at 0.2 Hz | "
+            "bandwidth (-3 dB) | bandwidth (-6 dB) |") in md
     assert "| rails_y | p1d | 17." in md
+    # the convention stated, and the smooth command's delay half a sample (0.5 ms) later
+    assert "zero-order hold, the convention of the fit" in md
+    row = rep_row = next(ln for ln in md.splitlines() if ln.startswith("| rails_y | p1d |"))
+    held, smooth = (float(x.split()[0]) for x in rep_row.split("|")[3].split("/"))
+    assert smooth == pytest.approx(held + 0.5, abs=0.051), row
     assert "| p1d (selected) |" in md and "Selected **p1d**" in md
     assert ("Window 0.00-60.00 s of the recording (60000 samples; whole recording). No gaps in "
             "the data.") in md

@@ -662,6 +662,8 @@ class ModelFit:
     prediction_raw: FloatArray = field(repr=False)
     evaluations: int = 0
     stage_evals: dict[str, int] = field(default_factory=dict)
+    tradeoffs: list[dict[str, Any]] = field(default_factory=list)
+    """Parameters the data do not tell apart, and what they fix instead (:func:`_tradeoffs`)."""
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -677,6 +679,7 @@ class ModelFit:
             "rmse": self.rmse,
             "bias": self.bias,
             "at_bounds": self.at_bounds,
+            "not_identified_separately": self.tradeoffs,
             "seconds": self.seconds,
             **self.table1,
         }
@@ -731,9 +734,63 @@ def _table1(model: ProcessModel, cov_derived: dict[str, float | None]) -> dict[s
     }
 
 
+TRADEOFF_CORRELATION = 0.98
+"""Two parameters whose estimates correlate beyond this (in absolute value) are not identified
+separately: the data fix one combination of them (:func:`_tradeoffs`)."""
+
+
+def _tradeoffs(names: list[str], values: FloatArray, cov: FloatArray) -> list[dict[str, Any]]:
+    """The groups of natural parameters the data do not tell apart: linked by estimates that
+    correlate beyond :data:`TRADEOFF_CORRELATION` (in absolute value; a covariance so
+    degenerate that it reads beyond 1 counts too).  For a pair of time constants, the
+    combination the data do fix: their difference when they move together (a delay and a
+    zero's lead: only ``Td - Tz``), their sum when they move against each other (two equal
+    poles).  A larger group is named only: the data fix fewer combinations than it has
+    parameters."""
+    n = len(names)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    group = list(range(n))
+
+    def root(k: int) -> int:
+        while group[k] != k:
+            k = group[k]
+        return k
+
+    corr: dict[tuple[int, int], float] = {}
+    for i in range(n):
+        for j in range(i + 1, n):
+            if sd[i] > 0 and sd[j] > 0:
+                r = float(cov[i, j] / (sd[i] * sd[j]))
+                if abs(r) > TRADEOFF_CORRELATION:
+                    corr[(i, j)] = r
+                    group[root(j)] = root(i)
+    members: dict[int, list[int]] = {}
+    for k in range(n):
+        members.setdefault(root(k), []).append(k)
+    out: list[dict[str, Any]] = []
+    for ks in members.values():
+        if len(ks) < 2:
+            continue
+        item: dict[str, Any] = {"params": [names[k] for k in ks]}
+        if len(ks) == 2:
+            i, j = ks
+            r = max(-1.0, min(1.0, corr[(i, j)]))
+            item["correlation"] = r
+            if names[i].startswith("T") and names[j].startswith("T"):  # two times (s)
+                sign = -1.0 if r > 0 else 1.0
+                var = float(cov[i, i] + cov[j, j] + 2 * sign * cov[i, j])
+                item.update(identified=f"{names[i]} {'-' if sign < 0 else '+'} {names[j]}",
+                            value_ms=float(values[i] + sign * values[j]) * 1e3,
+                            stderr_ms=math.sqrt(var) * 1e3 if var >= 0 else None)
+        out.append(item)
+    return out
+
+
 def _uncertainty(prep: Prepared, s: Structure, model: ProcessModel, bias: float,
-                 residual: FloatArray) -> tuple[dict[str, float | None], dict[str, float | None]]:
-    """Standard errors of the natural parameters and of the Table 1 delays (delta method)."""
+                 residual: FloatArray) -> tuple[dict[str, float | None], dict[str, float | None],
+                                                list[dict[str, Any]]]:
+    """Standard errors of the natural parameters and of the Table 1 delays (delta method), and
+    the parameters the data do not tell apart (:func:`_tradeoffs`)."""
     nat = s.natural(model)
     names = list(nat)
     x0 = np.array([nat[k] for k in names] + [bias])
@@ -756,7 +813,7 @@ def _uncertainty(prep: Prepared, s: Structure, model: ProcessModel, bias: float,
         try:
             J[:, i] = -(resid(xp) - resid(xm)) / (2 * steps[i])
         except (ConfigError, ModelFitError, ValueError):
-            return nan, {}
+            return nan, {}, []
     e = residual[mask]
     lags = math.ceil(2.0 * rate / prep.cutoff_hz)
     try:
@@ -764,8 +821,9 @@ def _uncertainty(prep: Prepared, s: Structure, model: ProcessModel, bias: float,
         S = _long_run_cov(J.T * e[None, :], lags)
         cov = JtJ_inv @ S @ JtJ_inv
     except np.linalg.LinAlgError:
-        return nan, {}
+        return nan, {}, []
     diag = np.diag(cov)
+    tradeoffs = _tradeoffs(names, x0[:-1], cov[:-1, :-1])
     se: dict[str, float | None] = {
         k: (math.sqrt(float(d)) if d >= 0 and math.isfinite(d) else None)
         for k, d in zip(names, diag[:-1], strict=True)}
@@ -778,14 +836,14 @@ def _uncertainty(prep: Prepared, s: Structure, model: ProcessModel, bias: float,
         try:
             dv = _derived(s.from_natural(dict(zip(names, xp[:-1], strict=True))))
         except (ConfigError, ModelFitError, ValueError):
-            return se, {}
+            return se, {}, tradeoffs
         for k in base:
             grads[k][i] = (dv[k] - base[k]) / steps[i]
     derived: dict[str, float | None] = {}
     for k, gk in grads.items():
         var = float(gk @ cov @ gk)
         derived[k] = math.sqrt(var) if var >= 0 and math.isfinite(var) else None
-    return se, derived
+    return se, derived, tradeoffs
 
 
 def _coarse_stage(prep: Prepared, s: Structure, bracket: Bracket, options: FitOptions,
@@ -984,7 +1042,7 @@ def _finish(prep: Prepared, s: Structure, data: _Data, theta: FloatArray, tau: f
     sse = float(e @ e)
     n_eff = n_est * min(1.0, 2.0 * prep.cutoff_hz / prep.rate_hz)
     aic = n_eff * math.log(max(sse, 1e-300) / n_est) + 2 * s.n_params
-    se, se_derived = _uncertainty(prep, s, model, bias, resid)
+    se, se_derived, tradeoffs = _uncertainty(prep, s, model, bias, resid)
     lo_th, hi_th = bounds
     at_bounds = []
     if np.any(np.abs(theta - lo_th) < 1e-6) or np.any(np.abs(theta - hi_th) < 1e-6):
@@ -995,7 +1053,8 @@ def _finish(prep: Prepared, s: Structure, data: _Data, theta: FloatArray, tau: f
         vaf_percent=vaf, fit_percent_raw=fit_raw, vaf_percent_raw=vaf_raw, aic=aic,
         n_params=s.n_params, rmse=math.sqrt(sse / n_est), bias=bias + prep.acc_mean,
         seconds=0.0, table1=_table1(model, se_derived), at_bounds=at_bounds,
-        profile_coarse=empty, profile_fine=empty, prediction=yhat, prediction_raw=yhat_raw)
+        profile_coarse=empty, profile_fine=empty, prediction=yhat, prediction_raw=yhat_raw,
+        tradeoffs=tradeoffs)
 
 
 # --- the whole identification -------------------------------------------------------------------
@@ -1145,6 +1204,23 @@ def identify(rec: Recording, options: FitOptions = FitOptions(),
 
 PHASE_DELAY_SE_WARN_MS = 5.0
 """Standard error of the phase delay at 0.2 Hz above which the report warns."""
+LOW_MOTION_HZ = 0.25
+"""A command whose motion starts at or below this frequency has motion near 0.2 Hz."""
+
+
+def lowest_motion_hz(cmd: FloatArray, rate: float) -> float | None:
+    """The lowest frequency at which the command's position spectrum (Welch, 60 s segments,
+    mean removed) reaches 10 % of its peak: where the excitation's motion starts; None for a
+    constant command."""
+    x = np.asarray(cmd, dtype=float)
+    nper = min(x.size, int(60.0 * rate))
+    if nper < 16:
+        return None
+    f, p = signal.welch(x - x.mean(), fs=rate, nperseg=nper)
+    peak = float(p[1:].max()) if p.size > 1 else 0.0
+    if not peak > 0:
+        return None
+    return float(f[1:][np.nonzero(p[1:] >= 0.1 * peak)[0][0]])
 
 
 def _warnings(prep: Prepared, fit: ModelFit) -> list[str]:
@@ -1157,9 +1233,16 @@ def _warnings(prep: Prepared, fit: ModelFit) -> list[str]:
     se = fit.table1.get("phase_delay_0p2hz_ms_stderr")
     if se is None or se > PHASE_DELAY_SE_WARN_MS:
         shown = "undetermined" if se is None else f"+-{se:.1f} ms"
-        out.append(f"the phase delay at 0.2 Hz is uncertain ({shown}): the data hold little "
-                   "motion near 0.2 Hz; excite from 0.1 Hz (motcomp excite --kind sweep or "
-                   "multisine)")
+        low = lowest_motion_hz(prep.recording.cmd, prep.rate_hz)
+        if low is not None and low <= LOW_MOTION_HZ:
+            out.append(f"the phase delay at 0.2 Hz is uncertain ({shown}) although the command "
+                       f"moves from {low:.2g} Hz up: the response there is noisy, or the "
+                       f"{fit.kind} does not describe the platform at low frequency")
+        else:
+            where = "" if low is None else f" (its motion starts at {low:.2g} Hz)"
+            out.append(f"the phase delay at 0.2 Hz is uncertain ({shown}): the command holds "
+                       f"little motion near 0.2 Hz{where}; excite down to 0.1 Hz "
+                       "(motcomp excite --f-min 0.1)")
     if fit.at_bounds:
         out.append(f"{fit.kind}: {', '.join(fit.at_bounds)}")
     jitter = prep.recording.period_jitter_s * prep.rate_hz

@@ -50,6 +50,9 @@ def table1(ident: Identification, axis: str | None = None) -> dict[str, Any]:
         "model": ident.selected,
         "pure_delay_ms": t["pure_delay_ms"],
         "pure_delay_ms_stderr": t["pure_delay_ms_stderr"],
+        # the fit's convention: the recorded command held over each sample (zero-order hold);
+        # a platform that follows a smooth command through the samples lags it half a sample more
+        "pure_delay_smooth_ms": t["pure_delay_ms"] + 500.0 / ident.prep.rate_hz,
         "phase_delay_0p2hz_ms": t["phase_delay_0p2hz_ms"],
         "phase_delay_0p2hz_ms_stderr": t["phase_delay_0p2hz_ms_stderr"],
         "bandwidth_hz": t["bandwidth_hz"],
@@ -117,6 +120,16 @@ def _window_text(d: dict[str, Any]) -> str:
     return text
 
 
+TREMOR_HZ = (10.0, 20.0)
+"""The position controllers' holding vibration lies in this band (docs/IDENTIFICATION.md)."""
+
+
+def _line_name(f_hz: float) -> str:
+    """A notched line's frequency, called tremor only inside :data:`TREMOR_HZ`."""
+    lo, hi = TREMOR_HZ
+    return f"{f_hz:.2f} Hz" + (" (tremor)" if lo <= f_hz <= hi else "")
+
+
 def _pm(value: float, se: float | None, fmt: str = ".4g") -> str:
     if se is None:
         return f"{value:{fmt}} (s.e. n/a)"
@@ -155,8 +168,8 @@ def markdown(ident: Identification, axis: str | None = None) -> str:
         _window_text(d),
         f"Compared in the acceleration domain after a zero-phase prefilter at "
         f"{d['prefilter_cutoff_hz']:.3g} Hz (excitation band ~{d['excitation_band_hz']:.3g} Hz)"
-        + (f", notches at {', '.join(f'{f:.2f}' for f in d['notches_hz'])} Hz (tremor)"
-           if d["notches_hz"] else "")
+        + (f", notches at {', '.join(_line_name(f) for f in d['notches_hz'])} (narrow lines "
+           "of the measurement the command does not explain)" if d["notches_hz"] else "")
         + f"; {d['estimation_samples']} samples fitted, {d['validation_samples']} kept for "
         "validation.",
         f"Delay searched in [{rep['delay_search']['range_ms'][0]:.1f}, "
@@ -185,8 +198,8 @@ def markdown(ident: Identification, axis: str | None = None) -> str:
             f"{_bw(f.table1['bandwidth_hz']['-6dB'])} | {f.seconds:.2f} s |")
     for k, msg in ident.errors.items():
         lines.append(f"| {k} | failed: {msg} | | | | | | | | |")
+    lines += ["", *_tradeoff_lines(ident)]
     lines += [
-        "",
         f"Selected **{rep['selected']}**: {rep['reason']}.",
         "",
         *[f"**Warning**: {w}." for w in rep["warnings"]],
@@ -200,17 +213,47 @@ def markdown(ident: Identification, axis: str | None = None) -> str:
     return "\n".join(lines)
 
 
+DELAY_CONVENTION = (
+    "Pure delay: after the recorded command held over each sample (zero-order hold, the "
+    "convention of the fit and of the compensator's model); a platform that follows a smooth "
+    "command through the samples lags it half a sample more (the second figure).")
+
+
+def _tradeoff_lines(ident: Identification) -> list[str]:
+    """One line per model with parameters the data do not tell apart (their standard errors
+    above mean nothing), naming what the data do fix."""
+    out = []
+    for k, f in ident.fits.items():
+        parts = []
+        for t in f.tradeoffs:
+            names = t["params"]
+            if len(names) == 2:
+                text = f"{names[0]} and {names[1]} (correlation {t['correlation']:+.3f})"
+            else:
+                text = f"{', '.join(names)} (fewer combinations of them are in the data)"
+            if t.get("identified") is not None:
+                text += (f": only {t['identified']} = "
+                         f"{_pm(t['value_ms'], t.get('stderr_ms'), '.4g')} ms is identified")
+            parts.append(text)
+        if parts:
+            out.append(f"**{k}: not identified separately**: {'; '.join(parts)}; the standard "
+                       "errors above say nothing of each of these alone.")
+    return [*out, ""] if out else []
+
+
 def table1_markdown(rows: list[dict[str, Any]]) -> str:
-    """The paper's Table 1, one row per axis (rows from :func:`table1`)."""
-    lines = ["| axis | model | pure delay | phase delay at 0.2 Hz | bandwidth (-3 dB) | "
-             "bandwidth (-6 dB) |", "|---|---|---|---|---|---|"]
+    """The paper's Table 1, one row per axis (rows from :func:`table1`), and the delays'
+    convention (:data:`DELAY_CONVENTION`)."""
+    lines = ["| axis | model | pure delay (held / smooth command) | phase delay at 0.2 Hz | "
+             "bandwidth (-3 dB) | bandwidth (-6 dB) |", "|---|---|---|---|---|---|"]
     for t1 in rows:
         lines.append(
             f"| {t1['axis']} | {t1['model']} | "
-            f"{_pm(t1['pure_delay_ms'], t1['pure_delay_ms_stderr'], '.1f')} ms | "
+            f"{_pm(t1['pure_delay_ms'], t1['pure_delay_ms_stderr'], '.1f')} / "
+            f"{t1['pure_delay_smooth_ms']:.1f} ms | "
             f"{_pm(t1['phase_delay_0p2hz_ms'], t1['phase_delay_0p2hz_ms_stderr'], '.1f')} ms | "
             f"{_bw(t1['bandwidth_hz']['-3dB'])} | {_bw(t1['bandwidth_hz']['-6dB'])} |")
-    return "\n".join(lines)
+    return "\n".join([*lines, "", DELAY_CONVENTION])
 
 
 def config_fragment(ident: Identification, axis: str | None = None) -> str:
