@@ -80,9 +80,10 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
         assert "compensated again" in p.stderr
         fragment = ident / "rails_y.toml"
         model = parse_model(re.search(r'model = "([^"]+)"', fragment.read_text()).group(1))
-        # the P1D fit against the drawn truth (the selected model may add the accelerometer's
-        # own lag as a second pole: the fragment says which and why)
-        p1d = json.loads(p.stdout)["models"]["p1d"]["params"]
+        # the P1D fit against the drawn truth, and P1D selected for it
+        rep = json.loads(p.stdout)
+        assert rep["selected"] == "p1d", (rep["reason"], truth)
+        p1d = rep["models"]["p1d"]["params"]
         assert abs(p1d["Tp1"] / tp1 - 1) <= 0.05, (p1d, truth, fragment.read_text())
         # the same file identified offline, without options, gives the same answer: the
         # recording holds the excitation's window and the reference's band

@@ -92,6 +92,15 @@ class Plant:
         self.y = self.phi2 * mid + (1.0 - self.phi2) * late
 
 
+def wall_time_at(instant: float) -> float:
+    """The wall clock (epoch s) at a time.perf_counter() instant, read between two perf reads."""
+    for _ in range(3):  # a read pre-empted between the clocks is retried
+        before, wall, after = time.perf_counter(), time.time(), time.perf_counter()
+        if after - before < 20e-6:
+            break
+    return wall - (0.5 * (before + after) - instant)
+
+
 def decode_setpoint(payload: bytes) -> tuple[int, float, np.ndarray, list[str]]:
     """Check one `platform/setpoint` frame against the contract; ValueError if it breaks it."""
     try:
@@ -179,13 +188,14 @@ class Platform:
 
     def _cycle(self, k: int, deadline: float, publish: bool) -> None:
         """Cycle k starting at `deadline` (perf_counter): take setpoints, sample, step."""
-        t_wall = time.time() - (time.perf_counter() - deadline)  # the cycle's start, epoch s
+        t_wall = wall_time_at(deadline)  # the cycle's start, epoch s
         self._take_frames(deadline, t_wall)
         y = self.plant.y
         if publish:
             acc = (y - 2.0 * self.y1 + self.y2) * self.rate**2
-            self.feedback.put(msgpack.packb({"t": t_wall, "pos": dict(zip(AXES, y.tolist())),
-                                             "acc": dict(zip(AXES, acc.tolist()))}))
+            self.feedback.put(msgpack.packb({
+                "t": t_wall, "pos": dict(zip(AXES, y.tolist(), strict=True)),
+                "acc": dict(zip(AXES, acc.tolist(), strict=True))}))
         if (not self.timed_out and self.last_frame_at is not None
                 and t_wall - self.last_frame_at > TIMEOUT_S):
             self.timed_out = True
