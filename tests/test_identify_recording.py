@@ -262,3 +262,21 @@ def test_the_run_s_conditions_come_from_the_recorded_status() -> None:
     assert c["service_missed_share"] < MAX_MISSED_SHARE
     assert c["warnings"] == []
     assert run_conditions(SimpleNamespace(status=[]), 0.0, 1.0) == {}  # type: ignore[arg-type]
+
+
+def test_a_starved_run_or_a_poor_fit_is_not_a_fragment() -> None:
+    from types import SimpleNamespace
+
+    from motcomp.cli.identify import MAX_MISSED_SHARE_FRAGMENT, MIN_FIT_PERCENT, _untrusted
+
+    def ident(fit: float, share: float | None) -> SimpleNamespace:
+        cond = {} if share is None else {"service_missed_share": share}
+        return SimpleNamespace(best=SimpleNamespace(fit_percent=fit), selected="p1d",
+                               prep=SimpleNamespace(recording=SimpleNamespace(conditions=cond)))
+
+    assert _untrusted(ident(95.0, None)) == ""  # type: ignore[arg-type]
+    assert _untrusted(ident(95.0, MAX_MISSED_SHARE_FRAGMENT)) == ""  # type: ignore[arg-type]
+    why = _untrusted(ident(95.0, 0.077))  # type: ignore[arg-type]
+    assert "missed 7.7 % of its deadlines while the data were recorded" in why
+    why = _untrusted(ident(MIN_FIT_PERCENT - 1, 0.0))  # type: ignore[arg-type]
+    assert "validation fit is 49.0 %" in why

@@ -21,7 +21,7 @@ import pytest
 from motcomp.io.zenoh_io import free_tcp_port, loopback
 from motcomp.resources import config_file
 from motcomp.runtime.probe import HostProbe
-from tests.conftest import ROOT, judge_realtime, motcomp_cmd, subprocess_env
+from tests.conftest import ROOT, judge_realtime, motcomp_cmd, skip_if_starved, subprocess_env
 from tests.test_service_process import process
 
 pytestmark = pytest.mark.slow
@@ -60,6 +60,7 @@ def test_identify_live_recovers_a_platform_written_from_the_contract(tmp_path: P
             plat.send_signal(signal.SIGTERM)
             plat.wait(timeout=20)
     assert plat.returncode == 0, plat_log.read_text()[-2000:]
+    skip_if_starved(p, "identification on a host that starved the service")
     assert p.returncode == 0, p.stderr[-3000:]
     # the platform's frames as the service read them, and its own figure of the stack
     assert st["feedback"]["received"] > 20_000 and st["feedback"]["bad"] == 0, st["feedback"]

@@ -8,6 +8,7 @@ import logging
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from motcomp.cli._common import positive_float, print_json, rate_arg
 from motcomp.core.axes import AXIS_INDEX
@@ -15,9 +16,16 @@ from motcomp.errors import ConfigError, DataError, MotcompError
 from motcomp.ident.data import DEFAULT_MAX_GAP_S
 from motcomp.io.zenoh_io import add_zenoh_args, endpoints_from_args
 
+if TYPE_CHECKING:
+    from motcomp.ident.fit import Identification
+
 MIN_FIT_PERCENT = 50.0
 """A fit whose validation fit is below this (the model explains less than half the measured
 acceleration's deviation) is not written as a config fragment without ``--force``."""
+MAX_MISSED_SHARE_FRAGMENT = 0.05
+"""Nor is one from a run in which the service missed more than this share of its deadlines (a
+host that cannot hold the loop rate; the report warns from 2 %:
+:data:`motcomp.ident.data.MAX_MISSED_SHARE`)."""
 ORDER = 5
 
 
@@ -131,7 +139,7 @@ def _axes(args: argparse.Namespace) -> list[str | None]:
 
 def run_identify(args: argparse.Namespace) -> int:
     from motcomp.ident.data import load_recording
-    from motcomp.ident.fit import FitOptions, Identification, identify
+    from motcomp.ident.fit import FitOptions, identify
     from motcomp.ident.report import (
         markdown,
         report_json,
@@ -189,8 +197,8 @@ def run_identify(args: argparse.Namespace) -> int:
         raise DataError(f"no axis of {args.data} can be identified: {'; '.join(refused)}")
     data_warnings += [f"left out: {msg}" for msg in refused]
     out = args.out or args.data.with_name(args.data.stem + "_ident")
-    poor = {axis: ident.best.fit_percent for axis, ident in idents.items()
-            if not ident.best.fit_percent >= MIN_FIT_PERCENT}
+    poor = {axis: _untrusted(ident) for axis, ident in idents.items()}
+    poor = {axis: why for axis, why in poor.items() if why}
     held = frozenset(poor) if not args.force else frozenset()
     try:
         if len(idents) == 1:
@@ -224,15 +232,28 @@ def run_identify(args: argparse.Namespace) -> int:
             print(f"warning: {where}{kind} could not be fitted: {msg}", file=sys.stderr)
         for msg in ident.warnings:
             print(f"warning: {where}{msg}", file=sys.stderr)
-    for axis, fit in poor.items():
-        print(f"{'warning' if args.force else 'error'}: {axis}: the selected "
-              f"{idents[axis].selected}'s validation fit is {fit:.1f} %, below "
-              f"{MIN_FIT_PERCENT:g} %: the model does not explain the measurement; "
+    for axis, why in poor.items():
+        print(f"{'warning' if args.force else 'error'}: {axis}: {why}; "
               + ("its config fragment is written anyway (--force)" if args.force else
-                 f"no config fragment written (the report in {out} says why; check the "
-                 "window, the prefilter (--cutoff) and the excitation, or --force)"),
-              file=sys.stderr)
+                 f"no config fragment written (the report in {out} says more; --force writes "
+                 "it anyway)"), file=sys.stderr)
     return 2 if held else 0
+
+
+def _untrusted(ident: Identification) -> str:
+    """Why the identification must not become a config fragment without ``--force`` ("" if
+    it may): a fit that explains too little, or a run the host starved."""
+    fit = ident.best.fit_percent
+    if not fit >= MIN_FIT_PERCENT:
+        return (f"the selected {ident.selected}'s validation fit is {fit:.1f} %, below "
+                f"{MIN_FIT_PERCENT:g} %: the model does not explain the measurement (check the "
+                "window, the prefilter --cutoff and the excitation)")
+    share = ident.prep.recording.conditions.get("service_missed_share")
+    if share is not None and share > MAX_MISSED_SHARE_FRAGMENT:
+        return (f"the service missed {100 * share:.1f} % of its deadlines while the data were "
+                f"recorded (more than {100 * MAX_MISSED_SHARE_FRAGMENT:g} %): the fit carries "
+                "the host's stalls; identify again on a quiet host")
+    return ""
 
 
 def _run_live(args: argparse.Namespace) -> None:
