@@ -1,11 +1,16 @@
-"""The service against a platform written from docs/WIRE.md's platform side alone
-(``tools/wire_platform.py``: a pure delay and a first-order lag per axis, simulated exactly at
-1 kHz): its feedback is read (none bad), its status' setpoint age reaches the service's status,
-and ``identify --live`` recovers its model -- which needs the feedback's ``t``, ``pos`` and
-``acc`` as the contract defines them.
+"""The README's identification workflow by hand, against a platform written from docs/WIRE.md's
+platform side alone (``tools/wire_platform.py``: a pure delay and a first-order lag per axis,
+simulated exactly at 1 kHz).
 
-Real processes on loopback: ``motcomp run`` (the example config, admin on) and the platform as
-subprocesses, ``motcomp identify --live`` and ``motcomp status`` as commands."""
+The service reads the platform's feedback (none bad) and shows its setpoint age; then, as the
+README has it, the axis is bypassed, ``motcomp excite`` writes a multisine, ``motcomp record``
+records while ``motcomp source --file`` plays it, and ``motcomp identify session.mcap`` (no
+options) selects P1D and recovers the platform's model -- which needs the feedback's ``t``,
+``pos`` and ``acc`` as the contract defines them.  (The live path, ``identify --live``, is the
+workflow test's, against ``motcomp hil``.)
+
+Real processes on loopback: ``motcomp run`` (the example config, admin on), the platform and
+the recorder as subprocesses, the other commands as the README gives them."""
 
 from __future__ import annotations
 
@@ -35,37 +40,50 @@ def cli(*args: str, timeout: float = 300.0) -> subprocess.CompletedProcess[str]:
                           env=subprocess_env(), timeout=timeout)
 
 
-def test_identify_live_recovers_a_platform_written_from_the_contract(tmp_path: Path) -> None:
+def test_the_workflow_by_hand_identifies_a_platform_written_from_the_contract(
+        tmp_path: Path) -> None:
     site = tmp_path / "site.toml"
     site.write_text(f'include = ["{config_file("motcomp.toml")}"]\n[admin]\nenabled = true\n')
     p_plat, p_svc = free_tcp_port(), free_tcp_port()
+    svc_ep, plat_ep = loopback(p_svc), loopback(p_plat)
     plat_log = tmp_path / "platform.log"
+    session = tmp_path / "session.mcap"
     with HostProbe() as probe, plat_log.open("wb") as fh:
         plat = subprocess.Popen([sys.executable, str(ROOT / "tools" / "wire_platform.py"),
-                                 "-l", loopback(p_plat), "--truth",
-                                 f"rails_y={TD_MS:g},{TP1_MS:g}"],
+                                 "-l", plat_ep, "--truth", f"rails_y={TD_MS:g},{TP1_MS:g}"],
                                 stdout=fh, stderr=subprocess.STDOUT, env=subprocess_env())
         try:
-            with process(["run", "--config", str(site), "-l", loopback(p_svc), "-e",
-                          loopback(p_plat)], tmp_path / "svc.log") as svc:
-                time.sleep(2.0)
-                p = cli("identify", "--live", "--axis", "rails_y", str(tmp_path / "live.mcap"),
-                        "--excite-s", "30", "--out", str(tmp_path / "ident"), "--json",
-                        "--quiet", "--no-figures", "-e", loopback(p_svc), "-e",
-                        loopback(p_plat))
-                st = json.loads(cli("status", "-e", loopback(p_svc), "--json").stdout)
+            with process(["run", "--config", str(site), "-l", svc_ep, "-e", plat_ep],
+                         tmp_path / "svc.log") as svc:
+                p = cli("bypass", "on", "--axes", "rails_y", "-e", svc_ep, "--timeout", "20")
+                assert p.returncode == 0, p.stderr
+                p = cli("excite", "--axis", "rails_y", "--kind", "multisine", "--duration", "30",
+                        "--out", str(tmp_path / "exc"))
+                assert p.returncode == 0, p.stderr
+                with process(["record", "-o", str(session), "-e", svc_ep, "-e", plat_ep],
+                             tmp_path / "rec.log") as rec:
+                    time.sleep(1.5)
+                    p = cli("source", "--file", str(tmp_path / "exc.msgpack"), "--quiet", "-e",
+                            svc_ep)
+                    assert p.returncode == 0, p.stderr
+                    time.sleep(1.0)
+                    rec.send_signal(signal.SIGTERM)
+                    assert rec.wait(timeout=30) == 0, (tmp_path / "rec.log").read_text()
+                st = json.loads(cli("status", "-e", svc_ep, "--json").stdout)
                 svc.send_signal(signal.SIGTERM)
                 assert svc.wait(timeout=30) == 0
         finally:
             plat.send_signal(signal.SIGTERM)
             plat.wait(timeout=20)
     assert plat.returncode == 0, plat_log.read_text()[-2000:]
-    skip_if_starved(p, "identification on a host that starved the service")
-    assert p.returncode == 0, p.stderr[-3000:]
     # the platform's frames as the service read them, and its own figure of the stack
     assert st["feedback"]["received"] > 20_000 and st["feedback"]["bad"] == 0, st["feedback"]
     age_ms = st["platform"]["setpoint_age_ms"]
     assert 0.0 < age_ms < 5.0, st["platform"]
+    p = cli("identify", str(session), "--axis", "rails_y", "--out", str(tmp_path / "ident"),
+            "--json", "--quiet", "--no-figures")
+    skip_if_starved(p, "identification on a host that starved the service")
+    assert p.returncode == 0, p.stderr[-3000:]
     judge_realtime(probe.result, "the model identified from the contract's platform")
     rep = json.loads(p.stdout)
     assert rep["selected"] == "p1d", rep["reason"]
@@ -77,3 +95,4 @@ def test_identify_live_recovers_a_platform_written_from_the_contract(tmp_path: P
     assert fit["Td"] * 1e3 == pytest.approx(TD_MS + age_ms, abs=1.5), (fit, age_ms)
     assert fit["Tp1"] * 1e3 == pytest.approx(TP1_MS, rel=0.05), fit
     assert fit["K"] == pytest.approx(1.0, abs=0.02), fit
+    assert (tmp_path / "ident" / "rails_y.toml").is_file()

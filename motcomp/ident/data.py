@@ -95,6 +95,7 @@ __all__ = [
     "load_recording",
     "register_loader",
     "select_window",
+    "spectrum_tops",
     "write_recording_csv",
 ]
 
@@ -781,15 +782,27 @@ def run_conditions(session: Session, t0: float, t1: float) -> dict[str, Any]:
     return out
 
 
+def spectrum_tops(x: FloatArray, rate: float) -> tuple[float, float]:
+    """``(f30, f10)``: the frequencies above which the spectrum of ``x`` stays 30 dB and 10 dB
+    below its peak (Welch, 8 s segments); ``(0, 0)`` for a signal without content."""
+    from scipy import signal
+
+    nper = min(x.size, max(256, int(8.0 * rate)))
+    f, px = signal.welch(x, fs=rate, nperseg=nper)
+    peak = float(px[1:].max()) if px.size > 1 else 0.0
+    if not peak > 0:
+        return 0.0, 0.0
+    return (float(f[np.nonzero(px >= 1e-3 * peak)[0][-1]]),
+            float(f[np.nonzero(px >= 0.1 * peak)[0][-1]]))
+
+
 def _reference_band(session: Session, axis: str, within: tuple[float, float] | None,
                     start_s: float) -> float | None:
     """The top of the band of the reference the service was asked to follow on ``axis`` (its
     input stream, inside ``within`` if given): where its acceleration spectrum falls 10 dB
-    below its peak for good (:func:`~motcomp.ident.fit.spectrum_tops`; not 30 dB: the time
+    below its peak for good (:func:`spectrum_tops`; not 30 dB: the time
     stamps' own rounding -- 0.24 us on epoch seconds -- puts a white floor there); None without
     one."""
-    from motcomp.ident.fit import spectrum_tops
-
     inp = session.inputs
     if inp is None or len(inp) < MIN_SAMPLES:
         return None

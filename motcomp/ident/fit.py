@@ -93,7 +93,7 @@ from scipy import signal
 from motcomp.core.lti import FloatArray, discretize_zoh
 from motcomp.core.models import ProcessModel
 from motcomp.errors import ConfigError, DataError, ModelFitError
-from motcomp.ident.data import Recording
+from motcomp.ident.data import Recording, spectrum_tops
 from motcomp.ident.structures import STRUCTURES, Structure, make_structure
 
 __all__ = [
@@ -213,12 +213,6 @@ class Prepared:
         }
 
 
-def _welch(x: FloatArray, rate_hz: float, seconds: float) -> tuple[FloatArray, FloatArray]:
-    nper = min(x.size, max(256, int(seconds * rate_hz)))
-    f, p = signal.welch(x, fs=rate_hz, nperseg=nper)
-    return np.asarray(f), np.asarray(p)
-
-
 def _lines(y: FloatArray, v: FloatArray, rate_hz: float, f_hi: float) -> list[float]:
     """Frequencies of narrow lines in the part of ``y`` that ``v`` does not explain (up to 3,
     strongest first).
@@ -259,17 +253,6 @@ REFERENCE_CUTOFF_FACTOR = 2.0
 prefilter's cut-off is this many times its band's top (:attr:`Recording.band_hz`): the command
 the platform received also carries the limiter's and the stack's work above that band, which
 the fit must not try to explain (docs/IDENTIFICATION.md)."""
-
-
-def spectrum_tops(x: FloatArray, rate: float) -> tuple[float, float]:
-    """``(f30, f10)``: the frequencies above which the spectrum of ``x`` stays 30 dB and 10 dB
-    below its peak (Welch, 8 s segments); ``(0, 0)`` for a signal without content."""
-    f, px = _welch(x, rate, 8.0)
-    peak = float(px[1:].max()) if px.size > 1 else 0.0
-    if not peak > 0:
-        return 0.0, 0.0
-    return (float(f[np.nonzero(px >= 1e-3 * peak)[0][-1]]),
-            float(f[np.nonzero(px >= 0.1 * peak)[0][-1]]))
 
 
 def prepare(rec: Recording, options: FitOptions = FitOptions()) -> Prepared:
