@@ -368,6 +368,18 @@ def test_config_example_is_the_documented_config_and_lists_the_others() -> None:
     assert p.returncode == 2 and "no shipped file 'nope.toml'" in p.stderr
 
 
+def test_every_profile_the_example_config_names_exists() -> None:
+    """A name the example's comments give (``profile = "..."``, ``motcomp profile NAME``) is one
+    of its profiles."""
+    import re
+
+    text = config_file("motcomp.toml").read_text()
+    profiles = set(tomllib.loads(text)["profiles"])
+    named = set(re.findall(r'profile\s*=\s*"([^"]+)"', text))
+    named |= set(re.findall(r"`motcomp profile (\w+)`", text)) - {"NAME", "none"}
+    assert named and named <= profiles, (named, profiles)
+
+
 # --- info ---------------------------------------------------------------------------------
 def test_info_summarises_a_recording(tmp_path: Path) -> None:
     path = tmp_path / "s.mcap"
