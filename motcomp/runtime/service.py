@@ -91,7 +91,9 @@ validation, reference, compensator, saturation verdicts); ``late`` waking after 
 ENVELOPE_LOG_S = 10.0
 """The envelope guard's actions are logged (ERROR) at most this often, with their count."""
 PLATFORM_FIGURES = ("setpoint_age_ms", "setpoint_age_mean_ms", "ticks", "missed_ticks")
-"""The numbers the service takes from the platform's status frames (docs/WIRE.md)."""
+"""The numbers the service takes from the platform's status frames (docs/WIRE.md) ..."""
+MAX_PLATFORM_STATUS_BYTES = 65536
+"""... of at most this size (a larger frame is not decoded)."""
 DEADLINE_WINDOW_S = 10.0
 """The status' ``deadlines`` block counts the deadlines missed over windows this long ..."""
 DEADLINE_WARN_SHARE = 0.02
@@ -742,7 +744,10 @@ class Service:
         if sub is None or (sample := sub.try_recv()) is None:
             return
         try:
-            st = msgpack.unpackb(sample.payload.to_bytes(), raw=False)
+            payload = sample.payload.to_bytes()
+            if len(payload) > MAX_PLATFORM_STATUS_BYTES:
+                return
+            st = msgpack.unpackb(payload, raw=False)
         except Exception:  # not a status frame: nothing to show
             return
         if isinstance(st, dict):
