@@ -534,6 +534,13 @@ def report(res: DemoResult) -> str:
                 f"{_pct(at):>8} {_pct(ideal_at):>8}  "
                 f"{res.saturation.get(axis, {}).get(ph, 0):>5}")
     predicted = [a for a in res.delays if a in (res.status.get("prediction") or {})]
+    bypassed = set(res.status.get("bypass") or [])
+    alone = [a for a in predicted if a in bypassed]
+    series = [a for a in predicted if a not in bypassed]
+    how = "".join([f"  {', '.join(series)}: the PID with a predictive prefilter in series."
+                   if series else "",
+                   f"  {', '.join(alone)}: compensated by prediction alone (PID bypassed: "
+                   "delay-dominated)." if alone else ""])
     motions = "; ".join(f"{a} {SIGNAL_OF[a]}" for a in res.delays if a in SIGNAL_OF)
     limits = ", ".join(f"{a} {v:g} {unit(a)}/s^2" for a, v in res.acc_limit.items())
     acted = ", ".join(f"{a} {_pct(c['on'].ideal_acted)} %" for a, c in res.command.items()
@@ -551,8 +558,7 @@ def report(res: DemoResult) -> str:
 
     lines += ["", *_wrap(f"motion: {motions}."),
               *_wrap("delay: setpoint -> feedback by cross-correlation (sub-sample); gained: "
-                     "off - on." + (f"  {', '.join(predicted)}: compensated by prediction "
-                                    "(PID bypassed: delay-dominated)." if predicted else "")),
+                     "off - on." + how),
               *_wrap(f"HF acc, jerk: RMS of the command's acceleration above {HF_ABOVE_HZ:g} Hz "
                      "and of its jerk (motcomp.core.quality.command_quality) over the motion "
                      f"from {start} s in, off / on (the phase's start-up: the rejoin blend, and "
