@@ -243,7 +243,8 @@ def test_the_run_s_conditions_come_from_the_recorded_status() -> None:
     platform's stack delay; a busy run is named in a warning."""
     from types import SimpleNamespace
 
-    from motcomp.ident.data import MAX_MISSED_SHARE, run_conditions
+    from motcomp.ident.data import run_conditions
+    from motcomp.runtime.clock import DEGRADED_MISSED_SHARE
 
     def frame(t: float, ticks: int, missed: int) -> tuple[int, dict[str, object]]:
         return 0, {"t": t, "ticks": ticks, "missed_ticks": missed,
@@ -259,7 +260,7 @@ def test_the_run_s_conditions_come_from_the_recorded_status() -> None:
     quiet = SimpleNamespace(status=[frame(100.0, 1000, 0), frame(120.0, 20_990, 10)])
     c = run_conditions(quiet, 100.2, 119.8)  # type: ignore[arg-type]
     assert c["service_missed_share"] == pytest.approx(10 / 20_000)
-    assert c["service_missed_share"] < MAX_MISSED_SHARE
+    assert c["service_missed_share"] < DEGRADED_MISSED_SHARE
     assert c["warnings"] == []
     assert run_conditions(SimpleNamespace(status=[]), 0.0, 1.0) == {}  # type: ignore[arg-type]
 

@@ -91,18 +91,14 @@ def bare_clock(cfg_path: str, seconds: float) -> dict[str, Any]:
     """Child process: the loop's clock alone with the config's loop settings (sleep, then spin
     to each deadline, no work, no I/O): the stalls the machine itself imposes."""
     from motcomp.config import load_config
-    from motcomp.runtime.clock import DeadlineClock
+    from motcomp.runtime.probe import measure_clock
 
     loop = load_config(Path(cfg_path)).loop
     report = schedule_like_loop(loop)
-    n = int(seconds * loop.rate_hz)
-    late = np.empty(n)
-    clock = DeadlineClock(loop.rate_hz, loop.spin_us, sleep_max_us=loop.sleep_max_us)
-    for k in range(n):
-        deadline, now = clock.wait()
-        late[k] = (now - deadline) / 1e3
-    return {"realtime": report, "missed": clock.missed,
-            "late_p999": float(np.percentile(late, 99.9)), "late_max": float(late.max())}
+    r = measure_clock(loop.rate_hz, loop.spin_us, loop.sleep_max_us,
+                      ticks=int(seconds * loop.rate_hz))
+    return {"realtime": report, "missed": r.missed, "late_p999": r.late_p999_us,
+            "late_max": r.late_max_us}
 
 
 def tick_in_process(cfg_path: str, ticks: int) -> dict[str, list[float]]:

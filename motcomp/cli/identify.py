@@ -25,7 +25,7 @@ acceleration's deviation) is not written as a config fragment without ``--force`
 MAX_MISSED_SHARE_FRAGMENT = 0.05
 """Nor is one from a run in which the service missed more than this share of its deadlines (a
 host that cannot hold the loop rate; the report warns from 2 %:
-:data:`motcomp.ident.data.MAX_MISSED_SHARE`)."""
+:data:`motcomp.runtime.clock.DEGRADED_MISSED_SHARE`)."""
 ORDER = 5
 
 

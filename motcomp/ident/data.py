@@ -74,6 +74,7 @@ import numpy as np
 from motcomp.core.axes import AXIS_INDEX
 from motcomp.core.lti import FloatArray
 from motcomp.errors import DataError
+from motcomp.runtime.clock import DEGRADED_MISSED_SHARE
 
 if TYPE_CHECKING:
     from motcomp.record.session import Session
@@ -743,11 +744,6 @@ def _load_mcap(path: Path, axis: str | None, clock: str) -> RawRecording:
                                                                   b + cols.start_s))
 
 
-MAX_MISSED_SHARE = 0.02
-"""A window in which the service missed more than this share of its deadlines gets a warning:
-its delay and dynamics are the busy host's as much as the platform's."""
-
-
 def run_conditions(session: Session, t0: float, t1: float) -> dict[str, Any]:
     """How the run went between ``t0`` and ``t1`` (the recording's clock, s), from the service
     status frames it recorded (one before and one after the window at best): the deadlines the
@@ -768,7 +764,7 @@ def run_conditions(session: Session, t0: float, t1: float) -> dict[str, Any]:
     if b["t"] > a["t"] and ticks >= 0 and missed >= 0 and ticks + missed > 0:
         share = missed / (ticks + missed)
         out.update(service_ticks=ticks, service_missed=missed, service_missed_share=share)
-        if share > MAX_MISSED_SHARE:
+        if share > DEGRADED_MISSED_SHARE:  # the host's stalls are in the fit
             warnings.append(f"the service missed {missed} of {ticks + missed} deadlines "
                             f"({100 * share:.1f} %) while the data were recorded: the host "
                             "took the loop's time, and the fitted delay and dynamics carry "

@@ -19,8 +19,12 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-__all__ = ["INPUT_GRACE", "DeadlineClock"]
+__all__ = ["DEGRADED_MISSED_SHARE", "INPUT_GRACE", "DeadlineClock"]
 
+DEGRADED_MISSED_SHARE = 0.02
+"""A loop that missed more than this share of its deadlines over a stretch is degraded there:
+the service logs it (a WARNING per window, its status' ``deadlines``) and an identification of
+that stretch warns (docs/DEPLOYMENT.md, docs/IDENTIFICATION.md)."""
 INPUT_GRACE = 25
 """Input-synchronous mode: after a tick on an input, the own clock waits this percentage of a
 period beyond the period for the next input before it ticks without one."""

@@ -28,7 +28,7 @@ import numpy as np
 
 from motcomp.errors import ServiceError
 
-__all__ = ["MAX_MISSED_SHARE", "MAX_STALL_MS", "HostClock", "HostProbe"]
+__all__ = ["MAX_MISSED_SHARE", "MAX_STALL_MS", "HostClock", "HostProbe", "measure_clock"]
 
 MAX_MISSED_SHARE = 0.05
 """The host holds a 1 kHz loop if its bare clock missed at most this share of the deadlines
@@ -112,16 +112,17 @@ class HostProbe:
                                f"{out!r} {err[-500:]!r}") from e
 
 
-def _run(rate_hz: float, spin_us: float, sleep_max_us: float) -> HostClock:
-    """The bare clock until SIGTERM (the process' main thread)."""
+def measure_clock(rate_hz: float, spin_us: float, sleep_max_us: float,
+                  ticks: int | None = None, stop: threading.Event | None = None) -> HostClock:
+    """The loop's clock alone (sleep, then spin to each deadline; no work, no I/O) for
+    ``ticks`` deadlines or until ``stop`` is set, in the calling thread: what the machine
+    itself imposes on a loop scheduled as this thread is (``tools/bench_service.py`` schedules
+    it as the service's loop first)."""
     from motcomp.runtime.clock import DeadlineClock
 
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
     late: list[int] = []
     clock = DeadlineClock(rate_hz, spin_us, sleep_max_us=sleep_max_us)
-    print("ready", flush=True)
-    while not stop.is_set():
+    while not (stop is not None and stop.is_set()) and (ticks is None or len(late) < ticks):
         deadline, now = clock.wait()
         late.append(now - deadline)
     a = np.asarray(late, dtype=float) / 1e3 if late else np.zeros(1)
@@ -129,6 +130,14 @@ def _run(rate_hz: float, spin_us: float, sleep_max_us: float) -> HostClock:
                      float(np.percentile(a, 99.9)), float(a.max()))
 
 
-if __name__ == "__main__":
-    r = _run(*(float(x) for x in sys.argv[1:4]))
+def _main(rate_hz: float, spin_us: float, sleep_max_us: float) -> None:
+    """The probe's process: the bare clock until SIGTERM, then its result as one JSON line."""
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    print("ready", flush=True)
+    r = measure_clock(rate_hz, spin_us, sleep_max_us, stop=stop)
     print(json.dumps(r.__dict__), flush=True)
+
+
+if __name__ == "__main__":
+    _main(*(float(x) for x in sys.argv[1:4]))

@@ -69,7 +69,7 @@ from motcomp.errors import ConfigError, MotcompError, ServiceError
 from motcomp.io.ports import InputPort, OutputPort
 from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, ZenohSource, open_session
 from motcomp.resources import config_file
-from motcomp.runtime.clock import DeadlineClock
+from motcomp.runtime.clock import DEGRADED_MISSED_SHARE, DeadlineClock
 from motcomp.runtime.confine import Confinement
 from motcomp.runtime.monitor import BIN_S, COMMAND_WINDOW_S, LAG_RANGE_S, MotionMonitor
 from motcomp.runtime.reload import Prepared, Preparer
@@ -95,11 +95,9 @@ PLATFORM_FIGURES = ("setpoint_age_ms", "setpoint_age_mean_ms", "ticks", "missed_
 MAX_PLATFORM_STATUS_BYTES = 65536
 """... of at most this size (a larger frame is not decoded)."""
 DEADLINE_WINDOW_S = 10.0
-"""The status' ``deadlines`` block counts the deadlines missed over windows this long ..."""
-DEADLINE_WARN_SHARE = 0.02
-"""... and a window with more than this share missed is logged at WARNING (one line per
-window at most): the delay, the command's smoothness and any identification run then are
-degraded by the host (docs/DEPLOYMENT.md)."""
+"""The status' ``deadlines`` block counts the deadlines missed over windows this long; one
+with more than :data:`~motcomp.runtime.clock.DEGRADED_MISSED_SHARE` of them missed is logged
+at WARNING (one line per window at most)."""
 
 
 def _hand_over() -> None:
@@ -472,12 +470,12 @@ class Service:
     def _judge_deadlines(self, window: tuple[float, int, int], now: float
                          ) -> tuple[float, int, int]:
         """Close a deadline window: the status' ``deadlines`` block, and a WARNING when more
-        than :data:`DEADLINE_WARN_SHARE` of its deadlines were missed."""
+        than :data:`~motcomp.runtime.clock.DEGRADED_MISSED_SHARE` of its deadlines were missed."""
         t0, ticks0, missed0 = window
         ticks, missed = self.state.ticks, self._clock.missed if self._clock else 0
         due = (ticks - ticks0) + (missed - missed0)
         share = (missed - missed0) / due if due > 0 else 0.0
-        degraded = share > DEADLINE_WARN_SHARE
+        degraded = share > DEGRADED_MISSED_SHARE
         self._deadlines = {"window_s": round(now - t0, 3), "due": due,
                            "missed": missed - missed0, "share": share, "degraded": degraded,
                            "windows_degraded": self._deadlines.get("windows_degraded", 0)
