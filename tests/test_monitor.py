@@ -337,6 +337,47 @@ def make_service(bypass_y: bool) -> tuple[Service, MemorySource, MemorySink]:
     return svc, src, sink
 
 
+class _Preempted:
+    """A feedback channel whose frames arrive while the poll drains it: the poll is preempted
+    for ``pause_s`` after each frame, and the next frame only comes in then (as on a busy host,
+    where the main thread loses the CPU between two ``try_recv``)."""
+
+    class Sample:
+        def __init__(self) -> None:
+            self.payload = self
+
+        def to_bytes(self) -> bytes:
+            return b""
+
+    def __init__(self, frames: int, pause_s: float) -> None:
+        self.left, self.pause_s = frames, pause_s
+        self.arrived: list[int] = []
+
+    def try_recv(self) -> Any:
+        if not self.left:
+            return None
+        if self.arrived:
+            time.sleep(self.pause_s)
+        self.left -= 1
+        self.arrived.append(time.perf_counter_ns())
+        return self.Sample()
+
+
+def test_feedback_frames_are_stamped_when_taken_not_when_the_poll_began() -> None:
+    """The service stamps each feedback frame when it takes it from the channel: a frame that
+    came in while the poll was preempted is never stamped before it arrived (a stamp from the
+    poll's start made the smallest transit, and with it the status' apparent delay, tens of ms
+    short on a busy host)."""
+    svc, _, _ = make_service(bypass_y=True)
+    channel = _Preempted(frames=4, pause_s=0.02)
+    svc._feedback = channel
+    svc._poll_feedback()
+    stamps = [t for t, _ in svc.monitor._inbox]
+    assert len(stamps) == 4
+    assert all(s >= a for s, a in zip(stamps, channel.arrived, strict=True)), (
+        stamps, channel.arrived)
+
+
 def test_status_blocks_from_the_service_tick() -> None:
     """The service's own tick (rails_y bypassed: u = r) and a platform that is a pure 30 ms
     delay of u: the status says 30 ms, and the limiter's share is the tick's own count."""

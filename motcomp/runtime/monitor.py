@@ -286,6 +286,11 @@ class MotionMonitor:
         m = min(n, self._keep)
         idx = np.arange(n - m, n) % self._cap
         t_r = self._t[idx]
+        # r and u of the driven axes, copied now: the loop overwrites the ring's oldest rows
+        # while this report runs (it may be preempted for longer than the ring's margin)
+        cols = [i for i in range(N_AXES) if driven[i]]
+        ru = self._ru[np.ix_(idx, np.array(cols + [N_AXES + i for i in cols], dtype=np.intp))]
+        col = {i: k for k, i in enumerate(cols)}
         fn = self._fn
         fm = min(fn, self._fcap)
         fidx = np.arange(fn - fm, fn) % self._fcap
@@ -307,11 +312,11 @@ class MotionMonitor:
                 if isinstance(window, str):
                     fig["delay_reason"] = window
                 else:
-                    fig.update(self._delay(t_r, self._ru[idx, i], t_y, self._fpos[fidx, i], window,
+                    fig.update(self._delay(t_r, ru[:, col[i]], t_y, self._fpos[fidx, i], window,
                                            float(p_max[i]) - float(p_min[i])))
                 if cmd is not None:
                     grid, first = cmd
-                    u = np.interp(grid, t_r[first:], self._ru[idx[first:], N_AXES + i])
+                    u = np.interp(grid, t_r[first:], ru[first:, len(cols) + col[i]])
                     fig.update(command_quality(u, self.rate_hz).as_dict())
             except Exception as exc:  # a figure must never stop the status
                 fig["delay_reason"] = f"internal: {type(exc).__name__}: {str(exc)[:80]}"

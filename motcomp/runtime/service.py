@@ -722,13 +722,16 @@ class Service:
                               "ticks": self.state.ticks, "error": f"status failed: {error!r}"})
 
     def _poll_feedback(self) -> None:
-        """Hand the feedback frames received since the last poll to the monitor, stamped now
-        (the monitor times frames by their own ``t``; never raises)."""
+        """Hand the feedback frames received since the last poll to the monitor, each stamped
+        when taken from the channel (never before it arrived: the monitor's smallest transit
+        must not be shortened by a frame that came in while this poll was preempted; the
+        monitor times frames by their own ``t``; never raises)."""
         sub = self._feedback
         if sub is None:
             return
-        t_ns = time.perf_counter_ns()
+        perf = time.perf_counter_ns
         while (sample := sub.try_recv()) is not None:
+            t_ns = perf()
             try:
                 payload = sample.payload.to_bytes()
             except Exception:  # counted as a bad frame by the monitor
