@@ -28,11 +28,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from mypy_extensions import mypyc_attr
 from numpy.typing import ArrayLike
 
 from motcomp.core.lti import ComplexArray
+from motcomp.core.native import frozen_reduce
 from motcomp.errors import ConfigError
 
 __all__ = ["BAND_HZ_DEFAULT", "BESSEL_W3DB", "BandLimit", "BandLimitParams", "band_limit_freqresp",
@@ -52,6 +55,9 @@ Section = tuple[float, float, float, float, float]
 @dataclass(frozen=True)
 class BandLimitParams:
     """A designed band limit: its -3 dB frequency, loop rate, delay (s) and sections."""
+
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        return frozen_reduce(self)
 
     band_hz: float
     rate_hz: float
@@ -110,6 +116,7 @@ def band_limit_freqresp(p: BandLimitParams | None, f_hz: ArrayLike) -> ComplexAr
 _Plan = tuple[int, float, float, float, float, float, float, float, float, float, float]
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class BandLimit:
     """The band limits' state for ``n`` axes; :meth:`step` filters one tick's values."""
 

@@ -106,6 +106,7 @@ from dataclasses import dataclass
 from math import isfinite
 
 import numpy as np
+from mypy_extensions import mypyc_attr
 from numpy.typing import ArrayLike
 
 from motcomp.core.loop import stability
@@ -129,6 +130,7 @@ NONFINITE = 8
 """Flag bit: the reference was not finite and the last finite one was held."""
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 @dataclass
 class CompensatorState:
     """A copy of every state of the compensator (for tests, replay and snapshots)."""
@@ -153,6 +155,7 @@ class CompensatorState:
     fade_progress: FloatArray
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class Compensator:
     """Pseudo open-loop PID with saturation for ``n`` axes (see the module docstring).
 

@@ -31,6 +31,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from math import sqrt
+from typing import Any
+
+from mypy_extensions import mypyc_attr
+
+from motcomp.core.native import frozen_reduce
 
 __all__ = ["CHASE_SHARE", "TOLERANCE_M", "EnvelopeGuard", "EnvelopeParams"]
 
@@ -47,6 +52,9 @@ class EnvelopeParams:
     """The envelope per axis (:data:`~motcomp.core.axes.AXES` order, axis units) at
     ``rate_hz``; an axis with ``v_max == 0`` is held at neutral (its range must be
     ``[0, 0]``)."""
+
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        return frozen_reduce(self)
 
     p_min: tuple[float, ...]
     p_max: tuple[float, ...]
@@ -81,6 +89,7 @@ class EnvelopeParams:
         return len(self.p_min)
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class EnvelopeGuard:
     """The guard's state: its last output and velocity per axis, and what it did."""
 

@@ -53,12 +53,15 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from mypy_extensions import mypyc_attr
 from numpy.typing import ArrayLike
 
 from motcomp.core.lti import ComplexArray, FloatArray
 from motcomp.core.minjerk import min_jerk, min_jerk_weight
+from motcomp.core.native import frozen_reduce
 from motcomp.errors import ConfigError
 
 __all__ = [
@@ -110,10 +113,13 @@ class PredictorParams:
         that is not ``0 < low < high < rate/8``, or ``|F(1) - 1| > 1e-6``.
     """
 
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        return frozen_reduce(self)
+
     pole_hz: float
     coeffs: tuple[float, ...]
     rate_hz: float
-    band_hz: tuple[float, float] = (0.1, 2.0)
+    band_hz: tuple[float, ...] = (0.1, 2.0)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "coeffs", tuple(float(c) for c in self.coeffs))
@@ -176,6 +182,9 @@ class MonitorParams:
     ConfigError
         ``resume_ratio`` not below ``fallback_ratio``, or a negative or non-finite value.
     """
+
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        return frozen_reduce(self)
 
     fallback_ratio: float = 0.3
     resume_ratio: float = 0.15
@@ -243,6 +252,7 @@ def _highpass2(fc_hz: float, rate_hz: float) -> tuple[float, ...]:
     return (norm, -2.0 * norm, norm, 2.0 * (k * k - 1.0) * norm, (1.0 - k / q + k * k) * norm)
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class Prediction:
     """The prefilters and band monitors of ``n`` axes, stepped once a tick.
 

@@ -40,11 +40,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from math import isfinite
+from typing import Any
 
 import numpy as np
+from mypy_extensions import mypyc_attr
 from numpy.typing import ArrayLike
 
 from motcomp.core.lti import FloatArray
+from motcomp.core.native import frozen_reduce
 from motcomp.errors import ConfigError
 
 __all__ = [
@@ -102,6 +105,9 @@ class AxisLimits:
         Naming the axis and value, if a limit is non-finite, ``p_min >= p_max`` (inverted or empty
         range), or a velocity/acceleration limit is not > 0.
     """
+
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        return frozen_reduce(self)
 
     p_min: FloatArray
     p_max: FloatArray
@@ -315,6 +321,7 @@ def limit_axis(target: float, u0: float, v0: float, track: Track, const: tuple[f
     return u, (u - u0) * inv_h, track, fl
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class Saturator:
     """Stateful limiter for all axes at sample period ``dt_s`` (see module docstring).
 
@@ -328,7 +335,7 @@ class Saturator:
         self.dt_s = float(dt_s)
         self.n = limits.size
         self.limits = limits
-        self._const = axis_constants(limits, self.dt_s)
+        self._axis_consts = axis_constants(limits, self.dt_s)
         self.u: list[float] = [0.0] * self.n
         self.v: list[float] = [0.0] * self.n
         self.track: list[Track] = [at_rest(0.0)] * self.n
@@ -340,7 +347,7 @@ class Saturator:
         axis left outside the new range."""
         if limits.size != self.n:
             raise ConfigError(f"limits for {limits.size} axes, saturator has {self.n}")
-        self._const = axis_constants(limits, self.dt_s)
+        self._axis_consts = axis_constants(limits, self.dt_s)
         self.limits = limits
 
     def reset(self, position: ArrayLike, velocity: ArrayLike | None = None) -> None:
@@ -356,7 +363,7 @@ class Saturator:
         """Limit the desired positions (finite) and return the emitted ones."""
         target = np.asarray(u_des, dtype=float).tolist()
         out = [0.0] * self.n
-        for i, const in enumerate(self._const):
+        for i, const in enumerate(self._axis_consts):
             out[i], self.v[i], self.track[i], self.flags[i] = limit_axis(
                 target[i], self.u[i], self.v[i], self.track[i], const)
         self.u = out[:]

@@ -116,9 +116,13 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
+
+from mypy_extensions import mypyc_attr
 
 from motcomp.core.bandlimit import BandLimit, BandLimitParams
 from motcomp.core.minjerk import PEAK_SPEED_FACTOR, min_jerk, min_jerk_rate, min_jerk_weight
+from motcomp.core.native import frozen_reduce
 
 __all__ = ["OFFSET_LEAK", "ReferenceShaper", "ShaperParams"]
 
@@ -196,6 +200,9 @@ FIX_FLOOR = 1e-12
 class ShaperParams:
     """The shaper's settings, per axis where a tuple (in :data:`~motcomp.core.axes.AXES` order)."""
 
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        return frozen_reduce(self)
+
     driven: tuple[bool, ...]
     ramp_speed: tuple[float, ...]
     """Peak speed of the ramps to neutral (axis units/s)."""
@@ -230,6 +237,7 @@ class ShaperParams:
                              f"{self.reconstruction!r}")
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class _Move:
     """Minimum-jerk moves from ``start`` to ``end`` per axis, each with its own duration."""
 
@@ -251,6 +259,7 @@ class _Move:
         return out, done
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class ReferenceShaper:
     """The state of the rules in the module docstring; every method takes the settings."""
 

@@ -98,12 +98,15 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import msgpack
+from mypy_extensions import mypyc_attr
 
 from motcomp.core.axes import AXES, AXIS_INDEX
 from motcomp.core.compensator import Compensator
 from motcomp.core.envelope import EnvelopeGuard, EnvelopeParams
+from motcomp.core.native import frozen_reduce
 from motcomp.core.predictor import MonitorParams, Prediction, PredictorParams
 from motcomp.core.saturation import POS, VEL
 from motcomp.core.shaper import ReferenceShaper, ShaperParams
@@ -152,6 +155,9 @@ _unpackb = msgpack.unpackb
 class TickParams:
     """Everything a tick needs besides its state; swapped whole on a reload."""
 
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        return frozen_reduce(self)
+
     rate_hz: float
     shaper: ShaperParams
     saturation_tolerance: float = 1e-4
@@ -178,6 +184,7 @@ class TickParams:
         return min(1.0, 1.0 / (0.02 * self.rate_hz))
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 @dataclass
 class TickOutput:
     """What one tick sends: the command ``u`` in :data:`AXES` order and what goes with it."""
@@ -193,6 +200,7 @@ class TickOutput:
     """``""`` when live and settled, else ``rejoin``, ``stale`` or ``parking``."""
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class TickState:
     """Everything that changes from tick to tick: the compensator, the shaper, the counters."""
 
@@ -486,8 +494,8 @@ def _describe(x: object) -> str:
 
 
 # --- between ticks: bypass, parking ----------------------------------------------------------
-def set_bypass(state: TickState, mask: Sequence[bool],
-               prediction_off: Sequence[bool] | None = None) -> list[str]:
+def set_bypass(state: TickState, mask: Sequence[object],
+               prediction_off: Sequence[object] | None = None) -> list[str]:
     """PID off (True) or on (False) per axis, bumplessly; entries of undriven axes are ignored.
     ``prediction_off`` (default: ``mask``) turns the axes' prediction off (True) or back on, as
     far as the config uses it.  Returns the axes in bypass."""
