@@ -53,3 +53,20 @@ def judge_realtime(clock: HostClock | None, what: str) -> None:
         raise AssertionError("the host probe has no result: judge after its run")
     if not clock.holds():
         pytest.skip(f"not judged ({what}): {clock.describe()}")
+
+
+def ran_in_plain_python(request: pytest.FixtureRequest) -> bool:
+    """For a test that replaces functions of the tick's modules (which the compiled tick calls
+    natively, past the module's attributes): under the compiled tick, run the test again in a
+    child pytest with the plain Python modules (``MOTCOMP_PURE_PYTHON=1``), fail if it fails
+    there, and return True (the caller returns); under the plain Python, return False."""
+    from motcomp.core import native
+
+    if not native.ACTIVE.startswith("compiled"):
+        return False
+    p = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                        request.node.nodeid],
+                       cwd=ROOT, env={**os.environ, native.PURE_ENV: "1"}, capture_output=True,
+                       text=True, timeout=600)
+    assert p.returncode == 0, f"in the plain Python tick:\n{p.stdout[-4000:]}\n{p.stderr[-2000:]}"
+    return True

@@ -38,6 +38,7 @@ from motcomp.core.tick import (
 )
 from motcomp.io.wire import encode_input
 from tests._frames import anything, frame_like, seqs
+from tests.conftest import ran_in_plain_python
 from tests.test_saturation import check_sequence
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -372,10 +373,12 @@ def test_error_text_is_bounded_whatever_the_frame() -> None:
 
 
 def test_an_unexpected_exception_is_counted_and_the_tick_goes_on(
-        monkeypatch: pytest.MonkeyPatch) -> None:
+        monkeypatch: pytest.MonkeyPatch, request: pytest.FixtureRequest) -> None:
     """The decoder running out of memory or stack is a ``decode`` rejection; an exception of
     any other kind in the checks (a bug) is ``internal``; either way nothing changes and the
     next frame is taken."""
+    if ran_in_plain_python(request):
+        return
     params, state = new_tick(config())
     for k in range(10):
         assert take(state, params, k, motion_frame(k)) is None

@@ -259,6 +259,8 @@ def format_status(st: dict[str, Any]) -> str:
         lines.append(f"can         sent {can.get('sent', 0)}  errors {can.get('errors', 0)}")
     if st.get("realtime"):
         lines.append(f"scheduling  {st['realtime']}")
+    if st.get("tick"):
+        lines.append(f"tick        {st['tick']}")
     lines += _quality_lines(st)
     driven = set(st.get("driven") or [])
     bypass = set(st.get("bypass") or [])

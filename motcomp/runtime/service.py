@@ -54,6 +54,7 @@ import msgpack
 
 from motcomp import __version__
 from motcomp.config import ServiceConfig, config_hash, config_sources, new_tick, resolve_axes
+from motcomp.core import native
 from motcomp.core.axes import AXES
 from motcomp.core.tick import (
     MAX_ERROR_CHARS,
@@ -440,6 +441,7 @@ class Service:
                     if self._can is not None else None),
             "reloads": self.reloads[-RELOADS_KEPT:],
             "realtime": self.rt_report,
+            "tick": native.ACTIVE,
             "clock": self.tick_clock(),
             "platform": self._platform,
             **self._quality(),
@@ -797,8 +799,8 @@ class Service:
             if healthy and not ready:
                 ready = True
                 self.notifier.ready(f"running at {cfg.loop.rate_hz:g} Hz")
-                log.info("running: %g Hz, config %s, %s", cfg.loop.rate_hz, self.config_id,
-                         self.rt_report)
+                log.info("running: %g Hz, config %s, %s; tick %s", cfg.loop.rate_hz,
+                         self.config_id, self.rt_report, native.ACTIVE)
                 self.preparer.start()  # the reloads' reader, once start-up is done
             if healthy and now >= next_dog:
                 self.notifier.watchdog()
