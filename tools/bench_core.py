@@ -9,15 +9,24 @@ arithmetic as a lower bound of what vectorising over 8 axes would cost.  The thr
 interleaved in blocks, each on its own continuous timeline, ``gc.freeze()``-d as the service's
 loop is.
 
+With ``--compare-plain`` the whole measurement runs in child processes, alternately with the
+installed tick (compiled by mypyc where the install compiled it) and with the plain Python
+modules (``MOTCOMP_PURE_PYTHON=1``), three rounds each, and the section gives both and their
+ratio (docs/BENCHMARKS.md, "The tick compiled").
+
 Writes the "core" section of docs/BENCHMARKS.md.
-Usage: ``python tools/bench_core.py [--ticks 60000] [--quick] [--no-write]``
+Usage: ``python tools/bench_core.py [--ticks 60000] [--quick] [--no-write] [--compare-plain]``
 """
 
 from __future__ import annotations
 
 import argparse
 import gc
+import json
 import math
+import os
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 
@@ -25,6 +34,7 @@ import numpy as np
 from _bench import machine, write_section
 
 from motcomp.config import load_config, new_tick
+from motcomp.core import native
 from motcomp.core.axes import AXES
 from motcomp.core.compensator import Compensator
 from motcomp.core.models import p1d_coefficients
@@ -154,21 +164,82 @@ def run(ticks: int) -> tuple[dict[str, np.ndarray], dict[str, list[float]], dict
     return times, blocks, check
 
 
+ROUNDS = 3
+"""Rounds of ``--compare-plain``: each runs the installed tick, then the plain Python one."""
+
+
+def percentiles(times: dict[str, np.ndarray]) -> dict[str, list[float]]:
+    return {name: [float(x) for x in np.percentile(t, (50, 99, 99.9))]
+            for name, t in times.items()}
+
+
+def compare_plain(ticks: int) -> str:
+    """Both ticks in child processes, alternately; the section's text."""
+    figures: dict[str, list[dict[str, object]]] = {"installed": [], "plain": []}
+    for _ in range(ROUNDS):
+        for kind in figures:
+            env = {k: v for k, v in os.environ.items() if k != native.PURE_ENV}
+            if kind == "plain":
+                env[native.PURE_ENV] = "1"
+            p = subprocess.run([sys.executable, __file__, "--ticks", str(ticks), "--json"],
+                               env=env, capture_output=True, text=True, check=True)
+            figures[kind].append(json.loads(p.stdout))
+    active = {kind: str(runs[0]["active"]) for kind, runs in figures.items()}
+    names = list(figures["installed"][0]["percentiles"])  # type: ignore[call-overload]
+
+    def med(kind: str, name: str, q: int) -> float:
+        return float(np.median([r["percentiles"][name][q]  # type: ignore[index]
+                                for r in figures[kind]]))
+
+    lines = [
+        f"Machine: {machine()}.",
+        "",
+        f"`python tools/bench_core.py --ticks {ticks} --compare-plain`: as below, in child "
+        f"processes, {ROUNDS} rounds each alternately of the installed tick "
+        f"({active['installed']}) and the plain Python one ({active['plain']}); the median "
+        "over the rounds of each figure.",
+        "",
+        "| code | installed: median / p99 / p99.9 (us) | plain Python: median / p99 / p99.9 (us) "
+        "| median ratio |",
+        "|---|---|---|---|",
+    ]
+    for name in names:
+        a = [med("installed", name, q) for q in range(3)]
+        b = [med("plain", name, q) for q in range(3)]
+        lines.append(f"| {name} | {a[0]:.1f} / {a[1]:.1f} / {a[2]:.1f} | "
+                     f"{b[0]:.1f} / {b[1]:.1f} / {b[2]:.1f} | {b[0] / a[0]:.2f}x |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--ticks", type=int, default=60000, help="ticks per implementation")
     ap.add_argument("--quick", action="store_true", help="a smoke test: 6000 ticks")
     ap.add_argument("--no-write", action="store_true", help="print only")
+    ap.add_argument("--compare-plain", action="store_true",
+                    help="the installed tick against the plain Python one (child processes)")
+    ap.add_argument("--json", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     ticks = 6000 if args.quick else args.ticks
+    if args.compare_plain:
+        text = compare_plain(ticks)
+        print(text)
+        if not args.no_write:
+            write_section("core-compiled", text)
+        return
     times, blocks, check = run(ticks)
+    if args.json:
+        print(json.dumps({"active": native.ACTIVE, "percentiles": percentiles(times),
+                          "check": check}))
+        return
     med = {name: float(np.median(t)) for name, t in times.items()}
     names = list(times)
     lines = [
         f"Machine: {machine()}.",
         "",
-        f"`python tools/bench_core.py --ticks {ticks}`: the example config's 8 axes at 1 kHz, "
+        f"`python tools/bench_core.py --ticks {ticks}` (tick: {native.ACTIVE}): the example "
+        "config's 8 axes at 1 kHz, "
         "sinusoidal references within half of each axis' range; each call timed with "
         "`perf_counter_ns` (which adds about 0.1 us), the three interleaved in "
         f"{BLOCKS} blocks of {ticks // BLOCKS} ticks, GC frozen as in the service's loop.  "

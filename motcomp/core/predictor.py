@@ -399,7 +399,7 @@ class Prediction:
         r = [x if ok else r_last[j] for j, (x, ok) in enumerate(zip(r, finite, strict=True))]
         # the prefilter (all predicted axes at once)
         ra = np.array(r)
-        self._l = np.einsum("jkl,jl->jk", self._a, self._l) + self._b * ra[:, None]
+        self._l = np.matmul(self._a, self._l[:, :, None])[:, :, 0] + self._b * ra[:, None]
         pred = (np.einsum("jk,jk->j", self._c, self._l) + self._d * ra).tolist()
         self._pred = pred
         # band monitor, rule and blend, per axis

@@ -741,14 +741,18 @@ class ReferenceShaper:
         w = FIX_POLE_FACTOR / blend_s
         e = math.exp(-w * dt)
         h, h2 = dt, 0.5 * dt * dt
-        # N = [[w, 1, 0], [0, w, 1], [-w^3, -3w^2, -2w]]; N^2 by hand
-        n = ((w, 1.0, 0.0), (0.0, w, 1.0), (-w ** 3, -3.0 * w * w, -2.0 * w))
-        n2 = tuple(tuple(sum(n[r][k] * n[k][c] for k in range(3)) for c in range(3))
-                   for r in range(3))
-        phi = tuple(e * ((1.0 if r == c else 0.0) + n[r][c] * h + n2[r][c] * h2)
-                    for r in range(3) for c in range(3))
-        self._fix_step = (dt, blend_s, phi)
-        return phi
+        # N = [[w, 1, 0], [0, w, 1], [-w^3, -3w^2, -2w]] (row-major), N^2 by its sums
+        n = [w, 1.0, 0.0, 0.0, w, 1.0, -w ** 3, -3.0 * w * w, -2.0 * w]
+        phi: list[float] = []
+        for r in range(3):
+            for c in range(3):
+                n2 = 0.0
+                for k in range(3):
+                    n2 += n[3 * r + k] * n[3 * k + c]
+                phi.append(e * ((1.0 if r == c else 0.0) + n[3 * r + c] * h + n2 * h2))
+        out = tuple(phi)
+        self._fix_step = (dt, blend_s, out)
+        return out
 
     def stale_time(self, now: float) -> float:
         """Seconds since the last valid frame (0 while live)."""
@@ -759,7 +763,7 @@ class ReferenceShaper:
 
 
 
-def _stencil(h: Sequence[Knot], end: int) -> list[Knot]:
+def _stencil(h: list[Knot], end: int) -> list[Knot]:
     """The (up to) three samples before ``h[end]`` (or before a new one at ``end``) that its
     knot is computed from: each at least :data:`STENCIL_S` before the next, going back, so that
     the derivatives of a fast sender's samples are taken over a few ms rather than one period:
@@ -779,12 +783,13 @@ def _stencil(h: Sequence[Knot], end: int) -> list[Knot]:
     return out
 
 
-def _knot(before: Sequence[Knot], t: float, v: float) -> Knot:
+def _knot(before: list[Knot], t: float, v: float) -> Knot:
     """The sample ``(t, v)`` with the slope, acceleration and jerk at ``t`` of the polynomial
     through it and the (up to) three samples ``before`` it (a cubic, exact on cubics): causal,
     so never revised when the next sample comes."""
     if len(before) >= 3:  # the usual case, written out: Newton's divided differences
-        (t1, v1, *_), (t2, v2, *_), (t3, v3, *_) = before[-1], before[-2], before[-3]
+        k1, k2, k3 = before[-1], before[-2], before[-3]
+        t1, v1, t2, v2, t3, v3 = k1[0], k1[1], k2[0], k2[1], k3[0], k3[1]
         f01 = (v - v1) / (t - t1)
         f12 = (v1 - v2) / (t1 - t2)
         f23 = (v2 - v3) / (t2 - t3)
@@ -813,7 +818,7 @@ def _knot(before: Sequence[Knot], t: float, v: float) -> Knot:
             6.0 * f[3])
 
 
-def _quintic(h: Sequence[Knot], tau: float) -> tuple[float, float]:
+def _quintic(h: list[Knot], tau: float) -> tuple[float, float]:
     """Value and slope at ``tau`` of the quintic Hermite between the two samples of ``h`` (at
     least 2, time-ordered) around it (``tau`` clamped to their span), which meets each with its
     value, slope and acceleration (:func:`_knot`): continuous to the acceleration."""
