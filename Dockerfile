@@ -6,8 +6,13 @@
 #
 # SIGTERM (docker stop) parks the platform at neutral before exiting: give it the time
 # (--stop-timeout longer than loop.park_timeout_s).  See docs/DEPLOYMENT.md.
-# Build stage: the wheel (pure Python; it carries config/ as motcomp/_config).
+# Build stage: the wheel (it carries config/ as motcomp/_config, and the tick compiled by mypyc:
+# hence a C compiler here; see motcomp/core/native.py).
 FROM python:3.11-slim AS build
+# hadolint ignore=DL3008
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends gcc libc6-dev \
+    && rm -rf /var/lib/apt/lists/*
 WORKDIR /src
 COPY pyproject.toml setup.py MANIFEST.in README.md ./
 COPY motcomp ./motcomp

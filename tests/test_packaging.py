@@ -114,16 +114,32 @@ def test_wheel_ships_the_config_and_finds_it_installed(tmp_path: Path) -> None:
     names = zipfile.ZipFile(wheel).namelist()
     for f in SHIPPED:
         assert f"motcomp/_config/{f}" in names, f
-    assert not any(n.endswith((".so", ".c")) for n in names)  # one implementation: Python
+    # the tick's sources always (the plain Python fallback); its compiled modules with their
+    # record where the build compiled them (a C compiler here), never the generated C
+    from motcomp.core import native
+
+    core = [f"motcomp/core/{m}" for m in native.COMPILED_MODULES]
+    assert all(f"{c}.py" in names for c in core)
+    assert not any(n.endswith(".c") for n in names)
+    compiled = [c for c in core if any(n.startswith(c + ".") and n.endswith(".so")
+                                       for n in names)]
+    assert compiled in ([], core), compiled
+    assert (f"motcomp/core/{native.RECORD}" in names) == bool(compiled)
     site = tmp_path / "site"
     zipfile.ZipFile(wheel).extractall(site)
     env = {"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin"}
     code = ("import motcomp.resources as r, motcomp.presets as p; print(r.config_dir()); "
-            "print(p.load_preset('rails').model)")
+            "print(p.load_preset('rails').model); import motcomp.core.tick as t, "
+            "motcomp.core.native as n; print(n.ACTIVE, t.__file__)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          env=env, cwd=tmp_path, timeout=60)
     assert out.returncode == 0, out.stderr
     assert str(site / "motcomp" / "_config") in out.stdout and "p1d:K=1" in out.stdout
+    tick_line = out.stdout.splitlines()[-1]
+    if compiled:
+        assert tick_line.startswith("compiled (mypyc) ") and tick_line.endswith(".so")
+    else:
+        assert tick_line.startswith("plain Python (not compiled at install) ")
     chk = subprocess.run([sys.executable, "-m", "motcomp", "config", "check",
                           str(site / "motcomp" / "_config" / "motcomp.toml")],
                          capture_output=True, text=True, env=env, cwd=tmp_path, timeout=60)
