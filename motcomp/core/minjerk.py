@@ -8,19 +8,23 @@ Peak speed: ``1.875 * distance / duration``.
 
 from __future__ import annotations
 
-from typing import TypeVar
+from typing import Any, overload
+
+from numpy.typing import NDArray
 
 __all__ = ["PEAK_SPEED_FACTOR", "min_jerk", "min_jerk_rate", "min_jerk_weight"]
 
 PEAK_SPEED_FACTOR = 1.875
 """Peak of ``ds/dx``: a minimum-jerk move of ``distance`` over ``T`` peaks at 1.875 distance/T."""
 
-X = TypeVar("X")
 
-
-def min_jerk(x: X) -> X:
+@overload
+def min_jerk(x: float) -> float: ...
+@overload
+def min_jerk(x: NDArray[Any]) -> NDArray[Any]: ...
+def min_jerk(x: Any) -> Any:
     """``10 x^3 - 15 x^4 + 6 x^5`` for a float or a numpy array ``x`` (not clipped)."""
-    return x**3 * (10.0 - 15.0 * x + 6.0 * x * x)  # type: ignore[operator]
+    return x**3 * (10.0 - 15.0 * x + 6.0 * x * x)
 
 
 def min_jerk_rate(x: float) -> float:

@@ -32,8 +32,8 @@ from typing import Any
 __all__ = ["ACTIVE", "COMPILED_MODULES", "PURE_ENV", "RECORD", "choose", "frozen_reduce",
            "source_hashes"]
 
-COMPILED_MODULES = ("axes", "bandlimit", "compensator", "envelope", "predictor", "saturation",
-                    "shaper", "tick")
+COMPILED_MODULES = ("axes", "bandlimit", "compensator", "envelope", "minjerk", "predictor",
+                    "saturation", "shaper", "tick")
 """Modules of ``motcomp.core`` compiled (the tick and all it calls per sample)."""
 PURE_ENV = "MOTCOMP_PURE_PYTHON"
 """Set (to anything but ``""`` or ``0``) at install: no compilation; at run time: the plain
@@ -103,8 +103,10 @@ def choose(package: str, folder: Path, modules: Sequence[str] = COMPILED_MODULES
     global ACTIVE
     why = verdict(folder, modules)
     if why:
-        if not any(isinstance(f, _PlainSource) for f in sys.meta_path):
-            sys.meta_path.insert(0, _PlainSource(package, folder, modules))
+        finder = _PlainSource(package, folder, modules)
+        if not any(isinstance(f, _PlainSource) and f.names == finder.names
+                   for f in sys.meta_path):
+            sys.meta_path.insert(0, finder)
         ACTIVE = f"plain Python ({why})"
     else:
         ACTIVE = "compiled (mypyc)"

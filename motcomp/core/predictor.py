@@ -307,6 +307,12 @@ class Prediction:
             self._c[j, :n] = c
             self._d[j] = d
             hp.append(_highpass2(HIGH_CUT * p.band_hz[1], self.rate_hz))
+        # one step of every prefilter as one product: [l'; y] = [[A, b], [c A, c b + d]] [l; r]
+        self._step_m = np.zeros((m, order + 1, order + 1))
+        self._step_m[:, :order, :order] = self._a
+        self._step_m[:, :order, order] = self._b
+        self._step_m[:, order, :order] = np.einsum("jk,jkl->jl", self._c, self._a)
+        self._step_m[:, order, order] = np.einsum("jk,jk->j", self._c, self._b) + self._d
         self._hp = hp
         self._lo_a = math.exp(-2.0 * math.pi * LOW_CUT_HZ * self.dt_s)
         self._decay = math.exp(-self.dt_s / ENVELOPE_S)
@@ -339,23 +345,23 @@ class Prediction:
         """Every state of predicted axis ``j`` (row ``j`` of the arrays)."""
         n = self.params[self.idx[j]].order  # type: ignore[union-attr]
         out: dict[str, object] = {name: getattr(self, name)[j] for name in self._STATE}
-        out["_l"] = self._l[j, :n].copy()
+        out["_l"] = self._x[j, :n].copy()
         return out
 
     def _set_axis_state(self, j: int, st: dict[str, object]) -> None:
         for name in self._STATE:
             getattr(self, name)[j] = st[name]
         lv = np.asarray(st["_l"])
-        self._l[j, :lv.size] = lv
+        self._x[j, :lv.size] = lv
 
     def _seed(self, r: FloatArray) -> None:
         """Every filter at rest at the reference ``r`` (predicted axes)."""
         m, order = self._b.shape
-        self._l = np.zeros((m, order))
+        self._x = np.zeros((m, order + 1))  # the filters' states, then the input (step)
         for j in range(m):
             n = self.params[self.idx[j]].order  # type: ignore[union-attr]
             a = self._a[j, :n, :n]
-            self._l[j, :n] = np.linalg.solve(np.eye(n) - a, self._b[j, :n]) * r[j]
+            self._x[j, :n] = np.linalg.solve(np.eye(n) - a, self._b[j, :n]) * r[j]
         self._r_last: list[float] = r.tolist()
         self._hp_x: list[tuple[float, float]] = [(x, x) for x in r.tolist()]
         self._hp_y: list[tuple[float, float]] = [(0.0, 0.0)] * m
@@ -397,10 +403,13 @@ class Prediction:
         r = [reference[i] for i in idx]
         finite = [x == x and abs(x) != math.inf for x in r]
         r = [x if ok else r_last[j] for j, (x, ok) in enumerate(zip(r, finite, strict=True))]
-        # the prefilter (all predicted axes at once)
-        ra = np.array(r)
-        self._l = np.matmul(self._a, self._l[:, :, None])[:, :, 0] + self._b * ra[:, None]
-        pred = (np.einsum("jk,jk->j", self._c, self._l) + self._d * ra).tolist()
+        # the prefilter (all predicted axes at once): the states and the output in one product
+        state = self._x
+        last = state.shape[1] - 1
+        state[:, last] = r
+        state = np.matmul(self._step_m, state[:, :, None])[:, :, 0]
+        pred = state[:, last].tolist()
+        self._x = state
         self._pred = pred
         # band monitor, rule and blend, per axis
         lo_a, decay, floor = self._lo_a, self._decay, mon.floor

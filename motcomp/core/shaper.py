@@ -116,7 +116,7 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Final
 
 from mypy_extensions import mypyc_attr
 
@@ -173,7 +173,7 @@ SPAN_DECAY = 1e-3
 SPAN_MAX_PERIODS = 4.0
 """The playback's span (:meth:`ReferenceShaper._track_span`) decays by this a sample, and
 ignores intervals longer than this many periods (stalls)."""
-STENCIL_S = 5e-3
+STENCIL_S: Final = 5e-3
 """A sample's knot (slope, acceleration, jerk) is taken from samples at least this far apart
 (:func:`_stencil`): the cubic through them is as exact on cubics, and a 1 kHz sender's value
 noise reaches the jerk over 100 times less than over one period (what a late frame's
@@ -772,12 +772,14 @@ def _stencil(h: list[Knot], end: int) -> list[Knot]:
     out: list[Knot] = []
     if end == 0:
         return out
-    t_next = h[end][0] if end < len(h) else math.inf
+    newest = end >= len(h)  # a new sample: the one before it is taken whatever its time
+    t_next = 0.0 if newest else h[end][0]
     j = end - 1
     while j >= 0 and len(out) < 3:
-        if t_next == math.inf or t_next - h[j][0] >= STENCIL_S or j == 0:
+        if newest or t_next - h[j][0] >= STENCIL_S or j == 0:
             out.append(h[j])
             t_next = h[j][0]
+            newest = False
         j -= 1
     out.reverse()
     return out
