@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = ["ACTIVE", "COMPILED_MODULES", "PURE_ENV", "RECORD", "choose", "frozen_reduce",
-           "source_hashes"]
+           "source_hashes", "verdict"]
 
 COMPILED_MODULES = ("axes", "bandlimit", "compensator", "envelope", "minjerk", "predictor",
                     "saturation", "shaper", "tick")
