@@ -69,4 +69,5 @@ def ran_in_plain_python(request: pytest.FixtureRequest) -> bool:
                        cwd=ROOT, env={**os.environ, native.PURE_ENV: "1"}, capture_output=True,
                        text=True, timeout=600)
     assert p.returncode == 0, f"in the plain Python tick:\n{p.stdout[-4000:]}\n{p.stderr[-2000:]}"
+    assert "\n1 passed" in "\n" + p.stdout, p.stdout[-2000:]  # it ran, and was not skipped
     return True

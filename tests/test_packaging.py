@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -107,8 +108,13 @@ def test_wheel_ships_the_config_and_finds_it_installed(tmp_path: Path) -> None:
     from any directory (what the container and a /opt/motcomp venv run)."""
     import zipfile
 
+    from motcomp.core import native
+
+    # built as a plain `pip wheel` would be, whatever this run's MOTCOMP_PURE_PYTHON
+    env = {k: v for k, v in os.environ.items() if k != native.PURE_ENV}
     p = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w",
-                        str(tmp_path), str(ROOT)], capture_output=True, text=True, timeout=300)
+                        str(tmp_path), str(ROOT)], capture_output=True, text=True, timeout=300,
+                       env=env)
     assert p.returncode == 0, p.stderr
     wheel = next(tmp_path.glob("motcomp-*.whl"))
     names = zipfile.ZipFile(wheel).namelist()
@@ -116,8 +122,6 @@ def test_wheel_ships_the_config_and_finds_it_installed(tmp_path: Path) -> None:
         assert f"motcomp/_config/{f}" in names, f
     # the tick's sources always (the plain Python fallback); its compiled modules with their
     # record where the build compiled them (a C compiler here), never the generated C
-    from motcomp.core import native
-
     core = [f"motcomp/core/{m}" for m in native.COMPILED_MODULES]
     assert all(f"{c}.py" in names for c in core)
     assert not any(n.endswith(".c") for n in names)
