@@ -308,6 +308,39 @@ class FeedbackConfig(BaseModel):
     """The platform's own status (docs/WIRE.md); the service shows its stack figures."""
 
 
+class SupervisionConfig(BaseModel):
+    """The platform model's supervision (docs/SUPERVISION.md): an estimate of each driven
+    axis' platform from ordinary driving, judged against the model the compensator runs."""
+
+    model_config = _STRICT
+    enabled: bool = True
+    window_s: float = Field(20.0, ge=10.0, le=60.0)
+    """Each estimate reads the last this long of outputs and feedback."""
+    period_s: float = Field(2.0, ge=0.5, le=60.0)
+    """An estimate every this long."""
+    band_hz: tuple[float, float] = (0.1, 2.0)
+    """The driver's band: the mismatch is judged at the motion's centre frequency in it."""
+    delay_bound_ms: float = Field(2.5, gt=0.0, le=100.0)
+    """An alarm when the residual delay in the band exceeds this..."""
+    gain_bound: float = Field(0.1, gt=0.0, le=1.0)
+    """... or the gain error in the band this ..."""
+    hold_s: float = Field(8.0, ge=0.0, le=600.0)
+    """... on every informative estimate for this long (and it clears the same way)."""
+    min_motion: float = Field(0.05, gt=0.0)
+    """Least RMS of the command's acceleration in the band for a window to be judged."""
+    max_delay_se_ms: float = Field(1.0, gt=0.0)
+    """Largest standard error of the residual delay for a window to be judged."""
+    max_limited_share: float = Field(0.2, ge=0.0, le=1.0)
+    """A window in which the limiter acted on more of the ticks is not judged."""
+
+    @model_validator(mode="after")
+    def _band(self) -> SupervisionConfig:
+        lo, hi = self.band_hz
+        if not (0 < lo < hi <= 20):
+            raise ValueError(f"band_hz must be 0 < low < high <= 20 Hz, got {list(self.band_hz)}")
+        return self
+
+
 class ServiceConfig(BaseModel):
     """The whole file."""
 
@@ -320,6 +353,7 @@ class ServiceConfig(BaseModel):
     admin: AdminConfig = AdminConfig()
     zenoh: ZenohConfig = ZenohConfig()
     prediction: PredictionConfig = PredictionConfig()
+    supervision: SupervisionConfig = SupervisionConfig()
     defaults: AxisConfig = AxisConfig()
     axes: dict[str, AxisConfig] = {}
     profile: str | None = None
@@ -352,6 +386,7 @@ RESTART_KEYS: tuple[str, ...] = (
     "loop.rate_hz", "loop.sync_to_input", "loop.poll_us", "loop.spin_us", "loop.sleep_max_us",
     "loop.realtime_priority", "loop.slice_us", "loop.cpu", "input", "output", "feedback",
     "status.key", "status.period_s", "status.window_s", "admin", "zenoh", "envelope",
+    "supervision.window_s",
 )
 """Top-level keys (or sub-keys) that a live reload may not change: they need a restart."""
 

@@ -104,6 +104,7 @@ __all__ = [
     "Prepared",
     "fit_structure",
     "identify",
+    "long_run_cov",
     "predict_acceleration",
     "prepare",
     "second_difference",
@@ -676,7 +677,7 @@ def _fit_metrics(y: FloatArray, yhat: FloatArray, mask: BoolArray) -> tuple[floa
     return fit, vaf
 
 
-def _long_run_cov(scores: FloatArray, lags: int) -> FloatArray:
+def long_run_cov(scores: FloatArray, lags: int) -> FloatArray:
     """Newey-West ``sum_{|l|<=L} (1 - |l|/(L+1)) sum_k s_k s_{k+l}'`` of score rows ``(q, N)``."""
     q, n = scores.shape
     L = _fast_len(n + lags + 1)
@@ -801,7 +802,7 @@ def _uncertainty(prep: Prepared, s: Structure, model: ProcessModel, bias: float,
     lags = math.ceil(2.0 * rate / prep.cutoff_hz)
     try:
         JtJ_inv = np.linalg.inv(J.T @ J)
-        S = _long_run_cov(J.T * e[None, :], lags)
+        S = long_run_cov(J.T * e[None, :], lags)
         cov = JtJ_inv @ S @ JtJ_inv
     except np.linalg.LinAlgError:
         return nan, {}, []

@@ -57,6 +57,7 @@ __all__ = [
     "OutputStream",
     "RawStream",
     "Session",
+    "output_in_force",
     "read_session",
     "session_parts",
 ]
@@ -118,6 +119,16 @@ class FeedbackStream(RawStream):
     pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 8)))
     acc: np.ndarray = field(default_factory=lambda: np.zeros((0, 8)))
     valid: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+
+def output_in_force(to: np.ndarray, lost_from: np.ndarray, times: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Index of the output in force at each of ``times`` (the last output whose time ``to``,
+    increasing, is not after it), and whether it is known (not before the first output, not
+    from ``lost_from`` of the output on, where outputs were lost: infinity if none were)."""
+    k = np.searchsorted(to, times, side="right") - 1
+    known = (k >= 0) & (times < lost_from[np.maximum(k, 0)])
+    return k, known
 
 
 @dataclass
@@ -193,14 +204,6 @@ class Session:
         lost_from[lost] = to[lost] + (to[lost + 1] - to[lost]) / ds[lost]
         return to, cmd, flags, lost_from
 
-    @staticmethod
-    def _in_force(to: np.ndarray, lost_from: np.ndarray, times: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:
-        """Index of the output in force at each time (the last one not after it), and whether
-        it is known (not before the first output, not where the recorder lost outputs)."""
-        k = np.searchsorted(to, times, side="right") - 1
-        known = (k >= 0) & (times < lost_from[np.maximum(k, 0)])
-        return k, known
 
     def command_in_force(self, axis: str, times: np.ndarray, clock: str = "frame"
                          ) -> tuple[np.ndarray, np.ndarray]:
@@ -214,7 +217,7 @@ class Session:
             If the session lacks outputs or feedback, the axis or the clock is unknown.
         """
         to, cmd, _, lost_from = self._outputs_of(axis, clock)
-        k, known = self._in_force(to, lost_from, np.asarray(times, dtype=float))
+        k, known = output_in_force(to, lost_from, np.asarray(times, dtype=float))
         return np.where(known, cmd[np.maximum(k, 0)], np.nan), known
 
     def identification_columns(self, axis: str, clock: str = "frame") -> IdentificationColumns:
@@ -241,7 +244,7 @@ class Session:
         ok_f = fb.valid & np.isfinite(fb.acc[:, i]) & np.isfinite(t_fb)
         fb_index = np.flatnonzero(ok_f)
         tf, acc = t_fb[ok_f], fb.acc[ok_f, i]
-        k, known = self._in_force(to, lost_from, tf)
+        k, known = output_in_force(to, lost_from, tf)
         unknown = int(np.count_nonzero(~known & (k >= 0)))
         k, tf, acc, fb_index = k[known], tf[known], acc[known], fb_index[known]
         sat_bit, bypass_bit = FLAG_BITS[f"sat:{axis}"], FLAG_BITS[f"bypass:{axis}"]

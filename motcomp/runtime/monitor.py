@@ -55,9 +55,9 @@ convergence; ``delay_corr`` below :data:`MIN_CORRELATION`.
 
 Feedback frames (docs/WIRE.md ``{"t", "pos", "acc"}``): any bytes are accepted by
 :meth:`~MotionMonitor.on_feedback`; a frame that is larger than :data:`MAX_FEEDBACK_BYTES`, does
-not decode, or whose ``pos`` is not a map of finite numbers is counted (``bad``, ``last_bad``)
-and ignored; axes this service does not know are ignored.  Nothing here raises because of a
-frame.
+not decode, or whose ``pos`` or ``acc`` is not a map of finite numbers is counted (``bad``,
+``last_bad``) and ignored; axes this service does not know are ignored.  Nothing here raises
+because of a frame.
 
 Example
 -------
@@ -127,9 +127,9 @@ _CONVERGED_BINS = 0.01
 """Step 3 stops when a step moves the delay by less than this fraction of a bin."""
 
 
-def feedback_positions(payload: bytes) -> tuple[float, list[float]]:
-    """The sender's ``t`` (NaN unless a finite number) and the positions in :data:`AXES` order
-    (NaN for an axis it lacks) of a feedback frame.
+def feedback_positions(payload: bytes) -> tuple[float, list[float], list[float]]:
+    """The sender's ``t`` (NaN unless a finite number), the positions and the accelerations in
+    :data:`AXES` order (NaN for an axis it lacks) of a feedback frame.
 
     Raises
     ------
@@ -140,24 +140,31 @@ def feedback_positions(payload: bytes) -> tuple[float, list[float]]:
         raise FrameError("oversize", f"feedback frame of {len(payload)} bytes exceeds "
                                      f"{MAX_FEEDBACK_BYTES}")
     frame = decode_feedback(payload)
-    t, pos = frame["t"], frame["pos"]
+    t = frame["t"]
     t = float(t) if t.__class__ is float or t.__class__ is int else math.nan
-    if pos.__class__ is not dict:
-        raise FrameError("type", f"feedback pos must be a map, got a {type(pos).__name__}")
+    return (t if math.isfinite(t) else math.nan), _axis_row(frame, "pos"), _axis_row(frame,
+                                                                                      "acc")
+
+
+def _axis_row(frame: dict[str, Any], key: str) -> list[float]:
+    """``frame[key]``, a map of axis -> number, as a row in :data:`AXES` order."""
+    values = frame[key]
+    if values.__class__ is not dict:
+        raise FrameError("type", f"feedback {key} must be a map, got a {type(values).__name__}")
     row = [math.nan] * N_AXES
-    for axis, value in pos.items():
+    for axis, value in values.items():
         i = AXIS_INDEX.get(axis) if axis.__class__ is str else None
         if i is None:
             continue  # an axis this service does not know
         if value.__class__ is not float:
             if value.__class__ is not int:
-                raise FrameError("type", f"feedback pos.{axis} must be a number, got a "
+                raise FrameError("type", f"feedback {key}.{axis} must be a number, got a "
                                          f"{type(value).__name__}")
             value = float(value)
         if not math.isfinite(value):
-            raise FrameError("nonfinite", f"feedback pos.{axis} is {value!r}")
+            raise FrameError("nonfinite", f"feedback {key}.{axis} is {value!r}")
         row[i] = value
-    return (t if math.isfinite(t) else math.nan), row
+    return row
 
 
 class MotionMonitor:
@@ -211,6 +218,7 @@ class MotionMonitor:
         self._ft = np.zeros(self._fcap, dtype=np.int64)
         self._fsent = np.zeros(self._fcap)
         self._fpos = np.zeros((self._fcap, N_AXES))
+        self._facc = np.zeros((self._fcap, N_AXES))
         self._fn = 0
         self.fb_received = 0
         self.fb_bad = 0
@@ -247,7 +255,7 @@ class MotionMonitor:
             t_ns, payload = inbox.popleft()
             self.fb_received += 1
             try:
-                sent, row = feedback_positions(payload)
+                sent, row, acc = feedback_positions(payload)
             except FrameError as exc:
                 self._bad(f"{exc.reason}: {exc}")
                 continue
@@ -258,6 +266,7 @@ class MotionMonitor:
             self._ft[k] = t_ns
             self._fsent[k] = sent
             self._fpos[k] = row
+            self._facc[k] = acc
             self._fn += 1
             good += 1
         return good
@@ -266,6 +275,21 @@ class MotionMonitor:
         self.fb_bad += 1
         self.fb_last_bad = (text if len(text) <= MAX_ERROR_CHARS
                             else text[:MAX_ERROR_CHARS - 3] + "...")
+
+    def chunk(self, since: tuple[int, int]) -> tuple[tuple[int, int], dict[str, np.ndarray]]:
+        """What came since the cursors ``since`` (``(0, 0)`` at first): the new ticks'
+        instants ``t_ns`` and commands ``u`` (rows in :data:`AXES` order), the new feedback
+        frames' ``fb_sent`` (their ``t``; NaN if none), ``fb_ns`` (arrival) and ``acc``; with the
+        cursors for the next call (what the rings overwrote meanwhile is skipped).  Main
+        thread, after :meth:`drain`."""
+        n, fn = self._n, self._fn
+        a = max(since[0], n - self._keep)
+        fa = max(since[1], fn - self._fcap)
+        idx = np.arange(a, n) % self._cap
+        fidx = np.arange(fa, fn) % self._fcap
+        return (n, fn), {"t_ns": self._t[idx], "u": self._ru[idx, N_AXES:],
+                         "fb_sent": self._fsent[fidx], "fb_ns": self._ft[fidx],
+                         "acc": self._facc[fidx]}
 
     def report(self, now_ns: int, ticks: int, acted: Sequence[int], driven: Sequence[bool],
                p_min: Sequence[float] | np.ndarray, p_max: Sequence[float] | np.ndarray,

@@ -76,6 +76,7 @@ from motcomp.runtime.monitor import BIN_S, COMMAND_WINDOW_S, LAG_RANGE_S, Motion
 from motcomp.runtime.reload import Prepared, Preparer
 from motcomp.runtime.rt import pin_to_cpu, set_realtime, set_slice
 from motcomp.runtime.stats import LoopStats
+from motcomp.runtime.supervise import Supervisor
 from motcomp.runtime.systemd import Notifier
 
 __all__ = ["Service"]
@@ -188,6 +189,7 @@ class Service:
         self.params, self.state = new_tick(cfg, self.axes)
         self.stats = LoopStats(round(cfg.status.window_s * cfg.loop.rate_hz), STAT_SERIES)
         self.monitor = MotionMonitor(cfg.loop.rate_hz, cfg.status.window_s)
+        self.supervisor = Supervisor(cfg.supervision, self.axes)
         self.last_tick_mono = 0.0
         self.notifier = Notifier(None)
         self.commands: deque[Callable[[], None]] = deque()
@@ -394,6 +396,7 @@ class Service:
             done.set()
 
         self.run_between_ticks(swap, done, "the new config")
+        self.supervisor.reconfigure(new.cfg.supervision, new.axes)
         self.config_version += 1
         self.config_id = new.digest
 
@@ -444,6 +447,7 @@ class Service:
             "tick": native.ACTIVE,
             "clock": self.tick_clock(),
             "platform": self._platform,
+            "model_mismatch": self.supervisor.status(),
             **self._quality(),
         }
 
@@ -673,6 +677,7 @@ class Service:
                 self.notifier.stopping()
                 self._stop_worker(worker)
                 self.preparer.close()
+                self.supervisor.close()
                 sys.setswitchinterval(switch)
                 for q in (status_q, admin_q, feedback_sub, self._platform_sub):
                     if q is not None:
@@ -740,6 +745,18 @@ class Service:
                 payload = b""
             self.monitor.on_feedback(t_ns, payload)
 
+    def to_frame_s(self, t_ns: Any) -> Any:
+        """Loop instants (ns, scalar or array) as the outputs' ``t`` (s)."""
+        return self._t_wall0 + (t_ns - self._t_mono0) / 1e9
+
+    def _supervise(self, now: float) -> None:
+        """The model supervision's turn (:class:`~motcomp.runtime.supervise.Supervisor`)."""
+        st = self.state
+        for text in self.supervisor.poll(self.monitor, self.to_frame_s, now, st.ticks,
+                                         list(st.acted),
+                                         self._clock.missed if self._clock else 0):
+            log.warning("%s", text)
+
     def _poll_platform(self) -> None:
         """Keep the figures of the platform's newest status frame (docs/WIRE.md: those it
         reports of ``PLATFORM_FIGURES``, numbers only), with the instant it arrived."""
@@ -785,6 +802,8 @@ class Service:
             self._poll_feedback()
             self._poll_platform()
             self.monitor.drain()
+            if ready and self._t_mono0:
+                self._supervise(now)
             seen.update(self.state, self.params)
             if self.state.envelope_clamps > clamps and now - clamps_logged >= ENVELOPE_LOG_S:
                 log.error("the hardware envelope's guard changed %d command(s) (per axis %s): "

@@ -1,0 +1,345 @@
+"""The platform's model estimated from ordinary driving: :func:`estimate_axis`, and the sliding
+window a supervising process keeps of the service's outputs and feedback: :class:`LiveWindow`.
+
+The command-to-feedback path is the platform itself, open loop, whatever the compensator does:
+its P1D model (``K e^{-Td s} / (1 + Tp1 s)``) is identified from the service's outputs and the
+platform's measured acceleration over the last ``window_s``, with the pairing rule of
+``motcomp identify`` on a recording (the output in force at each feedback instant, on the
+frames' own clocks: :func:`motcomp.record.session.output_in_force`) and its checks and
+resampling (:func:`motcomp.ident.data.check_and_resample`).
+
+The fit (why and how: docs/SUPERVISION.md) is done in the frequency domain, over the bins where
+the command moves: ``A(f) = P(j 2 pi f) V(f)``, ``V`` the spectrum of the command's second
+difference and ``A`` that of the measured acceleration, both tapered by the same Tukey window.
+Ordinary driving often holds one frequency (a slalom's 0.31 Hz): then ``Td`` and ``Tp1`` are
+not told apart (their estimates correlate beyond :data:`MAX_CORRELATION`), and ``Tp1`` is held
+at the config model's while ``K`` and ``Td`` are fitted -- the phase delay and gain *in the
+band*, which is what the compensator's delivered response depends on, are identified either
+way.  Standard errors come from the Jacobian, scaled by the residual's variance and the taper's
+equivalent noise bandwidth.
+
+The mismatch is what the difference between the estimate ``P`` and the compensator's model ``M``
+does to the delivered response: the compensator makes ``M`` follow its design, so the platform
+delivers ``P / M`` times it.  At the motion's centre frequency in the configured band:
+``residual_delay_ms`` = phase delay of ``P / M``, ``gain_error`` = ``|P / M| - 1``.
+
+Nothing here reads a clock or raises on data: a window that cannot tell says why
+(``informative`` false, ``reason``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import optimize, signal
+
+from motcomp.core.axes import AXES, N_AXES
+from motcomp.core.models import P1D, ProcessModel
+from motcomp.errors import MotcompError
+from motcomp.ident.data import RawRecording, check_and_resample
+from motcomp.ident.fit import long_run_cov, second_difference
+from motcomp.record.session import output_in_force
+
+__all__ = ["MAX_CORRELATION", "EstimateSettings", "LiveWindow", "estimate_axis", "mismatch"]
+
+MAX_CORRELATION = 0.98
+"""|correlation| of the ``Td`` and ``Tp1`` estimates beyond which the data do not tell them
+apart (the same threshold as ``motcomp identify``'s report)."""
+LEAD_IN_S = 2.5
+"""The start of a window simulated but not judged: the simulation starts in a steady state,
+and the P1D's memory of what came before fades (13 time constants of the rails' 186 ms; the
+filter's own transient is shorter)."""
+TD_GRID_S = np.arange(0.0, 0.2501, 0.0025)
+"""The coarse delay grid the fit starts from (the delay range of ``motcomp identify``)."""
+
+
+@dataclass(frozen=True)
+class EstimateSettings:
+    """What a window must hold to be judged, and where (``[supervision]`` of the config)."""
+
+    window_s: float = 20.0
+    band_hz: tuple[float, float] = (0.1, 2.0)
+    """The driver's band: the mismatch is judged at the motion's centre frequency in it."""
+    fit_max_hz: float = 5.0
+    """Highest frequency fitted (the P1D describes the platform below it)."""
+    min_motion: float = 0.05
+    """Least RMS of the command's acceleration in the band (m/s^2 or rad/s^2)."""
+    max_delay_se_ms: float = 1.0
+    """Largest standard error of the residual delay for a window to be informative."""
+    min_coverage: float = 0.8
+    """Least part of the window the feedback (paired with outputs) must cover."""
+    min_fit: float = 0.5
+    """Least share of the in-band acceleration the fitted model explains (1 - |res|^2/|A|^2)."""
+
+
+def _p1d_response(f: np.ndarray, k: float, td: float, tp: float) -> np.ndarray:
+    w = 2j * np.pi * f
+    return np.asarray(k * np.exp(-w * td) / (1.0 + w * tp))
+
+
+def mismatch(est: ProcessModel, model: ProcessModel, f_hz: float) -> tuple[float, float]:
+    """``(residual delay s, gain error)`` of the delivered response ``P / M`` at ``f_hz``: the
+    phase delay of ``est / model`` and ``|est / model| - 1``."""
+    ratio = complex(est.freqresp([f_hz])[0] / model.freqresp([f_hz])[0])
+    return -math.atan2(ratio.imag, ratio.real) / (2 * math.pi * f_hz), abs(ratio) - 1.0
+
+
+@dataclass(frozen=True)
+class _Signals:
+    """The window low-passed (the same filter on both) and decimated."""
+
+    v: np.ndarray
+    """The command's second difference."""
+    y: np.ndarray
+    """The measured acceleration, mean removed."""
+    rate: float
+    hold_s: float
+    """Half the recorded period: the hold's lag."""
+    judged: slice
+    """Samples whose residual is judged (after the lead-in)."""
+    lags: int
+    """Correlation length of the residual (samples) for its long-run covariance."""
+
+
+def _signals(cmd: np.ndarray, acc: np.ndarray, rate: float, settings: EstimateSettings
+             ) -> _Signals:
+    v = second_difference(cmd, rate)
+    y = acc - float(np.mean(acc))
+    cutoff = settings.fit_max_hz
+    # one causal filter on both (it commutes with the platform's model), started in the
+    # steady state of each signal's first value: its transient lies in the lead-in
+    sos = signal.butter(4, cutoff, btype="low", fs=rate, output="sos")
+    zi = signal.sosfilt_zi(sos)
+    m = max(1, math.floor(rate / (10.0 * cutoff)))
+    vf = signal.sosfilt(sos, v, zi=zi * v[0])[0][::m]
+    yf = signal.sosfilt(sos, y, zi=zi * y[0])[0][::m]
+    r = rate / m
+    return _Signals(v=vf, y=yf, rate=r, hold_s=0.5 / rate,
+                    judged=slice(math.ceil(LEAD_IN_S * r), vf.size),
+                    lags=math.ceil(2.0 * r / cutoff))
+
+
+class _OutputError:
+    """``y = K e^{-Td s} / (1 + Tp1 s) v``, simulated in the frequency domain over a circular
+    buffer whose past (before the window) is ``v``'s first value held: the window starts in
+    the steady state of that value, and the lead-in, which is not judged, holds the error of
+    that assumption."""
+
+    def __init__(self, s: _Signals) -> None:
+        n = s.v.size
+        self.n = n
+        self.size = _fft_len(2 * n)
+        # after the window, v's last value, a raised-cosine ramp to its first, and that
+        # (a jump would ring through the fractional delay into the window)
+        pad = self.size - n
+        ramp = 0.5 - 0.5 * np.cos(np.pi * np.clip((np.arange(pad) - pad / 4) / (pad / 2), 0, 1))
+        padded = np.concatenate([s.v, s.v[-1] + (s.v[0] - s.v[-1]) * ramp])
+        self.f = np.fft.rfftfreq(self.size, 1.0 / s.rate)
+        self.V = np.fft.rfft(padded) * np.exp(-2j * np.pi * self.f * s.hold_s)
+        self.s = s
+
+    def predict(self, k: float, td: float, tp: float) -> np.ndarray:
+        return np.fft.irfft(_p1d_response(self.f, k, td, tp) * self.V, self.size)[:self.n]
+
+    def residual(self, theta: np.ndarray, tp: float | None = None) -> np.ndarray:
+        """Measured minus predicted over the judged samples, the best offset removed (the
+        accelerometer's bias)."""
+        e = (self.s.y - self.predict(theta[0], theta[1], theta[2] if tp is None else tp)
+             )[self.s.judged]
+        return np.asarray(e - e.mean())
+
+    def gain_for(self, td: float, tp: float) -> float:
+        """The least-squares ``K`` for given delays (with the offset)."""
+        g = self.predict(1.0, td, tp)[self.s.judged]
+        y = self.s.y[self.s.judged]
+        g, y = g - g.mean(), y - y.mean()
+        return float(g @ y) / max(float(g @ g), 1e-300)
+
+
+def _fft_len(n: int) -> int:
+    size = 1
+    while size < n:
+        size *= 2
+    return size
+
+
+def _sandwich(jac: np.ndarray, e: np.ndarray, lags: int) -> np.ndarray:
+    """The parameters' covariance for residuals ``e`` correlated over ``lags`` samples."""
+    try:
+        inv = np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return np.full((jac.shape[1], jac.shape[1]), np.inf)
+    return np.asarray(inv @ long_run_cov(jac.T * e[None, :], lags) @ inv)
+
+
+def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: np.ndarray,
+                  model: P1D, settings: EstimateSettings = EstimateSettings(),
+                  axis: str = "axis") -> dict[str, Any]:
+    """The platform of one axis over one window, and its mismatch with ``model``.
+
+    ``t_out``/``u_out``: the service's outputs (frame ``t`` in s, increasing; the position
+    sent); ``t_fb``/``acc``: the feedback's ``t`` and measured acceleration over the window
+    (its first :data:`LEAD_IN_S` is a lead-in: simulated, not judged).  Returns the figures of
+    docs/SUPERVISION.md (``informative``, ``reason``, ``estimate``, ``residual_delay_ms``...);
+    never raises on data.
+    """
+    out: dict[str, Any] = {"informative": False, "reason": "", "model": model.spec()}
+    keep = np.isfinite(t_fb) & np.isfinite(acc)
+    t_fb, acc = t_fb[keep], acc[keep]
+    if t_out.size < 2 or t_fb.size < 16:
+        out["reason"] = "no outputs or feedback in the window"
+        return out
+    k, known = output_in_force(t_out, np.full(t_out.size, np.inf), t_fb)
+    t_fb, acc, cmd = t_fb[known], acc[known], u_out[k[known]]
+    span = float(t_fb[-1] - t_fb[0]) if t_fb.size else 0.0
+    out["span_s"] = span
+    if span < settings.min_coverage * settings.window_s:
+        out["reason"] = (f"{span:.1f} s of feedback paired with outputs (needs "
+                         f"{settings.min_coverage * settings.window_s:.1f} s)")
+        return out
+    try:
+        rec = check_and_resample(RawRecording(source=f"{axis} window", t_acc=t_fb - t_fb[0],
+                                              acc=acc, t_cmd=t_fb - t_fb[0], cmd=cmd,
+                                              axis=axis))
+    except MotcompError as exc:
+        out["reason"] = f"data: {exc}"
+        return out
+    sig = _signals(rec.cmd, rec.acc, rec.rate_hz, settings)
+    judged = sig.v[sig.judged]
+    if judged.size < 4 * sig.lags:
+        out["reason"] = f"{rec.duration_s:.1f} s of data is too short"
+        return out
+    # the motion in the band: its RMS and centre frequency, from the command's spectrum
+    lo_band, hi_band = settings.band_hz
+    f = np.fft.rfftfreq(judged.size, 1.0 / sig.rate)
+    power = np.abs(np.fft.rfft(judged - judged.mean())) ** 2
+    band = (f >= lo_band) & (f <= hi_band)
+    motion = math.sqrt(2.0 * float(power[band].sum())) / judged.size if band.any() else 0.0
+    out["motion_rms"] = motion
+    if not motion >= settings.min_motion:
+        out["reason"] = (f"too little motion in {lo_band:g}-{hi_band:g} Hz (command "
+                         f"acceleration RMS {motion:.3g} < {settings.min_motion:g})")
+        return out
+    fc = float((f[band] * power[band]).sum() / power[band].sum())
+    out["at_hz"] = fc
+    oe = _OutputError(sig)
+    tp0 = float(model.Tp1)
+    coarse = [(float(np.sum(oe.residual(np.array([oe.gain_for(d, tp0), d, tp0])) ** 2)), d)
+              for d in TD_GRID_S]
+    td0 = min(coarse)[1]
+    x0 = np.array([oe.gain_for(td0, tp0), td0, tp0])
+    lo, hi = np.array([0.05, 0.0, 1e-4]), np.array([20.0, 0.25, 2.0])
+    full = optimize.least_squares(oe.residual, np.clip(x0, lo, hi), bounds=(lo, hi),
+                                  x_scale=[1.0, 0.01, 0.05])
+    cov = _sandwich(full.jac, full.fun, sig.lags)
+    corr = (cov[1, 2] / math.sqrt(cov[1, 1] * cov[2, 2])
+            if cov[1, 1] > 0 and cov[2, 2] > 0 else 1.0)
+    if abs(corr) <= MAX_CORRELATION and np.all(np.isfinite(cov)):
+        theta, identified, fun = full.x, "K, Td, Tp1", full.fun
+    else:  # one frequency: Tp1 held at the model's, K and Td fitted
+        held = optimize.least_squares(lambda th: oe.residual(th, tp0), np.clip(x0[:2], lo[:2],
+                                      hi[:2]), bounds=(lo[:2], hi[:2]), x_scale=[1.0, 0.01])
+        cov = np.zeros((3, 3))
+        cov[:2, :2] = _sandwich(held.jac, held.fun, sig.lags)
+        theta = np.array([held.x[0], held.x[1], tp0])
+        identified, fun = "K, Td (Tp1 held at the model's)", held.fun
+    est = P1D(K=float(theta[0]), Td=float(theta[1]), Tp1=float(theta[2]))
+    y_judged = sig.y[sig.judged] - sig.y[sig.judged].mean()
+    explained = 1.0 - float(fun @ fun) / max(float(y_judged @ y_judged), 1e-300)
+    delay, gain_err = mismatch(est, model, fc)
+    # standard errors of the two figures by the delta method
+    grads = np.zeros((2, 3))
+    for j, step in enumerate((1e-4, 1e-5, 1e-5)):
+        th = theta.copy()
+        th[j] += step
+        d2, g2 = mismatch(P1D(K=float(th[0]), Td=float(th[1]), Tp1=float(th[2])), model, fc)
+        grads[:, j] = ((d2 - delay) / step, (g2 - gain_err) / step)
+    se = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", grads, cov, grads), 0.0))
+    out.update({
+        "estimate": {"spec": est.spec(), "K": est.K, "Td_ms": est.Td * 1e3,
+                     "Tp1_ms": est.Tp1 * 1e3,
+                     "K_se": math.sqrt(max(cov[0, 0], 0.0)),
+                     "Td_se_ms": math.sqrt(max(cov[1, 1], 0.0)) * 1e3,
+                     "Tp1_se_ms": math.sqrt(max(cov[2, 2], 0.0)) * 1e3,
+                     "identified": identified, "td_tp1_correlation": float(corr),
+                     "phase_delay_ms": float(est.phase_delay([fc])[0]) * 1e3,
+                     "explained": explained},
+        "residual_delay_ms": delay * 1e3, "residual_delay_se_ms": float(se[0]) * 1e3,
+        "gain_error": gain_err, "gain_error_se": float(se[1]),
+    })
+    if explained < settings.min_fit:
+        out["reason"] = (f"the P1D explains {100 * explained:.0f} % of the measured "
+                         f"acceleration (needs {100 * settings.min_fit:.0f} %)")
+    elif se[0] * 1e3 > settings.max_delay_se_ms:
+        out["reason"] = (f"the residual delay is uncertain (+-{se[0] * 1e3:.2f} ms > "
+                         f"{settings.max_delay_se_ms:g} ms)")
+    else:
+        out["informative"] = True
+    return out
+
+
+class LiveWindow:
+    """The last ``keep_s`` of the service's outputs and feedback, fed in chunks.
+
+    :meth:`add` takes a chunk: ``t_out`` (s, the outputs' frame clock) and ``u`` (rows in
+    :data:`AXES` order), ``t_fb`` (the feedback's ``t``) and ``acc`` (rows in :data:`AXES`
+    order, NaN where absent); :meth:`estimate` runs :func:`estimate_axis` on each axis asked.
+    """
+
+    def __init__(self, keep_s: float) -> None:
+        self.keep_s = float(keep_s)
+        self.t_out = np.zeros(0)
+        self.u = np.zeros((0, N_AXES))
+        self.t_fb = np.zeros(0)
+        self.acc = np.zeros((0, N_AXES))
+
+    def clear(self) -> None:
+        self.__init__(self.keep_s)  # type: ignore[misc]
+
+    def add(self, t_out: np.ndarray, u: np.ndarray, t_fb: np.ndarray, acc: np.ndarray) -> None:
+        """Append a chunk (each stream in time order after the last; an older sample -- a
+        restarted clock -- clears the window first)."""
+        if (t_out.size and self.t_out.size and t_out[0] < self.t_out[-1]) or \
+                (t_fb.size and self.t_fb.size and t_fb[0] < self.t_fb[-1] - 1.0):
+            self.clear()
+        self.t_out = np.concatenate([self.t_out, t_out])
+        self.u = np.concatenate([self.u, u.reshape(-1, N_AXES)])
+        self.t_fb = np.concatenate([self.t_fb, t_fb])
+        self.acc = np.concatenate([self.acc, acc.reshape(-1, N_AXES)])
+        end = max(self.t_out[-1] if self.t_out.size else -math.inf,
+                  self.t_fb[-1] if self.t_fb.size else -math.inf)
+        a = int(np.searchsorted(self.t_out, end - self.keep_s))
+        b = int(np.searchsorted(self.t_fb, end - self.keep_s)) if self._fb_sorted() else 0
+        self.t_out, self.u = self.t_out[a:], self.u[a:]
+        self.t_fb, self.acc = self.t_fb[b:], self.acc[b:]
+
+    def _fb_sorted(self) -> bool:
+        return bool(np.all(np.diff(self.t_fb) >= 0))
+
+    def estimate(self, axes: list[str], models: dict[str, P1D], settings: EstimateSettings
+                 ) -> dict[str, dict[str, Any]]:
+        """Per axis of ``axes``, :func:`estimate_axis` over the last ``settings.window_s`` of
+        feedback, with the window's bounds (``from_t``, ``to_t``)."""
+        res: dict[str, dict[str, Any]] = {}
+        if not self.t_fb.size:
+            return {a: {"informative": False, "reason": "no feedback received",
+                        "model": models[a].spec()} for a in axes}
+        order = np.argsort(self.t_fb, kind="stable")
+        t_fb, acc = self.t_fb[order], self.acc[order]
+        end = float(t_fb[-1])
+        start = end - settings.window_s
+        sel = t_fb >= start
+        for axis in axes:
+            i = AXES.index(axis)
+            try:
+                fig = estimate_axis(self.t_out, self.u[:, i], t_fb[sel], acc[sel, i],
+                                    models[axis], settings, axis)
+            except Exception as exc:  # a figure must never stop supervision
+                fig = {"informative": False, "model": models[axis].spec(),
+                       "reason": f"internal: {type(exc).__name__}: {str(exc)[:80]}"}
+            fig["from_t"], fig["to_t"] = start, end
+            res[axis] = fig
+        return res

@@ -1,0 +1,302 @@
+"""Supervision of the platform model in the running service: :class:`Supervisor`.
+
+Every ``supervision.period_s`` the service's main thread hands the outputs and feedback of the
+last period (:meth:`motcomp.runtime.monitor.MotionMonitor.chunk`) to a process of its own,
+which keeps the last ``window_s`` (:class:`motcomp.runtime.estimate.LiveWindow`) and estimates
+each driven axis' platform (:func:`motcomp.runtime.estimate.estimate_axis`) at low priority; the
+loop thread does none of it.  The main thread judges the answers (:class:`DriftJudge`) and
+shows them in the status' ``model_mismatch`` block; an alarm is logged at WARNING (at its
+start, then at most every :data:`ALARM_LOG_S`) and, through the status frames, recorded.
+
+Layout of the block, the rules and what an alarm means: docs/SUPERVISION.md.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import multiprocessing
+import os
+import signal
+import time
+from collections import deque
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from motcomp.config import ResolvedAxes, SupervisionConfig
+from motcomp.core.axes import AXES
+from motcomp.core.models import P1D
+from motcomp.runtime.clock import DEGRADED_MISSED_SHARE
+from motcomp.runtime.estimate import EstimateSettings, LiveWindow
+
+__all__ = ["ALARM_LOG_S", "DriftJudge", "Supervisor", "settings_of"]
+
+log = logging.getLogger("motcomp.supervise")
+
+ALARM_LOG_S = 60.0
+"""An alarm still on is logged again after this long."""
+WORKER_NICE = 10
+"""The estimator process' niceness: the loop's CPU comes first."""
+KEEP_MARGIN_S = 5.0
+"""The estimator keeps this much more than a window."""
+
+
+def settings_of(cfg: SupervisionConfig) -> EstimateSettings:
+    """The estimator's settings from the config's ``[supervision]``."""
+    return EstimateSettings(window_s=cfg.window_s, band_hz=tuple(cfg.band_hz),  # type: ignore[arg-type]
+                            min_motion=cfg.min_motion, max_delay_se_ms=cfg.max_delay_se_ms)
+
+
+# --- the estimator process --------------------------------------------------------------------
+_WINDOW: LiveWindow | None = None
+
+
+def _worker_init() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a terminal's Ctrl-C is the service's
+    with contextlib.suppress(OSError):  # not permitted: it runs at the service's priority
+        os.nice(WORKER_NICE)
+
+
+def _estimate(chunk: dict[str, np.ndarray], axes: list[str], models: dict[str, P1D],
+              settings: EstimateSettings) -> tuple[dict[str, dict[str, Any]], float]:
+    """In the estimator process: add the chunk to the window, estimate; with the CPU time it
+    took (s)."""
+    global _WINDOW
+    cpu0 = time.process_time()
+    keep = settings.window_s + KEEP_MARGIN_S
+    if _WINDOW is None or _WINDOW.keep_s != keep:
+        _WINDOW = LiveWindow(keep)
+    _WINDOW.add(chunk["t_out"], chunk["u"], chunk["t_fb"], chunk["acc"])
+    res = _WINDOW.estimate(axes, models, settings)
+    return res, time.process_time() - cpu0
+
+
+# --- the judge --------------------------------------------------------------------------------
+@dataclass
+class _AxisState:
+    alarm: bool = False
+    exceeding_since: float | None = None
+    """Frame-clock instant of the first of the informative estimates beyond a bound in a row."""
+    within_since: float | None = None
+    alarm_since: float | None = None
+    alarms: int = 0
+    logged: float = -math.inf
+    last: dict[str, Any] = field(default_factory=dict)
+    informative: int = 0
+    judged: int = 0
+
+
+class DriftJudge:
+    """Turns estimates into alarms, per axis.
+
+    An estimate *exceeds* when it is informative and its residual delay is beyond
+    ``delay_bound_ms`` or its gain error beyond ``gain_bound`` (absolute values).  An alarm
+    starts when every estimate over ``hold_s`` exceeded (informative ones in a row, the first
+    at least ``hold_s`` before the last); it clears when every informative estimate over
+    ``hold_s`` is within both bounds.  An estimate that is not informative, or a window the
+    loop was degraded in, resets the run towards an alarm and keeps an alarm as it is.
+    """
+
+    def __init__(self, cfg: SupervisionConfig) -> None:
+        self.cfg = cfg
+        self.axes: dict[str, _AxisState] = {}
+
+    def update(self, axis: str, fig: dict[str, Any], t: float, now: float) -> str | None:
+        """Judge one estimate of ``axis`` whose window ends at ``t`` (frame clock, s); returns
+        a WARNING text when an alarm starts, or is still on after :data:`ALARM_LOG_S`
+        (``now``: monotonic s), else None."""
+        cfg = self.cfg
+        st = self.axes.setdefault(axis, _AxisState())
+        st.judged += 1
+        st.last = fig
+        if not fig.get("informative"):
+            st.exceeding_since = st.within_since = None
+            return None
+        st.informative += 1
+        delay, gain = fig["residual_delay_ms"], fig["gain_error"]
+        exceeds = abs(delay) > cfg.delay_bound_ms or abs(gain) > cfg.gain_bound
+        if exceeds:
+            st.within_since = None
+            if st.exceeding_since is None:
+                st.exceeding_since = t
+            if not st.alarm and t - st.exceeding_since >= cfg.hold_s:
+                st.alarm, st.alarm_since = True, t
+                st.alarms += 1
+                st.logged = now
+                return self.text(axis, fig, "starts")
+        else:
+            st.exceeding_since = None
+            if st.within_since is None:
+                st.within_since = t
+            if st.alarm and t - st.within_since >= cfg.hold_s:
+                st.alarm, st.alarm_since = False, None
+                log.info("%s: model mismatch cleared: residual delay %.2f ms, gain error "
+                         "%+.1f %% in the band", axis, delay, 100 * gain)
+        if st.alarm and now - st.logged >= ALARM_LOG_S:
+            st.logged = now
+            return self.text(axis, fig, "still on")
+        return None
+
+    def text(self, axis: str, fig: dict[str, Any], how: str) -> str:
+        """The alarm's WARNING, with the numbers behind it."""
+        e = fig["estimate"]
+        return (f"{axis}: model mismatch {how}: the platform now delivers the compensated "
+                f"motion {fig['residual_delay_ms']:+.2f} +- {fig['residual_delay_se_ms']:.2f} ms "
+                f"late with a gain error of {100 * fig['gain_error']:+.1f} % at "
+                f"{fig['at_hz']:.2f} Hz (bounds {self.cfg.delay_bound_ms:g} ms, "
+                f"{100 * self.cfg.gain_bound:g} %, held {self.cfg.hold_s:g} s): estimate "
+                f"{e['spec']} (Td {e['Td_ms']:.2f} +- {e['Td_se_ms']:.2f} ms; identified "
+                f"{e['identified']}) against the model {fig['model']}; retune: motcomp "
+                f"identify --from-status --axis {axis}")
+
+    def block(self, axis: str) -> dict[str, Any]:
+        st = self.axes.get(axis)
+        if st is None:
+            return {"state": "waiting", "alarm": False, "alarms": 0}
+        fig = st.last
+        state = ("drift" if st.alarm else "ok" if fig.get("informative")
+                 else "not informative")
+        return {"state": state, "alarm": st.alarm, "alarm_since_t": st.alarm_since,
+                "alarms": st.alarms, "estimates": st.judged, "informative": st.informative,
+                **fig}
+
+
+# --- the service's side ------------------------------------------------------------------------
+class Supervisor:
+    """The estimator process and the judge (main thread only).
+
+    :meth:`poll` is called by the service's main thread often (every 20 ms): it collects a
+    finished estimate and, every ``period_s``, sends the next chunk.  Nothing here raises: a
+    failed estimator process is restarted for the next period and said in the block."""
+
+    def __init__(self, cfg: SupervisionConfig, axes: ResolvedAxes) -> None:
+        self.cfg = cfg
+        self.judge = DriftJudge(cfg)
+        self.set_axes(axes)
+        self._pool: ProcessPoolExecutor | None = None
+        self._future: Future[tuple[dict[str, dict[str, Any]], float]] | None = None
+        self._cursor = (0, 0)
+        self._next = 0.0
+        self._pending: list[dict[str, np.ndarray]] = []
+        self.cpu_s = 0.0
+        self.estimates = 0
+        self.errors = 0
+        self.last_error = ""
+        self._shares: deque[tuple[float, int, tuple[int, ...], int, int]] = deque()
+
+    def set_axes(self, axes: ResolvedAxes) -> None:
+        """The models in force (at start and after each accepted reload)."""
+        self.models = {a: axes.models[i] for i, a in enumerate(AXES) if axes.driven[i]}
+
+    def reconfigure(self, cfg: SupervisionConfig, axes: ResolvedAxes) -> None:
+        """A reload's ``[supervision]`` and models (``window_s`` is a restart key)."""
+        self.cfg = cfg
+        self.judge.cfg = cfg
+        self.set_axes(axes)
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+
+    def _submit(self, chunk: dict[str, np.ndarray]) -> None:
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(
+                1, mp_context=multiprocessing.get_context("forkserver"),
+                initializer=_worker_init)
+        self._future = self._pool.submit(_estimate, chunk, list(self.models), dict(self.models),
+                                         settings_of(self.cfg))
+
+    def poll(self, monitor: Any, to_frame_s: Any, now: float, ticks: int, acted: list[int],
+             missed: int) -> list[str]:
+        """Collect, judge and send; returns the WARNING texts of alarms to log.
+
+        ``to_frame_s(ns)`` maps loop instants to the outputs' ``t``; ``ticks``, ``acted`` and
+        ``missed`` are the loop's counters (for the window's limiter share and deadlines)."""
+        if not self.cfg.enabled or not self.models:
+            return []
+        warnings: list[str] = []
+        fut = self._future
+        if fut is not None and fut.done():
+            self._future = None
+            try:
+                results, cpu = fut.result()
+                self.cpu_s += cpu
+                self.estimates += 1
+                warnings = self._judge(results, now)
+            except BrokenProcessPool as exc:
+                self._failed(f"the estimator process stopped: {exc}")
+            except Exception as exc:  # an estimate must never stop the service
+                self._failed(f"{type(exc).__name__}: {str(exc)[:120]}")
+        if now < self._next:
+            return warnings
+        self._next = now + self.cfg.period_s
+        self._shares.append((now, ticks, tuple(acted), missed, 0))
+        self._cursor, raw = monitor.chunk(self._cursor)
+        fb_t = np.where(np.isfinite(raw["fb_sent"]), raw["fb_sent"], to_frame_s(raw["fb_ns"]))
+        chunk = {"t_out": to_frame_s(raw["t_ns"]), "u": raw["u"], "t_fb": fb_t,
+                 "acc": raw["acc"]}
+        self._pending.append(chunk)
+        if self._future is None:  # else the estimator is still busy: sent with the next
+            merged = {k: np.concatenate([c[k] for c in self._pending]) for k in chunk}
+            self._pending = []
+            try:
+                self._submit(merged)
+            except Exception as exc:
+                self._failed(f"{type(exc).__name__}: {str(exc)[:120]}")
+        return warnings
+
+    def _failed(self, text: str) -> None:
+        self.errors += 1
+        self.last_error = text
+        log.error("model supervision: %s (restarted for the next period)", text)
+        self.close()
+
+    def _window_conditions(self, now: float) -> tuple[list[float] | None, float | None]:
+        """The limiter share per axis and the missed-deadline share over the last window."""
+        shares = self._shares
+        horizon = now - self.cfg.window_s
+        while len(shares) > 2 and shares[1][0] <= horizon:
+            shares.popleft()
+        if len(shares) < 2:
+            return None, None
+        (_, t0, a0, m0, _), (_, t1, a1, m1, _) = shares[0], shares[-1]
+        if t1 <= t0:
+            return None, None
+        limited = [(x - y) / (t1 - t0) for x, y in zip(a1, a0, strict=True)]
+        return limited, (m1 - m0) / (t1 - t0 + m1 - m0)
+
+    def _judge(self, results: dict[str, dict[str, Any]], now: float) -> list[str]:
+        limited, missed = self._window_conditions(now)
+        out = []
+        for axis, fig in results.items():
+            if fig.get("informative"):
+                share = limited[AXES.index(axis)] if limited else 0.0
+                if share > self.cfg.max_limited_share:
+                    fig["informative"] = False
+                    fig["reason"] = (f"the limiter acted on {100 * share:.0f} % of the ticks "
+                                     f"(more than {100 * self.cfg.max_limited_share:g} %)")
+                elif missed is not None and missed > DEGRADED_MISSED_SHARE:
+                    fig["informative"] = False
+                    fig["reason"] = (f"the loop missed {100 * missed:.1f} % of its deadlines "
+                                     "in the window (the host's stalls are in the data)")
+            text = self.judge.update(axis, fig, float(fig.get("to_t") or 0.0), now)
+            if text is not None:
+                out.append(text)
+        return out
+
+    def status(self) -> dict[str, Any]:
+        """The status' ``model_mismatch`` block."""
+        cfg = self.cfg
+        return {"enabled": cfg.enabled, "window_s": cfg.window_s, "period_s": cfg.period_s,
+                "band_hz": list(cfg.band_hz), "delay_bound_ms": cfg.delay_bound_ms,
+                "gain_bound": cfg.gain_bound, "hold_s": cfg.hold_s,
+                "estimates": self.estimates, "cpu_s": self.cpu_s, "errors": self.errors,
+                "last_error": self.last_error,
+                "alarm": any(self.judge.block(a)["alarm"] for a in self.models),
+                "axes": {a: self.judge.block(a) for a in self.models}}
