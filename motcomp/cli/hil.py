@@ -33,6 +33,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="simulation and feedback rate (default 1000 Hz)")
     p.add_argument("--truth", action="append", default=[], metavar="AXIS=SPEC",
                    help="true dynamics of an axis, e.g. rails_y=p1d:K=1,Td=0.02,Tp1=0.2")
+    p.add_argument("--drift", action="append", default=[], metavar="AXIS=SPEC@T[+RAMP]",
+                   help="the truth of AXIS becomes SPEC T seconds after the start (with +RAMP: "
+                        "every parameter moves there linearly over RAMP s), e.g. "
+                        "rails_y=p1d:K=1,Td=0.0275,Tp1=0.1858@60; repeatable")
     p.add_argument("--margin", type=non_negative_float, default=0.1, metavar="FRACTION",
                    help="hard limits = preset limits widened by this fraction (default 0.1)")
     p.add_argument("--transport", choices=["zenoh", "can"], default="zenoh",
@@ -54,7 +58,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from motcomp.sim.hil import HilConfig, default_truth, run_hil
+    from motcomp.sim.hil import HilConfig, default_truth, parse_drift, run_hil
     from motcomp.sim.platform import Accelerometer
 
     setup_logging(args.log_level)
@@ -74,5 +78,6 @@ def run(args: argparse.Namespace) -> int:
                     v_max=np.asarray(v_max) * (1 + args.margin),
                     rate_hz=args.rate, transport=args.transport, accelerometer=sensor,
                     seed=args.seed, can_interface=args.can_interface,
-                    can_channel=args.can_channel, dbc=args.dbc, duration_s=args.duration)
+                    can_channel=args.can_channel, dbc=args.dbc, duration_s=args.duration,
+                    drifts=[parse_drift(d) for d in args.drift])
     return run_hil(cfg, endpoints_from_args(args))

@@ -47,10 +47,20 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "the platform received, platform/setpoint) and the measurement the "
                     "feedback's acceleration, on the longest stretch where the axis is bypassed "
                     "and not limited (or --window).")
-    p.add_argument("data", type=Path, metavar="DATA",
+    p.add_argument("data", type=Path, metavar="DATA", nargs="?",
                    help="CSV with columns t,cmd,acc (s, m or rad, m/s^2 or rad/s^2) or an MCAP "
                         "session recording (motcomp record); with --live, the recording to "
-                        "write (MCAP)")
+                        "write (MCAP); with --from-status, a status saved by 'motcomp status "
+                        "--json' (default: ask the running service)")
+    sup = p.add_argument_group(
+        "the model supervision's estimate as a fragment (--from-status; docs/SUPERVISION.md)")
+    sup.add_argument("--from-status", action="store_true",
+                     help="write the running service's current estimate of --axis (its "
+                          "status' model_mismatch block; default: the axis in alarm) as the "
+                          "config fragment <axis>.toml into --out; exit 2 without a fragment "
+                          "when the estimate is not informative (unless --force)")
+    sup.add_argument("--status-key", default="motcomp/status", metavar="KEY",
+                     help="the service's status key (default: motcomp/status)")
     live = p.add_argument_group(
         "identification run through the running stack (--live; docs/IDENTIFICATION.md)")
     live.add_argument("--live", action="store_true",
@@ -150,6 +160,12 @@ def run_identify(args: argparse.Namespace) -> int:
     )
     from motcomp.progress import Progress
 
+    if args.from_status:
+        if args.live:
+            raise ConfigError("--from-status and --live exclude each other")
+        return _run_from_status(args)
+    if args.data is None:
+        raise ConfigError("identify needs DATA (a recording), or --from-status")
     if args.live:
         _run_live(args)
     axes = _axes(args)
@@ -238,6 +254,81 @@ def run_identify(args: argparse.Namespace) -> int:
                  f"no config fragment written (the report in {out} says more; --force writes "
                  "it anyway)"), file=sys.stderr)
     return 2 if held else 0
+
+
+def _run_from_status(args: argparse.Namespace) -> int:
+    """``--from-status``: the status' estimate of one axis as a config fragment."""
+    import json
+    import time
+
+    from motcomp.ident.report import model_fragment
+
+    if args.data is not None:
+        try:
+            st = json.loads(args.data.read_text())
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"{args.data}: not a status saved as JSON: {exc}") from None
+        where = str(args.data)
+    else:
+        from motcomp.cli.admin import _ask
+        from motcomp.io.zenoh_io import open_session
+
+        ep = endpoints_from_args(args)
+        with open_session(ep) as session:
+            st = _ask(session, ep, args.status_key, None, 3.0)
+        where = f"the service at {ep.describe()}"
+    block = st.get("model_mismatch") if isinstance(st, dict) else None
+    if not isinstance(block, dict) or not isinstance(block.get("axes"), dict):
+        raise DataError(f"{where}: the status has no model_mismatch block (a service without "
+                        "supervision, or an older version)")
+    axes = block["axes"]
+    axis = args.axis
+    if axis is None:
+        alarmed = [a for a, f in axes.items() if isinstance(f, dict) and f.get("alarm")]
+        if len(alarmed) != 1:
+            how = "none is" if not alarmed else "several are"
+            raise ConfigError(f"--axis: give the axis ({how} in alarm; supervised: "
+                              f"{', '.join(axes) or 'none'})")
+        axis = alarmed[0]
+    fig = axes.get(axis)
+    if not isinstance(fig, dict):
+        raise DataError(f"{where}: {axis} is not supervised (supervised: "
+                        f"{', '.join(axes) or 'none'})")
+    est = fig.get("estimate")
+    if not isinstance(est, dict):
+        raise DataError(f"{where}: {axis}: no estimate yet ({fig.get('reason') or 'waiting'})")
+    informative = bool(fig.get("informative"))
+    when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(float(st.get("t", 0.0))))
+    comments = [
+        f"# Estimated by motcomp's model supervision from ordinary driving ({where}, {when}):",
+        f"# {fig['to_t'] - fig['from_t']:.0f} s window, motion centred at {fig['at_hz']:.2f} Hz; "
+        f"identified {est['identified']}; the P1D explains {100 * est['explained']:.2f} %.",
+        f"# Td {est['Td_ms']:.2f} +- {est['Td_se_ms']:.2f} ms, Tp1 {est['Tp1_ms']:.1f} +- "
+        f"{est['Tp1_se_ms']:.1f} ms, K {est['K']:.4f} +- {est['K_se']:.4f}.",
+        f"# Against the model then in force ({fig['model']}): residual delay "
+        f"{fig['residual_delay_ms']:+.2f} +- {fig['residual_delay_se_ms']:.2f} ms, gain error "
+        f"{100 * fig['gain_error']:+.2f} % in the band.",
+    ]
+    out = args.out or Path(f"retune_{axis}")
+    if not informative and not args.force:
+        print(f"error: {axis}: the estimate is not informative ({fig.get('reason')}); no "
+              "config fragment written (--force writes it anyway)", file=sys.stderr)
+        return 2
+    if not informative:
+        comments.append(f"# Written with --force although not informative: {fig.get('reason')}")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        path = out / f"{axis}.toml"
+        path.write_text(model_fragment(axis, est["spec"], comments))
+    except OSError as exc:
+        raise ConfigError(f"--out {out}: cannot write the fragment: {exc.strerror or exc}"
+                          ) from None
+    if args.json:
+        print_json({"axis": axis, "fragment": str(path), "spec": est["spec"], **fig})
+    else:
+        print("\n".join(comments))
+        print(f"wrote {path}")
+    return 0
 
 
 def _untrusted(ident: Identification) -> str:

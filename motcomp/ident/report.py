@@ -27,8 +27,8 @@ from motcomp.ident.data import Recording
 from motcomp.ident.fit import Identification, ModelFit
 from motcomp.jsonsafe import finite
 
-__all__ = ["config_fragment", "markdown", "report_json", "table1", "table1_markdown",
-           "write_figures", "write_report", "write_reports"]
+__all__ = ["config_fragment", "markdown", "model_fragment", "report_json", "table1",
+           "table1_markdown", "write_figures", "write_report", "write_reports"]
 
 
 def _axis(ident: Identification, axis: str | None) -> str:
@@ -278,8 +278,12 @@ def config_fragment(ident: Identification, axis: str | None = None) -> str:
         if k != ident.selected:
             lines.append(f"# Also fitted: {f.model.spec()} (validation fit "
                          f"{f.fit_percent:.2f} %, AIC {f.aic:.1f})")
-    lines += [f"[axes.{t1['axis']}]", f"model = \"{rep['model_spec']}\"", ""]
-    return "\n".join(lines)
+    return model_fragment(t1["axis"], rep["model_spec"], lines)
+
+
+def model_fragment(axis: str, spec: str, comments: list[str]) -> str:
+    """The TOML fragment ``[axes.<axis>] model = "<spec>"`` after the comment lines given."""
+    return "\n".join([*comments, f"[axes.{axis}]", f"model = \"{spec}\"", ""])
 
 
 def write_figures(ident: Identification, out_dir: Path) -> list[Path]:

@@ -215,9 +215,12 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
     # the motion in the band: its RMS and centre frequency, from the command's spectrum
     lo_band, hi_band = settings.band_hz
     f = np.fft.rfftfreq(judged.size, 1.0 / sig.rate)
-    power = np.abs(np.fft.rfft(judged - judged.mean())) ** 2
+    hann = np.hanning(judged.size)  # its leakage falls fast: the centre is not pulled up
+    power = np.abs(np.fft.rfft(hann * (judged - judged.mean()))) ** 2
     band = (f >= lo_band) & (f <= hi_band)
-    motion = math.sqrt(2.0 * float(power[band].sum())) / judged.size if band.any() else 0.0
+    # Parseval, one-sided, the taper's power removed
+    motion = (math.sqrt(2.0 * float(power[band].sum()) / (judged.size * float(hann @ hann)))
+              if band.any() else 0.0)
     out["motion_rms"] = motion
     if not motion >= settings.min_motion:
         out["reason"] = (f"too little motion in {lo_band:g}-{hi_band:g} Hz (command "

@@ -34,7 +34,7 @@ from motcomp.core.models import P1D
 from motcomp.runtime.clock import DEGRADED_MISSED_SHARE
 from motcomp.runtime.estimate import EstimateSettings, LiveWindow
 
-__all__ = ["ALARM_LOG_S", "DriftJudge", "Supervisor", "settings_of"]
+__all__ = ["ALARM_LOG_S", "CONFIDENCE_Z", "DriftJudge", "Supervisor", "settings_of"]
 
 log = logging.getLogger("motcomp.supervise")
 
@@ -42,6 +42,8 @@ ALARM_LOG_S = 60.0
 """An alarm still on is logged again after this long."""
 WORKER_NICE = 10
 """The estimator process' niceness: the loop's CPU comes first."""
+CONFIDENCE_Z = 2.0
+"""An estimate exceeds a bound when it does by this many of its standard errors."""
 KEEP_MARGIN_S = 5.0
 """The estimator keeps this much more than a window."""
 
@@ -94,8 +96,9 @@ class _AxisState:
 class DriftJudge:
     """Turns estimates into alarms, per axis.
 
-    An estimate *exceeds* when it is informative and its residual delay is beyond
-    ``delay_bound_ms`` or its gain error beyond ``gain_bound`` (absolute values).  An alarm
+    An estimate *exceeds* when it is informative and its residual delay lies beyond
+    ``delay_bound_ms``, or its gain error beyond ``gain_bound``, by more than
+    :data:`CONFIDENCE_Z` standard errors (the 95 % interval is outside the bound).  An alarm
     starts when every estimate over ``hold_s`` exceeded (informative ones in a row, the first
     at least ``hold_s`` before the last); it clears when every informative estimate over
     ``hold_s`` is within both bounds.  An estimate that is not informative, or a window the
@@ -119,7 +122,8 @@ class DriftJudge:
             return None
         st.informative += 1
         delay, gain = fig["residual_delay_ms"], fig["gain_error"]
-        exceeds = abs(delay) > cfg.delay_bound_ms or abs(gain) > cfg.gain_bound
+        exceeds = (abs(delay) - CONFIDENCE_Z * fig["residual_delay_se_ms"] > cfg.delay_bound_ms
+                   or abs(gain) - CONFIDENCE_Z * fig["gain_error_se"] > cfg.gain_bound)
         if exceeds:
             st.within_since = None
             if st.exceeding_since is None:
@@ -187,7 +191,8 @@ class Supervisor:
         self.estimates = 0
         self.errors = 0
         self.last_error = ""
-        self._shares: deque[tuple[float, int, tuple[int, ...], int, int]] = deque()
+        self._shares: deque[tuple[float, int, tuple[int, ...], int]] = deque()
+        """``(now, ticks, acted, missed)`` at each chunk: the window's conditions."""
 
     def set_axes(self, axes: ResolvedAxes) -> None:
         """The models in force (at start and after each accepted reload)."""
@@ -236,7 +241,7 @@ class Supervisor:
         if now < self._next:
             return warnings
         self._next = now + self.cfg.period_s
-        self._shares.append((now, ticks, tuple(acted), missed, 0))
+        self._shares.append((now, ticks, tuple(acted), missed))
         self._cursor, raw = monitor.chunk(self._cursor)
         fb_t = np.where(np.isfinite(raw["fb_sent"]), raw["fb_sent"], to_frame_s(raw["fb_ns"]))
         chunk = {"t_out": to_frame_s(raw["t_ns"]), "u": raw["u"], "t_fb": fb_t,
@@ -265,7 +270,7 @@ class Supervisor:
             shares.popleft()
         if len(shares) < 2:
             return None, None
-        (_, t0, a0, m0, _), (_, t1, a1, m1, _) = shares[0], shares[-1]
+        (_, t0, a0, m0), (_, t1, a1, m1) = shares[0], shares[-1]
         if t1 <= t0:
             return None, None
         limited = [(x - y) / (t1 - t0) for x, y in zip(a1, a0, strict=True)]

@@ -12,6 +12,7 @@ limits of each axis, the input transport) and, when stopped, a summary of its co
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import signal
@@ -26,15 +27,16 @@ import msgpack
 import numpy as np
 
 from motcomp.core.axes import AXES
-from motcomp.core.models import ProcessModel
-from motcomp.errors import FrameError
+from motcomp.core.models import ProcessModel, parse_model
+from motcomp.errors import ConfigError, FrameError
 from motcomp.io.wire import decode_output, encode_feedback
 from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, open_session
 from motcomp.presets import load_preset
 from motcomp.runtime.clock import DeadlineClock
 from motcomp.sim.platform import Accelerometer, PlatformSimulator
 
-__all__ = ["HilConfig", "HilPlatform", "default_truth", "run_hil", "summary_text"]
+__all__ = ["Drift", "HilConfig", "HilPlatform", "default_truth", "parse_drift", "run_hil",
+           "summary_text"]
 
 log = logging.getLogger("motcomp.hil")
 
@@ -55,6 +57,53 @@ def default_truth() -> tuple[list[ProcessModel], np.ndarray, np.ndarray, np.ndar
         rows.append((lim.p_min[0], lim.p_max[0], lim.v_max[0]))
     arr = np.array(rows)
     return models, arr[:, 0], arr[:, 1], arr[:, 2]
+
+
+DRIFT_STEP_S = 0.05
+"""A ramped drift updates the axis' model this often."""
+
+
+@dataclass(frozen=True)
+class Drift:
+    """The truth of one axis changes during a run: to ``model`` at ``at_s`` after the start,
+    or, with ``ramp_s``, linearly (every parameter) from the truth in force at ``at_s`` to
+    ``model`` over ``ramp_s``."""
+
+    axis: str
+    model: ProcessModel
+    at_s: float
+    ramp_s: float = 0.0
+
+
+def parse_drift(text: str) -> Drift:
+    """``AXIS=SPEC@T`` or ``AXIS=SPEC@T+RAMP`` (seconds), e.g.
+    ``rails_y=p1d:K=1,Td=0.0275,Tp1=0.1858@60`` (a step at 60 s) or ``...@60+30`` (a ramp from
+    60 s to 90 s).
+
+    Raises
+    ------
+    ConfigError
+        Naming the part that is wrong.
+    """
+    head, at, when = text.rpartition("@")
+    axis, sep, spec = head.partition("=")
+    if not at or not sep or axis not in AXES:
+        raise ConfigError(f"--drift {text!r}: expected AXIS=SPEC@T[+RAMP] with AXIS in "
+                          f"{', '.join(AXES)}")
+    start, plus, ramp = when.partition("+")
+    try:
+        at_s, ramp_s = float(start), float(ramp) if plus else 0.0
+    except ValueError:
+        raise ConfigError(f"--drift {text!r}: T and RAMP must be seconds, got {when!r}") from None
+    if not (math.isfinite(at_s) and at_s >= 0 and math.isfinite(ramp_s) and ramp_s >= 0):
+        raise ConfigError(f"--drift {text!r}: T and RAMP must be finite and >= 0")
+    return Drift(axis, parse_model(spec), at_s, ramp_s)
+
+
+def _between(a: ProcessModel, b: ProcessModel, f: float) -> ProcessModel:
+    """``a``'s parameters moved the fraction ``f`` of the way to ``b``'s (same kind)."""
+    pa, pb = a.params(), b.params()
+    return dataclasses.replace(a, **{k: pa[k] + f * (pb[k] - pa[k]) for k in pa})  # type: ignore[type-var]
 
 
 @dataclass
@@ -78,6 +127,7 @@ class HilConfig:
     dbc: str = ""
     spin_us: float = 100.0
     duration_s: float = math.inf
+    drifts: Sequence[Drift] = ()
 
 
 class HilPlatform:
@@ -123,6 +173,36 @@ class HilPlatform:
         self._queue: deque[tuple[float, dict[str, float]]] = deque()
         self._prev_t: float | None = None
         self._prev = np.zeros(len(AXES))
+        for d in cfg.drifts:
+            if d.model.kind != cfg.models[AXES.index(d.axis)].kind:
+                raise ConfigError(f"drift of {d.axis}: {d.model} is not of the kind of its "
+                                  f"truth {cfg.models[AXES.index(d.axis)]}")
+        self._drifts = sorted(cfg.drifts, key=lambda d: d.at_s)
+        self._ramp_from: dict[int, ProcessModel] = {}
+        self._next_drift_s = 0.0
+
+    def drift_to(self, elapsed_s: float) -> None:
+        """Apply the drifts due ``elapsed_s`` after the start (each start and end is logged)."""
+        if elapsed_s < self._next_drift_s or not self._drifts:
+            return
+        self._next_drift_s = elapsed_s + DRIFT_STEP_S
+        for j, d in enumerate(self._drifts):
+            if elapsed_s < d.at_s or self._ramp_from.get(j) is d.model:
+                continue  # not yet, or done
+            i = AXES.index(d.axis)
+            if j not in self._ramp_from:
+                self._ramp_from[j] = self.sim.models[i]
+                if d.ramp_s > 0:
+                    log.info("%s: truth ramping from %s to %s over %g s", d.axis,
+                             self.sim.models[i].spec(), d.model.spec(), d.ramp_s)
+            f = 1.0 if d.ramp_s <= 0 else min((elapsed_s - d.at_s) / d.ramp_s, 1.0)
+            if f >= 1.0:
+                self.sim.set_model(i, d.model)
+                self._ramp_from[j] = d.model
+                log.info("%s: truth now %s (%.1f s after the start)", d.axis, d.model.spec(),
+                         elapsed_s)
+            else:
+                self.sim.set_model(i, _between(self._ramp_from[j], d.model, f))
 
     def take_frame(self, payload: bytes) -> None:
         """A setpoint frame of the service (zenoh), queued until the period it belongs to."""
@@ -246,6 +326,7 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
                         plat.catch_up(clock.skipped)
                     plat.take_axes(got)
                 t = t_wall0 + (now - t_mono0) / 1e9
+                plat.drift_to((now - t_mono0) / 1e9)
                 acc = plat.step(t if cfg.transport == "zenoh" else None)
                 if clock.ticks % cfg.feedback_every == 0:
                     # position and acceleration at the instant of this setpoint (the start of
@@ -284,6 +365,9 @@ def _log_startup(cfg: HilConfig, endpoints: ZenohEndpoints, plat: HilPlatform) -
         log.info("  %-9s truth %s; hard limits [%g, %g]%s", axis, cfg.models[i],
                  cfg.p_min[i], cfg.p_max[i],
                  "" if v_hard is None else f", |v| <= {v_hard[i]:g}")
+    for d in cfg.drifts:
+        log.info("  %-9s drifts to %s %g s after the start%s", d.axis, d.model.spec(), d.at_s,
+                 f" (a ramp over {d.ramp_s:g} s)" if d.ramp_s else "")
     a = cfg.accelerometer
     log.info("accelerometer: %s", f"noise {a.noise_std:g}, bias {a.bias:g}, tremor {a.tremor_amp:g}"
              f" at {a.tremor_hz:g} Hz, quantum {a.lsb:g}" if (a.noise_std or a.bias or a.tremor_amp
@@ -317,6 +401,7 @@ def _status(plat: HilPlatform, clock: DeadlineClock, receiver: Any) -> dict[str,
         "setpoint_age_mean_ms": plat.setpoint_age_mean_s * 1e3,
         "violations": dict(zip(AXES, sim.violations.tolist(), strict=True)),
         "position": dict(zip(AXES, sim.position.tolist(), strict=True)),
+        "truth": {a: m.spec() for a, m in zip(AXES, sim.models, strict=True)},
     }
     if receiver is not None:
         out["can"] = {"received": receiver.received, "crc_errors": receiver.crc_errors,

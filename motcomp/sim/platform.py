@@ -59,6 +59,10 @@ __all__ = [
 ]
 
 
+MAX_DELAY_S = 0.25
+"""Longest delay a drift may give an axis (the delay range ``motcomp identify`` searches)."""
+
+
 @dataclass(frozen=True)
 class Accelerometer:
     """Imperfections of the cabin accelerometer (per axis, axis units/s^2).
@@ -237,12 +241,51 @@ class PlatformSimulator:
             o += k
         delays = np.array([d.delay_samples for d in self._disc])
         length = 1
-        while length < int(delays.max()) + 3:
+        # room for any delay a drift may set (set_model) without losing history
+        while length < max(int(delays.max()) + 3, math.ceil(MAX_DELAY_S * self.rate_hz) + 3):
             length *= 2
         self._mask = length - 1
         self._hist = np.zeros((self.n, length))
         self._rows = np.arange(self.n)
         self._d = delays
+
+    def set_model(self, axis: int, model: ProcessModel) -> None:
+        """Change the true dynamics of ``axis`` (an index) now, keeping its motion: the output
+        carries over (a first-order model may change any parameter; a higher-order one only its
+        delay, up to :data:`MAX_DELAY_S`), and the setpoints it held are kept.
+
+        Raises
+        ------
+        ConfigError
+            For another order, a higher-order model whose dynamics change, or a longer delay.
+        """
+        new = model.discretize(self.rate_hz)
+        old = self._disc[axis]
+        if new.delay_samples + 3 > self._mask + 1:
+            raise ConfigError(f"drift of axis {axis}: delay {model.dead_time_s:g} s beyond "
+                              f"{MAX_DELAY_S:g} s")
+        if new.order != old.order or (new.order > 1 and not (
+                np.allclose(new.phi, old.phi) and np.allclose(new.c, old.c))):
+            raise ConfigError(f"drift of axis {axis}: {model} is not {self.models[axis]} with "
+                              "other parameters of the same first-order form, or the same "
+                              "higher-order dynamics with another delay")
+        o = sum(d.order for d in self._disc[:axis])
+        k = new.order
+        if k:
+            x = self._x[o:o + k]
+            y = float(old.c[0] @ x)
+            if k == 1 and new.c[0, 0] != 0:
+                self._x[o] = y / new.c[0, 0]
+        models = list(self.models)
+        models[axis] = model
+        self.models = tuple(models)
+        self._disc[axis] = new
+        self._phi[o:o + k, o:o + k] = new.phi
+        self._g0[o:o + k, axis] = new.gamma0[:, 0]
+        self._g1[o:o + k, axis] = new.gamma1[:, 0]
+        self._c[axis, o:o + k] = new.c[0]
+        self._dfeed[axis] = new.d_feed
+        self._d[axis] = new.delay_samples
 
     def reset(self, position: ArrayLike) -> None:
         """At rest at ``position`` (the command and the output, for unit-gain axes)."""

@@ -1,0 +1,265 @@
+"""The model supervision: the estimate against platforms simulated independently (exact ZOH
+discretisation, :class:`~motcomp.sim.platform.PlatformSimulator`), the mismatch against its
+closed form, the judge's alarm rules, the drifting simulated platform, and ``identify
+--from-status``."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from motcomp.config import SupervisionConfig
+from motcomp.core.models import P1D, P2D, parse_model
+from motcomp.errors import ConfigError
+from motcomp.runtime.estimate import EstimateSettings, LiveWindow, estimate_axis, mismatch
+from motcomp.runtime.supervise import CONFIDENCE_Z, DriftJudge
+from motcomp.sim.hil import HilConfig, HilPlatform, default_truth, parse_drift
+from motcomp.sim.platform import Accelerometer, PlatformSimulator
+from motcomp.sim.source import builtin
+from tests.conftest import motcomp_cmd, subprocess_env
+
+RATE = 1000.0
+MODEL = P1D(K=1.0, Td=0.0175, Tp1=0.1857683128)
+NOISY = Accelerometer(noise_std=0.05, bias=0.02, tremor_hz=14.0, tremor_amp=0.03, lsb=0.001)
+"""The sensor ``motcomp hil`` simulates."""
+QUIET = Accelerometer()
+
+
+def drive(truth: P1D, u: np.ndarray, sensor: Accelerometer = QUIET, seed: int = 1
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """Times and measured accelerations of a simulated platform driven by ``u`` at 1 kHz."""
+    sim = PlatformSimulator([truth], RATE, [-5.0], [5.0], None, sensor, seed=seed)
+    acc = np.array([sim.step([x])[1][0] for x in u])
+    return np.arange(u.size) / RATE, acc
+
+
+def driving(n_s: float, lead_s: float = 0.18) -> np.ndarray:
+    """Ordinary driving on rails_y: slaloms and lane changes, with the lead a compensator
+    adds (the command moves above the slalom's frequency too)."""
+    r = np.concatenate([builtin("slalom").pos["rails_y"], builtin("lanechange").pos["rails_y"]])
+    r = np.tile(r, math.ceil(n_s * RATE / r.size))[: round(n_s * RATE)]
+    return np.asarray(r + lead_s * np.gradient(r, 1.0 / RATE))
+
+
+def test_mismatch_is_the_phase_delay_and_gain_of_the_ratio() -> None:
+    est = P1D(K=1.05, Td=0.0275, Tp1=0.21)
+    for f in (0.1, 0.31, 1.7):
+        w = 2 * math.pi * f
+        delay = (0.0275 - 0.0175) + (math.atan(w * 0.21) - math.atan(w * MODEL.Tp1)) / w
+        gain = 1.05 * math.hypot(1, w * MODEL.Tp1) / math.hypot(1, w * 0.21) - 1
+        d, g = mismatch(est, MODEL, f)
+        assert d == pytest.approx(delay, abs=1e-12) and g == pytest.approx(gain, abs=1e-12)
+
+
+@pytest.mark.parametrize("truth", [MODEL, P1D(K=0.95, Td=0.0275, Tp1=0.24),
+                                   P1D(K=1.0, Td=0.005, Tp1=0.12)])
+def test_estimate_recovers_the_platform_from_ordinary_driving(truth: P1D) -> None:
+    u = driving(20.0)
+    t, acc = drive(truth, u)
+    fig = estimate_axis(t, u, t, acc, MODEL, EstimateSettings(window_s=20.0))
+    assert fig["informative"], fig["reason"]
+    e = fig["estimate"]
+    assert e["identified"] == "K, Td, Tp1"
+    # a quiet sensor: the estimate is the truth to the fit's precision
+    assert e["Td_ms"] == pytest.approx(truth.Td * 1e3, abs=0.05)
+    assert e["Tp1_ms"] == pytest.approx(truth.Tp1 * 1e3, rel=1e-3)
+    assert e["K"] == pytest.approx(truth.K, rel=1e-3)
+    d, g = mismatch(truth, MODEL, fig["at_hz"])
+    assert fig["residual_delay_ms"] == pytest.approx(d * 1e3, abs=0.05)
+    assert fig["gain_error"] == pytest.approx(g, abs=1e-3)
+    assert 0.1 <= fig["at_hz"] <= 2.0
+
+
+def test_a_noisy_sensor_gives_an_honest_standard_error() -> None:
+    truth = P1D(K=1.0, Td=0.0275, Tp1=MODEL.Tp1)
+    errors = []
+    for seed in range(6):
+        u = driving(20.0)
+        t, acc = drive(truth, u, NOISY, seed=seed)
+        fig = estimate_axis(t, u, t, acc, MODEL)
+        assert fig["informative"], fig["reason"]
+        d, _ = mismatch(truth, MODEL, fig["at_hz"])
+        errors.append((fig["residual_delay_ms"] - d * 1e3) / fig["residual_delay_se_ms"])
+        assert fig["residual_delay_se_ms"] < 0.5
+    # errors in standard errors: none beyond 3, and not all far inside (the figure is not
+    # inflated tenfold either)
+    assert max(abs(z) for z in errors) < 3.0, errors
+    assert max(abs(z) for z in errors) > 0.05, errors
+
+
+def test_one_frequency_holds_tp1_at_the_model_and_still_tells_the_band() -> None:
+    t = np.arange(round(20 * RATE)) / RATE
+    u = 0.4 * np.sin(2 * math.pi * 0.31 * t)
+    truth = P1D(K=1.0, Td=0.0225, Tp1=MODEL.Tp1)
+    _, acc = drive(truth, u, NOISY, seed=3)
+    fig = estimate_axis(t, u, t, acc, MODEL)
+    assert fig["informative"], fig["reason"]
+    assert fig["estimate"]["identified"] == "K, Td (Tp1 held at the model's)"
+    assert fig["at_hz"] == pytest.approx(0.31, abs=0.02)
+    assert fig["residual_delay_ms"] == pytest.approx(5.0, abs=0.5)
+    assert fig["estimate"]["Td_ms"] == pytest.approx(22.5, abs=0.5)
+
+
+@pytest.mark.parametrize(("u", "reason"), [
+    (np.zeros(20000), "the command is constant"),
+    (0.001 * np.sin(2 * math.pi * 0.3 * np.arange(20000) / RATE), "too little motion"),
+    (0.4 * np.sin(2 * math.pi * 0.3 * np.arange(8000) / RATE), "of feedback paired"),
+])
+def test_a_window_that_cannot_tell_says_why(u: np.ndarray, reason: str) -> None:
+    t, acc = drive(MODEL, u, NOISY)
+    fig = estimate_axis(t, u, t, acc, MODEL)
+    assert not fig["informative"] and reason in fig["reason"], fig["reason"]
+    assert "residual_delay_ms" not in fig
+
+
+def test_a_platform_the_p1d_does_not_describe_is_not_judged() -> None:
+    u = driving(20.0)
+    t = np.arange(u.size) / RATE
+    rng = np.random.default_rng(0)
+    fig = estimate_axis(t, u, t, rng.normal(0, 3.0, u.size), MODEL)
+    assert not fig["informative"]
+    assert "explains" in fig["reason"] or "uncertain" in fig["reason"], fig["reason"]
+
+
+def test_live_window_keeps_the_last_seconds_and_restarts_on_an_older_clock() -> None:
+    w = LiveWindow(keep_s=5.0)
+    for k in range(10):
+        t = k + np.arange(1000) / 1000.0
+        w.add(t, np.zeros((1000, 8)), t, np.zeros((1000, 8)))
+    assert w.t_out[0] >= 10.0 - 5.0 - 1e-9 and w.t_out[-1] == pytest.approx(9.999)
+    assert w.t_fb.size == w.t_out.size and 5000 <= w.t_out.size <= 5001
+    t = np.arange(100) / 1000.0  # a restarted service: its clock starts again
+    w.add(t, np.zeros((100, 8)), t, np.zeros((100, 8)))
+    assert w.t_out.size == 100
+
+
+def _fig(delay: float, se: float = 0.2, gain: float = 0.0, informative: bool = True
+         ) -> dict[str, object]:
+    return {"informative": informative, "reason": "" if informative else "no motion",
+            "residual_delay_ms": delay, "residual_delay_se_ms": se, "gain_error": gain,
+            "gain_error_se": 0.001, "at_hz": 0.4, "model": MODEL.spec(),
+            "estimate": {"spec": "p1d:K=1,Td=0.03,Tp1=0.19", "Td_ms": 30.0, "Td_se_ms": 0.3,
+                         "identified": "K, Td, Tp1"}}
+
+
+def test_an_alarm_needs_the_whole_hold_beyond_the_bound_with_confidence() -> None:
+    cfg = SupervisionConfig(delay_bound_ms=2.5, hold_s=8.0)
+    j = DriftJudge(cfg)
+    t = 0.0
+    for _ in range(4):  # 6 s beyond: not yet
+        assert j.update("rails_y", _fig(5.0), t, t) is None
+        t += 2.0
+    assert not j.block("rails_y")["alarm"]
+    text = j.update("rails_y", _fig(5.0), t, t)  # 8 s: the alarm, with its numbers
+    assert text and "+5.00 +- 0.20 ms" in text and "identify --from-status" in text
+    assert j.block("rails_y")["state"] == "drift" and j.block("rails_y")["alarms"] == 1
+    # an uninformative window keeps the alarm; within the bound for the hold clears it
+    j.update("rails_y", _fig(0.0, informative=False), t + 2, t + 2)
+    assert j.block("rails_y")["alarm"]
+    for k in range(5):
+        j.update("rails_y", _fig(0.3), t + 4 + 2 * k, t + 4 + 2 * k)
+    assert not j.block("rails_y")["alarm"]
+
+
+def test_no_alarm_when_the_interval_reaches_the_bound_or_a_window_is_not_informative() -> None:
+    cfg = SupervisionConfig(delay_bound_ms=2.5, hold_s=4.0)
+    j = DriftJudge(cfg)
+    se = 1.0
+    for k in range(20):  # beyond the bound, but not by CONFIDENCE_Z standard errors
+        j.update("rails_y", _fig(2.5 + CONFIDENCE_Z * se - 0.01, se=se), 2.0 * k, 2.0 * k)
+    assert not j.block("rails_y")["alarm"]
+    for k in range(20):  # beyond, but every other window not informative: never held
+        j.update("rails_y", _fig(9.0, informative=k % 2 == 0), 40 + 2.0 * k, 40 + 2.0 * k)
+    assert not j.block("rails_y")["alarm"] and j.block("rails_y")["alarms"] == 0
+    for k in range(4):  # the gain alone
+        j.update("rails_x", _fig(0.0, gain=-0.3), 2.0 * k, 2.0 * k)
+    assert j.block("rails_x")["alarm"]
+
+
+def test_parse_drift() -> None:
+    d = parse_drift("rails_y=p1d:K=1,Td=0.0275,Tp1=0.1858@60+30")
+    assert (d.axis, d.at_s, d.ramp_s) == ("rails_y", 60.0, 30.0)
+    assert d.model == parse_model("p1d:K=1,Td=0.0275,Tp1=0.1858")
+    assert parse_drift("hex_z=p1d:K=1,Td=0.01,Tp1=0.02@5").ramp_s == 0.0
+    for bad, what in (("rails_q=p1d:K=1,Td=0,Tp1=0.1@5", "AXIS=SPEC"),
+                      ("rails_y=p1d:K=1,Td=0,Tp1=0.1", "AXIS=SPEC"),
+                      ("rails_y=p1d:K=1,Td=0,Tp1=0.1@soon", "seconds"),
+                      ("rails_y=p1d:K=1,Td=0,Tp1=0.1@-1", ">= 0")):
+        with pytest.raises(ConfigError, match=what):
+            parse_drift(bad)
+
+
+def _hil(drifts: list[str]) -> HilPlatform:
+    models, p_min, p_max, _ = default_truth()
+    return HilPlatform(HilConfig(models=models, p_min=p_min, p_max=p_max, v_max=None,
+                                 drifts=[parse_drift(d) for d in drifts]))
+
+
+def test_hil_truth_steps_and_ramps_at_the_given_times() -> None:
+    plat = _hil(["rails_y=p1d:K=1,Td=0.0275,Tp1=0.1857683128@10",
+                 "rails_x=p1d:K=1,Td=0.0175,Tp1=0.2857683128@5+10"])
+    y, x = 1, 0
+    plat.drift_to(4.99)
+    assert plat.sim.models[y].Td == 0.0175 and plat.sim.models[x].Tp1 == MODEL.Tp1
+    plat.drift_to(10.0)
+    assert plat.sim.models[y] == parse_model("p1d:K=1,Td=0.0275,Tp1=0.1857683128")
+    assert plat.sim.models[x].Tp1 == pytest.approx(MODEL.Tp1 + 0.05)  # half way
+    plat.drift_to(15.0)
+    assert plat.sim.models[x].Tp1 == pytest.approx(0.2857683128)
+    with pytest.raises(ConfigError, match="kind"):
+        _hil(["rails_y=p2d:K=1,Td=0.0275,Tp1=0.1,Tp2=0.01@10"])
+
+
+def test_a_drifted_simulator_continues_as_the_new_model() -> None:
+    a, b = MODEL, P1D(K=1.1, Td=0.0275, Tp1=0.25)
+    u = 0.3 * np.sin(2 * math.pi * 0.5 * np.arange(8000) / RATE)
+    drifted = PlatformSimulator([a], RATE, [-5], [5])
+    only_b = PlatformSimulator([b], RATE, [-5], [5])
+    y = []
+    for k, x in enumerate(u):
+        if k == 3000:
+            drifted.set_model(0, b)
+        y.append(drifted.step([x])[0][0])
+        yb = only_b.step([x])[0][0]
+    assert abs(y[3000] - y[2999]) < 1e-3  # the position carries over
+    assert abs(y[-1] - yb) < 1e-6  # and forgets the old model
+    with pytest.raises(ConfigError, match="same first-order"):
+        PlatformSimulator([P2D(K=1, Td=0.01, Tp1=0.1, Tp2=0.02)], RATE, [-5], [5]).set_model(
+            0, P2D(K=1, Td=0.01, Tp1=0.2, Tp2=0.02))
+
+
+def _status(informative: bool) -> dict[str, object]:
+    fig = {**_fig(10.0, informative=informative), "alarm": informative, "from_t": 100.0,
+           "to_t": 120.0}
+    fig["estimate"] = {"spec": "p1d:K=1.001,Td=0.0276,Tp1=0.186", "K": 1.001, "K_se": 0.001,
+                       "Td_ms": 27.6, "Td_se_ms": 0.3, "Tp1_ms": 186.0, "Tp1_se_ms": 0.4,
+                       "identified": "K, Td, Tp1", "explained": 0.9998}
+    return {"t": 1.0e9, "model_mismatch": {"axes": {"rails_y": fig, "rails_x": _fig(0.0)}}}
+
+
+def test_identify_from_a_saved_status_writes_the_fragment(tmp_path: Path) -> None:
+    saved = tmp_path / "status.json"
+    saved.write_text(json.dumps(_status(True)))
+    p = subprocess.run(motcomp_cmd("identify", str(saved), "--from-status", "--out",
+                                   str(tmp_path / "retune")), capture_output=True, text=True,
+                       env=subprocess_env(), timeout=60)
+    assert p.returncode == 0, p.stderr
+    text = (tmp_path / "retune" / "rails_y.toml").read_text()
+    assert '[axes.rails_y]\nmodel = "p1d:K=1.001,Td=0.0276,Tp1=0.186"' in text
+    assert "residual delay +10.00 +- 0.20 ms" in text
+    # not informative: no fragment, exit 2, the reason said
+    saved.write_text(json.dumps(_status(False)))
+    p = subprocess.run(motcomp_cmd("identify", str(saved), "--from-status", "--axis", "rails_y",
+                                   "--out", str(tmp_path / "again")), capture_output=True,
+                       text=True, env=subprocess_env(), timeout=60)
+    assert p.returncode == 2 and "not informative (no motion)" in p.stderr, p.stderr
+    assert not (tmp_path / "again").exists()
+    saved.write_text(json.dumps({"t": 1.0}))
+    p = subprocess.run(motcomp_cmd("identify", str(saved), "--from-status"),
+                       capture_output=True, text=True, env=subprocess_env(), timeout=60)
+    assert p.returncode != 0 and "no model_mismatch block" in p.stderr, p.stderr
