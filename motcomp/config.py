@@ -314,7 +314,7 @@ class SupervisionConfig(BaseModel):
 
     model_config = _STRICT
     enabled: bool = True
-    window_s: float = Field(20.0, ge=10.0, le=60.0)
+    window_s: float = Field(15.0, ge=10.0, le=60.0)
     """Each estimate reads the last this long of outputs and feedback."""
     period_s: float = Field(2.0, ge=0.5, le=60.0)
     """An estimate every this long."""
@@ -324,7 +324,7 @@ class SupervisionConfig(BaseModel):
     """An alarm when the residual delay in the band exceeds this..."""
     gain_bound: float = Field(0.1, gt=0.0, le=1.0)
     """... or the gain error in the band this ..."""
-    hold_s: float = Field(8.0, ge=0.0, le=600.0)
+    hold_s: float = Field(6.0, ge=0.0, le=600.0)
     """... on every informative estimate for this long (and it clears the same way)."""
     min_motion: float = Field(0.05, gt=0.0)
     """Least RMS of the command's acceleration in the band for a window to be judged."""

@@ -60,7 +60,7 @@ TD_GRID_S = np.arange(0.0, 0.2501, 0.0025)
 class EstimateSettings:
     """What a window must hold to be judged, and where (``[supervision]`` of the config)."""
 
-    window_s: float = 20.0
+    window_s: float = 15.0
     band_hz: tuple[float, float] = (0.1, 2.0)
     """The driver's band: the mismatch is judged at the motion's centre frequency in it."""
     fit_max_hz: float = 5.0

@@ -1,0 +1,133 @@
+"""Model supervision end to end on the real processes: a simulated platform whose pure delay
+drifts by +10 ms mid-run (``hil --drift``), the service driving it with ordinary driving
+(``source --signal slalom``): the drift is detected, ``identify --from-status`` writes the
+estimate as a fragment, ``design`` tunes for it, the site config includes both, ``reload`` --
+and the slalom's apparent delay returns to its figure before the drift.
+
+In the suite (about two minutes, four processes; ``pytest -m e2e`` runs it alone).  Figures
+of real runs: docs/SUPERVISION.md."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from motcomp.core.models import parse_model
+from motcomp.io.zenoh_io import free_tcp_port, loopback
+from motcomp.resources import config_file
+from motcomp.runtime.probe import HostProbe
+from tests.conftest import judge_realtime, motcomp_cmd, subprocess_env
+from tests.test_service_process import process
+
+pytestmark = [pytest.mark.slow, pytest.mark.e2e]
+
+TRUTH = "p1d:K=1,Td=0.0175,Tp1=0.1857683128"
+"""The example config's rails model: the platform matches it until the drift."""
+DRIFTED = "p1d:K=1,Td=0.0275,Tp1=0.1857683128"
+DRIFT_AT_S = 50.0
+
+
+def cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(motcomp_cmd(*args), capture_output=True, text=True,
+                          env=subprocess_env(), timeout=timeout)
+
+
+def status(ep: str) -> dict[str, Any]:
+    p = cli("status", "--json", "-e", ep, timeout=30)
+    assert p.returncode == 0, p.stderr
+    out: dict[str, Any] = json.loads(p.stdout)
+    return out
+
+
+def delay_ms(st: dict[str, Any]) -> float | None:
+    q = st["axes_quality"]["rails_y"]
+    return q["apparent_delay_ms"] if q["delay_valid"] else None
+
+
+def test_a_drift_is_detected_retuned_from_the_status_and_the_delay_returns(
+        tmp_path: Path) -> None:
+    p_svc, p_hil = free_tcp_port(), free_tcp_port()
+    svc_ep, hil_ep = loopback(p_svc), loopback(p_hil)
+    site = tmp_path / "site.toml"
+    admin = "[admin]\nenabled = true\n"
+    site.write_text(f'include = ["{config_file("motcomp.toml")}"]\n{admin}')
+    with HostProbe() as probe, \
+            process(["hil", "-l", hil_ep, "--truth", f"rails_y={TRUTH}", "--drift",
+                     f"rails_y={DRIFTED}@{DRIFT_AT_S:g}", "--log-level", "info"],
+                    tmp_path / "hil.log") as hil, \
+            process(["run", "--config", str(site), "-l", svc_ep, "-e", hil_ep],
+                    tmp_path / "svc.log") as svc:
+        t_hil = time.monotonic()
+        time.sleep(2.0)
+        with process(["source", "--signal", "slalom", "--repeat", "10", "--quiet", "-e",
+                      svc_ep], tmp_path / "src.log") as src:
+            # before the drift: the compensated slalom's delay, and no alarm
+            before = []
+            while time.monotonic() - t_hil < DRIFT_AT_S - 2.0:
+                time.sleep(2.0)
+                st = status(svc_ep)
+                assert not st["model_mismatch"]["alarm"], st["model_mismatch"]
+                if (d := delay_ms(st)) is not None:
+                    before.append(d)
+            assert before, "no valid apparent delay before the drift"
+            # the drift, detected within 30 s of it
+            detected = None
+            trace = []
+            while time.monotonic() - t_hil < DRIFT_AT_S + 45.0:
+                time.sleep(1.0)
+                st = status(svc_ep)
+                f = st["model_mismatch"]["axes"]["rails_y"]
+                trace.append((round(time.monotonic() - t_hil, 1), f["state"],
+                              f.get("residual_delay_ms"), f.get("residual_delay_se_ms"),
+                              f.get("reason")))
+                if f["alarm"]:
+                    detected = time.monotonic() - t_hil - DRIFT_AT_S
+                    break
+            mm = st["model_mismatch"]["axes"]["rails_y"]
+            assert detected is not None, trace
+            print(f"drift detected {detected:.1f} s after it; residual "
+                  f"{mm['residual_delay_ms']:.2f} +- {mm['residual_delay_se_ms']:.2f} ms, "
+                  f"estimate {mm['estimate']['spec']}")
+            assert detected <= 30.0, trace
+            assert mm["residual_delay_ms"] == pytest.approx(10.0, abs=2.0)
+            assert "model mismatch starts" in (tmp_path / "svc.log").read_text()
+            drifted = delay_ms(st)
+            # the retune: the estimate as a fragment, designed, included, reloaded
+            p = cli("identify", "--from-status", "--axis", "rails_y", "--out",
+                    str(tmp_path / "retune"), "-e", svc_ep)
+            assert p.returncode == 0, p.stdout + p.stderr
+            fragment = tmp_path / "retune" / "rails_y.toml"
+            model = parse_model(re.search(r'model = "([^"]+)"', fragment.read_text()).group(1))
+            assert model.params()["Td"] == pytest.approx(0.0275 + 0.001, abs=0.003)
+            design = tmp_path / "design.toml"
+            p = cli("design", "--plant", str(fragment), "--rule", "optimal", "--out",
+                    str(design), "--quiet")
+            assert p.returncode == 0, p.stderr
+            site.write_text(f'include = ["{config_file("motcomp.toml")}", "{fragment}", '
+                            f'"{design}"]\n{admin}')
+            p = cli("reload", "-e", svc_ep)
+            assert p.returncode == 0, p.stdout + p.stderr
+            t_reload = time.monotonic()
+            # after: the status' delay window (10 s) filled with the retuned motion
+            after = []
+            while time.monotonic() - t_reload < 30.0 and src.poll() is None:
+                time.sleep(2.0)
+                st = status(svc_ep)
+                if time.monotonic() - t_reload > 14.0 and (d := delay_ms(st)) is not None:
+                    after.append(d)
+            assert after, "no valid apparent delay after the reload"
+        for p_ in (svc, hil):
+            p_.terminate()
+            assert p_.wait(timeout=30) == 0
+    judge_realtime(probe.result, "the drift's detection and the retuned slalom")
+    ref = float(sorted(before)[len(before) // 2])
+    now = float(sorted(after)[len(after) // 2])
+    print(f"apparent delay: {ref:.2f} ms before the drift, {drifted} ms drifted, {now:.2f} ms "
+          "retuned")
+    assert abs(now - ref) <= 3.0, (before, drifted, after)
