@@ -14,8 +14,10 @@ import numpy as np
 import pytest
 
 from motcomp.config import SupervisionConfig
+from motcomp.core.axes import AXIS_INDEX as AXES_INDEX
 from motcomp.core.models import P1D, P2D, parse_model
 from motcomp.errors import ConfigError
+from motcomp.resources import config_file
 from motcomp.runtime.estimate import EstimateSettings, LiveWindow, estimate_axis, mismatch
 from motcomp.runtime.supervise import CONFIDENCE_Z, DriftJudge
 from motcomp.sim.hil import HilConfig, HilPlatform, default_truth, parse_drift
@@ -263,3 +265,63 @@ def test_identify_from_a_saved_status_writes_the_fragment(tmp_path: Path) -> Non
     p = subprocess.run(motcomp_cmd("identify", str(saved), "--from-status"),
                        capture_output=True, text=True, env=subprocess_env(), timeout=60)
     assert p.returncode != 0 and "no model_mismatch block" in p.stderr, p.stderr
+
+
+def test_the_status_table_and_a_recording_summary_show_the_alarms() -> None:
+    from motcomp.cli.admin import format_status
+    from motcomp.cli.info import _mismatch
+
+    block = {"enabled": True, "window_s": 15.0, "delay_bound_ms": 2.5, "gain_bound": 0.1,
+             "hold_s": 6.0, "errors": 0, "axes": {}}
+    frames = []
+    for k, alarm in enumerate([False, False, True, True, False, True]):
+        fig = {**_status(True)["model_mismatch"]["axes"]["rails_y"], "alarm": alarm}  # type: ignore[index]
+        frames.append((int(1e9) * (k + 1), {"model_mismatch": {**block,
+                                                               "axes": {"rails_y": fig}}}))
+    mm = _mismatch(frames, 0)["rails_y"]
+    assert mm["alarms"] == [[3.0, 5.0], [6.0, None]]
+    assert mm["residual_delay_ms_at_alarm"] == [10.0, 10.0]
+    assert mm["last_estimate"]["spec"] == "p1d:K=1.001,Td=0.0276,Tp1=0.186"
+    text = format_status(frames[-1][1])
+    row = next(ln for ln in text.splitlines() if ln.strip().startswith("rails_y") and
+               "DRIFT" in ln)
+    assert "+10.00" in row and "27.60" in row, text
+
+
+def test_the_supervisor_estimates_in_its_own_process_from_the_monitor() -> None:
+    from motcomp.config import load_config, resolve_axes
+    from motcomp.io.wire import encode_feedback
+    from motcomp.runtime.monitor import MotionMonitor
+    from motcomp.runtime.supervise import Supervisor
+
+    cfg = load_config(config_file("motcomp.toml"))
+    axes = resolve_axes(cfg)
+    truth = P1D(K=1.0, Td=0.0275, Tp1=MODEL.Tp1)  # 10 ms more than the example's rails model
+    u = driving(14.0)
+    t, acc = drive(truth, u, NOISY)
+    monitor = MotionMonitor(RATE, 10.0)
+    sup = Supervisor(SupervisionConfig(period_s=1.0), axes)
+    y = AXES_INDEX["rails_y"]
+    try:
+        for second in range(14):
+            for k in range(second * 1000, (second + 1) * 1000):
+                row = [0.0] * 8
+                row[y] = float(u[k])
+                monitor.record(k * 1_000_000, row, row)
+                monitor.on_feedback(k * 1_000_000, encode_feedback(
+                    float(t[k]), {"rails_y": float(u[k])}, {"rails_y": float(acc[k])}))
+            monitor.drain()
+            sup.poll(monitor, lambda ns: ns / 1e9, float(second), (second + 1) * 1000,
+                     [0] * 8, 0)
+            if sup._future is not None:  # the test waits for each answer, the service not
+                sup._future.result(timeout=60)
+        sup.poll(monitor, lambda ns: ns / 1e9, 100.0, 14000, [0] * 8, 0)
+        block = sup.status()
+    finally:
+        sup.close()
+    fig = block["axes"]["rails_y"]
+    assert block["estimates"] >= 10 and block["errors"] == 0 and block["cpu_s"] > 0
+    assert fig["informative"], fig["reason"]
+    assert fig["residual_delay_ms"] == pytest.approx(10.0, abs=1.0)
+    # a driven axis whose feedback lacks its acceleration says so
+    assert block["axes"]["hex_z"]["reason"] == "no feedback acceleration of hex_z in the window"

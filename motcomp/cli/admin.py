@@ -262,6 +262,7 @@ def format_status(st: dict[str, Any]) -> str:
     if st.get("tick"):
         lines.append(f"tick        {st['tick']}")
     lines += _quality_lines(st)
+    lines += _mismatch_lines(st)
     driven = set(st.get("driven") or [])
     bypass = set(st.get("bypass") or [])
     sat = st.get("saturation") or {}
@@ -281,6 +282,30 @@ def format_status(st: dict[str, Any]) -> str:
 
 def _num(x: Any, fmt: str) -> str:
     return "-" if not isinstance(x, int | float) or isinstance(x, bool) else format(x, fmt)
+
+
+def _mismatch_lines(st: dict[str, Any]) -> list[str]:
+    """The model supervision's table (docs/SUPERVISION.md)."""
+    mm = st.get("model_mismatch")
+    if not isinstance(mm, dict) or not mm.get("enabled") or not mm.get("axes"):
+        return []
+    lines = [f"model       estimate over the last {mm.get('window_s', 0):g} s against the model "
+             f"in force; alarm beyond {mm.get('delay_bound_ms', 0):g} ms or "
+             f"{100 * float(mm.get('gain_bound', 0)):g} % held {mm.get('hold_s', 0):g} s"
+             + (f"; ERRORS {mm['errors']}: {mm.get('last_error')}" if mm.get("errors") else ""),
+             f"  {'':<10}{'state':<17}{'resid ms':>9}{'+-':>6}{'gain %':>8}{'at Hz':>7}"
+             f"{'Td ms':>8}{'Tp1 ms':>8}"]
+    for axis, f in mm["axes"].items():
+        e = f.get("estimate") or {}
+        gain = f.get("gain_error")
+        state = "DRIFT" if f.get("alarm") else str(f.get("state", "?"))
+        why = "" if f.get("informative") or not f.get("reason") else f"  {f['reason']}"
+        lines.append(f"  {axis:<10}{state:<17}{_num(f.get('residual_delay_ms'), '+.2f'):>9}"
+                     f"{_num(f.get('residual_delay_se_ms'), '.2f'):>6}"
+                     f"{_num(gain * 100 if isinstance(gain, int | float) else None, '+.1f'):>8}"
+                     f"{_num(f.get('at_hz'), '.2f'):>7}{_num(e.get('Td_ms'), '.2f'):>8}"
+                     f"{_num(e.get('Tp1_ms'), '.1f'):>8}{why}".rstrip())
+    return lines
 
 
 def _quality_lines(st: dict[str, Any]) -> list[str]:

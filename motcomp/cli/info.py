@@ -138,6 +138,7 @@ def summarise(path: Path, gap_s: float | None = None) -> dict[str, Any]:
         "recorded_config": s.config_json is not None,
         "metadata": meta,
         "platform": _last_platform(s.status),
+        "model_mismatch": _mismatch(s.status, t0),
         "keys": keys,
         "modes": modes,
         "truncated": s.truncated,
@@ -152,6 +153,36 @@ def _last_platform(status: list[tuple[int, dict[str, Any]]]) -> dict[str, Any] |
         if isinstance(plat, dict) and plat:
             return {**plat, "status_t": st.get("t", 0.0)}
     return None
+
+
+def _mismatch(status: list[tuple[int, dict[str, Any]]], t0: int) -> dict[str, Any]:
+    """Per supervised axis, from the recorded service status frames (docs/SUPERVISION.md):
+    the stretches its model-mismatch alarm was on (s from the recording's start; an end of
+    None: still on at the end), the estimates' residual delay at the alarm's start, and the
+    last estimate."""
+    on: dict[str, list[list[float | None]]] = {}
+    at_start: dict[str, list[float | None]] = {}
+    last: dict[str, Any] = {}
+    for ns, st in status:
+        block = st.get("model_mismatch")
+        if not isinstance(block, dict) or not isinstance(block.get("axes"), dict):
+            continue
+        t = (ns - t0) / 1e9
+        for axis, fig in block["axes"].items():
+            if not isinstance(fig, dict):
+                continue
+            runs = on.setdefault(axis, [])
+            if fig.get("alarm") and (not runs or runs[-1][1] is not None):
+                runs.append([t, None])
+                at_start.setdefault(axis, []).append(fig.get("residual_delay_ms"))
+            elif not fig.get("alarm") and runs and runs[-1][1] is None:
+                runs[-1][1] = t
+            if isinstance(fig.get("estimate"), dict):
+                last[axis] = {"spec": fig["estimate"].get("spec"),
+                              "residual_delay_ms": fig.get("residual_delay_ms"),
+                              "informative": fig.get("informative"), "t_s": t}
+    return {a: {"alarms": on.get(a, []), "residual_delay_ms_at_alarm": at_start.get(a, []),
+                "last_estimate": last.get(a)} for a in sorted(set(on) | set(last))}
 
 
 def _status_hash(status: list[tuple[int, dict[str, Any]]]) -> str | None:
@@ -207,6 +238,15 @@ def format_info(info: dict[str, Any]) -> str:
         runs = modes[mode]
         lines.append(f"  {mode:<10} " + (f"{len(runs)}: " + ", ".join(_span(r) for r in runs[:8])
                                          + (", ..." if len(runs) > 8 else "") if runs else "none"))
+    for axis, mm in (info.get("model_mismatch") or {}).items():
+        runs = mm["alarms"]
+        est = mm["last_estimate"] or {}
+        lines.append(f"  model      {axis}: " + (
+            f"mismatch alarm {len(runs)}: " + ", ".join(
+                f"{_span(r)} (residual {d:+.1f} ms)" if isinstance(d, int | float) else _span(r)
+                for r, d in zip(runs, mm["residual_delay_ms_at_alarm"], strict=False))
+            if runs else "no mismatch alarm")
+            + (f"; last estimate {est['spec']}" if est.get("spec") else ""))
     sat = modes["saturated_outputs"]
     lines.append("saturated outputs: " + (", ".join(f"{a} {n}" for a, n in sat.items())
                                           if sat else "none"))

@@ -183,19 +183,25 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
     ``t_out``/``u_out``: the service's outputs (frame ``t`` in s, increasing; the position
     sent); ``t_fb``/``acc``: the feedback's ``t`` and measured acceleration over the window
     (its first :data:`LEAD_IN_S` is a lead-in: simulated, not judged).  Returns the figures of
-    docs/SUPERVISION.md (``informative``, ``reason``, ``estimate``, ``residual_delay_ms``...);
+    docs/SUPERVISION.md (``informative``, ``reason``, ``estimate``, ``residual_delay_ms``,
+    ``pairing_phase_ms`` -- the mean time from the output in force to the feedback sample...);
     never raises on data.
     """
     out: dict[str, Any] = {"informative": False, "reason": "", "model": model.spec()}
     keep = np.isfinite(t_fb) & np.isfinite(acc)
     t_fb, acc = t_fb[keep], acc[keep]
-    if t_out.size < 2 or t_fb.size < 16:
-        out["reason"] = "no outputs or feedback in the window"
+    if t_out.size < 2:
+        out["reason"] = "no outputs in the window"
+        return out
+    if t_fb.size < 16:
+        out["reason"] = f"no feedback acceleration of {axis} in the window"
         return out
     k, known = output_in_force(t_out, np.full(t_out.size, np.inf), t_fb)
     t_fb, acc, cmd = t_fb[known], acc[known], u_out[k[known]]
     span = float(t_fb[-1] - t_fb[0]) if t_fb.size else 0.0
     out["span_s"] = span
+    if t_fb.size:
+        out["pairing_phase_ms"] = float(np.mean(t_fb - t_out[k[known]])) * 1e3
     if span < settings.min_coverage * settings.window_s:
         out["reason"] = (f"{span:.1f} s of feedback paired with outputs (needs "
                          f"{settings.min_coverage * settings.window_s:.1f} s)")
