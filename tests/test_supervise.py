@@ -291,6 +291,7 @@ def test_the_status_table_and_a_recording_summary_show_the_alarms() -> None:
 def test_the_supervisor_estimates_in_its_own_process_from_the_monitor() -> None:
     from motcomp.config import load_config, resolve_axes
     from motcomp.io.wire import encode_feedback
+    from motcomp.runtime import child
     from motcomp.runtime.monitor import MotionMonitor
     from motcomp.runtime.supervise import Supervisor
 
@@ -313,8 +314,8 @@ def test_the_supervisor_estimates_in_its_own_process_from_the_monitor() -> None:
             monitor.drain()
             sup.poll(monitor, lambda ns: ns / 1e9, float(second), (second + 1) * 1000,
                      [0] * 8, 0)
-            if sup._future is not None:  # the test waits for each answer, the service not
-                sup._future.result(timeout=60)
+            if sup._proc is not None:  # the test waits for each answer, the service not
+                assert child.wait_readable(sup._proc.stdout, 60.0)
         sup.poll(monitor, lambda ns: ns / 1e9, 100.0, 14000, [0] * 8, 0)
         block = sup.status()
     finally:
@@ -325,3 +326,47 @@ def test_the_supervisor_estimates_in_its_own_process_from_the_monitor() -> None:
     assert fig["residual_delay_ms"] == pytest.approx(10.0, abs=1.0)
     # a driven axis whose feedback lacks its acceleration says so
     assert block["axes"]["hex_z"]["reason"] == "no feedback acceleration of hex_z in the window"
+
+
+def _children(pid: int) -> list[tuple[int, str]]:
+    """The child processes of ``pid`` with their command lines."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+            out.append((int(entry.name), cmd))
+    return out
+
+
+def test_the_estimator_process_ends_with_a_service_that_dies(tmp_path: Path) -> None:
+    import signal
+    import time
+
+    from motcomp.io.zenoh_io import free_tcp_port, loopback
+    from tests.test_service_process import process
+
+    site = tmp_path / "site.toml"
+    site.write_text(f'include = ["{config_file("motcomp.toml")}"]\n'
+                    "[supervision]\nperiod_s = 0.5\n")
+    with process(["run", "--config", str(site), "-l", loopback(free_tcp_port())],
+                 tmp_path / "svc.log") as svc:
+        t_end = time.monotonic() + 30.0
+        helper = []
+        while time.monotonic() < t_end and not helper:
+            time.sleep(0.5)
+            helper = [p for p, cmd in _children(svc.pid) if "runtime.supervise" in cmd]
+        assert helper, (tmp_path / "svc.log").read_text()[-2000:]
+        svc.send_signal(signal.SIGKILL)  # no goodbye: the estimator must notice by itself
+        svc.wait(timeout=10)
+        t_end = time.monotonic() + 10.0
+        while time.monotonic() < t_end and Path(f"/proc/{helper[0]}").exists():
+            time.sleep(0.2)
+        state = (Path(f"/proc/{helper[0]}/stat").read_text().split()[2]
+                 if Path(f"/proc/{helper[0]}").exists() else "gone")
+        assert state in ("gone", "Z"), f"the estimator process {helper[0]} outlived the service"

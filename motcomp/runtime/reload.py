@@ -18,16 +18,12 @@
 
 from __future__ import annotations
 
-import os
 import pickle
-import select
-import struct
 import subprocess
-import sys
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 from pydantic import ValidationError
 
@@ -43,6 +39,7 @@ from motcomp.config import (
 )
 from motcomp.core.tick import TickParams
 from motcomp.errors import ConfigError
+from motcomp.runtime import child
 from motcomp.runtime.confine import Confinement
 
 __all__ = ["PREPARE_TIMEOUT_S", "Prepared", "Preparer", "prepare_config", "prepare_profile",
@@ -135,47 +132,25 @@ def prepare_profile(old: ServiceConfig, old_axes: ResolvedAxes, name: str | None
 
 
 # --- the child process -------------------------------------------------------------------------
-_HEADER = struct.Struct("!I")
-
-
-def _send(f: IO[bytes], obj: Any) -> None:
-    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
-    f.write(_HEADER.pack(len(data)) + data)
-    f.flush()
-
-
-def _recv_exact(f: IO[bytes], n: int) -> bytes:
-    data = f.read(n)
-    if data is None or len(data) != n:
-        raise EOFError
-    return data
+def _handle(request: tuple[Any, ...]) -> tuple[str, Any]:
+    """One request ``(kind, old cfg, old axes, arg, confinement)`` in the child:
+    ``("ok", Prepared)`` or ``("error", text)``."""
+    kind, old, old_axes, arg, confinement = request
+    try:
+        if kind == "ping":
+            return ("ok", None)
+        if kind == "config":
+            return ("ok", prepare_config(old, old_axes, arg, confinement))
+        return ("ok", prepare_profile(old, old_axes, arg))
+    except ConfigError as exc:
+        return ("error", str(exc))
+    except Exception as exc:  # a bug: said, the child goes on
+        return ("error", f"internal error: {type(exc).__name__}: {exc}")
 
 
 def serve() -> None:
-    """The child's main: answer ``(kind, old cfg, old axes, arg, confinement)`` requests on
-    stdin with ``("ok", Prepared)`` or ``("error", text)`` on stdout until stdin closes."""
-    stdin = sys.stdin.buffer
-    stdout = os.fdopen(os.dup(1), "wb")  # the replies' own; anything printed goes to stderr
-    os.dup2(2, 1)
-    sys.stdout = sys.stderr
-    while True:
-        try:
-            (n,) = _HEADER.unpack(_recv_exact(stdin, _HEADER.size))
-            kind, old, old_axes, arg, confinement = pickle.loads(_recv_exact(stdin, n))
-        except EOFError:
-            return
-        try:
-            if kind == "ping":
-                reply: tuple[str, Any] = ("ok", None)
-            elif kind == "config":
-                reply = ("ok", prepare_config(old, old_axes, arg, confinement))
-            else:
-                reply = ("ok", prepare_profile(old, old_axes, arg))
-        except ConfigError as exc:
-            reply = ("error", str(exc))
-        except Exception as exc:  # a bug: said, the child goes on
-            reply = ("error", f"internal error: {type(exc).__name__}: {exc}")
-        _send(stdout, reply)
+    """The child's main: answer requests on stdin until stdin closes."""
+    child.serve(_handle)
 
 
 class Preparer:
@@ -205,15 +180,7 @@ class Preparer:
         proc = self._proc
         if proc is not None and proc.poll() is None:
             return proc
-        import motcomp
-
-        env = dict(os.environ)
-        root = str(Path(motcomp.__file__).resolve().parent.parent)
-        env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
-        self._proc = subprocess.Popen(
-            [sys.executable, "-c", "from motcomp.runtime.reload import serve; serve()"],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, close_fds=True,
-            start_new_session=True)  # a Ctrl-C of a terminal is the service's, not the child's
+        self._proc = child.spawn("from motcomp.runtime.reload import serve; serve()")
         return self._proc
 
     def close(self) -> None:
@@ -247,8 +214,10 @@ class Preparer:
             proc = self._start()
             assert proc.stdin is not None and proc.stdout is not None
             try:
-                _send(proc.stdin, request)
-                reply = self._read(proc.stdout, PREPARE_TIMEOUT_S)
+                child.send(proc.stdin, request)
+                if not child.wait_readable(proc.stdout, PREPARE_TIMEOUT_S):
+                    raise TimeoutError
+                reply = child.recv(proc.stdout)
             except (OSError, EOFError, pickle.PickleError, TimeoutError) as exc:
                 proc.kill()
                 proc.wait()
@@ -261,11 +230,3 @@ class Preparer:
         if kind != "ok":
             raise ConfigError(value)
         return value
-
-    @staticmethod
-    def _read(f: IO[bytes], timeout_s: float) -> Any:
-        """One reply, or TimeoutError after ``timeout_s`` (the wait releases the interpreter)."""
-        if not select.select([f], [], [], timeout_s)[0]:
-            raise TimeoutError
-        (n,) = _HEADER.unpack(_recv_exact(f, _HEADER.size))
-        return pickle.loads(_recv_exact(f, n))

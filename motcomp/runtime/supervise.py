@@ -16,13 +16,11 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import multiprocessing
 import os
-import signal
+import pickle
+import subprocess
 import time
 from collections import deque
-from concurrent.futures import Future, ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,6 +29,7 @@ import numpy as np
 from motcomp.config import ResolvedAxes, SupervisionConfig
 from motcomp.core.axes import AXES
 from motcomp.core.models import P1D
+from motcomp.runtime import child
 from motcomp.runtime.clock import DEGRADED_MISSED_SHARE
 from motcomp.runtime.estimate import EstimateSettings, LiveWindow
 
@@ -42,6 +41,9 @@ ALARM_LOG_S = 60.0
 """An alarm still on is logged again after this long."""
 WORKER_NICE = 10
 """The estimator process' niceness: the loop's CPU comes first."""
+ESTIMATE_TIMEOUT_S = 30.0
+"""An estimate not answered within this long: the estimator process is stopped (a new one
+starts with the next period)."""
 CONFIDENCE_Z = 2.0
 """An estimate exceeds a bound when it does by this many of its standard errors."""
 KEEP_MARGIN_S = 5.0
@@ -58,24 +60,29 @@ def settings_of(cfg: SupervisionConfig) -> EstimateSettings:
 _WINDOW: LiveWindow | None = None
 
 
-def _worker_init() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a terminal's Ctrl-C is the service's
+def _estimate(request: tuple[dict[str, np.ndarray], list[str], dict[str, P1D],
+                             EstimateSettings]) -> tuple[str, Any]:
+    """In the estimator process: add the chunk to the window, estimate; ``("ok", (results,
+    CPU seconds it took))`` or ``("error", text)``."""
+    global _WINDOW
+    chunk, axes, models, settings = request
+    cpu0 = time.process_time()
+    try:
+        keep = settings.window_s + KEEP_MARGIN_S
+        if _WINDOW is None or _WINDOW.keep_s != keep:
+            _WINDOW = LiveWindow(keep)
+        _WINDOW.add(chunk["t_out"], chunk["u"], chunk["t_fb"], chunk["acc"])
+        res = _WINDOW.estimate(axes, models, settings)
+    except Exception as exc:  # a bug: said, the process goes on
+        return ("error", f"{type(exc).__name__}: {str(exc)[:120]}")
+    return ("ok", (res, time.process_time() - cpu0))
+
+
+def serve() -> None:
+    """The estimator process' main: at low priority, answer chunks until stdin closes."""
     with contextlib.suppress(OSError):  # not permitted: it runs at the service's priority
         os.nice(WORKER_NICE)
-
-
-def _estimate(chunk: dict[str, np.ndarray], axes: list[str], models: dict[str, P1D],
-              settings: EstimateSettings) -> tuple[dict[str, dict[str, Any]], float]:
-    """In the estimator process: add the chunk to the window, estimate; with the CPU time it
-    took (s)."""
-    global _WINDOW
-    cpu0 = time.process_time()
-    keep = settings.window_s + KEEP_MARGIN_S
-    if _WINDOW is None or _WINDOW.keep_s != keep:
-        _WINDOW = LiveWindow(keep)
-    _WINDOW.add(chunk["t_out"], chunk["u"], chunk["t_fb"], chunk["acc"])
-    res = _WINDOW.estimate(axes, models, settings)
-    return res, time.process_time() - cpu0
+    child.serve(_estimate)
 
 
 # --- the judge --------------------------------------------------------------------------------
@@ -175,15 +182,18 @@ class Supervisor:
     """The estimator process and the judge (main thread only).
 
     :meth:`poll` is called by the service's main thread often (every 20 ms): it collects a
-    finished estimate and, every ``period_s``, sends the next chunk.  Nothing here raises: a
-    failed estimator process is restarted for the next period and said in the block."""
+    finished estimate (without waiting) and, every ``period_s``, sends the next chunk (or keeps
+    it for the next, while the estimator is busy).  Nothing here raises: a failed or hung
+    estimator process is stopped, restarted with the next period and said in the block and the
+    log.  The process ends with the service, also when the service dies (its stdin closes)."""
 
     def __init__(self, cfg: SupervisionConfig, axes: ResolvedAxes) -> None:
         self.cfg = cfg
         self.judge = DriftJudge(cfg)
         self.set_axes(axes)
-        self._pool: ProcessPoolExecutor | None = None
-        self._future: Future[tuple[dict[str, dict[str, Any]], float]] | None = None
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._busy_since: float | None = None
+        """When the request the estimator works on was sent (None: idle)."""
         self._cursor = (0, 0)
         self._next = 0.0
         self._pending: list[dict[str, np.ndarray]] = []
@@ -205,17 +215,44 @@ class Supervisor:
         self.set_axes(axes)
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
-            self._pool = None
+        """Stop the estimator process (safe to call twice)."""
+        proc, self._proc = self._proc, None
+        self._busy_since = None
+        if proc is not None:
+            proc.kill()
+            proc.wait()
+            for f in (proc.stdin, proc.stdout):
+                if f is not None:
+                    f.close()
 
-    def _submit(self, chunk: dict[str, np.ndarray]) -> None:
-        if self._pool is None:
-            self._pool = ProcessPoolExecutor(
-                1, mp_context=multiprocessing.get_context("forkserver"),
-                initializer=_worker_init)
-        self._future = self._pool.submit(_estimate, chunk, list(self.models), dict(self.models),
-                                         settings_of(self.cfg))
+    def _submit(self, chunk: dict[str, np.ndarray], now: float) -> None:
+        proc = self._proc
+        if proc is None or proc.poll() is not None:
+            proc = self._proc = child.spawn("from motcomp.runtime.supervise import serve; "
+                                            "serve()")
+        assert proc.stdin is not None
+        child.send(proc.stdin, (chunk, list(self.models), dict(self.models),
+                                settings_of(self.cfg)))
+        self._busy_since = now
+
+    def _answer(self, now: float) -> tuple[dict[str, dict[str, Any]], float] | None:
+        """The estimator's answer if it came (None: still working); raises RuntimeError if it
+        failed or took longer than :data:`ESTIMATE_TIMEOUT_S`."""
+        proc = self._proc
+        assert proc is not None and proc.stdout is not None and self._busy_since is not None
+        if not child.wait_readable(proc.stdout, 0.0):
+            if now - self._busy_since > ESTIMATE_TIMEOUT_S:
+                raise RuntimeError(f"an estimate took longer than {ESTIMATE_TIMEOUT_S:g} s")
+            return None
+        self._busy_since = None
+        try:
+            kind, value = child.recv(proc.stdout)
+        except (EOFError, OSError, pickle.PickleError) as exc:
+            raise RuntimeError(f"the estimator process stopped ({type(exc).__name__})") from None
+        if kind != "ok":
+            raise RuntimeError(value)
+        results, cpu = value
+        return results, float(cpu)
 
     def poll(self, monitor: Any, to_frame_s: Any, now: float, ticks: int, acted: list[int],
              missed: int) -> list[str]:
@@ -226,18 +263,17 @@ class Supervisor:
         if not self.cfg.enabled or not self.models:
             return []
         warnings: list[str] = []
-        fut = self._future
-        if fut is not None and fut.done():
-            self._future = None
+        if self._busy_since is not None:
             try:
-                results, cpu = fut.result()
+                answer = self._answer(now)
+            except Exception as exc:  # an estimate must never stop the service
+                self._failed(str(exc)[:160])
+                answer = None
+            if answer is not None:
+                results, cpu = answer
                 self.cpu_s += cpu
                 self.estimates += 1
                 warnings = self._judge(results, now)
-            except BrokenProcessPool as exc:
-                self._failed(f"the estimator process stopped: {exc}")
-            except Exception as exc:  # an estimate must never stop the service
-                self._failed(f"{type(exc).__name__}: {str(exc)[:120]}")
         if now < self._next:
             return warnings
         self._next = now + self.cfg.period_s
@@ -247,11 +283,14 @@ class Supervisor:
         chunk = {"t_out": to_frame_s(raw["t_ns"]), "u": raw["u"], "t_fb": fb_t,
                  "acc": raw["acc"]}
         self._pending.append(chunk)
-        if self._future is None:  # else the estimator is still busy: sent with the next
+        # what the estimator keeps at most: older chunks are of no use to it
+        del self._pending[:-max(1, math.ceil((self.cfg.window_s + KEEP_MARGIN_S)
+                                             / self.cfg.period_s))]
+        if self._busy_since is None:  # else still busy: sent with the next chunk
             merged = {k: np.concatenate([c[k] for c in self._pending]) for k in chunk}
             self._pending = []
             try:
-                self._submit(merged)
+                self._submit(merged, now)
             except Exception as exc:
                 self._failed(f"{type(exc).__name__}: {str(exc)[:120]}")
         return warnings
