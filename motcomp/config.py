@@ -308,6 +308,10 @@ class FeedbackConfig(BaseModel):
     """The platform's own status (docs/WIRE.md); the service shows its stack figures."""
 
 
+SUPERVISION_PERIOD_MAX_S = 10.0
+"""Longest ``supervision.period_s`` (the service's rings hold twice that, and more)."""
+
+
 class SupervisionConfig(BaseModel):
     """The platform model's supervision (docs/SUPERVISION.md): an estimate of each driven
     axis' platform from ordinary driving, judged against the model the compensator runs."""
@@ -316,7 +320,7 @@ class SupervisionConfig(BaseModel):
     enabled: bool = True
     window_s: float = Field(15.0, ge=10.0, le=60.0)
     """Each estimate reads the last this long of outputs and feedback."""
-    period_s: float = Field(2.0, ge=0.5, le=60.0)
+    period_s: float = Field(2.0, ge=0.5, le=SUPERVISION_PERIOD_MAX_S)
     """An estimate every this long."""
     band_hz: tuple[float, float] = (0.1, 2.0)
     """The driver's band: the mismatch is judged at the motion's centre frequency in it."""

@@ -8,15 +8,15 @@ platform's measured acceleration over the last ``window_s``, with the pairing ru
 frames' own clocks: :func:`motcomp.record.session.output_in_force`) and its checks and
 resampling (:func:`motcomp.ident.data.check_and_resample`).
 
-The fit (why and how: docs/SUPERVISION.md) is done in the frequency domain, over the bins where
-the command moves: ``A(f) = P(j 2 pi f) V(f)``, ``V`` the spectrum of the command's second
-difference and ``A`` that of the measured acceleration, both tapered by the same Tukey window.
-Ordinary driving often holds one frequency (a slalom's 0.31 Hz): then ``Td`` and ``Tp1`` are
-not told apart (their estimates correlate beyond :data:`MAX_CORRELATION`), and ``Tp1`` is held
-at the config model's while ``K`` and ``Td`` are fitted -- the phase delay and gain *in the
-band*, which is what the compensator's delivered response depends on, are identified either
-way.  Standard errors come from the Jacobian, scaled by the residual's variance and the taper's
-equivalent noise bandwidth.
+The fit (why and how: docs/SUPERVISION.md) is an output-error fit: the command's second
+difference and the measured acceleration, low-passed by one causal filter and decimated, the
+command simulated through the model in the frequency domain (the hold's half sample
+included, as ``motcomp identify`` does), the residual judged after a lead-in.  Ordinary driving
+often holds one frequency (a slalom's 0.31 Hz): then ``Td`` and ``Tp1`` are not told apart
+(their estimates correlate beyond :data:`MAX_CORRELATION`), and ``Tp1`` is held at the config
+model's while ``K`` and ``Td`` are fitted -- the phase delay and gain *in the band*, which is
+what the compensator's delivered response depends on, are identified either way.  Standard
+errors come from the Jacobian and the residual's long-run covariance.
 
 The mismatch is what the difference between the estimate ``P`` and the compensator's model ``M``
 does to the delivered response: the compensator makes ``M`` follow its design, so the platform
@@ -36,11 +36,11 @@ from typing import Any
 import numpy as np
 from scipy import optimize, signal
 
-from motcomp.core.axes import AXES, N_AXES
 from motcomp.core.models import P1D, ProcessModel
 from motcomp.errors import MotcompError
 from motcomp.ident.data import RawRecording, check_and_resample
 from motcomp.ident.fit import long_run_cov, second_difference
+from motcomp.jsonsafe import finite
 from motcomp.record.session import output_in_force
 
 __all__ = ["MAX_CORRELATION", "EstimateSettings", "LiveWindow", "estimate_axis", "mismatch"]
@@ -82,9 +82,10 @@ def _p1d_response(f: np.ndarray, k: float, td: float, tp: float) -> np.ndarray:
 
 def mismatch(est: ProcessModel, model: ProcessModel, f_hz: float) -> tuple[float, float]:
     """``(residual delay s, gain error)`` of the delivered response ``P / M`` at ``f_hz``: the
-    phase delay of ``est / model`` and ``|est / model| - 1``."""
-    ratio = complex(est.freqresp([f_hz])[0] / model.freqresp([f_hz])[0])
-    return -math.atan2(ratio.imag, ratio.real) / (2 * math.pi * f_hz), abs(ratio) - 1.0
+    phase delay of ``est / model`` (the difference of their unwrapped phase delays) and
+    ``|est / model| - 1``."""
+    delay = float(est.phase_delay([f_hz])[0]) - float(model.phase_delay([f_hz])[0])
+    return delay, float(est.magnitude([f_hz])[0] / model.magnitude([f_hz])[0]) - 1.0
 
 
 @dataclass(frozen=True)
@@ -240,7 +241,8 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
               for d in TD_GRID_S]
     td0 = min(coarse)[1]
     x0 = np.array([oe.gain_for(td0, tp0), td0, tp0])
-    lo, hi = np.array([0.05, 0.0, 1e-4]), np.array([20.0, 0.25, 2.0])
+    # K of either sign (an accelerometer mounted the other way round), never zero
+    lo, hi = np.array([-20.0, 0.0, 1e-4]), np.array([20.0, 0.25, 2.0])
     full = optimize.least_squares(oe.residual, np.clip(x0, lo, hi), bounds=(lo, hi),
                                   x_scale=[1.0, 0.01, 0.05])
     cov = _sandwich(full.jac, full.fun, sig.lags)
@@ -282,7 +284,7 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
     if explained < settings.min_fit:
         out["reason"] = (f"the P1D explains {100 * explained:.0f} % of the measured "
                          f"acceleration (needs {100 * settings.min_fit:.0f} %)")
-    elif se[0] * 1e3 > settings.max_delay_se_ms:
+    elif not se[0] * 1e3 <= settings.max_delay_se_ms:  # NaN too: an undetermined figure
         out["reason"] = (f"the residual delay is uncertain (+-{se[0] * 1e3:.2f} ms > "
                          f"{settings.max_delay_se_ms:g} ms)")
     else:
@@ -291,64 +293,60 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
 
 
 class LiveWindow:
-    """The last ``keep_s`` of the service's outputs and feedback, fed in chunks.
+    """The last ``keep_s`` of the service's outputs and feedback for the axes ``axes``, fed in
+    chunks.
 
-    :meth:`add` takes a chunk: ``t_out`` (s, the outputs' frame clock) and ``u`` (rows in
-    :data:`AXES` order), ``t_fb`` (the feedback's ``t``) and ``acc`` (rows in :data:`AXES`
-    order, NaN where absent); :meth:`estimate` runs :func:`estimate_axis` on each axis asked.
+    :meth:`add` takes a chunk: ``t_out`` (s, the outputs' frame clock) and ``u`` (one column
+    per axis of ``axes``), ``t_fb`` (the feedback's ``t``) and ``acc`` (one column per axis,
+    NaN where absent); :meth:`estimate` runs :func:`estimate_axis` on each axis.
     """
 
-    def __init__(self, keep_s: float) -> None:
+    def __init__(self, keep_s: float, axes: list[str]) -> None:
         self.keep_s = float(keep_s)
+        self.axes = list(axes)
         self.t_out = np.zeros(0)
-        self.u = np.zeros((0, N_AXES))
+        self.u = np.zeros((0, len(axes)))
         self.t_fb = np.zeros(0)
-        self.acc = np.zeros((0, N_AXES))
-
-    def clear(self) -> None:
-        self.__init__(self.keep_s)  # type: ignore[misc]
+        self.acc = np.zeros((0, len(axes)))
 
     def add(self, t_out: np.ndarray, u: np.ndarray, t_fb: np.ndarray, acc: np.ndarray) -> None:
-        """Append a chunk (each stream in time order after the last; an older sample -- a
-        restarted clock -- clears the window first)."""
-        if (t_out.size and self.t_out.size and t_out[0] < self.t_out[-1]) or \
-                (t_fb.size and self.t_fb.size and t_fb[0] < self.t_fb[-1] - 1.0):
-            self.clear()
+        """Append a chunk.  Outputs older than the last kept one (a restarted clock) start the
+        window again; feedback is kept in time order (its senders' clocks may step)."""
+        n = len(self.axes)
+        if t_out.size and self.t_out.size and t_out[0] < self.t_out[-1]:
+            self.__init__(self.keep_s, self.axes)  # type: ignore[misc]
         self.t_out = np.concatenate([self.t_out, t_out])
-        self.u = np.concatenate([self.u, u.reshape(-1, N_AXES)])
-        self.t_fb = np.concatenate([self.t_fb, t_fb])
-        self.acc = np.concatenate([self.acc, acc.reshape(-1, N_AXES)])
+        self.u = np.concatenate([self.u, u.reshape(-1, n)])
+        t_fb = np.concatenate([self.t_fb, t_fb])
+        acc = np.concatenate([self.acc, acc.reshape(-1, n)])
+        if t_fb.size > 1 and np.any(t_fb[1:] < t_fb[:-1]):
+            order = np.argsort(t_fb, kind="stable")
+            t_fb, acc = t_fb[order], acc[order]
         end = max(self.t_out[-1] if self.t_out.size else -math.inf,
-                  self.t_fb[-1] if self.t_fb.size else -math.inf)
+                  t_fb[-1] if t_fb.size else -math.inf)
         a = int(np.searchsorted(self.t_out, end - self.keep_s))
-        b = int(np.searchsorted(self.t_fb, end - self.keep_s)) if self._fb_sorted() else 0
+        b = int(np.searchsorted(t_fb, end - self.keep_s))
         self.t_out, self.u = self.t_out[a:], self.u[a:]
-        self.t_fb, self.acc = self.t_fb[b:], self.acc[b:]
+        self.t_fb, self.acc = t_fb[b:], acc[b:]
 
-    def _fb_sorted(self) -> bool:
-        return bool(np.all(np.diff(self.t_fb) >= 0))
-
-    def estimate(self, axes: list[str], models: dict[str, P1D], settings: EstimateSettings
+    def estimate(self, models: dict[str, P1D], settings: EstimateSettings
                  ) -> dict[str, dict[str, Any]]:
-        """Per axis of ``axes``, :func:`estimate_axis` over the last ``settings.window_s`` of
-        feedback, with the window's bounds (``from_t``, ``to_t``)."""
+        """Per axis, :func:`estimate_axis` against ``models[axis]`` over the last
+        ``settings.window_s`` of feedback, with the window's bounds (``from_t``, ``to_t``)."""
         res: dict[str, dict[str, Any]] = {}
         if not self.t_fb.size:
             return {a: {"informative": False, "reason": "no feedback received",
-                        "model": models[a].spec()} for a in axes}
-        order = np.argsort(self.t_fb, kind="stable")
-        t_fb, acc = self.t_fb[order], self.acc[order]
-        end = float(t_fb[-1])
+                        "model": models[a].spec()} for a in self.axes}
+        end = float(self.t_fb[-1])
         start = end - settings.window_s
-        sel = t_fb >= start
-        for axis in axes:
-            i = AXES.index(axis)
+        sel = self.t_fb >= start
+        for j, axis in enumerate(self.axes):
             try:
-                fig = estimate_axis(self.t_out, self.u[:, i], t_fb[sel], acc[sel, i],
+                fig = estimate_axis(self.t_out, self.u[:, j], self.t_fb[sel], self.acc[sel, j],
                                     models[axis], settings, axis)
             except Exception as exc:  # a figure must never stop supervision
                 fig = {"informative": False, "model": models[axis].spec(),
                        "reason": f"internal: {type(exc).__name__}: {str(exc)[:80]}"}
             fig["from_t"], fig["to_t"] = start, end
-            res[axis] = fig
+            res[axis] = finite(fig)
         return res

@@ -182,6 +182,8 @@ class MotionMonitor:
         feedback shortens the window the ring holds.
     bin_s
         The averaging bin (:data:`BIN_S`).
+    min_span_s
+        The rings hold at least this long (what :meth:`chunk`'s caller reads between calls).
 
     Raises
     ------
@@ -190,7 +192,7 @@ class MotionMonitor:
     """
 
     def __init__(self, rate_hz: float, window_s: float, feedback_rate_max_hz: float = 0.0,
-                 bin_s: float = BIN_S) -> None:
+                 bin_s: float = BIN_S, min_span_s: float = 0.0) -> None:
         if not (math.isfinite(rate_hz) and rate_hz > 0 and math.isfinite(window_s)
                 and window_s > 0 and bin_s > 0):
             raise ConfigError(f"monitor needs a positive rate, window and bin, got {rate_hz!r}, "
@@ -200,7 +202,7 @@ class MotionMonitor:
         self.bin_ns = round(bin_s * 1e9)
         self._lo = math.floor(LAG_RANGE_S[0] / bin_s)
         self._hi = math.ceil(LAG_RANGE_S[1] / bin_s)
-        span_s = self.window_s + (self._hi - self._lo) * bin_s + 1.0
+        span_s = max(self.window_s + (self._hi - self._lo) * bin_s + 1.0, min_span_s)
         # loop thread: tick instants, and per tick r then u (AXES order) in one row; the ring
         # holds half a second more than a report reads, which the loop may overwrite meanwhile
         self._keep = max(math.ceil(max(span_s, COMMAND_WINDOW_S + 1.0) * rate_hz), 64)
@@ -214,7 +216,7 @@ class MotionMonitor:
         """Frames the inbox overflowed with (the main thread did not drain it in time)."""
         # main thread: arrival instants and positions of the frames that decoded
         fb_rate = feedback_rate_max_hz or 2.0 * rate_hz
-        self._fcap = max(math.ceil((self.window_s + 2.0) * fb_rate), 64)
+        self._fcap = max(math.ceil((max(self.window_s, min_span_s) + 2.0) * fb_rate), 64)
         self._ft = np.zeros(self._fcap, dtype=np.int64)
         self._fsent = np.zeros(self._fcap)
         self._fpos = np.zeros((self._fcap, N_AXES))
@@ -276,12 +278,12 @@ class MotionMonitor:
         self.fb_last_bad = (text if len(text) <= MAX_ERROR_CHARS
                             else text[:MAX_ERROR_CHARS - 3] + "...")
 
-    def chunk(self, since: tuple[int, int]) -> tuple[tuple[int, int], dict[str, np.ndarray]]:
+    def chunk(self, since: tuple[int, int]) -> tuple[tuple[int, int], dict[str, Any]]:
         """What came since the cursors ``since`` (``(0, 0)`` at first): the new ticks'
         instants ``t_ns`` and commands ``u`` (rows in :data:`AXES` order), the new feedback
-        frames' ``fb_sent`` (their ``t``; NaN if none), ``fb_ns`` (arrival) and ``acc``; with the
-        cursors for the next call (what the rings overwrote meanwhile is skipped).  Main
-        thread, after :meth:`drain`."""
+        frames' ``fb_sent`` (their ``t``; NaN if none), ``fb_ns`` (arrival) and ``acc``, and
+        ``lost``: whether the rings overwrote some of it meanwhile (skipped); with the cursors
+        for the next call.  Main thread, after :meth:`drain`."""
         n, fn = self._n, self._fn
         a = max(since[0], n - self._keep)
         fa = max(since[1], fn - self._fcap)
@@ -289,7 +291,7 @@ class MotionMonitor:
         fidx = np.arange(fa, fn) % self._fcap
         return (n, fn), {"t_ns": self._t[idx], "u": self._ru[idx, N_AXES:],
                          "fb_sent": self._fsent[fidx], "fb_ns": self._ft[fidx],
-                         "acc": self._facc[fidx]}
+                         "acc": self._facc[fidx], "lost": a > since[0] or fa > since[1]}
 
     def report(self, now_ns: int, ticks: int, acted: Sequence[int], driven: Sequence[bool],
                p_min: Sequence[float] | np.ndarray, p_max: Sequence[float] | np.ndarray,

@@ -53,7 +53,14 @@ from typing import Any
 import msgpack
 
 from motcomp import __version__
-from motcomp.config import ServiceConfig, config_hash, config_sources, new_tick, resolve_axes
+from motcomp.config import (
+    SUPERVISION_PERIOD_MAX_S,
+    ServiceConfig,
+    config_hash,
+    config_sources,
+    new_tick,
+    resolve_axes,
+)
 from motcomp.core import native
 from motcomp.core.axes import AXES
 from motcomp.core.tick import (
@@ -188,7 +195,9 @@ class Service:
         self.params: TickParams
         self.params, self.state = new_tick(cfg, self.axes)
         self.stats = LoopStats(round(cfg.status.window_s * cfg.loop.rate_hz), STAT_SERIES)
-        self.monitor = MotionMonitor(cfg.loop.rate_hz, cfg.status.window_s)
+        # the rings also hold what supervision reads between two of its periods, with margin
+        self.monitor = MotionMonitor(cfg.loop.rate_hz, cfg.status.window_s,
+                                     min_span_s=2.0 * SUPERVISION_PERIOD_MAX_S + 5.0)
         self.supervisor = Supervisor(cfg.supervision, self.axes)
         self.last_tick_mono = 0.0
         self.notifier = Notifier(None)

@@ -18,7 +18,9 @@ import logging
 import math
 import os
 import pickle
+import queue
 import subprocess
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -62,17 +64,17 @@ _WINDOW: LiveWindow | None = None
 
 def _estimate(request: tuple[dict[str, np.ndarray], list[str], dict[str, P1D],
                              EstimateSettings]) -> tuple[str, Any]:
-    """In the estimator process: add the chunk to the window, estimate; ``("ok", (results,
-    CPU seconds it took))`` or ``("error", text)``."""
+    """In the estimator process: add the chunk (columns: ``axes``) to the window, estimate;
+    ``("ok", (results, CPU seconds it took))`` or ``("error", text)``."""
     global _WINDOW
     chunk, axes, models, settings = request
     cpu0 = time.process_time()
     try:
         keep = settings.window_s + KEEP_MARGIN_S
-        if _WINDOW is None or _WINDOW.keep_s != keep:
-            _WINDOW = LiveWindow(keep)
+        if _WINDOW is None or _WINDOW.keep_s != keep or _WINDOW.axes != axes or chunk["lost"]:
+            _WINDOW = LiveWindow(keep, axes)  # a gap in what was sent: the window starts again
         _WINDOW.add(chunk["t_out"], chunk["u"], chunk["t_fb"], chunk["acc"])
-        res = _WINDOW.estimate(axes, models, settings)
+        res = _WINDOW.estimate(models, settings)
     except Exception as exc:  # a bug: said, the process goes on
         return ("error", f"{type(exc).__name__}: {str(exc)[:120]}")
     return ("ok", (res, time.process_time() - cpu0))
@@ -105,11 +107,12 @@ class DriftJudge:
 
     An estimate *exceeds* when it is informative and its residual delay lies beyond
     ``delay_bound_ms``, or its gain error beyond ``gain_bound``, by more than
-    :data:`CONFIDENCE_Z` standard errors (the 95 % interval is outside the bound).  An alarm
-    starts when every estimate over ``hold_s`` exceeded (informative ones in a row, the first
-    at least ``hold_s`` before the last); it clears when every informative estimate over
-    ``hold_s`` is within both bounds.  An estimate that is not informative, or a window the
-    loop was degraded in, resets the run towards an alarm and keeps an alarm as it is.
+    :data:`CONFIDENCE_Z` standard errors (the 95 % interval is outside the bound); it is
+    *within* when both intervals lie inside their bounds.  An alarm starts when every estimate
+    over ``hold_s`` exceeded (informative ones in a row, the first at least ``hold_s`` before
+    the last); it clears when every estimate over ``hold_s`` was within.  An estimate that is
+    neither, or not informative (also a window the loop was degraded in), restarts both runs
+    and keeps an alarm as it is.
     """
 
     def __init__(self, cfg: SupervisionConfig) -> None:
@@ -129,9 +132,15 @@ class DriftJudge:
             return None
         st.informative += 1
         delay, gain = fig["residual_delay_ms"], fig["gain_error"]
-        exceeds = (abs(delay) - CONFIDENCE_Z * fig["residual_delay_se_ms"] > cfg.delay_bound_ms
-                   or abs(gain) - CONFIDENCE_Z * fig["gain_error_se"] > cfg.gain_bound)
-        if exceeds:
+        z_delay = CONFIDENCE_Z * fig["residual_delay_se_ms"]
+        z_gain = CONFIDENCE_Z * fig["gain_error_se"]
+        exceeds = (abs(delay) - z_delay > cfg.delay_bound_ms
+                   or abs(gain) - z_gain > cfg.gain_bound)
+        within = (abs(delay) + z_delay <= cfg.delay_bound_ms
+                  and abs(gain) + z_gain <= cfg.gain_bound)
+        if not exceeds and not within:  # the interval holds the bound: neither run goes on
+            st.exceeding_since = st.within_since = None
+        elif exceeds:
             st.within_since = None
             if st.exceeding_since is None:
                 st.exceeding_since = t
@@ -178,25 +187,93 @@ class DriftJudge:
 
 
 # --- the service's side ------------------------------------------------------------------------
+class _Estimator:
+    """The estimator process, spoken to by a thread of its own: the pipe's writes and reads
+    block there, never in the service's main thread (a child still importing, or a large
+    chunk, would otherwise stall it).  :meth:`ask` hands a request over; :meth:`answer` takes
+    the reply, ``("ok", value)`` or ``("error", text)``, without waiting."""
+
+    def __init__(self) -> None:
+        self._requests: queue.Queue[Any] = queue.Queue()
+        self._replies: queue.Queue[tuple[str, Any]] = queue.Queue()
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._run, name="motcomp-supervise",
+                                        daemon=True)
+        self._thread.start()
+
+    def ask(self, request: Any) -> None:
+        self._requests.put(request)
+
+    def answer(self) -> tuple[str, Any] | None:
+        try:
+            return self._replies.get_nowait()
+        except queue.Empty:
+            return None
+
+    def kill(self) -> None:
+        """Stop the process now (a write or read the thread is blocked in fails, and the
+        request is answered with an error); the next request starts a new one."""
+        with self._lock:
+            proc = self._proc
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+
+    def close(self) -> None:
+        self._requests.put(None)
+        self.kill()
+        self._thread.join(timeout=2.0)
+
+    def _run(self) -> None:
+        while (request := self._requests.get()) is not None:
+            with self._lock:
+                proc = self._proc
+                if proc is None or proc.poll() is not None:
+                    proc = self._proc = child.spawn(
+                        "from motcomp.runtime.supervise import serve; serve()")
+            assert proc.stdin is not None and proc.stdout is not None
+            try:
+                child.send(proc.stdin, request)
+                if not child.wait_readable(proc.stdout, ESTIMATE_TIMEOUT_S):
+                    raise TimeoutError
+                reply = child.recv(proc.stdout)
+            except (OSError, EOFError, ValueError, pickle.PickleError, TimeoutError) as exc:
+                proc.kill()
+                proc.wait()
+                for f in (proc.stdin, proc.stdout):
+                    f.close()
+                what = (f"an estimate took longer than {ESTIMATE_TIMEOUT_S:g} s"
+                        if isinstance(exc, TimeoutError)
+                        else f"the estimator process stopped ({type(exc).__name__})")
+                reply = ("error", what)
+            self._replies.put(reply)
+        with self._lock:
+            proc, self._proc = self._proc, None
+        if proc is not None:
+            proc.kill()
+            proc.wait()
+
+
 class Supervisor:
-    """The estimator process and the judge (main thread only).
+    """The estimator process and the judge (:meth:`poll`, :meth:`status`: main thread).
 
     :meth:`poll` is called by the service's main thread often (every 20 ms): it collects a
     finished estimate (without waiting) and, every ``period_s``, sends the next chunk (or keeps
-    it for the next, while the estimator is busy).  Nothing here raises: a failed or hung
-    estimator process is stopped, restarted with the next period and said in the block and the
-    log.  The process ends with the service, also when the service dies (its stdin closes)."""
+    it for the next, while the estimator is busy).  Nothing here raises or blocks: a failed or
+    hung estimator process (no answer within :data:`ESTIMATE_TIMEOUT_S`) is stopped, restarted
+    with the next period and said in the block and the log.  The process ends with the service,
+    also when the service dies (its stdin closes)."""
 
     def __init__(self, cfg: SupervisionConfig, axes: ResolvedAxes) -> None:
         self.cfg = cfg
         self.judge = DriftJudge(cfg)
         self.set_axes(axes)
-        self._proc: subprocess.Popen[bytes] | None = None
+        self._estimator: _Estimator | None = None
         self._busy_since: float | None = None
-        """When the request the estimator works on was sent (None: idle)."""
+        """When the request the estimator works on was handed over (None: idle)."""
         self._cursor = (0, 0)
         self._next = 0.0
-        self._pending: list[dict[str, np.ndarray]] = []
+        self._pending: list[dict[str, Any]] = []
         self.cpu_s = 0.0
         self.estimates = 0
         self.errors = 0
@@ -215,44 +292,11 @@ class Supervisor:
         self.set_axes(axes)
 
     def close(self) -> None:
-        """Stop the estimator process (safe to call twice)."""
-        proc, self._proc = self._proc, None
+        """Stop the estimator process and its thread (safe to call twice)."""
+        est, self._estimator = self._estimator, None
         self._busy_since = None
-        if proc is not None:
-            proc.kill()
-            proc.wait()
-            for f in (proc.stdin, proc.stdout):
-                if f is not None:
-                    f.close()
-
-    def _submit(self, chunk: dict[str, np.ndarray], now: float) -> None:
-        proc = self._proc
-        if proc is None or proc.poll() is not None:
-            proc = self._proc = child.spawn("from motcomp.runtime.supervise import serve; "
-                                            "serve()")
-        assert proc.stdin is not None
-        child.send(proc.stdin, (chunk, list(self.models), dict(self.models),
-                                settings_of(self.cfg)))
-        self._busy_since = now
-
-    def _answer(self, now: float) -> tuple[dict[str, dict[str, Any]], float] | None:
-        """The estimator's answer if it came (None: still working); raises RuntimeError if it
-        failed or took longer than :data:`ESTIMATE_TIMEOUT_S`."""
-        proc = self._proc
-        assert proc is not None and proc.stdout is not None and self._busy_since is not None
-        if not child.wait_readable(proc.stdout, 0.0):
-            if now - self._busy_since > ESTIMATE_TIMEOUT_S:
-                raise RuntimeError(f"an estimate took longer than {ESTIMATE_TIMEOUT_S:g} s")
-            return None
-        self._busy_since = None
-        try:
-            kind, value = child.recv(proc.stdout)
-        except (EOFError, OSError, pickle.PickleError) as exc:
-            raise RuntimeError(f"the estimator process stopped ({type(exc).__name__})") from None
-        if kind != "ok":
-            raise RuntimeError(value)
-        results, cpu = value
-        return results, float(cpu)
+        if est is not None:
+            est.close()
 
     def poll(self, monitor: Any, to_frame_s: Any, now: float, ticks: int, acted: list[int],
              missed: int) -> list[str]:
@@ -261,45 +305,59 @@ class Supervisor:
         ``to_frame_s(ns)`` maps loop instants to the outputs' ``t``; ``ticks``, ``acted`` and
         ``missed`` are the loop's counters (for the window's limiter share and deadlines)."""
         if not self.cfg.enabled or not self.models:
+            if self._estimator is not None:  # turned off by a reload: nothing is judged
+                self.close()
+                self.judge = DriftJudge(self.cfg)
+                self._pending, self._cursor = [], monitor.chunk((0, 0))[0]
             return []
         warnings: list[str] = []
-        if self._busy_since is not None:
-            try:
-                answer = self._answer(now)
-            except Exception as exc:  # an estimate must never stop the service
-                self._failed(str(exc)[:160])
-                answer = None
-            if answer is not None:
-                results, cpu = answer
-                self.cpu_s += cpu
-                self.estimates += 1
-                warnings = self._judge(results, now)
+        est = self._estimator
+        if self._busy_since is not None and est is not None:
+            reply = est.answer()
+            if reply is None and now - self._busy_since > ESTIMATE_TIMEOUT_S + 5.0:
+                est.kill()  # a write the thread is blocked in: it answers with an error
+            elif reply is not None:
+                self._busy_since = None
+                kind, value = reply
+                if kind != "ok":
+                    self._failed(str(value)[:160])
+                else:
+                    results, cpu = value
+                    self.cpu_s += float(cpu)
+                    self.estimates += 1
+                    warnings = self._judge(results, now)
         if now < self._next:
             return warnings
         self._next = now + self.cfg.period_s
         self._shares.append((now, ticks, tuple(acted), missed))
         self._cursor, raw = monitor.chunk(self._cursor)
+        cols = [AXES.index(a) for a in self.models]
         fb_t = np.where(np.isfinite(raw["fb_sent"]), raw["fb_sent"], to_frame_s(raw["fb_ns"]))
-        chunk = {"t_out": to_frame_s(raw["t_ns"]), "u": raw["u"], "t_fb": fb_t,
-                 "acc": raw["acc"]}
+        chunk = {"t_out": to_frame_s(raw["t_ns"]), "u": raw["u"][:, cols], "t_fb": fb_t,
+                 "acc": raw["acc"][:, cols], "lost": raw["lost"]}
         self._pending.append(chunk)
         # what the estimator keeps at most: older chunks are of no use to it
-        del self._pending[:-max(1, math.ceil((self.cfg.window_s + KEEP_MARGIN_S)
-                                             / self.cfg.period_s))]
+        keep = max(1, math.ceil((self.cfg.window_s + KEEP_MARGIN_S) / self.cfg.period_s))
+        if len(self._pending) > keep:
+            del self._pending[:-keep]
+            self._pending[0]["lost"] = True
         if self._busy_since is None:  # else still busy: sent with the next chunk
-            merged = {k: np.concatenate([c[k] for c in self._pending]) for k in chunk}
+            merged: dict[str, Any] = {k: np.concatenate([c[k] for c in self._pending])
+                                      for k in chunk if k != "lost"}
+            merged["lost"] = any(c["lost"] for c in self._pending)
             self._pending = []
-            try:
-                self._submit(merged, now)
-            except Exception as exc:
-                self._failed(f"{type(exc).__name__}: {str(exc)[:120]}")
+            if self._estimator is None:
+                self._estimator = _Estimator()
+            self._estimator.ask((merged, list(self.models), dict(self.models),
+                                 settings_of(self.cfg)))
+            self._busy_since = now
         return warnings
 
     def _failed(self, text: str) -> None:
         self.errors += 1
         self.last_error = text
-        log.error("model supervision: %s (restarted for the next period)", text)
-        self.close()
+        log.error("model supervision: %s (a new estimator process starts with the next "
+                  "period)", text)
 
     def _window_conditions(self, now: float) -> tuple[list[float] | None, float | None]:
         """The limiter share per axis and the missed-deadline share over the last window."""

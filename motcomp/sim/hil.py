@@ -173,10 +173,12 @@ class HilPlatform:
         self._queue: deque[tuple[float, dict[str, float]]] = deque()
         self._prev_t: float | None = None
         self._prev = np.zeros(len(AXES))
-        for d in cfg.drifts:
-            if d.model.kind != cfg.models[AXES.index(d.axis)].kind:
+        for d in cfg.drifts:  # each drift checked now, on a simulator of its axis alone
+            truth = cfg.models[AXES.index(d.axis)]
+            if d.model.kind != truth.kind:
                 raise ConfigError(f"drift of {d.axis}: {d.model} is not of the kind of its "
-                                  f"truth {cfg.models[AXES.index(d.axis)]}")
+                                  f"truth {truth}")
+            PlatformSimulator([truth], cfg.rate_hz, [-1.0], [1.0]).set_model(0, d.model)
         self._drifts = sorted(cfg.drifts, key=lambda d: d.at_s)
         self._ramp_from: dict[int, ProcessModel] = {}
         self._next_drift_s = 0.0
