@@ -334,8 +334,10 @@ class SupervisionConfig(BaseModel):
     """Least RMS of the command's acceleration in the band for a window to be judged."""
     max_delay_se_ms: float = Field(1.0, gt=0.0)
     """Largest standard error of the residual delay for a window to be judged."""
-    max_limited_share: float = Field(0.2, ge=0.0, le=1.0)
-    """A window in which the limiter acted on more of the ticks is not judged."""
+    max_limited_share: float = Field(0.5, ge=0.0, le=1.0)
+    """A window in which the limiter acted on more of the ticks is not judged (the estimate
+    uses the command the platform received, limited or not: only a command that rides its
+    limits most of the time says too little)."""
 
     @model_validator(mode="after")
     def _band(self) -> SupervisionConfig:

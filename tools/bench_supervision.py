@@ -14,6 +14,9 @@ on loopback, the example config with its supervision defaults unless said):
 ``cost``
     the same motion with supervision on and off, alternately (``--repeats`` pairs): the loop's
     missed ticks with it against without, beside the bare clock's (a probe process).
+``twins``
+    two stacks at once, one service with supervision and one without (``--repeats`` runs):
+    the loop's missed ticks of one against the other under the same host conditions.
 
 Writes ``--out`` (JSON, one row per status read) and, for ``drift``, a figure of the estimate
 against the truth (``--figure``).  ``--doc`` writes the summary into docs/SUPERVISION.md.
@@ -106,6 +109,7 @@ def run_once(work: Path, seconds: float, signal_name: str, axis: str, supervisio
                 fig = mm.get("axes", {}).get(axis, {})
                 plat = st.get("platform") or {}
                 rows.append({"t": time.monotonic() - t0, "state": fig.get("state"),
+                             "informative": bool(fig.get("informative")),
                              "alarm": fig.get("alarm"), "alarms": fig.get("alarms"),
                              "reason": fig.get("reason"), "at_hz": fig.get("at_hz"),
                              "residual_delay_ms": fig.get("residual_delay_ms"),
@@ -157,7 +161,7 @@ def scenario_drift(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     errs_before, errs_after, pd_before, pd_after = [], [], [], []
     for r in rows:
         e = r["estimate"]
-        if not e or r["state"] == "not informative":
+        if not e or not r["informative"]:
             continue
         if r["t"] < t_drift:
             td, errs, pds = td0, errs_before, pd_before
@@ -181,6 +185,7 @@ def scenario_drift(args: argparse.Namespace, work: Path) -> dict[str, Any]:
            "phase_delay_error_before_ms": _summary(pd_before),
            "phase_delay_error_after_ms": _summary(pd_after),
            "false_alarm_before_drift": any(r["alarm"] for r in rows if r["t"] < t_drift),
+           "alarm_lines": res["alarm_lines"],
            "rows": rows}
     if args.figure:
         _figure(out, td0, td1, Path(args.figure))
@@ -205,7 +210,7 @@ def _figure(res: dict[str, Any], td0: float, td1: float, path: Path) -> None:
     t = np.array([r["t"] for r in rows])
     td = np.array([r["estimate"]["Td_ms"] if r["estimate"] else np.nan for r in rows])
     se = np.array([r["estimate"]["Td_se_ms"] if r["estimate"] else np.nan for r in rows])
-    ok = np.array([r["state"] in ("ok", "drift") for r in rows])
+    ok = np.array([r["informative"] for r in rows])
     resid = np.array([r["residual_delay_ms"] if r["residual_delay_ms"] is not None else np.nan
                       for r in rows])
     rse = np.array([r["residual_delay_se_ms"] if r["residual_delay_se_ms"] is not None
@@ -242,7 +247,7 @@ def scenario_steady(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     res = run_once(work, args.seconds, args.signal, args.axis)
     rows = res["rows"]
     last = rows[-1] if rows else {}
-    informative = [r for r in rows if r["state"] in ("ok", "drift")]
+    informative = [r for r in rows if r["informative"]]
     resid = [r["residual_delay_ms"] for r in informative]
     return {"scenario": "steady", "signal": args.signal, "axis": args.axis,
             "seconds": args.seconds, "reads": len(rows), "alarms": last.get("all_alarms"),
@@ -282,9 +287,41 @@ def scenario_cost(args: argparse.Namespace, work: Path) -> dict[str, Any]:
             "bare_share_off": share(off, "bare_missed", "bare_ticks")}
 
 
+def scenario_twins(args: argparse.Namespace, work: Path) -> dict[str, Any]:
+    import threading
+
+    runs = []
+    for k in range(args.repeats):
+        out: dict[bool, dict[str, Any]] = {}
+
+        def one(on: bool, k: int = k, out: dict[bool, dict[str, Any]] = out) -> None:
+            d = work / f"{k}-{'on' if on else 'off'}"
+            d.mkdir()
+            out[on] = run_once(d, args.seconds, args.signal, args.axis,
+                               f"[supervision]\nenabled = {'true' if on else 'false'}\n")
+        threads = [threading.Thread(target=one, args=(on,)) for on in (True, False)]
+        for th in threads:
+            th.start()
+        for th in threads:
+            th.join()
+        row = {}
+        for on, res in out.items():
+            last = res["rows"][-1]
+            row["on" if on else "off"] = {"ticks": last["ticks"], "missed": last["missed"],
+                                          "cpu_s": last["cpu_s"],
+                                          "estimates": last["estimates"]}
+        runs.append(row)
+        print(row, flush=True)
+    on = sum(r["on"]["missed"] for r in runs)
+    off = sum(r["off"]["missed"] for r in runs)
+    return {"scenario": "twins", "signal": args.signal, "seconds": args.seconds, "runs": runs,
+            "missed_on": on, "missed_off": off,
+            "ratio": on / off if off else math.inf}
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--scenario", choices=("drift", "steady", "cost"), default="drift")
+    p.add_argument("--scenario", choices=("drift", "steady", "cost", "twins"), default="drift")
     p.add_argument("--signal", default="slalom")
     p.add_argument("--axis", default="rails_y")
     p.add_argument("--seconds", type=float, default=120.0)
@@ -304,8 +341,8 @@ def main() -> int:
     print(machine(), flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        res = {"drift": scenario_drift, "steady": scenario_steady,
-               "cost": scenario_cost}[args.scenario](args, work)
+        res = {"drift": scenario_drift, "steady": scenario_steady, "cost": scenario_cost,
+               "twins": scenario_twins}[args.scenario](args, work)
     res["machine"] = machine()
     res["load_end"] = os.getloadavg()[0]
     summary = {k: v for k, v in res.items() if k != "rows"}

@@ -41,8 +41,9 @@ log = logging.getLogger("motcomp.supervise")
 
 ALARM_LOG_S = 60.0
 """An alarm still on is logged again after this long."""
-WORKER_NICE = 10
-"""The estimator process' niceness: the loop's CPU comes first."""
+WORKER_NICE = 19
+"""The estimator process' niceness where ``SCHED_IDLE`` is refused: the loop's CPU comes
+first."""
 ESTIMATE_TIMEOUT_S = 30.0
 """An estimate not answered within this long: the estimator process is stopped (a new one
 starts with the next period)."""
@@ -81,9 +82,13 @@ def _estimate(request: tuple[dict[str, np.ndarray], list[str], dict[str, P1D],
 
 
 def serve() -> None:
-    """The estimator process' main: at low priority, answer chunks until stdin closes."""
-    with contextlib.suppress(OSError):  # not permitted: it runs at the service's priority
-        os.nice(WORKER_NICE)
+    """The estimator process' main: answer chunks until stdin closes, on CPU time nothing else
+    wants (``SCHED_IDLE``; where that is refused, niceness :data:`WORKER_NICE`)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):
+        with contextlib.suppress(OSError):  # not permitted either: the service's priority
+            os.nice(WORKER_NICE)
     child.serve(_estimate)
 
 
