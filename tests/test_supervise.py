@@ -164,7 +164,7 @@ def test_an_alarm_needs_the_whole_hold_beyond_the_bound_with_confidence() -> Non
     text = j.update("rails_y", _fig(5.0), t, t)  # 8 s: the alarm, with its numbers
     assert text and "+5.00 +- 0.20 ms" in text and "identify --from-status" in text
     assert j.block("rails_y")["state"] == "drift" and j.block("rails_y")["alarms"] == 1
-    # an uninformative window keeps the alarm; within the bound for the hold clears it
+    # a window that is not informative keeps the alarm; within the bound for the hold clears it
     j.update("rails_y", _fig(0.0, informative=False), t + 2, t + 2)
     assert j.block("rails_y")["alarm"]
     for k in range(5):
@@ -179,9 +179,18 @@ def test_no_alarm_when_the_interval_reaches_the_bound_or_a_window_is_not_informa
     for k in range(20):  # beyond the bound, but not by CONFIDENCE_Z standard errors
         j.update("rails_y", _fig(2.5 + CONFIDENCE_Z * se - 0.01, se=se), 2.0 * k, 2.0 * k)
     assert not j.block("rails_y")["alarm"]
-    for k in range(20):  # beyond, but every other window not informative: never held
-        j.update("rails_y", _fig(9.0, informative=k % 2 == 0), 40 + 2.0 * k, 40 + 2.0 * k)
+    for k in range(20):  # beyond, but every other window within: never held
+        j.update("rails_y", _fig(9.0 if k % 2 else 0.0), 40 + 2.0 * k, 40 + 2.0 * k)
     assert not j.block("rails_y")["alarm"] and j.block("rails_y")["alarms"] == 0
+    # windows that are not informative tell nothing: they neither reset nor count
+    j.update("rails_y", _fig(0.0), 99.0, 99.0)
+    j.update("rails_y", _fig(9.0), 100.0, 100.0)
+    for k in range(5):
+        j.update("rails_y", _fig(0.0, informative=False), 101.0 + k, 101.0 + k)
+    j.update("rails_y", _fig(9.0), 106.0, 106.0)
+    assert not j.block("rails_y")["alarm"]  # a long hold, but two estimates only
+    j.update("rails_y", _fig(9.0), 107.0, 107.0)
+    assert j.block("rails_y")["alarm"]
     for k in range(4):  # the gain alone
         j.update("rails_x", _fig(0.0, gain=-0.3), 2.0 * k, 2.0 * k)
     assert j.block("rails_x")["alarm"]

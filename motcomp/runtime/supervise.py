@@ -35,7 +35,7 @@ from motcomp.runtime import child
 from motcomp.runtime.clock import DEGRADED_MISSED_SHARE
 from motcomp.runtime.estimate import EstimateSettings, LiveWindow
 
-__all__ = ["ALARM_LOG_S", "CONFIDENCE_Z", "DriftJudge", "Supervisor", "settings_of"]
+__all__ = ["ALARM_LOG_S", "CONFIDENCE_Z", "MIN_RUN", "DriftJudge", "Supervisor", "settings_of"]
 
 log = logging.getLogger("motcomp.supervise")
 
@@ -49,6 +49,8 @@ ESTIMATE_TIMEOUT_S = 30.0
 starts with the next period)."""
 CONFIDENCE_Z = 2.0
 """An estimate exceeds a bound when it does by this many of its standard errors."""
+MIN_RUN = 3
+"""Fewest informative estimates that start (or clear) an alarm, however long the hold."""
 KEEP_MARGIN_S = 5.0
 """The estimator keeps this much more than a window."""
 
@@ -98,7 +100,9 @@ class _AxisState:
     alarm: bool = False
     exceeding_since: float | None = None
     """Frame-clock instant of the first of the informative estimates beyond a bound in a row."""
+    exceeding_n: int = 0
     within_since: float | None = None
+    within_n: int = 0
     alarm_since: float | None = None
     alarms: int = 0
     logged: float = -math.inf
@@ -113,11 +117,12 @@ class DriftJudge:
     An estimate *exceeds* when it is informative and its residual delay lies beyond
     ``delay_bound_ms``, or its gain error beyond ``gain_bound``, by more than
     :data:`CONFIDENCE_Z` standard errors (the 95 % interval is outside the bound); it is
-    *within* when both intervals lie inside their bounds.  An alarm starts when every estimate
-    over ``hold_s`` exceeded (informative ones in a row, the first at least ``hold_s`` before
-    the last); it clears when every estimate over ``hold_s`` was within.  An estimate that is
-    neither, or not informative (also a window the loop was degraded in), restarts both runs
-    and keeps an alarm as it is.
+    *within* when both intervals lie inside their bounds.  An alarm starts when the informative
+    estimates over ``hold_s`` -- at least :data:`MIN_RUN` of them, the first at least
+    ``hold_s`` before the last -- all exceeded; it clears when they were all within.  An
+    estimate that is neither (its interval holds a bound) restarts both runs; one that is not
+    informative (also a window the loop was degraded in) tells nothing either way and changes
+    neither run.  An alarm stays as it is until it clears.
     """
 
     def __init__(self, cfg: SupervisionConfig) -> None:
@@ -133,7 +138,6 @@ class DriftJudge:
         st.judged += 1
         st.last = fig
         if not fig.get("informative"):
-            st.exceeding_since = st.within_since = None
             return None
         st.informative += 1
         delay, gain = fig["residual_delay_ms"], fig["gain_error"]
@@ -143,22 +147,26 @@ class DriftJudge:
                    or abs(gain) - z_gain > cfg.gain_bound)
         within = (abs(delay) + z_delay <= cfg.delay_bound_ms
                   and abs(gain) + z_gain <= cfg.gain_bound)
-        if not exceeds and not within:  # the interval holds the bound: neither run goes on
+        if not exceeds and not within:  # the interval holds a bound: neither run goes on
             st.exceeding_since = st.within_since = None
+            st.exceeding_n = st.within_n = 0
         elif exceeds:
-            st.within_since = None
+            st.within_since, st.within_n = None, 0
             if st.exceeding_since is None:
                 st.exceeding_since = t
-            if not st.alarm and t - st.exceeding_since >= cfg.hold_s:
+            st.exceeding_n += 1
+            if (not st.alarm and t - st.exceeding_since >= cfg.hold_s
+                    and st.exceeding_n >= MIN_RUN):
                 st.alarm, st.alarm_since = True, t
                 st.alarms += 1
                 st.logged = now
                 return self.text(axis, fig, "starts")
         else:
-            st.exceeding_since = None
+            st.exceeding_since, st.exceeding_n = None, 0
             if st.within_since is None:
                 st.within_since = t
-            if st.alarm and t - st.within_since >= cfg.hold_s:
+            st.within_n += 1
+            if st.alarm and t - st.within_since >= cfg.hold_s and st.within_n >= MIN_RUN:
                 st.alarm, st.alarm_since = False, None
                 log.info("%s: model mismatch cleared: residual delay %.2f ms, gain error "
                          "%+.1f %% in the band", axis, delay, 100 * gain)
