@@ -71,3 +71,16 @@ def ran_in_plain_python(request: pytest.FixtureRequest) -> bool:
     assert p.returncode == 0, f"in the plain Python tick:\n{p.stdout[-4000:]}\n{p.stderr[-2000:]}"
     assert "\n1 passed" in "\n" + p.stdout, p.stdout[-2000:]  # it ran, and was not skipped
     return True
+
+
+ADMIN = "[admin]\nenabled = true\n"
+"""The site config's lines that enable the admin endpoints (reload, bypass)."""
+
+
+def site_config(path: Path, *includes: Path | str) -> Path:
+    """Write the site config ``path``: the example config, then ``includes``, admin enabled."""
+    from motcomp.resources import config_file
+
+    files = ", ".join(f'"{f}"' for f in (config_file("motcomp.toml"), *includes))
+    path.write_text(f"include = [{files}]\n{ADMIN}")
+    return path

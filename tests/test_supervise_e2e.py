@@ -20,9 +20,8 @@ import pytest
 
 from motcomp.core.models import parse_model
 from motcomp.io.zenoh_io import free_tcp_port, loopback
-from motcomp.resources import config_file
 from motcomp.runtime.probe import HostProbe
-from tests.conftest import judge_realtime, motcomp_cmd, subprocess_env
+from tests.conftest import judge_realtime, motcomp_cmd, site_config, subprocess_env
 from tests.test_service_process import process
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
@@ -60,9 +59,7 @@ def test_a_drift_is_detected_retuned_from_the_status_and_the_delay_returns(
         tmp_path: Path) -> None:
     p_svc, p_hil = free_tcp_port(), free_tcp_port()
     svc_ep, hil_ep = loopback(p_svc), loopback(p_hil)
-    site = tmp_path / "site.toml"
-    admin = "[admin]\nenabled = true\n"
-    site.write_text(f'include = ["{config_file("motcomp.toml")}"]\n{admin}')
+    site = site_config(tmp_path / "site.toml")
     with HostProbe() as probe, \
             process(["hil", "-l", hil_ep, "--truth", f"rails_y={TRUTH}", "--drift",
                      f"rails_y={DRIFTED}@{DRIFT_AT_S:g}", "--log-level", "info"],
@@ -120,8 +117,7 @@ def test_a_drift_is_detected_retuned_from_the_status_and_the_delay_returns(
             p = cli("design", "--plant", str(fragment), "--rule", "optimal", "--out",
                     str(design), "--quiet")
             assert p.returncode == 0, p.stderr
-            site.write_text(f'include = ["{config_file("motcomp.toml")}", "{fragment}", '
-                            f'"{design}"]\n{admin}')
+            site_config(site, fragment, design)
             p = cli("reload", "-e", svc_ep)
             assert p.returncode == 0, p.stdout + p.stderr
             t_reload = time.monotonic()

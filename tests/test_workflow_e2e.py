@@ -23,9 +23,8 @@ from motcomp.core.models import parse_model
 from motcomp.core.quality import estimate_delay
 from motcomp.io.zenoh_io import free_tcp_port, loopback
 from motcomp.record.session import read_session
-from motcomp.resources import config_file
 from motcomp.runtime.probe import HostProbe
-from tests.conftest import judge_realtime, motcomp_cmd, skip_if_starved, subprocess_env
+from tests.conftest import judge_realtime, motcomp_cmd, site_config, skip_if_starved, subprocess_env
 from tests.test_service_process import process
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
@@ -55,9 +54,7 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
     truth = f"p1d:K=1,Td={td},Tp1={tp1}"
     p_svc, p_hil = free_tcp_port(), free_tcp_port()
     svc_ep, hil_ep = loopback(p_svc), loopback(p_hil)
-    site = tmp_path / "site.toml"
-    admin = "[admin]\nenabled = true\n"
-    site.write_text(f'include = ["{config_file("motcomp.toml")}"]\n{admin}')
+    site = site_config(tmp_path / "site.toml")
     with HostProbe() as probe, \
             process(["hil", "-l", hil_ep, "--truth", f"rails_y={truth}", "--log-level", "info"],
                     tmp_path / "hil.log") as hil, \
@@ -98,8 +95,7 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
                 "--quiet")
         assert p.returncode == 0, p.stderr
         # 3. the site config includes both; config check accepts it
-        site.write_text(f'include = ["{config_file("motcomp.toml")}", "{fragment}", '
-                        f'"{design}"]\n{admin}')
+        site_config(site, fragment, design)
         p = cli("config", "check", str(site))
         assert p.returncode == 0, p.stderr
         assert "  rails_y    model from design.toml, gains from design.toml" in p.stdout

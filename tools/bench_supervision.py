@@ -227,7 +227,7 @@ def _figure(res: dict[str, Any], td0: float, td1: float, path: Path) -> None:
     ax[0].set_ylabel("pure delay Td (ms)")
     ax[0].legend(loc="upper left", fontsize=8)
     ax[0].set_title(f"{res['axis']}: {res['signal']}, pure delay +{res['drift_ms']:g} ms at "
-                    f"{res['drift_at_s']:g} s; {res['window_s']:g} s window")
+                    f"{res['drift_at_s']:.1f} s; {res['window_s']:g} s window")
     ax[1].errorbar(t[ok], resid[ok], yerr=2 * rse[ok], fmt="o", ms=3,
                    label="residual delay in the band (+-2 SE)")
     alarm = np.array([bool(r["alarm"]) for r in rows])

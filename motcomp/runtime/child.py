@@ -19,7 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["recv", "send", "serve", "spawn", "wait_readable"]
+__all__ = ["ask", "recv", "send", "serve", "spawn", "wait_readable"]
 
 _HEADER = struct.Struct("!I")
 
@@ -48,6 +48,23 @@ def wait_readable(f: IO[bytes], timeout_s: float) -> bool:
     """Whether ``f`` has something to read within ``timeout_s`` (the wait releases the
     interpreter)."""
     return bool(select.select([f], [], [], timeout_s)[0])
+
+
+def ask(proc: subprocess.Popen[bytes], request: Any, timeout_s: float) -> Any:
+    """Send ``request`` to the child ``proc`` and return its reply.
+
+    Raises
+    ------
+    TimeoutError
+        No reply within ``timeout_s``.
+    OSError, EOFError, pickle.PickleError
+        The child is gone or its reply is not a message.
+    """
+    assert proc.stdin is not None and proc.stdout is not None
+    send(proc.stdin, request)
+    if not wait_readable(proc.stdout, timeout_s):
+        raise TimeoutError
+    return recv(proc.stdout)
 
 
 def spawn(main: str) -> subprocess.Popen[bytes]:

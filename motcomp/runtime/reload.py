@@ -212,12 +212,8 @@ class Preparer:
     def _call(self, request: tuple[Any, ...]) -> Any:
         with self._lock:
             proc = self._start()
-            assert proc.stdin is not None and proc.stdout is not None
             try:
-                child.send(proc.stdin, request)
-                if not child.wait_readable(proc.stdout, PREPARE_TIMEOUT_S):
-                    raise TimeoutError
-                reply = child.recv(proc.stdout)
+                reply = child.ask(proc, request, PREPARE_TIMEOUT_S)
             except (OSError, EOFError, pickle.PickleError, TimeoutError) as exc:
                 proc.kill()
                 proc.wait()

@@ -244,17 +244,14 @@ class _Estimator:
                 if proc is None or proc.poll() is not None:
                     proc = self._proc = child.spawn(
                         "from motcomp.runtime.supervise import serve; serve()")
-            assert proc.stdin is not None and proc.stdout is not None
             try:
-                child.send(proc.stdin, request)
-                if not child.wait_readable(proc.stdout, ESTIMATE_TIMEOUT_S):
-                    raise TimeoutError
-                reply = child.recv(proc.stdout)
+                reply = child.ask(proc, request, ESTIMATE_TIMEOUT_S)
             except (OSError, EOFError, ValueError, pickle.PickleError, TimeoutError) as exc:
                 proc.kill()
                 proc.wait()
                 for f in (proc.stdin, proc.stdout):
-                    f.close()
+                    if f is not None:
+                        f.close()
                 what = (f"an estimate took longer than {ESTIMATE_TIMEOUT_S:g} s"
                         if isinstance(exc, TimeoutError)
                         else f"the estimator process stopped ({type(exc).__name__})")
