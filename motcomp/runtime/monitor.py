@@ -202,10 +202,12 @@ class MotionMonitor:
         self.bin_ns = round(bin_s * 1e9)
         self._lo = math.floor(LAG_RANGE_S[0] / bin_s)
         self._hi = math.ceil(LAG_RANGE_S[1] / bin_s)
-        span_s = max(self.window_s + (self._hi - self._lo) * bin_s + 1.0, min_span_s)
+        span_s = self.window_s + (self._hi - self._lo) * bin_s + 1.0
         # loop thread: tick instants, and per tick r then u (AXES order) in one row; the ring
-        # holds half a second more than a report reads, which the loop may overwrite meanwhile
-        self._keep = max(math.ceil(max(span_s, COMMAND_WINDOW_S + 1.0) * rate_hz), 64)
+        # holds half a second more than is read (a report reads its own span, the rows
+        # kept for chunk() may be more), which the loop may overwrite meanwhile
+        self._report_rows = max(math.ceil(max(span_s, COMMAND_WINDOW_S + 1.0) * rate_hz), 64)
+        self._keep = max(self._report_rows, math.ceil(min_span_s * rate_hz))
         self._cap = self._keep + max(math.ceil(0.5 * rate_hz), 16)
         self._t = np.zeros(self._cap, dtype=np.int64)
         self._ru = np.zeros((self._cap, 2 * N_AXES))
@@ -216,7 +218,8 @@ class MotionMonitor:
         """Frames the inbox overflowed with (the main thread did not drain it in time)."""
         # main thread: arrival instants and positions of the frames that decoded
         fb_rate = feedback_rate_max_hz or 2.0 * rate_hz
-        self._fcap = max(math.ceil((max(self.window_s, min_span_s) + 2.0) * fb_rate), 64)
+        self._report_frames = max(math.ceil((self.window_s + 2.0) * fb_rate), 64)
+        self._fcap = max(self._report_frames, math.ceil((min_span_s + 2.0) * fb_rate))
         self._ft = np.zeros(self._fcap, dtype=np.int64)
         self._fsent = np.zeros(self._fcap)
         self._fpos = np.zeros((self._fcap, N_AXES))
@@ -309,7 +312,7 @@ class MotionMonitor:
         self.drain()
         share = self._limited_share(now_ns, ticks, acted)
         n = self._n
-        m = min(n, self._keep)
+        m = min(n, self._report_rows)
         idx = np.arange(n - m, n) % self._cap
         t_r = self._t[idx]
         # r and u of the driven axes, copied now: the loop overwrites the ring's oldest rows
@@ -318,7 +321,7 @@ class MotionMonitor:
         ru = self._ru[np.ix_(idx, np.array(cols + [N_AXES + i for i in cols], dtype=np.intp))]
         col = {i: k for k, i in enumerate(cols)}
         fn = self._fn
-        fm = min(fn, self._fcap)
+        fm = min(fn, self._report_frames)
         fidx = np.arange(fn - fm, fn) % self._fcap
         arrived = self._ft[fidx]
         t_y, fidx = self._feedback_instants(arrived, self._fsent[fidx], fidx)
