@@ -144,9 +144,10 @@ def test_live_window_keeps_the_last_seconds_in_time_order() -> None:
     assert w.t_out.size == 100 and w.t_fb.size == 100
 
 
-def _fig(delay: float, se: float = 0.2, gain: float = 0.0, informative: bool = True
-         ) -> dict[str, object]:
-    return {"informative": informative, "reason": "" if informative else "no motion",
+def _fig(delay: float, se: float = 0.2, gain: float = 0.0, informative: bool = True,
+         uncertain: bool = False) -> dict[str, object]:
+    return {"informative": informative, "uncertain": uncertain,
+            "reason": "" if informative else "no motion",
             "residual_delay_ms": delay, "residual_delay_se_ms": se, "gain_error": gain,
             "gain_error_se": 0.001, "at_hz": 0.4, "model": MODEL.spec(),
             "estimate": {"spec": "p1d:K=1,Td=0.03,Tp1=0.19", "Td_ms": 30.0, "Td_se_ms": 0.3,
@@ -403,6 +404,31 @@ def test_an_estimate_whose_interval_holds_the_bound_moves_neither_way() -> None:
     for k in range(4):
         j.update("rails_y", _fig(1.0, se=0.4), 40 + 2.0 * k, 40 + 2.0 * k)
     assert not j.block("rails_y")["alarm"]
+
+
+def test_an_uncertain_estimate_counts_only_when_its_whole_interval_is_beyond() -> None:
+    cfg = SupervisionConfig(delay_bound_ms=2.5, hold_s=4.0, max_delay_se_ms=1.0)
+    j = DriftJudge(cfg)
+    j.update("rails_y", _fig(9.0), 0.0, 0.0)
+    # uncertain, its interval holds the bound (7 - 2 x 2.5 < 2.5): neither resets nor counts
+    j.update("rails_y", _fig(7.0, se=2.5, informative=False, uncertain=True), 2.0, 2.0)
+    j.update("rails_y", _fig(9.0), 4.0, 4.0)
+    assert not j.block("rails_y")["alarm"]  # two that count
+    # uncertain but wholly beyond (9 - 2 x 2 > 2.5): the third, the hold is complete
+    j.update("rails_y", _fig(9.0, se=2.0, informative=False, uncertain=True), 6.0, 6.0)
+    assert j.block("rails_y")["alarm"]
+    assert j.block("rails_y")["informative_windows"] == 2
+    # uncertain estimates never clear an alarm, however small
+    for k in range(6):
+        j.update("rails_y", _fig(0.0, se=1.1, informative=False, uncertain=True),
+                 8.0 + 2 * k, 8.0 + 2 * k)
+    assert j.block("rails_y")["alarm"]
+    # nor start one on an unchanged platform: 0 +- anything is never beyond
+    j2 = DriftJudge(cfg)
+    for k in range(20):
+        j2.update("rails_x", _fig(1.0, se=3.0, informative=False, uncertain=True),
+                  2.0 * k, 2.0 * k)
+    assert not j2.block("rails_x")["alarm"]
 
 
 def test_a_reversed_accelerometer_is_estimated_with_its_sign() -> None:

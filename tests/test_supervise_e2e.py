@@ -9,30 +9,22 @@ of real runs: docs/SUPERVISION.md."""
 
 from __future__ import annotations
 
-import json
-import os
 import re
 import subprocess
 import time
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import pytest
 
 from motcomp.core.models import parse_model
-from motcomp.io.zenoh_io import free_tcp_port, loopback
+from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loopback, open_session
 from motcomp.runtime.probe import HostProbe
 from tests.conftest import judge_realtime, motcomp_cmd, site_config, subprocess_env
-from tests.test_service_process import process
+from tests.test_service_process import process, wait_status
 
-pytestmark = [
-    pytest.mark.slow, pytest.mark.e2e,
-    # open work (docs/SUPERVISION.md, "Open"): the detection took 13-37 s over these runs on
-    # this 2-core host, against the 30 s asked; it runs when asked for, not in the suite
-    pytest.mark.skipif(os.environ.get("MOTCOMP_SUPERVISION_E2E") != "1",
-                       reason="open: set MOTCOMP_SUPERVISION_E2E=1 (detection time not yet "
-                              "robust on a busy host)"),
-]
+pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
 TRUTH = "p1d:K=1,Td=0.0175,Tp1=0.1857683128"
 """The example config's rails model: the platform matches it until the drift."""
@@ -47,11 +39,15 @@ def cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
                           env=subprocess_env(), timeout=timeout)
 
 
-def status(ep: str) -> dict[str, Any]:
-    p = cli("status", "--json", "-e", ep, timeout=30)
-    assert p.returncode == 0, p.stderr
-    out: dict[str, Any] = json.loads(p.stdout)
+def status(session: Any) -> dict[str, Any]:
+    """The service's status, asked in process (a ``motcomp status`` a second would load this
+    2-core host as much as the service)."""
+    out: dict[str, Any] = msgpack.unpackb(first_reply(session, "motcomp/status", None, 5.0))
     return out
+
+
+DEGRADED = "the loop missed"
+"""The start of the reason of a window the loop was degraded in: the product cannot tell."""
 
 
 def log_instant(log: Path, text: str) -> float:
@@ -75,8 +71,10 @@ def test_a_drift_is_detected_retuned_from_the_status_and_the_delay_returns(
                      f"rails_y={DRIFTED}@{DRIFT_AT_S:g}", "--log-level", "info"],
                     tmp_path / "hil.log") as hil, \
             process(["run", "--config", str(site), "-l", svc_ep, "-e", hil_ep],
-                    tmp_path / "svc.log") as svc:
+                    tmp_path / "svc.log") as svc, \
+            open_session(ZenohEndpoints(connect=(svc_ep,))) as session:
         t_hil = time.monotonic()
+        wait_status(session)
         time.sleep(2.0)
         with process(["source", "--signal", "slalom", "--repeat", "10", "--quiet", "-e",
                       svc_ep], tmp_path / "src.log") as src:
@@ -84,7 +82,7 @@ def test_a_drift_is_detected_retuned_from_the_status_and_the_delay_returns(
             before = []
             while time.monotonic() - t_hil < DRIFT_AT_S - 2.0:
                 time.sleep(2.0)
-                st = status(svc_ep)
+                st = status(session)
                 assert not st["model_mismatch"]["alarm"], st["model_mismatch"]
                 if (d := delay_ms(st)) is not None:
                     before.append(d)
@@ -94,7 +92,7 @@ def test_a_drift_is_detected_retuned_from_the_status_and_the_delay_returns(
             trace = []
             while time.monotonic() - t_hil < DRIFT_AT_S + 45.0:
                 time.sleep(1.0)
-                st = status(svc_ep)
+                st = status(session)
                 f = st["model_mismatch"]["axes"]["rails_y"]
                 trace.append((round(time.monotonic() - t_hil, 1), f["state"],
                               f.get("residual_delay_ms"), f.get("residual_delay_se_ms"),
@@ -105,6 +103,11 @@ def test_a_drift_is_detected_retuned_from_the_status_and_the_delay_returns(
             mm = st["model_mismatch"]["axes"]["rails_y"]
             for row in trace:
                 print(row)
+            degraded = [row for row in trace if (row[4] or "").startswith(DEGRADED)]
+            if detected is None and len(degraded) > len(trace) // 2:
+                # the windows were not judged: the host's stalls were in the data
+                pytest.skip(f"not judged: the loop was degraded in {len(degraded)} of "
+                            f"{len(trace)} windows after the drift ({degraded[-1][4]})")
             assert detected is not None, trace
             # from the platform's log line of the drift to the service's WARNING (one clock)
             after = log_instant(tmp_path / "svc.log", "model mismatch starts") - log_instant(
@@ -120,7 +123,7 @@ def test_a_drift_is_detected_retuned_from_the_status_and_the_delay_returns(
             # shows its uncertainty): the estimate as a fragment, designed, included, reloaded
             t_end = time.monotonic() + 60.0
             while True:
-                f = status(svc_ep)["model_mismatch"]["axes"]["rails_y"]
+                f = status(session)["model_mismatch"]["axes"]["rails_y"]
                 if f["informative"] and f["residual_delay_se_ms"] <= SETTLED_SE_MS:
                     break
                 if time.monotonic() > t_end:  # the product says it cannot tell: not judged
@@ -150,7 +153,7 @@ def test_a_drift_is_detected_retuned_from_the_status_and_the_delay_returns(
             after = []
             while time.monotonic() - t_reload < 30.0 and src.poll() is None:
                 time.sleep(2.0)
-                st = status(svc_ep)
+                st = status(session)
                 if time.monotonic() - t_reload > 14.0 and (d := delay_ms(st)) is not None:
                     after.append(d)
             assert after, "no valid apparent delay after the reload"

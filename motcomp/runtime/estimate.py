@@ -186,7 +186,8 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
     ``pairing_phase_ms`` -- the mean time from the output in force to the feedback sample...);
     never raises on data.
     """
-    out: dict[str, Any] = {"informative": False, "reason": "", "model": model.spec()}
+    out: dict[str, Any] = {"informative": False, "uncertain": False, "reason": "",
+                           "model": model.spec()}
     keep = np.isfinite(t_fb) & np.isfinite(acc)
     t_fb, acc = t_fb[keep], acc[keep]
     if t_out.size < 2:
@@ -285,6 +286,7 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
     elif not se[0] * 1e3 <= settings.max_delay_se_ms:  # NaN too: an undetermined figure
         out["reason"] = (f"the residual delay is uncertain (+-{se[0] * 1e3:.2f} ms > "
                          f"{settings.max_delay_se_ms:g} ms)")
+        out["uncertain"] = bool(np.all(np.isfinite(se)))
     else:
         out["informative"] = True
     return out

@@ -122,7 +122,10 @@ class DriftJudge:
     ``hold_s`` before the last -- all exceeded; it clears when they were all within.  An
     estimate that is neither (its interval holds a bound) restarts both runs; one that is not
     informative (also a window the loop was degraded in) tells nothing either way and changes
-    neither run.  An alarm stays as it is until it clears.
+    neither run -- except one only too *uncertain* (``uncertain``: a fit that describes the
+    window, its residual delay's standard error above ``max_delay_se_ms``), which counts as
+    exceeding when even its wide interval lies beyond a bound.  An alarm stays as it is until
+    it clears.
     """
 
     def __init__(self, cfg: SupervisionConfig) -> None:
@@ -137,9 +140,9 @@ class DriftJudge:
         st = self.axes.setdefault(axis, _AxisState())
         st.judged += 1
         st.last = fig
-        if not fig.get("informative"):
+        informative = bool(fig.get("informative"))
+        if not informative and not fig.get("uncertain"):
             return None
-        st.informative += 1
         delay, gain = fig["residual_delay_ms"], fig["gain_error"]
         z_delay = CONFIDENCE_Z * fig["residual_delay_se_ms"]
         z_gain = CONFIDENCE_Z * fig["gain_error_se"]
@@ -147,6 +150,11 @@ class DriftJudge:
                    or abs(gain) - z_gain > cfg.gain_bound)
         within = (abs(delay) + z_delay <= cfg.delay_bound_ms
                   and abs(gain) + z_gain <= cfg.gain_bound)
+        if not informative:  # uncertain: only an interval wholly beyond a bound tells
+            if not exceeds:
+                return None
+        else:
+            st.informative += 1
         if not exceeds and not within:  # the interval holds a bound: neither run goes on
             st.exceeding_since = st.within_since = None
             st.exceeding_n = st.within_n = 0
@@ -195,7 +203,7 @@ class DriftJudge:
         state = ("drift" if st.alarm else "ok" if fig.get("informative")
                  else "not informative")
         return {"state": state, "alarm": st.alarm, "alarm_since_t": st.alarm_since,
-                "alarms": st.alarms, "estimates": st.judged, "informative": st.informative,
+                "alarms": st.alarms, "windows": st.judged, "informative_windows": st.informative,
                 **fig}
 
 
@@ -387,14 +395,14 @@ class Supervisor:
         limited, missed = self._window_conditions(now)
         out = []
         for axis, fig in results.items():
-            if fig.get("informative"):
+            if fig.get("informative") or fig.get("uncertain"):
                 share = limited[AXES.index(axis)] if limited else 0.0
                 if share > self.cfg.max_limited_share:
-                    fig["informative"] = False
+                    fig["informative"] = fig["uncertain"] = False
                     fig["reason"] = (f"the limiter acted on {100 * share:.0f} % of the ticks "
                                      f"(more than {100 * self.cfg.max_limited_share:g} %)")
                 elif missed is not None and missed > DEGRADED_MISSED_SHARE:
-                    fig["informative"] = False
+                    fig["informative"] = fig["uncertain"] = False
                     fig["reason"] = (f"the loop missed {100 * missed:.1f} % of its deadlines "
                                      "in the window (the host's stalls are in the data)")
             text = self.judge.update(axis, fig, float(fig.get("to_t") or 0.0), now)
