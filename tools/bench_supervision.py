@@ -25,6 +25,7 @@ against the truth (``--figure``).  ``--doc`` writes the summary into docs/SUPERV
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import os
@@ -158,6 +159,14 @@ def scenario_drift(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     alarm_after = None if res["alarm_wall"] is None else res["alarm_wall"] - res["drift_wall"]
     ages = [r["setpoint_age_ms"] for r in rows if r["setpoint_age_ms"] is not None]
     stack = float(np.median(ages)) if ages else math.nan
+    # of that, the time the motion held too little in the band to tell anything (a sweep's
+    # low end): status reads about a second apart
+    quiet = 0.0
+    if alarm_after is not None:
+        for a, b in itertools.pairwise(rows):
+            if t_drift < b["t"] <= t_drift + alarm_after and (
+                    b["reason"] or "").startswith("too little motion"):
+                quiet += b["t"] - a["t"]
     errs_before, errs_after, pd_before, pd_after = [], [], [], []
     for r in rows:
         e = r["estimate"]
@@ -180,6 +189,7 @@ def scenario_drift(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     out = {"scenario": "drift", "signal": args.signal, "axis": args.axis,
            "drift_ms": args.drift_ms, "drift_at_s": t_drift, "window_s": args.window or 15.0,
            "alarm_after_s": alarm_after,
+           "alarm_after_motion_s": None if alarm_after is None else alarm_after - quiet,
            "stack_ms": stack,
            "td_error_before_ms": _summary(errs_before), "td_error_after_ms": _summary(errs_after),
            "phase_delay_error_before_ms": _summary(pd_before),

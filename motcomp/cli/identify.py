@@ -302,9 +302,11 @@ def _run_from_status(args: argparse.Namespace) -> int:
     comments = [
         f"# Estimated by motcomp's model supervision from ordinary driving ({where}, {when}):",
         f"# {fig['to_t'] - fig['from_t']:.0f} s window, motion centred at {fig['at_hz']:.2f} Hz; "
-        f"identified {est['identified']}; the P1D explains {100 * est['explained']:.2f} %.",
-        f"# Td {est['Td_ms']:.2f} +- {est['Td_se_ms']:.2f} ms, Tp1 {est['Tp1_ms']:.1f} +- "
-        f"{est['Tp1_se_ms']:.1f} ms, K {est['K']:.4f} +- {est['K_se']:.4f}.",
+        f"identified {est['identified']}; the model explains {100 * est['explained']:.2f} %.",
+        f"# Td {est['Td_ms']:.2f} +- {est['Td_se_ms']:.2f} ms, "
+        + ("" if est.get("Tp1_ms") is None else
+           f"Tp1 {est['Tp1_ms']:.1f} +- {est['Tp1_se_ms']:.1f} ms, ")
+        + f"K {est['K']:.4f} +- {est['K_se']:.4f}.",
         f"# Against the model then in force ({fig['model']}): residual delay "
         f"{fig['residual_delay_ms']:+.2f} +- {fig['residual_delay_se_ms']:.2f} ms, gain error "
         f"{100 * fig['gain_error']:+.2f} % in the band.",

@@ -29,6 +29,7 @@ Nothing here reads a clock or raises on data: a window that cannot tell says why
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -120,12 +121,13 @@ def _signals(cmd: np.ndarray, acc: np.ndarray, rate: float, settings: EstimateSe
 
 
 class _OutputError:
-    """``y = K e^{-Td s} / (1 + Tp1 s) v``, simulated in the frequency domain over a circular
-    buffer whose past (before the window) is ``v``'s first value held: the window starts in
-    the steady state of that value, and the lead-in, which is not judged, holds the error of
-    that assumption."""
+    """``y = K e^{-Td s} / (1 + Tp1 s) v`` -- or, with ``shape``, ``K e^{-Td s} H(s) v`` where
+    ``H`` is ``shape``'s delay-free response over its gain -- simulated in the frequency domain
+    over a circular buffer whose past (before the window) is ``v``'s first value held: the
+    window starts in the steady state of that value, and the lead-in, which is not judged,
+    holds the error of that assumption."""
 
-    def __init__(self, s: _Signals) -> None:
+    def __init__(self, s: _Signals, shape: ProcessModel | None = None) -> None:
         n = s.v.size
         self.n = n
         self.size = _fft_len(2 * n)
@@ -138,10 +140,16 @@ class _OutputError:
         self.V = np.fft.rfft(padded) * np.exp(-2j * np.pi * self.f * s.hold_s)
         self.w = 2j * np.pi * self.f
         self.s = s
+        self.shape = None
+        if shape is not None:
+            num, den = shape.rational()
+            self.shape = np.polyval(num, self.w) / np.polyval(den, self.w) / shape.gain
 
     def predict(self, k: float, td: float, tp: float) -> np.ndarray:
+        """The simulated acceleration (``tp`` unused with a shape)."""
         w = self.w
-        return np.fft.irfft(k * np.exp(-w * td) / (1.0 + w * tp) * self.V, self.size)[:self.n]
+        h = 1.0 / (1.0 + w * tp) if self.shape is None else self.shape
+        return np.fft.irfft(k * np.exp(-w * td) * h * self.V, self.size)[:self.n]
 
     def residual(self, theta: np.ndarray, tp: float | None = None) -> np.ndarray:
         """Measured minus predicted over the judged samples, the best offset removed (the
@@ -156,6 +164,13 @@ class _OutputError:
         y = self.s.y[self.s.judged]
         g, y = g - g.mean(), y - y.mean()
         return float(g @ y) / max(float(g @ g), 1e-300)
+
+
+def _shaped(model: ProcessModel) -> bool:
+    """A model whose dynamics the fit can hold: a gain ``K`` and an exact delay ``Td``."""
+    par = model.params()
+    return (dataclasses.is_dataclass(model) and {"K", "Td"} <= set(par)
+            and model.dead_time_s == model.pure_delay_s and model.gain == par["K"])
 
 
 def _fft_len(n: int) -> int:
@@ -175,9 +190,14 @@ def _sandwich(jac: np.ndarray, e: np.ndarray, lags: int) -> np.ndarray:
 
 
 def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: np.ndarray,
-                  model: P1D, settings: EstimateSettings = EstimateSettings(),
+                  model: ProcessModel, settings: EstimateSettings = EstimateSettings(),
                   axis: str = "axis") -> dict[str, Any]:
     """The platform of one axis over one window, and its mismatch with ``model``.
+
+    A P1D ``model``: a P1D is fitted (``K``, ``Td``, ``Tp1``; ``Tp1`` held at the model's when
+    the data do not tell it from ``Td``).  A model of another kind with a gain and an exact
+    delay (P2D, P2UZD): its dynamics are held and ``K``, ``Td`` fitted -- a P1D cannot stand
+    for them in the band.  Any other (OE): its P1D reduction (``to_p1d``) is the model.
 
     ``t_out``/``u_out``: the service's outputs (frame ``t`` in s, increasing; the position
     sent); ``t_fb``/``acc``: the feedback's ``t`` and measured acceleration over the window
@@ -186,8 +206,7 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
     ``pairing_phase_ms`` -- the mean time from the output in force to the feedback sample...);
     never raises on data.
     """
-    out: dict[str, Any] = {"informative": False, "uncertain": False, "reason": "",
-                           "model": model.spec()}
+    out: dict[str, Any] = {"informative": False, "reason": "", "model": model.spec()}
     keep = np.isfinite(t_fb) & np.isfinite(acc)
     t_fb, acc = t_fb[keep], acc[keep]
     if t_out.size < 2:
@@ -234,46 +253,59 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
         return out
     fc = float((f[band] * power[band]).sum() / power[band].sum())
     out["at_hz"] = fc
-    oe = _OutputError(sig)
-    tp0 = float(model.Tp1)
+    if not isinstance(model, P1D) and not _shaped(model):
+        model = model.to_p1d()
+        out["model"] = model.spec()
+    shaped = not isinstance(model, P1D)
+    oe = _OutputError(sig, model if shaped else None)
+    tp0 = float(model.Tp1) if isinstance(model, P1D) else 0.0
     coarse = [(float(np.sum(oe.residual(np.array([oe.gain_for(d, tp0), d, tp0])) ** 2)), d)
               for d in TD_GRID_S]
     td0 = min(coarse)[1]
     x0 = np.array([oe.gain_for(td0, tp0), td0, tp0])
     # K of either sign (an accelerometer mounted the other way round), never zero
     lo, hi = np.array([-20.0, 0.0, 1e-4]), np.array([20.0, 0.25, 2.0])
-    full = optimize.least_squares(oe.residual, np.clip(x0, lo, hi), bounds=(lo, hi),
-                                  x_scale=[1.0, 0.01, 0.05])
-    cov = _sandwich(full.jac, full.fun, sig.lags)
-    corr = (cov[1, 2] / math.sqrt(cov[1, 1] * cov[2, 2])
-            if cov[1, 1] > 0 and cov[2, 2] > 0 else 1.0)
-    if abs(corr) <= MAX_CORRELATION and np.all(np.isfinite(cov)):
+    corr = math.nan
+    if not shaped:
+        full = optimize.least_squares(oe.residual, np.clip(x0, lo, hi), bounds=(lo, hi),
+                                      x_scale=[1.0, 0.01, 0.05])
+        cov = _sandwich(full.jac, full.fun, sig.lags)
+        corr = (cov[1, 2] / math.sqrt(cov[1, 1] * cov[2, 2])
+                if cov[1, 1] > 0 and cov[2, 2] > 0 else 1.0)
+    if not shaped and abs(corr) <= MAX_CORRELATION and np.all(np.isfinite(cov)):
         theta, identified, fun = full.x, "K, Td, Tp1", full.fun
-    else:  # one frequency: Tp1 held at the model's, K and Td fitted
+    else:  # one frequency, or a shape held: K and Td fitted
         held = optimize.least_squares(lambda th: oe.residual(th, tp0), np.clip(x0[:2], lo[:2],
                                       hi[:2]), bounds=(lo[:2], hi[:2]), x_scale=[1.0, 0.01])
         cov = np.zeros((3, 3))
         cov[:2, :2] = _sandwich(held.jac, held.fun, sig.lags)
         theta = np.array([held.x[0], held.x[1], tp0])
-        identified, fun = "K, Td (Tp1 held at the model's)", held.fun
-    est = P1D(K=float(theta[0]), Td=float(theta[1]), Tp1=float(theta[2]))
+        identified, fun = ("K, Td (the model's dynamics held)" if shaped
+                           else "K, Td (Tp1 held at the model's)"), held.fun
+
+    def as_model(th: np.ndarray) -> ProcessModel:
+        if shaped:
+            return dataclasses.replace(model, K=float(th[0]), Td=float(th[1]))  # type: ignore[type-var]
+        return P1D(K=float(th[0]), Td=float(th[1]), Tp1=float(th[2]))
+
+    est = as_model(theta)
     y_judged = sig.y[sig.judged] - sig.y[sig.judged].mean()
     explained = 1.0 - float(fun @ fun) / max(float(y_judged @ y_judged), 1e-300)
     delay, gain_err = mismatch(est, model, fc)
     # standard errors of the two figures by the delta method
     grads = np.zeros((2, 3))
-    for j, step in enumerate((1e-4, 1e-5, 1e-5)):
+    for j, step in enumerate((1e-4, 1e-5, 1e-5)[:2 if shaped else 3]):
         th = theta.copy()
         th[j] += step
-        d2, g2 = mismatch(P1D(K=float(th[0]), Td=float(th[1]), Tp1=float(th[2])), model, fc)
+        d2, g2 = mismatch(as_model(th), model, fc)
         grads[:, j] = ((d2 - delay) / step, (g2 - gain_err) / step)
     se = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", grads, cov, grads), 0.0))
     out.update({
-        "estimate": {"spec": est.spec(), "K": est.K, "Td_ms": est.Td * 1e3,
-                     "Tp1_ms": est.Tp1 * 1e3,
+        "estimate": {"spec": est.spec(), "K": float(theta[0]), "Td_ms": float(theta[1]) * 1e3,
+                     "Tp1_ms": None if shaped else float(theta[2]) * 1e3,
                      "K_se": math.sqrt(max(cov[0, 0], 0.0)),
                      "Td_se_ms": math.sqrt(max(cov[1, 1], 0.0)) * 1e3,
-                     "Tp1_se_ms": math.sqrt(max(cov[2, 2], 0.0)) * 1e3,
+                     "Tp1_se_ms": None if shaped else math.sqrt(max(cov[2, 2], 0.0)) * 1e3,
                      "identified": identified, "td_tp1_correlation": float(corr),
                      "phase_delay_ms": float(est.phase_delay([fc])[0]) * 1e3,
                      "explained": explained},
@@ -286,7 +318,6 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
     elif not se[0] * 1e3 <= settings.max_delay_se_ms:  # NaN too: an undetermined figure
         out["reason"] = (f"the residual delay is uncertain (+-{se[0] * 1e3:.2f} ms > "
                          f"{settings.max_delay_se_ms:g} ms)")
-        out["uncertain"] = bool(np.all(np.isfinite(se)))
     else:
         out["informative"] = True
     return out
@@ -329,7 +360,7 @@ class LiveWindow:
         self.t_out, self.u = self.t_out[a:], self.u[a:]
         self.t_fb, self.acc = t_fb[b:], acc[b:]
 
-    def estimate(self, models: dict[str, P1D], settings: EstimateSettings
+    def estimate(self, models: dict[str, ProcessModel], settings: EstimateSettings
                  ) -> dict[str, dict[str, Any]]:
         """Per axis, :func:`estimate_axis` against ``models[axis]`` over the last
         ``settings.window_s`` of feedback, with the window's bounds (``from_t``, ``to_t``)."""

@@ -30,7 +30,7 @@ import numpy as np
 
 from motcomp.config import ResolvedAxes, SupervisionConfig
 from motcomp.core.axes import AXES
-from motcomp.core.models import P1D
+from motcomp.core.models import ProcessModel
 from motcomp.runtime import child
 from motcomp.runtime.clock import DEGRADED_MISSED_SHARE
 from motcomp.runtime.estimate import EstimateSettings, LiveWindow
@@ -65,7 +65,7 @@ def settings_of(cfg: SupervisionConfig) -> EstimateSettings:
 _WINDOW: LiveWindow | None = None
 
 
-def _estimate(request: tuple[dict[str, np.ndarray], list[str], dict[str, P1D],
+def _estimate(request: tuple[dict[str, np.ndarray], list[str], dict[str, ProcessModel],
                              EstimateSettings]) -> tuple[str, Any]:
     """In the estimator process: add the chunk (columns: ``axes``) to the window, estimate;
     ``("ok", (results, CPU seconds it took))`` or ``("error", text)``."""
@@ -122,10 +122,7 @@ class DriftJudge:
     ``hold_s`` before the last -- all exceeded; it clears when they were all within.  An
     estimate that is neither (its interval holds a bound) restarts both runs; one that is not
     informative (also a window the loop was degraded in) tells nothing either way and changes
-    neither run -- except one only too *uncertain* (``uncertain``: a fit that describes the
-    window, its residual delay's standard error above ``max_delay_se_ms``), which counts as
-    exceeding when even its wide interval lies beyond a bound.  An alarm stays as it is until
-    it clears.
+    neither run.  An alarm stays as it is until it clears.
     """
 
     def __init__(self, cfg: SupervisionConfig) -> None:
@@ -140,9 +137,9 @@ class DriftJudge:
         st = self.axes.setdefault(axis, _AxisState())
         st.judged += 1
         st.last = fig
-        informative = bool(fig.get("informative"))
-        if not informative and not fig.get("uncertain"):
+        if not fig.get("informative"):
             return None
+        st.informative += 1
         delay, gain = fig["residual_delay_ms"], fig["gain_error"]
         z_delay = CONFIDENCE_Z * fig["residual_delay_se_ms"]
         z_gain = CONFIDENCE_Z * fig["gain_error_se"]
@@ -150,11 +147,6 @@ class DriftJudge:
                    or abs(gain) - z_gain > cfg.gain_bound)
         within = (abs(delay) + z_delay <= cfg.delay_bound_ms
                   and abs(gain) + z_gain <= cfg.gain_bound)
-        if not informative:  # uncertain: only an interval wholly beyond a bound tells
-            if not exceeds:
-                return None
-        else:
-            st.informative += 1
         if not exceeds and not within:  # the interval holds a bound: neither run goes on
             st.exceeding_since = st.within_since = None
             st.exceeding_n = st.within_n = 0
@@ -301,7 +293,7 @@ class Supervisor:
 
     def set_axes(self, axes: ResolvedAxes) -> None:
         """The models in force (at start and after each accepted reload)."""
-        self.models = {a: axes.models[i] for i, a in enumerate(AXES) if axes.driven[i]}
+        self.models = {a: axes.plants[i] for i, a in enumerate(AXES) if axes.driven[i]}
 
     def reconfigure(self, cfg: SupervisionConfig, axes: ResolvedAxes) -> None:
         """A reload's ``[supervision]`` and models (``window_s`` is a restart key)."""
@@ -395,14 +387,14 @@ class Supervisor:
         limited, missed = self._window_conditions(now)
         out = []
         for axis, fig in results.items():
-            if fig.get("informative") or fig.get("uncertain"):
+            if fig.get("informative"):
                 share = limited[AXES.index(axis)] if limited else 0.0
                 if share > self.cfg.max_limited_share:
-                    fig["informative"] = fig["uncertain"] = False
+                    fig["informative"] = False
                     fig["reason"] = (f"the limiter acted on {100 * share:.0f} % of the ticks "
                                      f"(more than {100 * self.cfg.max_limited_share:g} %)")
                 elif missed is not None and missed > DEGRADED_MISSED_SHARE:
-                    fig["informative"] = fig["uncertain"] = False
+                    fig["informative"] = False
                     fig["reason"] = (f"the loop missed {100 * missed:.1f} % of its deadlines "
                                      "in the window (the host's stalls are in the data)")
             text = self.judge.update(axis, fig, float(fig.get("to_t") or 0.0), now)
