@@ -16,7 +16,7 @@ import pytest
 
 from motcomp.config import SupervisionConfig
 from motcomp.core.axes import AXIS_INDEX as AXES_INDEX
-from motcomp.core.models import P1D, P2D, ProcessModel, parse_model
+from motcomp.core.models import OE, P1D, P2D, ProcessModel, parse_model
 from motcomp.errors import ConfigError
 from motcomp.resources import config_file
 from motcomp.runtime.estimate import EstimateSettings, LiveWindow, estimate_axis, mismatch
@@ -114,6 +114,14 @@ def test_a_platform_of_another_kind_is_judged_in_its_own_form(drift_ms: float) -
     assert fig["residual_delay_ms"] == pytest.approx(drift_ms, abs=3 * se)
     assert e["Td_ms"] - model.Td * 1e3 == pytest.approx(fig["residual_delay_ms"], abs=1e-6)
     assert abs(fig["gain_error"]) <= 3 * fig["gain_error_se"] + 1e-3
+
+
+def test_an_oe_model_is_judged_through_its_p1d_reduction() -> None:
+    model = OE(num=(1.0,), den=(MODEL.Tp1, 1.0), Td=MODEL.Td, pade_order=1)
+    u = driving(20.0)
+    t, acc = drive(MODEL, u)
+    fig = estimate_axis(t, u, t, acc, model)
+    assert fig["model"] == model.to_p1d().spec() and fig["informative"], fig
 
 
 def test_one_frequency_holds_tp1_at_the_model_and_still_tells_the_band() -> None:

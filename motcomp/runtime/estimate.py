@@ -313,8 +313,8 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
         "gain_error": gain_err, "gain_error_se": float(se[1]),
     })
     if explained < settings.min_fit:
-        out["reason"] = (f"the P1D explains {100 * explained:.0f} % of the measured "
-                         f"acceleration (needs {100 * settings.min_fit:.0f} %)")
+        out["reason"] = (f"the {'model' if shaped else 'P1D'} explains {100 * explained:.0f} % "
+                         f"of the measured acceleration (needs {100 * settings.min_fit:.0f} %)")
     elif not se[0] * 1e3 <= settings.max_delay_se_ms:  # NaN too: an undetermined figure
         out["reason"] = (f"the residual delay is uncertain (+-{se[0] * 1e3:.2f} ms > "
                          f"{settings.max_delay_se_ms:g} ms)")
