@@ -9,6 +9,7 @@ import dataclasses
 import json
 import math
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -435,6 +436,16 @@ def test_an_estimate_whose_interval_holds_the_bound_moves_neither_way() -> None:
     for k in range(4):
         j.update("rails_y", _fig(1.0, se=0.4), 40 + 2.0 * k, 40 + 2.0 * k)
     assert not j.block("rails_y")["alarm"]
+
+
+def test_the_service_process_does_not_load_what_only_the_estimator_needs() -> None:
+    # scipy would add some 70 MB to the service's memory; only the estimator process uses it
+    p = subprocess.run([sys.executable, "-c", "import sys, motcomp.runtime.service, "
+                        "motcomp.runtime.supervise; print(sorted(m for m in sys.modules "
+                        "if m.split('.')[0] == 'scipy'))"],
+                       capture_output=True, text=True, env=subprocess_env(), timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip() == "[]", p.stdout
 
 
 def test_a_reversed_accelerometer_is_estimated_with_its_sign() -> None:

@@ -35,12 +35,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import optimize, signal
 
 from motcomp.core.models import P1D, ProcessModel
 from motcomp.errors import MotcompError
 from motcomp.ident.data import RawRecording, check_and_resample
-from motcomp.ident.fit import long_run_cov, second_difference
 from motcomp.jsonsafe import finite
 from motcomp.record.session import output_in_force
 
@@ -104,6 +102,10 @@ class _Signals:
 
 def _signals(cmd: np.ndarray, acc: np.ndarray, rate: float, settings: EstimateSettings
              ) -> _Signals:
+    from scipy import signal
+
+    from motcomp.ident.fit import second_difference
+
     v = second_difference(cmd, rate)
     y = acc - float(np.mean(acc))
     cutoff = settings.fit_max_hz
@@ -182,6 +184,8 @@ def _fft_len(n: int) -> int:
 
 def _sandwich(jac: np.ndarray, e: np.ndarray, lags: int) -> np.ndarray:
     """The parameters' covariance for residuals ``e`` correlated over ``lags`` samples."""
+    from motcomp.ident.fit import long_run_cov
+
     try:
         inv = np.linalg.inv(jac.T @ jac)
     except np.linalg.LinAlgError:
@@ -206,6 +210,9 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
     ``pairing_phase_ms`` -- the mean time from the output in force to the feedback sample...);
     never raises on data.
     """
+    from scipy import optimize  # here, not at import: the service imports this module for
+    # its settings and never estimates (scipy would add some 70 MB to its memory)
+
     out: dict[str, Any] = {"informative": False, "reason": "", "model": model.spec()}
     keep = np.isfinite(t_fb) & np.isfinite(acc)
     t_fb, acc = t_fb[keep], acc[keep]
