@@ -292,7 +292,9 @@ class Supervisor:
         """``(now, ticks, acted, missed)`` at each chunk: the window's conditions."""
 
     def set_axes(self, axes: ResolvedAxes) -> None:
-        """The models in force (at start and after each accepted reload)."""
+        """The config's models in force (at start and after each accepted reload): each axis'
+        ``model`` as written, a P2UZD as a P2UZD (:func:`~motcomp.runtime.estimate.estimate_axis`
+        says how each kind is judged)."""
         self.models = {a: axes.plants[i] for i, a in enumerate(AXES) if axes.driven[i]}
 
     def reconfigure(self, cfg: SupervisionConfig, axes: ResolvedAxes) -> None:
