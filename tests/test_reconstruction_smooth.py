@@ -10,7 +10,7 @@ import pytest
 from motcomp.config import ServiceConfig, load_config, new_tick, resolve_axes
 from motcomp.core.axes import AXIS_INDEX
 from motcomp.core.quality import command_quality, estimate_delay
-from motcomp.core.shaper import ReferenceShaper, ShaperParams, _extrapolate, _knot, _quintic
+from motcomp.core.shaper import Knot, ReferenceShaper, ShaperParams, _extrapolate, _knot, _quintic
 from motcomp.core.tick import set_bypass, step
 from motcomp.io.wire import encode_input
 from motcomp.resources import config_file
@@ -207,13 +207,13 @@ def test_knots_are_exact_on_a_cubic_on_an_uneven_grid() -> None:
     """Each sample's slope, acceleration and jerk are those of the cubic through it and the
     three before it: exact on a cubic whatever the spacing (closed-form derivatives)."""
     ts = [0.0, 0.0013, 0.0021, 0.0035, 0.0041, 0.0072]
-    h: list[tuple[float, float, float, float, float]] = []
+    h: list[Knot] = []
     for t in ts:
         h.append(_knot(h[-3:], t, _cubic(t)[0]))
     for knot in h[3:]:
-        assert knot[2:] == pytest.approx(_cubic(knot[0])[1:], rel=1e-6, abs=1e-6)
-    assert h[1][2] == pytest.approx((_cubic(ts[1])[0] - _cubic(0.0)[0]) / ts[1])  # a line
-    assert h[1][3:] == (0.0, 0.0)
+        assert knot.fields()[2:] == pytest.approx(_cubic(knot.t)[1:], rel=1e-6, abs=1e-6)
+    assert h[1].m == pytest.approx((_cubic(ts[1])[0] - _cubic(0.0)[0]) / ts[1])  # a line
+    assert (h[1].a, h[1].j) == (0.0, 0.0)
 
 
 def test_the_quintic_meets_each_sample_to_the_acceleration() -> None:
@@ -226,21 +226,21 @@ def test_the_quintic_meets_each_sample_to_the_acceleration() -> None:
         c = np.polynomial.polynomial.polyder(g, d) if d else g
         return float(np.polynomial.polynomial.polyval(t, c))
 
-    knots = [(t, poly(t, 0), poly(t, 1), poly(t, 2), 0.0) for t in (0.2, 0.9)]
+    knots = [Knot(t, poly(t, 0), poly(t, 1), poly(t, 2), 0.0) for t in (0.2, 0.9)]
     for tau in (0.2, 0.35, 0.6, 0.9):
         value, slope = _quintic(knots, tau)
         assert value == pytest.approx(poly(tau, 0), abs=1e-12)
         assert slope == pytest.approx(poly(tau, 1), abs=1e-12)
-    h: list[tuple[float, float, float, float, float]] = []
+    h: list[Knot] = []
     for k in range(12):
         t = 0.01 * k
         h.append(_knot(h[-3:], t, float(np.sin(7.0 * t))))
     e = 1e-5
     for knot in h[5:9]:
-        t = knot[0]
+        t = knot.t
         left = [_quintic(h, t - j * e)[0] for j in (2, 1, 0)]
         right = [_quintic(h, t + j * e)[0] for j in (0, 1, 2)]
-        assert left[2] == right[0] == pytest.approx(knot[1], abs=1e-15)
+        assert left[2] == right[0] == pytest.approx(knot.v, abs=1e-15)
         slope_l, slope_r = (left[2] - left[1]) / e, (right[1] - right[0]) / e
         assert slope_l == pytest.approx(slope_r, abs=1e-3)
         acc_l = (left[2] - 2 * left[1] + left[0]) / e**2
@@ -273,7 +273,7 @@ def test_a_cubic_is_played_back_exactly_through_a_stall() -> None:
             delay = sh.playback_delay_s
             if delay is not None and k > 300:  # the delay filter settled
                 errs.append(ref[Y] - x(now - delay))
-        instants = np.array([knot[0] for knot in sh._hist[Y]])
+        instants = np.array([knot.t for knot in sh._hist[Y]])
         stamps = np.array([1.7e9 + q * j for j in range(2500)]) - 1.7e9
         assert np.all(np.isin(instants, stamps))  # each the stamp itself
         assert np.max(np.abs(np.diff(instants) - q)) < (2.4e-7 if rounded else 1e-12)  # 1 ulp
@@ -288,7 +288,7 @@ def test_extrapolation_goes_on_along_the_cubic_then_at_constant_acceleration() -
     than the bound never stops the reference dead (a velocity step, which the compensator
     turned into 21 % of limited ticks with 25-45 ms stalls)."""
     t0, bound = 0.004, 0.02
-    knot = (t0, *_cubic(t0))
+    knot = Knot(t0, *_cubic(t0))
     value, slope = _extrapolate(knot, t0 + 0.01, bound)
     assert value == pytest.approx(_cubic(t0 + 0.01)[0], abs=1e-12)
     assert slope == pytest.approx(_cubic(t0 + 0.01)[1], abs=1e-12)

@@ -126,8 +126,33 @@ from motcomp.core.native import frozen_reduce
 
 __all__ = ["OFFSET_LEAK", "ReferenceShaper", "ShaperParams"]
 
-Knot = tuple[float, float, float, float, float]
-"""A sample of one axis: instant, value, and the slope, acceleration and jerk there."""
+
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
+class Knot:
+    """A sample of one axis: instant ``t``, value ``v``, and the slope ``m``, acceleration
+    ``a`` and jerk ``j`` there (:func:`_knot`).  A class, not a tuple: compiled, its floats
+    are stored unboxed."""
+
+    t: float
+    v: float
+    m: float
+    a: float
+    j: float
+
+    def __init__(self, t: float, v: float, m: float, a: float, j: float) -> None:
+        self.t, self.v, self.m, self.a, self.j = t, v, m, a, j
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Knot) and self.fields() == other.fields()
+
+    __hash__ = None  # type: ignore[assignment]  # mutable-looking, compared by value
+
+    def fields(self) -> tuple[float, float, float, float, float]:
+        return self.t, self.v, self.m, self.a, self.j
+
+    def __repr__(self) -> str:
+        return f"Knot{self.fields()!r}"
+
 
 OFFSET_LEAK = 0.05
 """Upward drift (s per s) allowed to the fast estimate of the clock offset (smallest transit)."""
@@ -431,11 +456,11 @@ class ReferenceShaper:
                 continue
             live[i] = v
             h = hist[i]
-            if rejoin or not h or t < h[-1][0]:  # start, rejoin, or a t that goes back
+            if rejoin or not h or t < h[-1].t:  # start, rejoin, or a t that goes back
                 h.clear()
                 h.append(_knot(h, t, v))
-            elif t - h[-1][0] < min_dt:  # the same sample again: replace it
-                h[-1] = _knot(_stencil(h, len(h) - 1), h[-1][0], v)
+            elif t - h[-1].t < min_dt:  # the same sample again: replace it
+                h[-1] = _knot(_stencil(h, len(h) - 1), h[-1].t, v)
             else:
                 h.append(_knot(_stencil(h, len(h)), t, v))
                 if len(h) > 2 * HISTORY:  # (trimmed in batches: no shift per sample)
@@ -455,7 +480,8 @@ class ReferenceShaper:
             h = self._hist[i]
             if not p.driven[i] or len(h) < 3 or q <= 0.0:
                 continue
-            (t0, v0), (t1, v1), (t2, v2) = h[-3][:2], h[-2][:2], h[-1][:2]
+            k0, k1, k2 = h[-3], h[-2], h[-1]
+            t0, v0, t1, v1, t2, v2 = k0.t, k0.v, k1.t, k1.v, k2.t, k2.v
             s0 = (v1 - v0) * q / (t1 - t0)  # steps per frame
             s1 = (v2 - v1) * q / (t2 - t1)
             if abs(s1) > best and abs(s1 - s0) <= SKIP_TOLERANCE * abs(s1):
@@ -653,8 +679,8 @@ class ReferenceShaper:
                 out.append(self.live[i])
                 continue
             prev = extra[i]
-            if tau <= h[-1][0] or len(h) == 1:
-                x, xs = _quintic(h, tau) if len(h) > 1 else (h[0][1], 0.0)
+            if tau <= h[-1].t or len(h) == 1:
+                x, xs = _quintic(h, tau) if len(h) > 1 else (h[0].v, 0.0)
                 src = None
             else:  # beyond the newest sample: its Taylor cubic goes on
                 src = h[-1]
@@ -667,7 +693,7 @@ class ReferenceShaper:
                 fix[2] = phi[6] * f + phi[7] * f1 + phi[8] * f2
                 if abs(fix[0]) < FIX_FLOOR and abs(fix[1]) * blend_s < FIX_FLOOR:
                     self._fix[i] = fix = None
-            if prev is not None and (src is None or src[0] != prev[0]):
+            if prev is not None and (src is None or src.t != prev.t):
                 xo, so = _extrapolate(prev, tau, bound)  # the samples changed under it
                 if fix is None:
                     self._fix[i] = fix = [0.0, 0.0, 0.0]
@@ -773,12 +799,12 @@ def _stencil(h: list[Knot], end: int) -> list[Knot]:
     if end == 0:
         return out
     newest = end >= len(h)  # a new sample: the one before it is taken whatever its time
-    t_next = 0.0 if newest else h[end][0]
+    t_next = 0.0 if newest else h[end].t
     j = end - 1
     while j >= 0 and len(out) < 3:
-        if newest or t_next - h[j][0] >= STENCIL_S or j == 0:
+        if newest or t_next - h[j].t >= STENCIL_S or j == 0:
             out.append(h[j])
-            t_next = h[j][0]
+            t_next = h[j].t
             newest = False
         j -= 1
     out.reverse()
@@ -791,7 +817,7 @@ def _knot(before: list[Knot], t: float, v: float) -> Knot:
     so never revised when the next sample comes."""
     if len(before) >= 3:  # the usual case, written out: Newton's divided differences
         k1, k2, k3 = before[-1], before[-2], before[-3]
-        t1, v1, t2, v2, t3, v3 = k1[0], k1[1], k2[0], k2[1], k3[0], k3[1]
+        t1, v1, t2, v2, t3, v3 = k1.t, k1.v, k2.t, k2.v, k3.t, k3.v
         f01 = (v - v1) / (t - t1)
         f12 = (v1 - v2) / (t1 - t2)
         f23 = (v2 - v3) / (t2 - t3)
@@ -800,14 +826,14 @@ def _knot(before: list[Knot], t: float, v: float) -> Knot:
         f0123 = (f012 - f123) / (t - t3)
         d1 = t - t1
         d2 = t - t2
-        return (t, v, f01 + f012 * d1 + f0123 * d1 * d2, 2.0 * f012 + 2.0 * f0123 * (d1 + d2),
-                6.0 * f0123)
+        return Knot(t, v, f01 + f012 * d1 + f0123 * d1 * d2,
+                    2.0 * f012 + 2.0 * f0123 * (d1 + d2), 6.0 * f0123)
     ts = [t]
     f = [v]  # Newton divided differences about the newest: f[0], f[0,1], f[0,1,2], f[0..3]
     col = [v]
     for k in range(len(before) - 1, -1, -1):
-        tk = before[k][0]
-        new = [before[k][1]]
+        tk = before[k].t
+        new = [before[k].v]
         for j in range(len(col)):
             new.append((col[j] - new[j]) / (ts[-1 - j] - tk))
         ts.append(tk)
@@ -816,8 +842,8 @@ def _knot(before: list[Knot], t: float, v: float) -> Knot:
     f += [0.0] * (4 - len(f))
     d1 = t - ts[1] if len(ts) > 1 else 0.0
     d2 = t - ts[2] if len(ts) > 2 else 0.0
-    return (t, v, f[1] + f[2] * d1 + f[3] * d1 * d2, 2.0 * f[2] + 2.0 * f[3] * (d1 + d2),
-            6.0 * f[3])
+    return Knot(t, v, f[1] + f[2] * d1 + f[3] * d1 * d2, 2.0 * f[2] + 2.0 * f[3] * (d1 + d2),
+                6.0 * f[3])
 
 
 def _quintic(h: list[Knot], tau: float) -> tuple[float, float]:
@@ -826,10 +852,11 @@ def _quintic(h: list[Knot], tau: float) -> tuple[float, float]:
     value, slope and acceleration (:func:`_knot`): continuous to the acceleration."""
     n = len(h)
     j = n - 2
-    while j > 0 and tau < h[j][0]:
+    while j > 0 and tau < h[j].t:
         j -= 1
-    t0, v0, m0, a0, _ = h[j]
-    t1, v1, m1, a1, _ = h[j + 1]
+    k0, k1 = h[j], h[j + 1]
+    t0, v0, m0, a0 = k0.t, k0.v, k0.m, k0.a
+    t1, v1, m1, a1 = k1.t, k1.v, k1.m, k1.a
     span = t1 - t0
     x = min(max((tau - t0) / span, 0.0), 1.0)
     m0 *= span
@@ -857,7 +884,7 @@ def _extrapolate(src: Knot, tau: float, bound: float) -> tuple[float, float]:
     with the value, slope and acceleration reached there goes on (continuous to the
     acceleration: stopping there would be a step of velocity, which the compensator turns into
     its limits; the stale-input rule ends a longer gap)."""
-    t_n, v, s, a, j = src
+    t_n, v, s, a, j = src.t, src.v, src.m, src.a, src.j
     el = tau - t_n
     e = min(el, bound)
     value = v + e * (s + e * (0.5 * a + e * j / 6.0))
