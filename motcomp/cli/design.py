@@ -82,6 +82,11 @@ def _add_optimal(p: argparse.ArgumentParser) -> None:
                    help=f"number of Laguerre functions (default {DEFAULT_ORDER})")
     q.add_argument("--prediction-pole-hz", type=float, default=DEFAULT_POLE_HZ, metavar="HZ",
                    help=f"their pole (default {DEFAULT_POLE_HZ:g} Hz)")
+    q.add_argument("--chain-hf-gain", type=float, default=None, metavar="GAIN",
+                   help="with --prediction on: bound the whole chain's command gain at and above "
+                        "--hf-from to GAIN (um of command per um of input noise) and minimise "
+                        "its worst delay within it (default: hold the optimal PID's worst delay "
+                        "with the least command gain)")
     q.add_argument("--step-rise-s", type=non_negative_float, default=None, metavar="S",
                    help="bound the delivered response's overshoot on a minimum-jerk step of this "
                         "rise time (0: the ideal step; default: no step bound)")
@@ -193,7 +198,7 @@ def _options(args: argparse.Namespace) -> OptimalOptions:
 def _prediction(args: argparse.Namespace, default: str) -> PredictionOptions:
     return PredictionOptions(mode=args.prediction or default, order=args.prediction_order,
                              pole_hz=args.prediction_pole_hz, step_rise_s=args.step_rise_s,
-                             overshoot=args.overshoot)
+                             overshoot=args.overshoot, chain_hf_gain=args.chain_hf_gain)
 
 
 @contextmanager

@@ -128,17 +128,29 @@ class PredictorBounds:
 @dataclass(frozen=True)
 class PredictionOptions:
     """What ``motcomp design --rule optimal`` does about prediction: ``mode`` "auto" (use it
-    where it gains ``min_gain_ms`` of worst in-band delay under the same bounds), "on", "off"."""
+    where it gains ``min_gain_ms`` of worst in-band delay under the same bounds), "on", "off".
+
+    ``chain_hf_gain`` ("on" only): bound the whole chain's command gain above ``hf_from_hz``
+    (um of command per um of input there) and minimise its worst delay within it, instead of
+    holding the optimal PID's delay with the least command gain."""
 
     mode: str = "auto"
     order: int = DEFAULT_ORDER
     pole_hz: float = DEFAULT_POLE_HZ
     step_rise_s: float | None = None
     overshoot: float = 0.05
+    chain_hf_gain: float | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in ("auto", "on", "off"):
             raise ConfigError(f"prediction must be auto, on or off, got {self.mode!r}")
+        if self.chain_hf_gain is not None:
+            if self.mode != "on":
+                raise ConfigError("a chain HF-gain bound (--chain-hf-gain) is designed with "
+                                  "--prediction on only")
+            if not (math.isfinite(self.chain_hf_gain) and self.chain_hf_gain > 0):
+                raise ConfigError(f"chain HF-gain bound must be a positive number, got "
+                                  f"{self.chain_hf_gain!r}")
 
 
 @dataclass

@@ -226,12 +226,18 @@ def _predict(plant: ProcessModel, internal: P1D, rate_hz: float, design: opt.Opt
     Compensated axis, ``auto``: the prefilter in series with the optimal PID, least worst delay;
     ``on``: the PID re-optimised for each HF bound of :data:`PID_HF_LADDER` below the given one
     (and as optimised), each followed by the prefilter that holds the optimal PID's worst delay
-    with the least total command gain above ``hf_from_hz``; the quietest chain is kept.
+    with the least total command gain above ``hf_from_hz``; the quietest chain is kept.  With
+    ``p.chain_hf_gain``, each is followed instead by the prefilter of least worst delay with the
+    chain's command gain above ``hf_from_hz`` within that bound (the prefilter alone on a
+    bypassed axis), and the chain of least worst delay is kept.
     ``auto`` uses the prefilter where it gains ``o.min_gain_ms`` of worst delay.  Returns the
     report block and ``(gains or None, PredictorParams)`` if used.
     """
     c = design.constraints
     bounds = PredictorBounds.from_constraints(c)
+    chain_hf = p.chain_hf_gain
+    if chain_hf is not None:
+        bounds = replace(bounds, hf_command_gain=chain_hf)
     ev = design.evaluation
     bypass = design.recommend_bypass
     base_series = None if bypass else (design.gains, internal)
@@ -262,25 +268,34 @@ def _predict(plant: ProcessModel, internal: P1D, rate_hz: float, design: opt.Opt
                     plant, internal, rate_hz, replace(c, hf_command_gain=hf), None,
                     o.setpoint_weights, o.min_gain_ms).gains
                 try:
-                    candidates.append((g, hf, run((g, internal), baseline)))
+                    candidates.append((g, hf, run((g, internal),
+                                                  baseline if chain_hf is None else None)))
                 except ConfigError:
                     continue
             if not candidates:
-                raise ConfigError(f"prediction: no prefilter in series with the PID holds "
-                                  f"{baseline:.2f} ms within the bounds")
+                raise ConfigError(
+                    f"prediction: no prefilter in series with the PID holds {baseline:.2f} ms "
+                    f"within the bounds" if chain_hf is None else
+                    f"prediction: no prefilter in series with the PID keeps the chain's command "
+                    f"gain within {chain_hf:g} above {c.hf_from_hz:g} Hz")
     except ConfigError as exc:
         if p.mode == "on":
             raise
         block["note"] = str(exc)
         return block, None
-    gains, hf, best = min(candidates, key=lambda t: (round(t[2].check.hf_command_gain, 6),
-                                                     t[2].worst_delay_ms))
+    if chain_hf is None:  # the quietest of the chains holding the PID's delay
+        gains, hf, best = min(candidates, key=lambda t: (round(t[2].check.hf_command_gain, 6),
+                                                         t[2].worst_delay_ms))
+    else:  # the least delay within the chain's bound
+        gains, hf, best = min(candidates, key=lambda t: (round(t[2].worst_delay_ms, 3),
+                                                         t[2].check.hf_command_gain))
     without = check_chain(plant, rate_hz, base_series, None, bounds, p.step_rise_s)
     gain_ms = baseline - best.worst_delay_ms
     used = p.mode == "on" or gain_ms >= o.min_gain_ms
     block.update({
         "used": used,
         "pid_hf_bound": hf,
+        "chain_hf_bound": chain_hf,
         "gain_ms": gain_ms,
         "design": best.summary(),
         "without": without.as_dict(),
@@ -526,6 +541,9 @@ def prediction_markdown(block: dict[str, Any]) -> list[str]:
     series = "after it, the PID" if block["series"] == "pid" else "alone (axis bypassed)"
     if block.get("pid_hf_bound") is not None:
         series += f" re-optimised for a command gain <= {block['pid_hf_bound']:g} above the band"
+    if block.get("chain_hf_bound") is not None:
+        series += (f"; least worst delay with the chain's command gain <= "
+                   f"{block['chain_hf_bound']:g} above the band")
     lines += [f"{d['order']} Laguerre functions, pole {p['pole_hz']:g} Hz, {series}; "
               f"used: **{'yes' if block['used'] else 'no'}**.", "",
               "| metric | without | with |", "|---|---|---|"]
