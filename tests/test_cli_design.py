@@ -137,6 +137,40 @@ def test_rails_prediction_on_keeps_delay_and_peak_with_a_quieter_command(
     assert json.loads(auto.stdout)["prediction"]["used"] is False
 
 
+def test_rails_chain_hf_gain_states_the_noise_figure_and_buys_delay_with_it() -> None:
+    """``--chain-hf-gain G``: the whole chain's command gain above 10 Hz is at most G (as the
+    report's noise figure says) and its worst delay is the least within it: a looser G buys
+    less delay, and G = 20 beats the default, which only holds the optimal PID's delay."""
+    base = ("design", "--plant", "rails", "--rule", "optimal", "--prediction", "on",
+            "--band", "0.03", "2", "--input-lag-ms", "1.1", "--quiet", "--json")
+    worst: dict[float, float] = {}
+    for g in (16.0, 20.0):
+        p = run(*base, "--chain-hf-gain", f"{g:g}")
+        assert p.returncode == 0, p.stderr
+        out = json.loads(p.stdout)
+        pred = out["prediction"]
+        assert pred["used"] is True and pred["chain_hf_bound"] == g
+        assert pred["with"]["hf_command_gain"] <= g * 1.001
+        assert out["corrected"]["hf_command_gain"] <= g * 1.001  # the deployed chain
+        assert out["noise"]["with_band_limit"]["hf_gain"] <= g * 1.001  # the stated figure
+        assert pred["with"]["peak_gain_db"] <= 8.0 + 0.005
+        assert pred["with"]["gain_error_db"] <= 1.0 + 0.005
+        worst[g] = pred["with"]["max_delay_ms"]
+    default = run(*base)
+    assert default.returncode == 0, default.stderr
+    held = json.loads(default.stdout)["prediction"]["with"]["max_delay_ms"]
+    assert worst[20.0] < worst[16.0] < held, (worst, held)
+
+
+def test_chain_hf_gain_needs_prediction_on() -> None:
+    p = run("design", "--plant", "rails", "--rule", "optimal", "--chain-hf-gain", "20",
+            "--quiet")
+    assert p.returncode == 2 and "--prediction on" in p.stderr and "Traceback" not in p.stderr
+    p = run("design", "--plant", "rails", "--rule", "optimal", "--prediction", "on",
+            "--chain-hf-gain", "-3", "--quiet")
+    assert p.returncode == 2 and "-3" in p.stderr and "Traceback" not in p.stderr
+
+
 def test_pareto_with_prediction_draws_both_curves(tmp_path: Path) -> None:
     out = tmp_path / "pareto"
     p = run("pareto", "--plant", "hexapod", "--bounds", "6", "--hf-bounds", "3",

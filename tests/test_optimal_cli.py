@@ -38,8 +38,9 @@ def test_design_optimal_json_keeps_the_schema_and_adds_its_block() -> None:
 
 def test_design_optimal_fragment_is_the_example_configs_rails_tuning(tmp_path: Path) -> None:
     """``--out`` writes the gains and the prefilter in the config's keys, exactly; the example
-    config's rails are this design -- a 1 kHz sender played back 1.1 ms late, the default 48 Hz
-    band limit, the PID and the prefilter in series over 0.03-2 Hz -- to the last digit."""
+    config's rails are this design -- the live stack's 2.8 ms (a 1 kHz sender's playback and the
+    platform's setpoint age), the default 48 Hz band limit, the PID and the prefilter in series
+    over 0.03-2 Hz, the chain's command gain above 10 Hz bounded to 20 -- to the last digit."""
     import re
     import tomllib
 
@@ -50,16 +51,17 @@ def test_design_optimal_fragment_is_the_example_configs_rails_tuning(tmp_path: P
     from motcomp.resources import config_file
 
     frag = tmp_path / "design.toml"
-    p = run("design", "--plant", "rails", "--rule", "optimal", "--input-lag-ms", "1.1",
-            "--prediction", "on", "--band", "0.03", "2", "--json", "--quiet", "--out", str(frag))
+    p = run("design", "--plant", "rails", "--rule", "optimal", "--input-lag-ms", "2.8",
+            "--prediction", "on", "--band", "0.03", "2", "--chain-hf-gain", "20", "--json",
+            "--quiet", "--out", str(frag))
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
     text = frag.read_text()
-    assert re.match(r"# motcomp design: optimal, rails preset, 1000 Hz: residual 2\.\d\d ms, "
+    assert re.match(r"# motcomp design: optimal, rails preset, 1000 Hz: residual 0\.\d\d ms, "
                     r"peak \+7\.9 dB \(generated\)\n", text), text
-    assert "played back 8.11 ms behind its newest sample (of which 7.01 ms the band limit" in text
-    assert out["input_lag_ms"] == pytest.approx(1.1 + 7.009, abs=1e-3)
-    assert out["noise"]["with_band_limit"]["hf_gain"] < 15.0  # the figure the docs quote
+    assert "played back 9.81 ms behind its newest sample (of which 7.01 ms the band limit" in text
+    assert out["input_lag_ms"] == pytest.approx(2.8 + 7.009, abs=1e-3)
+    assert out["noise"]["with_band_limit"]["hf_gain"] <= 20.0  # the figure the docs quote
     axis = tomllib.loads(text)["axes"]["rails_y"]
     assert set(axis) == {"model", "bypass", "gains", "prediction"} and axis["bypass"] is False
     assert axis["gains"] == out["gains"]

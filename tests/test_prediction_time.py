@@ -23,6 +23,10 @@ HEX = ("hex_x", "hex_y", "hex_z", "hex_roll", "hex_pitch", "hex_yaw")
 MAX_ADDED_OVERSHOOT = 0.05
 """Largest overshoot beyond the reference that prediction adds to the platform's own, as a share
 of the step (the issue's aim; measured at most 0.3 points: docs/PREDICTION.md)."""
+STACK_LAG_S = 0.0028
+"""What the example config's prefilters are designed for beyond the platform's truth model and
+the band limit (config/motcomp.toml, `--input-lag-ms 2.8`): a 1 kHz sender's playback and the
+platform's setpoint age on the live stack."""
 
 
 @pytest.fixture(scope="module")
@@ -37,11 +41,11 @@ def _plain(cfg: ServiceConfig) -> ServiceConfig:
 
 def test_shipped_prefilters_meet_the_bounds(cfg: ServiceConfig) -> None:
     """What the prefilters were designed for (config/motcomp.toml): the platform behind a 1 kHz
-    sender's 1.1 ms playback and the config's band limit; worst phase delay over 0.1-2 Hz
-    <= 3 ms (from 73.8), in-band gain error <= 1 dB, peak of the delivered response <= +6 dB,
-    command gain above 10 Hz <= 5: plant by freqz of its discretisation, prefilter by freqz of
-    its impulse response, the band limit by scipy's Bessel through the bilinear transform,
-    phase unwrapped from 1 mHz."""
+    sender's playback and the platform's setpoint age (STACK_LAG_S) and the config's band limit;
+    worst phase delay over 0.1-2 Hz <= 2 ms (from 75.5), in-band gain error <= 1 dB, peak of
+    the delivered response <= +6 dB, command gain above 10 Hz <= 7: plant by freqz of its
+    discretisation, prefilter by freqz of its impulse response, the band limit by scipy's
+    Bessel through the bilinear transform, phase unwrapped from 1 mHz."""
     from scipy.signal import bessel, bilinear
 
     axes = resolve_axes(cfg)
@@ -61,14 +65,14 @@ def test_shipped_prefilters_meet_the_bounds(cfg: ServiceConfig) -> None:
         band_delay = 2.113917674904216 / (2 * np.pi * band_hz)  # the Bessel's -3 dB
         bz, az = bilinear(*bessel(4, 1.0 / band_delay, norm="delay", analog=True), fs=RATE)
         _, lim = freqz(bz, az, worN=f, fs=RATE)
-        t = plant * pre * lim * np.exp(-2j * np.pi * f * 0.0011)
+        t = plant * pre * lim * np.exp(-2j * np.pi * f * STACK_LAG_S)
         band = (f >= 0.1) & (f <= 2.0)
         tau = -np.unwrap(np.angle(t))[band] / (2 * np.pi * f[band])
         mag_db = 20 * np.log10(np.abs(t))
-        assert np.max(np.abs(tau)) <= 0.003, (name, np.max(np.abs(tau)))
+        assert np.max(np.abs(tau)) <= 0.002, (name, np.max(np.abs(tau)))
         assert np.max(np.abs(mag_db[band])) <= 1.0 + 0.01, name
         assert mag_db.max() <= 6.0 + 0.01, name
-        assert np.abs(pre[f >= 10.0]).max() <= 5.0 * 1.001, name
+        assert np.abs(pre[f >= 10.0]).max() <= 7.0 * 1.001, name
 
 
 def _step(size: float, rise_s: float) -> np.ndarray:
@@ -119,8 +123,8 @@ def test_sudden_reversal_overshoot_added_by_prediction_is_bounded(cfg: ServiceCo
     before the turn tells it, so a predictor that cancels a delay ``D`` runs past the turning
     point by ``speed x D``: prediction adds at most that to the platform's own overshoot, ``D``
     the delay its design cancels: the platform's low-frequency phase delay (35.5 ms at 0.2 Hz)
-    and what the service adds before it (the band limit's 7.0 ms and the 1 kHz playback's
-    1.1 ms, config/motcomp.toml).  Measured before the band limit: 0.55-0.94 of the platform's
+    and what the service adds before it (the band limit's 5.3 ms and STACK_LAG_S,
+    config/motcomp.toml).  Measured before the band limit: 0.55-0.94 of the platform's
     (0.4, 3.0 and 10 mm; 3.9-6.7 % of these 10-150 mm travels: a reversal after a short travel
     costs more than 5 % of it)."""
     up = speed * np.arange(500) / RATE
@@ -133,7 +137,7 @@ def test_sudden_reversal_overshoot_added_by_prediction_is_bounded(cfg: ServiceCo
     band = new_tick(cfg)[0].shaper.band[AXIS_INDEX["hex_x"]]
     assert band is not None
     delay_s = (float(resolve_axes(cfg).plants[AXIS_INDEX["hex_x"]].phase_delay(0.2)[0])
-               + band.delay_s + 0.0011)
+               + band.delay_s + STACK_LAG_S)
     assert added_m <= speed * delay_s, (speed, added_m, speed * delay_s)
 
 

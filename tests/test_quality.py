@@ -13,6 +13,7 @@ from motcomp.core.quality import (
     command_quality_over,
     estimate_delay,
     hf_rms,
+    sine_delay,
     stretches,
 )
 from motcomp.errors import ConfigError
@@ -99,6 +100,39 @@ def test_estimate_delay_of_a_shifted_band_limited_signal() -> None:
     resp = sum(np.sin(2 * math.pi * f * (t - 0.0374) + k) for k, f in enumerate(fast))
     assert estimate_delay(ref, resp, RATE, max_lag_s=0.2, min_lag_s=-0.1) == pytest.approx(
         0.0374, abs=1e-4)
+
+
+@pytest.mark.parametrize("window_s", [16.0, 17.0, 18.0, 19.0])
+def test_sine_delay_on_any_window_where_cross_correlation_is_biased(window_s: float) -> None:
+    """A 0.31 Hz sine 4.6 ms late, with an offset, a drift and irregular instants: the fit reads
+    the delay and the amplitude on every window, where equal windows' cross-correlation reads
+    a fraction of it (a window that is not a whole number of periods)."""
+    rng = np.random.default_rng(3)
+    t = 2.0 + np.sort(rng.uniform(0.0, window_s, round(window_s * 1000)))
+    y = 0.02 + 0.001 * t + 0.4 * np.sin(2 * math.pi * 0.31 * (t - 0.0046))
+    fit = sine_delay(t, y, 0.0, 0.31)
+    assert fit.delay_s == pytest.approx(0.0046, abs=1e-9)
+    assert fit.amplitude == pytest.approx(0.4, rel=1e-9) and fit.r2 == pytest.approx(1.0)
+    grid = np.arange(2.0, 2.0 + window_s, 1e-3)
+    xc = estimate_delay(0.4 * np.sin(2 * math.pi * 0.31 * grid),
+                        0.4 * np.sin(2 * math.pi * 0.31 * (grid - 0.0046)), RATE)
+    assert xc < 0.0035  # the bias the fit avoids
+
+
+def test_sine_delay_ahead_and_noisy() -> None:
+    """Ahead is negative; white noise lowers R^2 to 1 - its share of the variance."""
+    rng = np.random.default_rng(4)
+    t = np.arange(0.0, 20.0, 1e-3)
+    clean = 0.05 * np.sin(2 * math.pi * 0.5 * (t + 0.002))
+    noise = rng.normal(0.0, 0.001, t.size)
+    fit = sine_delay(t, clean + noise, 0.0, 0.5)
+    # the phase's standard error: sigma / (A sqrt(N / 2)) rad = 0.064 ms; 5 of them
+    assert fit.delay_s == pytest.approx(-0.002, abs=3.2e-4)
+    assert fit.r2 == pytest.approx(1.0 - 0.001**2 / (0.05**2 / 2 + 0.001**2), abs=1e-4)
+    with pytest.raises(ConfigError, match="constant"):
+        sine_delay(t, np.zeros_like(t), 0.0, 0.5)
+    with pytest.raises(ConfigError, match="equal 1-D"):
+        sine_delay(t, clean[:-1], 0.0, 0.5)
 
 
 def test_bad_input_is_a_clear_error() -> None:

@@ -10,10 +10,10 @@ process (``wire_senders.py --kind K --rate R --signal S --json ...``, a seed sha
 modes).  Over the motion without its first :data:`SKIP_S` s (the start-up blend and the sine's
 abrupt start), on the axis the scenario moves:
 
-* delay: the platform's feedback behind the motion the sender meant -- its motion function at
-  the received frames' ``t`` (without ``t``: at the sender's nominal instants ``t0 + k /
-  rate``, from its JSON summary) -- by cross-correlation on a 1 ms grid
-  (``bench_motion.resampled_delay``);
+* delay: the platform's feedback (at its own ``t``) behind the motion the sender meant, the
+  sine ``A sin(2 pi f (t - t0))`` of its JSON summary's ``t0``: the phase of a sine of that
+  frequency fitted to the feedback (``motcomp.core.quality.sine_delay``; a cross-correlation
+  of two equal windows of so slow a sine reads a fraction of the delay);
 * sat: the share of output frames flagged ``sat:<axis>``; at limit: the share of ticks whose
   command acceleration (second difference on the output ``seq`` grid) is at the axis' limit;
 * HF acc RMS above 5 Hz and jerk RMS of the command over the stretches of consecutive ticks,
@@ -62,7 +62,6 @@ from bench_motion import (
     frame_gaps,
     mode_config,
     pct,
-    resampled_delay,
     seed_of,
     segments,
     snapshot_code,
@@ -73,7 +72,7 @@ from wire_senders import SIGNALS
 from motcomp.config import ServiceConfig, config_hash, load_config, resolve_axes
 from motcomp.core.axes import AXIS_INDEX
 from motcomp.core.models import simulate_axis
-from motcomp.core.quality import HF_ABOVE_HZ
+from motcomp.core.quality import HF_ABOVE_HZ, sine_delay
 from motcomp.io.zenoh_io import loopback
 from motcomp.jsonsafe import finite
 from motcomp.sim.hil import default_truth
@@ -153,9 +152,9 @@ def ideal(cfg: ServiceConfig, scenario: str, duration_s: float, a_max: float,
     run = ideal_run(cfg, {axis: ref}, IDEAL_RATE_HZ)  # (the mode's config: its bypass)
     u = run.u[axis]
     y = simulate_axis(truth, u, run.rate_hz)
-    w_ref, w_out = tau >= SKIP_S, run.t >= SKIP_S
+    w_out = run.t >= SKIP_S
     fig = command_figures(u, [slice(round(SKIP_S * run.rate_hz), u.size)], run.rate_hz, a_max)
-    delay = resampled_delay(tau[w_ref], ref[w_ref], run.t[w_out], y[w_out]) * 1e3
+    delay = sine_delay(run.t[w_out], y[w_out], 0.0, signal.frequency_hz).delay_s * 1e3
     return Ideal(u, {"delay_ms": delay, **fig})
 
 
@@ -167,15 +166,10 @@ def analyse(rec: Recording, cls: SenderClass, scenario: str, duration_s: float, 
     src = rec.source
     t0 = float(src["t0_s"])
     w0, w1 = t0 + SKIP_S, t0 + duration_s
-    # the motion the sender meant: its function at the frames' t, or at its nominal instants
+    # how late the frames arrived after their t (none without t)
     sent = [(arrival, msgpack.unpackb(p)) for arrival, p in rec.inputs]
-    if cls.kind == "no_t":
-        t_ref = t0 + np.arange(math.ceil(duration_s * cls.rate_hz)) / cls.rate_hz
-        late = np.zeros(0)
-    else:
-        t_ref = np.unique([f["t"] for _, f in sent])
-        late = np.array([a - f["t"] for a, f in sent])
-    ref = np.array([signal(x - t0) for x in t_ref])
+    late = (np.zeros(0) if cls.kind == "no_t" else
+            np.array([a - f["t"] for a, f in sent]))
     # the command on the output seq grid
     frames = [msgpack.unpackb(p) for p in rec.outputs]
     frames = sorted((f for f in frames if w0 <= f["t"] < w1), key=lambda f: f["seq"])
@@ -196,12 +190,11 @@ def analyse(rec: Recording, cls: SenderClass, scenario: str, duration_s: float, 
     t_fb = np.array([f["t"] for f in fb])
     y_fb = np.array([f["pos"][axis] for f in fb])
     sel_fb = (t_fb >= w0) & (t_fb <= w1)
-    sel_ref = (t_ref >= w0) & (t_ref <= w1)
     before, after = rec.status_before, rec.status_after
     fr0, fr1 = before.get("frames", {}), after.get("frames", {})
     return {
-        "delay_ms": resampled_delay(t_ref[sel_ref], ref[sel_ref], t_fb[sel_fb],
-                                    y_fb[sel_fb]) * 1e3,
+        "delay_ms": sine_delay(t_fb[sel_fb], y_fb[sel_fb], t0,
+                               signal.frequency_hz).delay_s * 1e3,
         "sat": float(sat.mean()) if sat.size else math.nan,
         **fig,
         "ideal_same": {k: floor[k] for k in ("at_limit", "hf_acc_rms", "jerk_rms")},
@@ -315,9 +308,11 @@ def report(args: argparse.Namespace, runs: list[dict[str, Any]], ideals: list[di
         f"Targets met by {len(runs) - len(failed)} of {len(runs)} runs." if runs else "",
         "",
         "What the figures mean.  *delay*: the platform's feedback (`motcomp hil`) behind the "
-        "motion the sender meant -- its motion function at the frames' `t` (without `t`, at "
-        "its nominal instants `t0 + k / rate`) -- by cross-correlation on a 1 ms grid; the "
-        "ideal rows: the ideal command through the platform simulator's true model.  *sat*: "
+        "motion the sender meant, the sine `A sin(2 pi f (t - t0))` from the sender's `t0`: "
+        "the phase of a sine of that frequency fitted to the feedback at its own `t` "
+        "(`motcomp.core.quality.sine_delay`; the cross-correlation of two equal windows of so "
+        "slow a sine, used before, read a fraction of the delay); the ideal rows: the ideal "
+        "command through the platform simulator's true model.  *sat*: "
         "output frames flagged `sat:<axis>`.  *at acc limit*: ticks whose command "
         "acceleration, the second difference on the output `seq` grid, is within 1 % of the "
         "axis' limit.  *HF acc RMS*: the command's acceleration above "

@@ -6,6 +6,11 @@ service's status):
 ``estimate_delay``
     delay of a response behind a reference by cross-correlation, the integer peak refined by a
     parabola through it and its neighbours (sub-sample).
+``sine_delay``
+    delay of a response to a pure sine of known frequency behind that sine, from a least-squares
+    fit of ``a sin(w tau) + b cos(w tau) + c + d tau`` (``-atan2(b, a) / w``): unbiased on any
+    window, where the cross-correlation of two equal windows of a slow motion is pulled towards
+    zero (a 0.31 Hz sine delayed 4.6 ms reads 0.1-0.3 ms over 16-19 s).
 ``command_quality``
     of a position command sampled at a uniform rate: the RMS of its acceleration above
     ``above_hz`` (what vibrates the cabin and wears the actuators: a motion-cueing command lives
@@ -31,11 +36,13 @@ from motcomp.errors import ConfigError
 __all__ = [
     "AT_LIMIT_FRACTION",
     "CommandQuality",
+    "SineFit",
     "at_acc_limit",
     "command_quality",
     "command_quality_over",
     "estimate_delay",
     "hf_rms",
+    "sine_delay",
     "stretches",
 ]
 
@@ -84,6 +91,46 @@ def estimate_delay(reference: ArrayLike, response: ArrayLike, rate_hz: float,
     denom = y0 - 2 * y1 + y2
     frac = 0.5 * (y0 - y2) / denom if denom != 0 else 0.0
     return float((lags[i] + frac) / rate_hz)
+
+
+@dataclass(frozen=True)
+class SineFit:
+    """A response fitted as a sine of the reference's frequency (:func:`sine_delay`)."""
+
+    amplitude: float
+    delay_s: float
+    """Behind the reference, within half a period either way."""
+    r2: float
+    """Share of the response's variance the fit explains."""
+
+
+def sine_delay(t_s: ArrayLike, y: ArrayLike, t0_s: float, frequency_hz: float) -> SineFit:
+    """``y`` sampled at ``t_s`` as a delayed ``sin(2 pi f (t - t0_s))``: least squares of
+    ``a sin(w tau) + b cos(w tau) + c + d tau`` (tau = t - t0_s), delay ``-atan2(b, a) / w``.
+
+    Raises
+    ------
+    ConfigError
+        If the samples are too few, of unequal length, or ``y`` is constant.
+    """
+    t = np.asarray(t_s, dtype=float)
+    v = np.asarray(y, dtype=float)
+    if t.shape != v.shape or t.ndim != 1 or t.size < 5:
+        raise ConfigError(f"a sine fit needs equal 1-D arrays of 5 samples or more, got "
+                          f"{t.shape} and {v.shape}")
+    if not (math.isfinite(frequency_hz) and frequency_hz > 0):
+        raise ConfigError(f"sine frequency must be a positive number of Hz, got {frequency_hz}")
+    var = float(v.var())
+    if var == 0.0:
+        raise ConfigError("cannot fit a sine: the response is constant")
+    tau = t - t0_s
+    w = 2.0 * math.pi * frequency_hz
+    basis = np.column_stack([np.sin(w * tau), np.cos(w * tau), np.ones_like(tau),
+                             tau - tau.mean()])
+    coef, *_ = np.linalg.lstsq(basis, v, rcond=None)
+    resid = v - basis @ coef
+    return SineFit(float(math.hypot(coef[0], coef[1])), -math.atan2(coef[1], coef[0]) / w,
+                   1.0 - float(resid.var()) / var)
 
 
 def hf_rms(x: ArrayLike, rate_hz: float, above_hz: float = HF_ABOVE_HZ) -> float:
