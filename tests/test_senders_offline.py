@@ -54,8 +54,9 @@ def _frame(seq: int, t: float | None, axis: str, value: float, float32: bool = F
             + msgpack.packb("pos") + packer.pack({axis: value}))
 
 
-def _sender(kind: str, axis: str, rng: np.random.Generator) -> list[tuple[float, bytes]]:
-    """(arrival on the loop's clock, frame) of one sender class."""
+def _sender(kind: str, axis: str, rng: np.random.Generator,
+            rate_hz: float = 1000.0) -> list[tuple[float, bytes]]:
+    """(arrival on the loop's clock, frame) of one sender class (``rate_hz``: grid only)."""
     out: list[tuple[float, bytes]] = []
     tau, k = 0.0, 0
     while tau < DURATION_S:
@@ -74,6 +75,8 @@ def _sender(kind: str, axis: str, rng: np.random.Generator) -> list[tuple[float,
         elif kind == "varstep":  # a variable-step solver, 0.5-2 ms steps, epoch stamps
             t = T0 + tau
             v = _motion(axis, t - T0)
+        elif kind in ("epoch_rounded", "varstep_rounded"):  # the value at the exact instant,
+            t, v = T0 + tau, _motion(axis, tau)  # stamped in epoch seconds: rounding is noise
         elif kind == "no_t":
             t, v = None, _motion(axis, tau)
         else:
@@ -81,12 +84,14 @@ def _sender(kind: str, axis: str, rng: np.random.Generator) -> list[tuple[float,
         sample = tau if t is None else (t - T0 if t > T0 - 1 else t)
         out.append((sample + late, _frame(k, t, axis, v, float32=kind == "float32")))
         k += 1
-        tau = tau + rng.uniform(5e-4, 2e-3) if kind == "varstep" else k / 1000.0
+        tau = (tau + rng.uniform(5e-4, 2e-3) if kind.startswith("varstep") else
+               k / (rate_hz if kind == "grid" else 1000.0))
     out.sort(key=lambda a: a[0])
     return out
 
 
-def _run(cfg: ServiceConfig, kind: str, axis: str, bypass: bool) -> tuple[float, float, float]:
+def _run(cfg: ServiceConfig, kind: str, axis: str, bypass: bool,
+         rate_hz: float = 1000.0) -> tuple[float, float, float]:
     """(share of ticks the limiter acted on, HF acc RMS, jerk RMS) of the command over the
     motion after SKIP_S."""
     axes = resolve_axes(cfg)
@@ -94,7 +99,7 @@ def _run(cfg: ServiceConfig, kind: str, axis: str, bypass: bool) -> tuple[float,
     if bypass:
         set_bypass(state, list(axes.driven))
     i = AXIS_INDEX[axis]
-    frames = _sender(kind, axis, np.random.default_rng(7))
+    frames = _sender(kind, axis, np.random.default_rng(7), rate_hz)
     n = int(DURATION_S * 1000) - 5
     u, acted = np.empty(n), np.zeros(n, dtype=bool)
     j = 0
@@ -145,3 +150,33 @@ def test_without_the_cure_the_same_senders_make_the_command_chatter(kind: str) -
     jerk0 = _run(_cfg(), "grid", "rails_y", False)[2]
     share, _, jerk = _run(cfg, kind, "rails_y", False)
     assert share > 0.005 or jerk > 10.0 * jerk0, (kind, share, jerk, jerk0)
+
+
+TABLE = [("exact values on a 1 kHz grid, sent 0.3-0.9 ms late (the floor)", "grid", 1000.0),
+         ("the same values as float32", "float32", 1000.0),
+         ("`t = t0 + k/rate` in epoch seconds, the value computed at it", "epoch", 1000.0),
+         ("each value computed at the wall time it stamps (100-300 us after the grid)",
+          "wallclock", 1000.0),
+         ("no `t` (1 kHz)", "no_t", 1000.0),
+         ("250 Hz grid", "grid", 250.0), ("100 Hz grid", "grid", 100.0),
+         ("60 Hz grid", "grid", 60.0),
+         ("values at `k/rate`, stamped `t0 + k/rate` in epoch seconds (the rounding is noise)",
+          "epoch_rounded", 1000.0),
+         ("variable steps of 0.5-2 ms, values at the exact step, stamped in epoch seconds "
+          "(idem)", "varstep_rounded", 1000.0),
+         ("variable steps of 0.5-2 ms, each value computed at its epoch stamp", "varstep",
+          1000.0)]
+"""The rows of docs/WIRE.md's offline table: (label, sender class, rate)."""
+
+
+if __name__ == "__main__":  # docs/WIRE.md's table: python tests/test_senders_offline.py
+    cfg = _cfg()
+    print("| sender | rails_y, on | rails_y, bypassed | hex_z, on (predicted) | hex_z, bypassed |")
+    print("|---|---|---|---|---|")
+    for label, kind, rate in TABLE:
+        cells = []
+        for axis in ("rails_y", "hex_z"):
+            for bypass in (False, True):
+                share, hf, jerk = _run(cfg, kind, axis, bypass, rate)
+                cells.append(f"{100 * share:.3g} %, {hf:.2g}, {jerk:.2g}")
+        print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
