@@ -576,7 +576,7 @@ def report(res: DemoResult) -> str:
               *_wrap("sat flags: ticks at which the service's limiter kept an axis' command "
                      "within its limits or away from the compensated target (flag sat:<axis>), "
                      "from its counters, whole phase.  The compensator amplifies the high "
-                     "frequencies of its input (13x above 10 Hz on the example rails), so "
+                     "frequencies of its input (20x above 10 Hz on the example rails), so "
                      "irregular input timing -- stalls and jitter of the processes on a busy "
                      "machine -- reaches the acceleration limit: the ideal columns show what "
                      "evenly timed input gives."),

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -43,6 +44,7 @@ from motcomp.core.axes import AXIS_INDEX
 from motcomp.core.minjerk import min_jerk
 from motcomp.core.models import simulate_axis
 from motcomp.core.quality import command_quality, estimate_delay
+from motcomp.errors import ConfigError
 from motcomp.sim.ideal import ideal_run
 from motcomp.sim.source import band_sweep, builtin, lane_change
 
@@ -104,7 +106,10 @@ def run(cfg: ServiceConfig, axis: str, r: np.ndarray, on_velocity: bool) -> dict
     n = min(y.size, r.size)
     ref, y = r[:n], y[:n]
     a, b = (np.diff(ref), np.diff(y)) if on_velocity else (ref, y)
-    delay = estimate_delay(a, b, RATE_HZ, max_lag_s=0.3, min_lag_s=-0.1)
+    try:
+        delay = estimate_delay(a, b, RATE_HZ, max_lag_s=0.3, min_lag_s=-0.1)
+    except ConfigError:  # no peak within the lags (a limiter-bound step): not a delay
+        delay = math.nan
     span = float(np.ptp(ref))
     over = max(float(y.max() - ref.max()), float(ref.min() - y.min()), 0.0)
     q = command_quality(u, RATE_HZ)
