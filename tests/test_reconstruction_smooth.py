@@ -187,6 +187,29 @@ def test_samples_a_sender_skips_keep_their_place(with_t: bool) -> None:
     assert share == 0.0 and hf <= 1.2 * _floor(smooth, "slalom", False)
 
 
+@pytest.mark.parametrize("before_trough_ms", [32, 60, 120])
+def test_samples_skipped_where_the_motion_slows_keep_their_place(before_trough_ms: int) -> None:
+    """A 1 kHz sender without t (the hexapod's 5 cm, 0.5 Hz heave, on time) skips three samples
+    ``before_trough_ms`` before a trough, where its steps shrink by 1-3 % a sample: four samples
+    then move less than four times the next step (a live recording: 32 ms before the trough,
+    the constant-step rule read 3.8 steps, out of tolerance, and placed the sample three periods
+    early; the predicted hexapod's command sat at its acceleration limit for 50 ms).  Along the
+    last step and its change, each sample keeps its instant: the knots are the true instants."""
+    p = _params()
+    x = lambda t: 0.05 * np.sin(np.pi * t)  # noqa: E731  (trough at 1.5 s)
+    sh = ReferenceShaper(8)
+    skip0 = 1500 - before_trough_ms
+    sent = [k for k in range(1600) if not skip0 < k <= skip0 + 3]
+    instants = []
+    for k in sent:
+        now = k * 1e-3 + 3e-4
+        sh.on_input(p, {Y: float(x(k * 1e-3))}, now)  # seq steps by 1: the skip is unseen
+        sh.reference(p, now)
+        instants.append(sh._hist[Y][-1].t)
+    err = np.diff(instants) - np.diff(sent) * 1e-3
+    assert np.max(np.abs(err[500:])) < 1e-6, (np.argmax(np.abs(err)), np.max(np.abs(err)))
+
+
 @pytest.mark.parametrize("drift", [3e-4, -1e-4], ids=["slow-300ppm", "fast-100ppm"])
 def test_a_drifting_sender_clock_is_followed_without_steps(drift: float) -> None:
     """The sender's clock runs 300 ppm slow (or 100 ppm fast) against the loop's: the frames'

@@ -471,9 +471,11 @@ class ReferenceShaper:
         the sender's samples its step spans (``frames``, or more when the sender skipped some).
         Read from the motion itself, on the axis moving fastest: where its last two steps (per
         sample) agree within SKIP_TOLERANCE (a steady motion, not a start or a reversal) and
-        moved at least MIN_SKIP_STEP, a new step SKIP_TOLERANCE-close to m > ``frames`` times
-        the one expected (the last step plus its change) spans m samples; a wrong count, where
-        the motion is too slow or unsteady to tell, misplaces a sample by little."""
+        moved at least MIN_SKIP_STEP, a new step SKIP_TOLERANCE-close to what m > ``frames``
+        samples move along the last step and its change (a constant second difference: the
+        steps of a slowing motion shrink, so m samples move less than m times the next step)
+        spans m samples; a wrong count, where the motion is too slow or unsteady to tell,
+        misplaces a sample by little."""
         q = self._period
         best, ratio = 0.0, 1.0
         for i, v in pos.items():
@@ -485,7 +487,14 @@ class ReferenceShaper:
             s0 = (v1 - v0) * q / (t1 - t0)  # steps per frame
             s1 = (v2 - v1) * q / (t2 - t1)
             if abs(s1) > best and abs(s1 - s0) <= SKIP_TOLERANCE * abs(s1):
-                best, ratio = abs(s1), (v - v2) / (2.0 * s1 - s0)
+                # the k-th step on is s1 + dd (k + e): m of them move a m^2 + b m
+                dd = (s1 - s0) * 2.0 * q / (t2 - t0)  # change of the step per sample
+                a = 0.5 * dd
+                b = s1 + dd * (0.5 + (0.5 * (t2 - t1) - 0.5 * q) / q)
+                dv = v - v2
+                disc = b * b + 4.0 * a * dv
+                den = b + math.copysign(math.sqrt(disc), b) if disc >= 0.0 else 0.0
+                best, ratio = abs(s1), (2.0 * dv / den if den != 0.0 else 0.0)
         if best < MIN_SKIP_STEP or not frames + 0.5 <= ratio <= MAX_SKIP:
             return frames
         m = round(ratio)
