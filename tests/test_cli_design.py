@@ -169,6 +169,10 @@ def test_chain_hf_gain_needs_prediction_on() -> None:
     p = run("design", "--plant", "rails", "--rule", "optimal", "--prediction", "on",
             "--chain-hf-gain", "-3", "--quiet")
     assert p.returncode == 2 and "-3" in p.stderr and "Traceback" not in p.stderr
+    for cmd, says in ((("evaluate", "--rule", "optimal"), "predictive prefilter"),
+                      (("pareto", "--prediction", "on"), "option of motcomp design")):
+        p = run(*cmd, "--plant", "rails", "--out", "never-written", "--chain-hf-gain", "20")
+        assert p.returncode == 2 and says in p.stderr and "Traceback" not in p.stderr, p.stderr
 
 
 def test_pareto_with_prediction_draws_both_curves(tmp_path: Path) -> None:

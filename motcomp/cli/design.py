@@ -279,7 +279,7 @@ def _write_atomically(out: Path, write: Callable[[Path], list[Path]]) -> list[Pa
 def run_evaluate(args: argparse.Namespace) -> int:
     from motcomp.design.report import evaluation_report, markdown, write_figures, write_report
 
-    if args.prediction == "on":
+    if args.prediction == "on" or args.chain_hf_gain is not None:
         raise ConfigError("motcomp evaluate does not simulate the predictive prefilter yet: "
                           "use motcomp design for its frequency-domain metrics")
     source = _source(args)
@@ -316,6 +316,9 @@ def run_pareto(args: argparse.Namespace) -> int:
         prediction_markdown,
     )
 
+    if args.chain_hf_gain is not None:
+        raise ConfigError("--chain-hf-gain is an option of motcomp design: pareto's frontier "
+                          "with prediction spans --hf-bounds")
     plant = _source(args).model
     options = _options(args)
     prediction = _prediction(args, "off")
