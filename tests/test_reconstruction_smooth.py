@@ -3,6 +3,8 @@ does to the command with jittery, slow and timestamp-less senders (through the t
 
 from __future__ import annotations
 
+import math
+
 import msgpack
 import numpy as np
 import pytest
@@ -276,13 +278,16 @@ def test_a_cubic_is_played_back_exactly_through_a_stall() -> None:
     skipped by the sender, and a 12-period stall whose frames then come in a burst.  The
     knots and the quintic are exact on a cubic, and so is the constant-jerk bridge: the
     reference is x at the playback instant throughout, to rounding.  With epoch stamps at
-    1 kHz (rounded to 0.24 us) the instants are the stamps, rounding and all: the sender's
-    ``t`` is the instant of its sample (docs/WIRE.md)."""
+    1 kHz (``t0 + k/rate`` rounded to 0.24 us) the values decide where, within the stamps'
+    resolution, the samples lie: values computed at the stamp itself are placed at the stamp,
+    rounding and all; values computed at ``k/rate`` on the grid the stamps round, and the
+    playback is as exact as with exact stamps (docs/WIRE.md)."""
     p = _params()
     x = lambda t: 0.3 + t * (0.5 + t * (-0.6 + 0.2 * t))  # noqa: E731
     period = 2.0**-10
-    for rounded in (False, True):
-        q = 1e-3 if rounded else period
+    for case in ("exact", "values at the stamps", "values on the grid"):
+        q = period if case == "exact" else 1e-3
+        stamps = np.array([1.7e9 + q * j for j in range(2500)]) - 1.7e9
         sh = ReferenceShaper(8)
         errs, bridged = [], 0
         for k in range(2500):
@@ -290,19 +295,83 @@ def test_a_cubic_is_played_back_exactly_through_a_stall() -> None:
             burst = range(1000, 1013) if k == 1012 else [] if 1000 <= k < 1012 else [k]
             for j in burst:
                 if j != 500:  # the sender skipped this one
-                    sh.on_input(p, {Y: x(q * j)}, now, 1.7e9 + q * j)
+                    value = x(q * j) if case == "values on the grid" else x(stamps[j])
+                    sh.on_input(p, {Y: value}, now, 1.7e9 + q * j)
             ref, _ = sh.reference(p, now)
             bridged += sh._extra[Y] is not None
             delay = sh.playback_delay_s
             if delay is not None and k > 300:  # the delay filter settled
-                errs.append(ref[Y] - x(now - delay))
+                truth = now - delay
+                if case == "values at the stamps":  # the instants are the stamps': rounded
+                    truth = float(np.interp(truth, np.arange(2500) * q, stamps))
+                errs.append(ref[Y] - x(truth))
         instants = np.array([knot.t for knot in sh._hist[Y]])
-        stamps = np.array([1.7e9 + q * j for j in range(2500)]) - 1.7e9
-        assert np.all(np.isin(instants, stamps))  # each the stamp itself
-        assert np.max(np.abs(np.diff(instants) - q)) < (2.4e-7 if rounded else 1e-12)  # 1 ulp
         assert bridged >= 10  # the stall was bridged
-        if not rounded:
-            assert max(map(abs, errs)) < 1e-9
+        if case == "values on the grid":
+            assert not sh.at_stamps
+            grid = np.round(instants / q) * q
+            assert np.max(np.abs(instants - grid)) < 2e-9  # the grid, not the stamps' rounding
+            assert np.max(np.abs(np.diff(instants) - q)) < 1e-11  # a line
+            assert max(map(abs, errs)) < 1e-9  # 8.5e-6 with the stamps as the instants
+        else:
+            assert sh.at_stamps
+            assert np.all(np.isin(instants, stamps))  # each the stamp itself
+            if case == "exact":
+                assert max(map(abs, errs)) < 1e-9
+            else:
+                assert np.max(np.abs(np.diff(instants) - q)) < 2.4e-7  # 1 ulp
+
+
+def _feed_grid(sh: ReferenceShaper, values: str, seconds: float, rng: np.random.Generator,
+               jitter_s: float = 0.0, k0: int = 0, moving: bool = True
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """A 1 kHz sender of a 0.4 m, 0.31 Hz sine stamping ``t0 + k/1000`` in epoch seconds
+    (plus a jitter of its instants), its values float32 and computed ``at the stamps`` or
+    ``on the grid``: how far the instants the shaper read lie from the grid, and from the
+    stamps (s)."""
+    p = _params()
+    t0 = 1.795e9 + 0.123456
+    frac = t0 - math.floor(t0)  # (the shaper's instants are relative to a whole second)
+    grid, stamps = [], []
+    for k in range(k0, k0 + int(seconds * 1000)):
+        stamp = t0 + k / 1000 + rng.uniform(0.0, jitter_s)
+        tau = stamp - t0 if values == "at the stamps" else k / 1000
+        value = float(np.float32(0.4 * np.sin(2 * np.pi * 0.31 * tau))) if moving else 0.25
+        sh.on_input(p, {Y: value}, k / 1000 + 5e-4, stamp)
+        instant = sh._hist[Y][-1].t
+        grid.append(instant - frac - k / 1000)
+        stamps.append(instant - (stamp - math.floor(t0)))
+    return np.abs(grid), np.abs(stamps)
+
+
+def test_where_a_grid_senders_values_lie_is_read_from_the_values() -> None:
+    """Epoch stamps ``t0 + k/rate`` are 0.24 us coarse.  Values computed at the stamps are read
+    at the stamps (t is the truth); values computed on the grid are read on it, once the values
+    say so (float32 noise and all, within a second); a resting sender's values say nothing,
+    and the stamps are kept; a jittered sender's stamps are never moved; and a sender that
+    changes from the one to the other is followed."""
+    ulp = math.ulp(1.795e9)
+    rng = np.random.default_rng(3)
+    sh = ReferenceShaper(8)
+    grid, stamps = _feed_grid(sh, "at the stamps", 10.0, rng)
+    assert sh.at_stamps and stamps.max() == 0.0
+    assert grid[-5000:].mean() > 0.2 * ulp  # (the stamps' rounding)
+    sh = ReferenceShaper(8)
+    grid, _ = _feed_grid(sh, "on the grid", 10.0, rng)
+    assert not sh.at_stamps
+    k = int(np.nonzero(grid >= 0.02 * ulp)[0][-1]) + 1  # read on the grid from frame k on
+    assert 100 < k < 1000, k
+    assert grid[-1000:].max() < 2e-4 * ulp  # the grid to 0.05 ns once the line settled
+    _, stamps = _feed_grid(sh, "at the stamps", 10.0, rng, k0=10_000)  # the sender changes
+    assert sh.at_stamps and stamps[-3000:].max() == 0.0
+    sh = ReferenceShaper(8)
+    _feed_grid(sh, "on the grid", 5.0, rng, moving=False)
+    assert sh.at_stamps  # no evidence either way
+    sh = ReferenceShaper(8)
+    _feed_grid(sh, "on the grid", 5.0, rng)
+    assert not sh.at_stamps
+    _, stamps = _feed_grid(sh, "on the grid", 5.0, rng, jitter_s=2e-4, k0=5000)
+    assert stamps.max() == 0.0  # a jittered stamp is off the grid: the instant is the stamp
 
 
 def test_extrapolation_goes_on_along_the_cubic_then_at_constant_acceleration() -> None:

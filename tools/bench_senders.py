@@ -7,8 +7,8 @@ bypass = every driven axis bypassed, ``bench_motion.mode_config``) and each scen
 sender's ``slalom`` on rails_y, ``heave`` on hex_z), ``motcomp hil`` and ``motcomp run`` run as
 in ``tools/bench_motion.py`` (its :class:`Bench`, once per class and mode) and the sender as a
 process (``wire_senders.py --kind K --rate R --signal S --json ...``, a seed shared by the two
-modes).  Over the motion without its first :data:`SKIP_S` s (the start-up blend and the sine's
-abrupt start), on the axis the scenario moves:
+modes).  Over the motion without its first :data:`SKIP_S` s (the live service's start-up, which
+the ideal run has before its motion), on the axis the scenario moves:
 
 * delay: the platform's feedback (at its own ``t``) behind the motion the sender meant, the
   sine ``A sin(2 pi f (t - t0))`` of its JSON summary's ``t0``: the phase of a sine of that
@@ -83,8 +83,16 @@ SENDER_SCRIPT = Path(__file__).resolve().parent / "wire_senders.py"
 DEFAULT_CONFIG = "config/demo.toml"
 MODES = ("on", "bypass")
 SCENARIOS = ("slalom", "heave")
-SKIP_S = 2.0
-"""Left out at the motion's start: the service's start-up blend and the sine's abrupt start."""
+SKIP_S = 3.0
+"""Left out at the motion's start: the live service's start-up, which the ideal run has before
+its motion.  The service blends from neutral (``loop.startup_s``, 1 s; a rejoin 0.5 s), holds
+prediction off until its input has been calm for ``prediction.resume_after_s`` (0.5 s, counted
+from the live input), then fades it in over ``fade_in_s`` (0.5 s): 2-2.5 s in all.  Measured on
+twelve live runs: from 2 s on, every jerk ratio read 1.33-1.37 and five HF ratios 2.1-5.7, all
+of it in the first half second; from 2.5 s on, jerk 1.01-1.6 and HF 1.0-1.7
+(docs/BENCHMARKS.md, "senders").  :func:`measure` refuses a config whose start-up does not
+end 0.5 s before."""
+
 IDEAL_RATE_HZ = 1000.0
 LIMITER_MAX = 0.005
 HF_RATIO_MAX = 2.0
@@ -392,6 +400,11 @@ def measure(args: argparse.Namespace, ap: argparse.ArgumentParser, cfg_path: Pat
     code = snapshot_code(tmp)
     sender_script = CODE[0] / SENDER_SCRIPT.name
     shutil.copy2(SENDER_SCRIPT, sender_script)
+    start_up = cfg.loop.startup_s + cfg.prediction.resume_after_s + cfg.prediction.fade_in_s
+    if start_up > SKIP_S - 0.5:
+        ap.error(f"{args.config}: its start-up (loop.startup_s + prediction.resume_after_s + "
+                 f"fade_in_s = {start_up:g} s) does not end 0.5 s before the figures start "
+                 f"({SKIP_S:g} s into the motion)")
     truth = default_truth()[0]
     loop_hz = cfg.loop.rate_hz
     configs = {m: mode_config(cfg_file, m, tmp) for m in args.modes}

@@ -56,7 +56,13 @@ sample*, so that it is interpolated between samples already received instead of 
                  sender's grid; from a sender that never stamps, the same line goes through
                  (frame count, arrival on the loop's clock), with gains falling to NO_T_ALPHA
                  (frames read in the same tick carry no timing news; an arrival further than
-                 stale_after_s/2 from the line re-anchors it), and the line is the timeline
+                 stale_after_s/2 from the line re-anchors it), and the line is the timeline;
+                 a stamp is the instant to its own resolution only (``t0 + k/rate`` in
+                 epoch seconds: 0.24 us), so where GRID_MIN_FRAMES stamps in a row lie on the
+                 line within it, the values decide where their samples lie: at the stamps
+                 (computed at the rounded instant), or on the grid the stamps round (computed
+                 at ``k/rate``; then the instants follow the line, and the rounding is no
+                 longer position noise the compensator amplifies: ``_weigh_grid``)
     period       the interval between frames per seq step (sender time, or arrivals without
                  t), averaged; a single unusual one (a stall) is ignored, PERIOD_RELEARN in a
                  row (a new rate) replace it
@@ -68,8 +74,11 @@ sample*, so that it is interpolated between samples already received instead of 
                  period by SPAN_DECAY a sample; stalls left out): an irregular stream is
                  interpolated, not extrapolated
     playback     tau = now - delay + lead_s, where the delay follows offset + lag through a
-                 critically damped filter of DELAY_TAU_S: neither jitter nor a new smallest
-                 transit ever steps the playback instant, its changes warp time gently; a lead
+                 critically damped triple pole of DELAY_TAU_S: neither jitter nor a new
+                 smallest transit ever steps the playback instant, its changes warp time
+                 gently, and the warp's own rate changes without a step (a step of it is a
+                 step of the reference's acceleration, speed x w^2 x the change: a sender's
+                 3 ms skip made 0.04 m/s^2 of the compensated rails' command); a lead
                  (0 by default) plays ahead of the lag: prediction along the constant-jerk
                  bridge below, exact on cubics, whose errors on a change of jerk the
                  compensator amplifies (docs/TUNING.md has the trade-off)
@@ -168,7 +177,7 @@ JITTER_FACTOR = 1.0
 JITTER_GAIN = 0.01
 """Weight of each frame in the mean transit beyond the smallest."""
 DELAY_TAU_S = 0.5
-"""Time constant of the critically damped filter the playback delay follows its target
+"""Time constant of the critically damped triple pole the playback delay follows its target
 through."""
 PERIOD_GAIN = 0.05
 """Weight of each interval in the input period's average."""
@@ -219,6 +228,22 @@ FIX_POLE_FACTOR = 6.0
 blend time, 0.05 % after twice it."""
 FIX_FLOOR = 1e-12
 """A correction below this (axis units, and its rate times the blend time) is dropped."""
+GRID_MIN_FRAMES = 32
+"""A stamp is read against the sender's grid (:meth:`ReferenceShaper._weigh_grid`) once this
+many in a row lay on the line within their resolution."""
+GRID_TRACK_ALPHA = 1e-3
+"""The line's gains fall to this (phase) and its square over 4 (period) while the stamps lie on
+it within their resolution: a grid in the sender's own time is a line."""
+GRID_FOLLOW = 0.01
+"""The instants read on the grid follow the line through this gain (a frame's phase update
+is the line's own jitter, 0.1 ns, which the compensator would still see)."""
+GRID_MIN_WEIGHT = 100.0
+"""No decision before this many frames' worth of evidence."""
+GRID_GAIN = 2e-3
+"""Weight of each frame in the evidence of where a grid sender's values lie (about 500 frames:
+half a second at 1 kHz)."""
+GRID_SIGMAS = 3.0
+"""The evidence must lie this many standard errors from the midway to change the decision."""
 
 
 @dataclass(frozen=True)
@@ -298,6 +323,12 @@ class ReferenceShaper:
         self._line = 0.0  # the least-squares line of the sender's instants: its newest point
         self._line_n = 0  # and the frames on it since it was anchored
         self._odd: list[float] = []  # unusual intervals in a row
+        self._grid_err: float | None = None  # the last frame's stamp - its grid instant
+        self._grid_ring: deque[tuple[float, dict[int, float]]] = deque()  # _weigh_grid's frames
+        self._grid_sums = [0.0, 0.0, 0.0, 0.0]  # its evidence: sum r u, u u, r r, weight
+        self.at_stamps = True  # a grid sender's values lie at its stamps (else on its grid)
+        self._grid_t: float | None = None  # the last instant read on the grid
+        self._grid_run = 0  # frames in a row whose stamps lie on the line within their ulp
         self._ma_len = 0.0  # length of the moving average (ticks)
         self._span = 0.0  # the longest recent interval between samples (_track_span)
         self._t_last: float | None = None  # sender time of the last frame
@@ -307,6 +338,7 @@ class ReferenceShaper:
         self._excess = 0.0  # mean transit beyond the smallest
         self._delay: float | None = None  # playback delay (now - tau) and its rate
         self._delay_rate = 0.0
+        self._delay_acc = 0.0
         self._lead_s = 0.0  # the lead in force (ShaperParams.lead_s)
         self._at: float | None = None  # loop time of the last reference
         self._extra: list[Knot | None] = [None] * n
@@ -422,6 +454,15 @@ class ReferenceShaper:
         if t_sender is None and not rejoin:
             frames = self._spanned(p, pos, frames)
         t, rejoin = self._timeline(p, now, t_sender, rejoin, frames)
+        ring = self._grid_ring
+        if self._grid_err is None or frames != 1:
+            ring.clear()
+        else:
+            ring.append((self._grid_err, pos))
+            if len(ring) > 5:
+                ring.popleft()
+            if len(ring) == 5:
+                self._weigh_grid(p)
         transit = now - t
         fast = self._fast
         if fast is None or rejoin:
@@ -510,6 +551,9 @@ class ReferenceShaper:
             self._line += frames * q  # a stamping sender's frame without t: on its grid
             return tl + frames * q, rejoin
         skipped = False
+        self._grid_err = None
+        grid_t, run = self._grid_t, self._grid_run
+        self._grid_t, self._grid_run = None, 0  # kept only from one frame on the grid to the next
         if t_sender is None:  # timed by its arrival
             self._stamped = False
             x, gate, floor = now, 0.5 * p.stale_after_s, NO_T_ALPHA
@@ -519,6 +563,8 @@ class ReferenceShaper:
             if not self._stamped:  # from the loop's clock to the sender's: a new timeline
                 rejoin = True
                 self._stamped = True
+                self._grid_sums = [0.0, 0.0, 0.0, 0.0]
+                self.at_stamps = True
             if self._t_base is None or rejoin:  # sender times relative to a whole second
                 self._t_base = math.floor(t_sender) if math.isfinite(t_sender) else 0.0
             x, gate, floor = t_sender - self._t_base, TIME_GATE_S, TRACK_ALPHA
@@ -549,6 +595,12 @@ class ReferenceShaper:
                 self._line_n = 1
             return x, rejoin
         n = self._line_n + 1
+        run = run + 1 if t_sender is not None and abs(err) <= math.ulp(t_sender) \
+            else 0  # stamps within their resolution of the line, in a row
+        self._grid_run = run
+        on_grid = run > GRID_MIN_FRAMES
+        if on_grid:
+            floor = GRID_TRACK_ALPHA
         alpha = max(2.0 * (2 * n - 1) / (n * (n + 1)), floor)
         beta = max(6.0 / (n * (n + 1)), floor * floor / 4)
         new_q = q + beta * err / frames
@@ -558,7 +610,56 @@ class ReferenceShaper:
         self._line, self._line_n, self._period = pred + alpha * err, n, new_q
         if not skipped:
             self._odd.clear()
-        return (tl + frames * new_q if t_sender is None else x), rejoin
+        if t_sender is None:
+            return tl + frames * new_q, rejoin
+        if not on_grid:
+            return x, rejoin
+        if not skipped:
+            self._grid_err = err
+        g = pred if grid_t is None else grid_t + frames * new_q
+        g += GRID_FOLLOW * (pred - g)
+        self._grid_t = g
+        return (x if self.at_stamps else g), rejoin
+
+    def _weigh_grid(self, p: ShaperParams) -> None:
+        """Where a grid sender's values lie: at its stamps, or on the grid the stamps round
+        (``t0 + k/rate`` in epoch seconds is a float64 0.24 us coarse: the stamp is the instant
+        only to its resolution).  Five consecutive frames on the grid, each stamp ``d`` off it
+        within its resolution: the middle value's residual from the cubic through the other
+        four (uniform grid: exact on cubics, so the motion leaves ~nothing) is ``r ~ 0`` if the
+        values lie on the grid, ``r ~ u = slope (d - the same cubic's d)`` if they lie at the
+        stamps.  ``alpha = sum r u / sum u u`` (recent frames, GRID_GAIN) decides, once it lies
+        GRID_SIGMAS standard errors beyond 1/2; until then the stamps are the instants."""
+        ring = self._grid_ring
+        (d0, p0), (d1, p1), (d2, p2), (d3, p3), (d4, p4) = ring[0], ring[1], ring[2], ring[3], \
+            ring[4]
+        big_d = d2 - (4.0 * (d1 + d3) - d0 - d4) / 6.0
+        half_q = 0.5 / self._period
+        ru = uu = rr = 0.0
+        for i, v2 in p2.items():
+            if not p.driven[i] or i not in p0 or i not in p1 or i not in p3 or i not in p4:
+                continue
+            v1, v3 = p1[i], p3[i]
+            r = v2 - (4.0 * (v1 + v3) - p0[i] - p4[i]) / 6.0
+            u = (v3 - v1) * half_q * big_d
+            ru += r * u
+            uu += u * u
+            rr += r * r
+        sums = self._grid_sums
+        keep = 1.0 - GRID_GAIN
+        sums[0] = keep * sums[0] + ru
+        sums[1] = keep * sums[1] + uu
+        sums[2] = keep * sums[2] + rr
+        sums[3] = keep * sums[3] + 1.0
+        s_ru, s_uu, s_rr, s_n = sums[0], sums[1], sums[2], sums[3]
+        if not s_uu > 0.0 or s_n < GRID_MIN_WEIGHT:
+            return
+        a = s_ru / s_uu
+        se = math.sqrt(max(s_rr - a * s_ru, 0.0) / (s_n * s_uu))
+        if self.at_stamps and a + GRID_SIGMAS * se < 0.5:
+            self.at_stamps = False
+        elif not self.at_stamps and a - GRID_SIGMAS * se > 0.5:
+            self.at_stamps = True
 
     def _track_span(self, dt: float, stale_after_s: float) -> None:
         """The longest recent interval between samples (per seq step): the playback must stay
@@ -667,16 +768,17 @@ class ReferenceShaper:
         target = fast + min(span + JITTER_FACTOR * self._excess, span + 0.5 * p.stale_after_s)
         d = self._delay
         if d is None:
-            d, self._delay_rate = target, 0.0
+            d, self._delay_rate, self._delay_acc = target, 0.0, 0.0
         elif dt > 0.0:
-            w = 1.0 / DELAY_TAU_S  # critically damped: x'' = w^2 (target - x) - 2 w x'
-            r = self._delay_rate
+            w = 1.0 / DELAY_TAU_S  # a critically damped triple pole:
+            r, a = self._delay_rate, self._delay_acc  # x3 = w^3 (target - x) - 3 w^2 x1 - 3 w x2
             for _ in range(1 if dt <= 0.002 else int(dt / 0.002) + 1):
                 dts = min(dt, 0.002)
-                r += dts * (w * w * (target - d) - 2.0 * w * r)
+                a += dts * (w * w * w * (target - d) - 3.0 * w * w * r - 3.0 * w * a)
+                r += dts * a
                 d += dts * r
                 dt -= dts
-            self._delay_rate = r
+            self._delay_rate, self._delay_acc = r, a
         self._delay = d
         self._lead_s = p.lead_s
         tau = now - d + p.lead_s
