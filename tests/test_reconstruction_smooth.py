@@ -323,7 +323,7 @@ def test_a_cubic_is_played_back_exactly_through_a_stall() -> None:
 
 
 def _feed_grid(sh: ReferenceShaper, values: str, seconds: float, rng: np.random.Generator,
-               jitter_s: float = 0.0, k0: int = 0, moving: bool = True
+               jitter_s: float = 0.0, k0: int = 0, moving: bool = True, no_t_every: int = 0
                ) -> tuple[np.ndarray, np.ndarray]:
     """A 1 kHz sender of a 0.4 m, 0.31 Hz sine stamping ``t0 + k/1000`` in epoch seconds
     (plus a jitter of its instants), its values float32 and computed ``at the stamps`` or
@@ -337,7 +337,8 @@ def _feed_grid(sh: ReferenceShaper, values: str, seconds: float, rng: np.random.
         stamp = t0 + k / 1000 + rng.uniform(0.0, jitter_s)
         tau = stamp - t0 if values == "at the stamps" else k / 1000
         value = float(np.float32(0.4 * np.sin(2 * np.pi * 0.31 * tau))) if moving else 0.25
-        sh.on_input(p, {Y: value}, k / 1000 + 5e-4, stamp)
+        stamped = not (no_t_every and k % no_t_every == 0)
+        sh.on_input(p, {Y: value}, k / 1000 + 5e-4, stamp if stamped else None)
         instant = sh._hist[Y][-1].t
         grid.append(instant - frac - k / 1000)
         stamps.append(instant - (stamp - math.floor(t0)))
@@ -372,6 +373,36 @@ def test_where_a_grid_senders_values_lie_is_read_from_the_values() -> None:
     assert not sh.at_stamps
     _, stamps = _feed_grid(sh, "on the grid", 5.0, rng, jitter_s=2e-4, k0=5000)
     assert stamps.max() == 0.0  # a jittered stamp is off the grid: the instant is the stamp
+    sh = ReferenceShaper(8)  # every 13th frame without t: it, and those after it, on the grid
+    grid, _ = _feed_grid(sh, "on the grid", 5.0, rng, no_t_every=13)
+    assert not sh.at_stamps and grid[-3000:].max() < 0.01 * ulp  # (garbage if not carried)
+
+
+def test_a_change_of_the_playback_delay_never_steps_the_references_acceleration() -> None:
+    """A 1 kHz sender moving at a constant 0.5 m/s (the reconstruction is exact on it) skips
+    two samples: the span grows to 3 ms, and the playback delay follows it, warping time.  The
+    reference's acceleration is the speed times the delay's second derivative: it starts from
+    zero and moves at most w^3 x the change per second (the triple pole), where a double pole
+    stepped it by w^2 x the change in one tick (a jerk 1000 times larger)."""
+    p = _params()
+    sh = ReferenceShaper(8)
+    refs, delays, spans = [], [], []
+    for k in range(6000):
+        now = 1e-3 * k + 4e-4
+        if k not in (3000, 3001):  # the sender skips two samples
+            sh.on_input(p, {Y: 0.5 * 1e-3 * k}, now, 1.7e9 + 1e-3 * k)
+        ref, _ = sh.reference(p, now)
+        refs.append(ref[Y])
+        delays.append(sh.playback_delay_s)
+        spans.append(sh._span)
+    jump = max(spans) - spans[2990]  # the delay's target, stepped (then decaying back to
+    assert jump > 1.5e-3  # the period, 0.1 % a sample)
+    assert max(delays[3000:]) - delays[2990] > 0.5e-3  # the playback moved back
+    x = np.array(refs[2900:])
+    w = 2.0  # 1 / DELAY_TAU_S
+    jerk = np.max(np.abs(np.diff(x, 3) / 1e-9))
+    assert jerk < 1.25 * 0.5 * w**3 * jump  # (its 1 ms Euler steps; a double pole: 500x)
+    assert np.max(np.abs(np.diff(x, 2) / 1e-6)) < 0.5 * w * w * jump
 
 
 def test_extrapolation_goes_on_along_the_cubic_then_at_constant_acceleration() -> None:

@@ -547,11 +547,13 @@ class ReferenceShaper:
         whether the timeline starts anew (module docstring, "sender time")."""
         q = self._period
         tl = self._t_last
+        self._grid_err = None
         if t_sender is None and self._stamped and tl is not None and not rejoin and q > 0.0:
             self._line += frames * q  # a stamping sender's frame without t: on its grid
+            if self._grid_t is not None:
+                self._grid_t += frames * q
             return tl + frames * q, rejoin
         skipped = False
-        self._grid_err = None
         grid_t, run = self._grid_t, self._grid_run
         self._grid_t, self._grid_run = None, 0  # kept only from one frame on the grid to the next
         if t_sender is None:  # timed by its arrival
