@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import math
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -147,9 +149,13 @@ def run_status(args: argparse.Namespace) -> int:
         return 0
     ep = endpoints_from_args(args)
     clear = sys.stdout.isatty() and not args.json
+    # Ctrl-C (SIGINT) ends the watch after the poll in progress: raised as KeyboardInterrupt
+    # inside zenoh's calls, it could leave the session to a close that never returned
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda _sig, _frame: stop.set())
     try:
         with open_session(ep) as session:
-            while True:
+            while not stop.is_set():
                 t_next = time.monotonic() + args.watch
                 try:
                     st = _ask(session, ep, args.key, None, args.timeout)
@@ -162,9 +168,10 @@ def run_status(args: argparse.Namespace) -> int:
                         print(f"--- {time.strftime('%H:%M:%S')}")
                     _show(args, st)
                     sys.stdout.flush()
-                time.sleep(max(0.0, t_next - time.monotonic()))
-    except KeyboardInterrupt:
-        return 0
+                stop.wait(max(0.0, t_next - time.monotonic()))
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    return 0
 
 
 def _show(args: argparse.Namespace, st: dict[str, Any]) -> None:

@@ -398,7 +398,8 @@ class ReferenceShaper:
     def on_input(self, p: ShaperParams, pos: dict[int, float], now: float,
                  t_sender: float | None = None, frames: int = 1) -> None:
         """A valid frame (axis index -> finite value; sender time ``t_sender``, if any), the
-        ``frames``-th the sender sent since the last one taken (its ``seq`` step)."""
+        ``frames``-th the sender sent since the last one taken (its ``seq`` step).  ``pos`` is
+        kept (the last five frames', :meth:`_weigh_grid`): the caller does not change it."""
         if self.parking:
             return
         first = self.last_input_s is None
