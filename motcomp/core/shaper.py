@@ -237,11 +237,12 @@ it within their resolution: a grid in the sender's own time is a line."""
 GRID_FOLLOW = 0.01
 """The instants read on the grid follow the line through this gain (a frame's phase update
 is the line's own jitter, 0.1 ns, which the compensator would still see)."""
-GRID_MIN_WEIGHT = 100.0
-"""No decision before this many frames' worth of evidence."""
-GRID_GAIN = 2e-3
-"""Weight of each frame in the evidence of where a grid sender's values lie (about 500 frames:
-half a second at 1 kHz)."""
+GRID_MIN_WEIGHT = 20.0
+"""No decision before this many windows' worth of evidence (:meth:`ReferenceShaper._weigh_grid`:
+five frames each)."""
+GRID_GAIN = 1e-2
+"""Weight of each window of five frames in the evidence of where a grid sender's values lie
+(about 100 windows: half a second at 1 kHz)."""
 GRID_SIGMAS = 3.0
 """The evidence must lie this many standard errors from the midway to change the decision."""
 
@@ -324,7 +325,7 @@ class ReferenceShaper:
         self._line_n = 0  # and the frames on it since it was anchored
         self._odd: list[float] = []  # unusual intervals in a row
         self._grid_err: float | None = None  # the last frame's stamp - its grid instant
-        self._grid_ring: deque[tuple[float, dict[int, float]]] = deque()  # _weigh_grid's frames
+        self._grid_ring: list[tuple[float, dict[int, float]]] = []  # _weigh_grid's frames
         self._grid_sums = [0.0, 0.0, 0.0, 0.0]  # its evidence: sum r u, u u, r r, weight
         self.at_stamps = True  # a grid sender's values lie at its stamps (else on its grid)
         self._grid_t: float | None = None  # the last instant read on the grid
@@ -399,7 +400,7 @@ class ReferenceShaper:
                  t_sender: float | None = None, frames: int = 1) -> None:
         """A valid frame (axis index -> finite value; sender time ``t_sender``, if any), the
         ``frames``-th the sender sent since the last one taken (its ``seq`` step).  ``pos`` is
-        kept (the last five frames', :meth:`_weigh_grid`): the caller does not change it."""
+        kept (up to five frames', :meth:`_weigh_grid`): the caller does not change it."""
         if self.parking:
             return
         first = self.last_input_s is None
@@ -460,10 +461,9 @@ class ReferenceShaper:
             ring.clear()
         else:
             ring.append((self._grid_err, pos))
-            if len(ring) > 5:
-                ring.popleft()
-            if len(ring) == 5:
+            if len(ring) == 5:  # windows of five frames, each frame in one
                 self._weigh_grid(p)
+                ring.clear()
         transit = now - t
         fast = self._fast
         if fast is None or rejoin:
@@ -631,7 +631,7 @@ class ReferenceShaper:
         within its resolution: the middle value's residual from the cubic through the other
         four (uniform grid: exact on cubics, so the motion leaves ~nothing) is ``r ~ 0`` if the
         values lie on the grid, ``r ~ u = slope (d - the same cubic's d)`` if they lie at the
-        stamps.  ``alpha = sum r u / sum u u`` (recent frames, GRID_GAIN) decides, once it lies
+        stamps.  ``alpha = sum r u / sum u u`` (recent windows, GRID_GAIN) decides, once it lies
         GRID_SIGMAS standard errors beyond 1/2; until then the stamps are the instants."""
         ring = self._grid_ring
         (d0, p0), (d1, p1), (d2, p2), (d3, p3), (d4, p4) = ring[0], ring[1], ring[2], ring[3], \
