@@ -512,12 +512,14 @@ class ReferenceShaper:
         """A frame without ``t``, ``frames`` after the previous one (its seq step): how many of
         the sender's samples its step spans (``frames``, or more when the sender skipped some).
         Read from the motion itself, on the axis moving fastest: where its last two steps (per
-        sample) agree within SKIP_TOLERANCE (a steady motion, not a start or a reversal) and
-        moved at least MIN_SKIP_STEP, a new step SKIP_TOLERANCE-close to what m > ``frames``
-        samples move along the last step and its change (a constant second difference: the
-        steps of a slowing motion shrink, so m samples move less than m times the next step)
-        spans m samples; a wrong count, where the motion is too slow or unsteady to tell,
-        misplaces a sample by little."""
+        sample) agree within SKIP_TOLERANCE (a steady motion) and moved at least MIN_SKIP_STEP,
+        or, at a reversal, where the last two changes of its step agree so and changed it by
+        at least MIN_SKIP_STEP (a steady acceleration: a recorded skip 2 ms past a trough, read
+        as one step, put the compensated rails at their acceleration limit), a new step
+        SKIP_TOLERANCE-close to what m > ``frames`` samples move along the last step and its
+        change (a constant second difference: the steps of a slowing motion shrink, so m
+        samples move less than m times the next step) spans m samples; a wrong count, where
+        the motion is too slow or unsteady to tell, misplaces a sample by little."""
         q = self._period
         best, ratio = 0.0, 1.0
         for i, v in pos.items():
@@ -528,7 +530,13 @@ class ReferenceShaper:
             t0, v0, t1, v1, t2, v2 = k0.t, k0.v, k1.t, k1.v, k2.t, k2.v
             s0 = (v1 - v0) * q / (t1 - t0)  # steps per frame
             s1 = (v2 - v1) * q / (t2 - t1)
-            if abs(s1) > best and abs(s1 - s0) <= SKIP_TOLERANCE * abs(s1):
+            steady, score = abs(s1 - s0) <= SKIP_TOLERANCE * abs(s1), abs(s1)
+            if not steady and len(h) >= 4:  # a reversal: its steps change steadily
+                km = h[-4]
+                c1, c0 = s1 - s0, s0 - (v0 - km.v) * q / (t0 - km.t)
+                steady = abs(c1) >= MIN_SKIP_STEP and abs(c1 - c0) <= SKIP_TOLERANCE * abs(c1)
+                score = max(score, abs(c1))
+            if steady and score > best:
                 # the k-th step on is s1 + dd (k + e): m of them move a m^2 + b m
                 dd = (s1 - s0) * 2.0 * q / (t2 - t0)  # change of the step per sample
                 a = 0.5 * dd
@@ -536,7 +544,7 @@ class ReferenceShaper:
                 dv = v - v2
                 disc = b * b + 4.0 * a * dv
                 den = b + math.copysign(math.sqrt(disc), b) if disc >= 0.0 else 0.0
-                best, ratio = abs(s1), (2.0 * dv / den if den != 0.0 else 0.0)
+                best, ratio = score, (2.0 * dv / den if den != 0.0 else 0.0)
         if best < MIN_SKIP_STEP or not frames + 0.5 <= ratio <= MAX_SKIP:
             return frames
         m = round(ratio)
