@@ -195,6 +195,10 @@ and its square over 4 (period) and stay there, so that the tracker follows a dri
 while an arrival's jitter moves the line by a ten-thousandth of it (and no sample at all)."""
 MIN_SKIP_STEP = 1e-6
 SKIP_TOLERANCE = 0.15
+CREST_EVIDENCE = 0.25e-6
+"""Frames without ``t`` beside a crest: the least difference between a new step and what one
+frame would move (axis units, and at least four of a float32 value's ulp) that counts samples
+skipped past the crest (:meth:`ReferenceShaper._spanned`)."""
 MAX_SKIP = 1000
 """Frames without ``t``: a step of the fastest axis within SKIP_TOLERANCE of m >= 2 times the
 previous one (per frame), which moved at least MIN_SKIP_STEP (axis units), spans m samples: the
@@ -519,9 +523,12 @@ class ReferenceShaper:
         SKIP_TOLERANCE-close to what m > ``frames`` samples move along the last step and its
         change (a constant second difference: the steps of a slowing motion shrink, so m
         samples move less than m times the next step) spans m samples; a wrong count, where
-        the motion is too slow or unsteady to tell, misplaces a sample by little."""
+        the motion is too slow or unsteady to tell, misplaces a sample by little.  Beside a
+        crest two counts give the same step, one each side of it: the nearer, unless it is not
+        ``frames`` while the step is CREST_EVIDENCE off what ``frames`` move (a recorded skip of
+        the slalom's trough sample read 0.33 for 2)."""
         q = self._period
-        best, ratio = 0.0, 1.0
+        best, ratio, other, gap, noise = 0.0, 1.0, 0.0, 0.0, 0.0
         for i, v in pos.items():
             h = self._hist[i]
             if not p.driven[i] or len(h) < 3 or q <= 0.0:
@@ -544,8 +551,20 @@ class ReferenceShaper:
                 dv = v - v2
                 disc = b * b + 4.0 * a * dv
                 den = b + math.copysign(math.sqrt(disc), b) if disc >= 0.0 else 0.0
+                # both roots of a m^2 + b m = dv, the nearer by the stable form
                 best, ratio = score, (2.0 * dv / den if den != 0.0 else 0.0)
-        if best < MIN_SKIP_STEP or not frames + 0.5 <= ratio <= MAX_SKIP:
+                other = -0.5 * den / a if a != 0.0 and den != 0.0 else 0.0
+                gap = dv - frames * (a * frames + b)
+                noise = max(CREST_EVIDENCE, 4.0 * _float32_ulp(v))
+        if best < MIN_SKIP_STEP:
+            return frames
+        if abs(ratio - frames) <= SKIP_TOLERANCE:  # the frames it says: the usual case
+            return frames
+        if not frames + 0.5 <= ratio <= MAX_SKIP and abs(gap) >= noise:
+            # beside a crest both roots can count: dv is what m = frames would move only
+            # if the smaller root says so; else the farther root, past the crest, may
+            ratio = other
+        if not frames + 0.5 <= ratio <= MAX_SKIP:
             return frames
         m = round(ratio)
         return m if abs(ratio - m) <= SKIP_TOLERANCE else frames
@@ -909,6 +928,13 @@ class ReferenceShaper:
         last = self.last_input_s if self.last_input_s is not None else self.started_s
         return now - (last or now)
 
+
+
+def _float32_ulp(v: float) -> float:
+    """The ulp of ``v`` as a float32 where ``v`` is one (a sender's float32 value), else 0."""
+    m, e = math.frexp(v)
+    m24 = m * 16777216.0
+    return math.ldexp(1.0, e - 24) if m24 == math.floor(m24) and v != 0.0 else 0.0
 
 
 def _stencil(h: list[Knot], end: int) -> list[Knot]:
