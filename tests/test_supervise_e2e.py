@@ -4,6 +4,12 @@ drifts by +10 ms mid-run (``hil --drift``), the service driving it with ordinary
 estimate as a fragment, ``design`` tunes for it, the site config includes both, ``reload`` --
 and the slalom's apparent delay returns to its figure before the drift.
 
+The estimate's accuracy is judged on the settled estimate a retune is taken from (standard
+error <= 0.4 ms), not on the one that raised the alarm: that one is known only to its standard
+error (0.16-0.2 ms on a quiet host; 0.5-1 ms beside a CPU hog, where windows read 11-12.5 ms for
+the 10 ms drift).  What depends on the host's timing is judged after the run, where the host
+probe says the host held the loop's rate (docs/TESTING.md).
+
 In the suite (about two minutes, four processes; ``pytest -m e2e`` runs it alone).  Figures
 of real runs: docs/SUPERVISION.md."""
 
@@ -13,6 +19,7 @@ import json
 import re
 import subprocess
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -47,10 +54,6 @@ def status(session: Any) -> dict[str, Any]:
     return out
 
 
-DEGRADED = "the loop missed"
-"""The start of the reason of a window the loop was degraded in: the product cannot tell."""
-
-
 def log_instant(log: Path, text: str) -> float:
     """The wall-clock instant of the first line of a motcomp log that holds ``text``."""
     line = next(ln for ln in log.read_text().splitlines() if text in ln)
@@ -67,6 +70,9 @@ def test_a_drift_is_detected_retuned_from_the_status_and_the_delay_returns(
     p_svc, p_hil = free_tcp_port(), free_tcp_port()
     svc_ep, hil_ep = loopback(p_svc), loopback(p_hil)
     site = site_config(tmp_path / "site.toml")
+    late: list[tuple[str, bool, Any]] = []  # what depends on the host's timing: judged last
+    after: list[float] = []
+    drifted = None
     with HostProbe() as probe, \
             process(["hil", "-l", hil_ep, "--truth", f"rails_y={TRUTH}", "--drift",
                      f"rails_y={DRIFTED}@{DRIFT_AT_S:g}", "--log-level", "info"],
@@ -95,77 +101,93 @@ def test_a_drift_is_detected_retuned_from_the_status_and_the_delay_returns(
                 time.sleep(1.0)
                 st = status(session)
                 f = st["model_mismatch"]["axes"]["rails_y"]
+                plat = st.get("platform") or {}
                 trace.append((round(time.monotonic() - t_hil, 1), f["state"],
                               f.get("residual_delay_ms"), f.get("residual_delay_se_ms"),
-                              f.get("reason")))
+                              f.get("reason"), st["missed_ticks"], plat.get("missed_ticks"),
+                              plat.get("setpoint_age_mean_ms")))
                 if f["alarm"]:
                     detected = time.monotonic() - t_hil - DRIFT_AT_S
                     break
             mm = st["model_mismatch"]["axes"]["rails_y"]
+            print("(s, state, residual ms, +- ms, reason, service's missed ticks, platform's "
+                  "missed ticks, platform's mean setpoint age ms)")
             for row in trace:
                 print(row)
-            degraded = [row for row in trace if (row[4] or "").startswith(DEGRADED)]
-            if detected is None and len(degraded) > len(trace) // 2:
-                # the windows were not judged: the host's stalls were in the data
-                pytest.skip(f"not judged: the loop was degraded in {len(degraded)} of "
-                            f"{len(trace)} windows after the drift ({degraded[-1][4]})")
-            assert detected is not None, trace
-            # from the platform's log line of the drift to the service's WARNING (one clock)
-            after = log_instant(tmp_path / "svc.log", "model mismatch starts") - log_instant(
-                tmp_path / "hil.log", "truth now")
-            print(f"drift detected {after:.1f} s after it; residual "
-                  f"{mm['residual_delay_ms']:.2f} +- {mm['residual_delay_se_ms']:.2f} ms, "
-                  f"estimate {mm['estimate']['spec']}")
-            assert after <= 30.0, trace
-            assert mm["residual_delay_ms"] == pytest.approx(10.0, abs=2.0)
-            assert "model mismatch starts" in (tmp_path / "svc.log").read_text()
-            drifted = delay_ms(st)
-            # the retune, from a settled estimate as an operator would take it (the status
-            # shows its uncertainty): the estimate as a fragment, designed, included, reloaded
-            t_end = time.monotonic() + 60.0
-            while True:
-                seen = status(session)
-                f = seen["model_mismatch"]["axes"]["rails_y"]
-                if f["informative"] and f["residual_delay_se_ms"] <= SETTLED_SE_MS:
-                    break
-                if time.monotonic() > t_end:  # the product says it cannot tell: not judged
-                    pytest.skip("not judged: no settled estimate in 60 s on this host "
-                                f"({f.get('reason') or f.get('residual_delay_se_ms')})")
-                time.sleep(1.0)
-            # that status, saved (the next estimate may be less certain again)
-            saved = tmp_path / "status.json"
-            saved.write_text(json.dumps(seen))
-            p = cli("identify", str(saved), "--from-status", "--axis", "rails_y", "--out",
-                    str(tmp_path / "retune"))
-            assert p.returncode == 0, p.stdout + p.stderr
-            fragment = tmp_path / "retune" / "rails_y.toml"
-            model = parse_model(re.search(r'model = "([^"]+)"', fragment.read_text()).group(1))
-            # the band's phase delay is what the estimate knows (a slalom alone trades Td
-            # against Tp1): the drifted truth's, give or take the stack's share
-            at = mm["at_hz"]
-            off = float(model.phase_delay([at])[0]) - float(parse_model(DRIFTED).phase_delay(
-                [at])[0])
-            assert abs(off) <= 2.0e-3, (model, at, off)
-            design = tmp_path / "design.toml"
-            p = cli("design", "--plant", str(fragment), "--rule", "optimal", "--out",
-                    str(design), "--quiet")
-            assert p.returncode == 0, p.stderr
-            site_config(site, fragment, design)
-            p = cli("reload", "-e", svc_ep)
-            assert p.returncode == 0, p.stdout + p.stderr
-            t_reload = time.monotonic()
-            # after: the status' delay window (10 s) filled with the retuned motion
-            after = []
-            while time.monotonic() - t_reload < 30.0 and src.poll() is None:
-                time.sleep(2.0)
-                st = status(session)
-                if time.monotonic() - t_reload > 14.0 and (d := delay_ms(st)) is not None:
-                    after.append(d)
-            assert after, "no valid apparent delay after the reload"
+            if detected is None and not any(row[1] == "ok" for row in trace):
+                # no window after the drift was judged, for the reasons the product gives
+                # (the loop degraded: the host's stalls in the data; the estimator starved)
+                reasons = Counter(row[4] or row[1] for row in trace)
+                pytest.skip(f"not judged: no window after the drift was informative "
+                            f"({dict(reasons)})")
+            if detected is not None:
+                assert "model mismatch starts" in (tmp_path / "svc.log").read_text()
+                # from the platform's log line of the drift to the service's WARNING (one clock)
+                after_s = log_instant(tmp_path / "svc.log", "model mismatch starts") - \
+                    log_instant(tmp_path / "hil.log", "truth now")
+                print(f"drift detected {after_s:.1f} s after it; residual "
+                      f"{mm['residual_delay_ms']:.2f} +- {mm['residual_delay_se_ms']:.2f} ms, "
+                      f"estimate {mm['estimate']['spec']}")
+                late.append(("detected within 30 s", after_s <= 30.0, trace))
+                drifted = delay_ms(st)
+                # the retune, from a settled estimate as an operator would take it (the
+                # status shows its uncertainty): the estimate as a fragment, designed,
+                # included, reloaded
+                t_end = time.monotonic() + 60.0
+                while True:
+                    seen = status(session)
+                    f = seen["model_mismatch"]["axes"]["rails_y"]
+                    if f["informative"] and f["residual_delay_se_ms"] <= SETTLED_SE_MS:
+                        break
+                    if time.monotonic() > t_end:  # the product says it cannot tell
+                        pytest.skip("not judged: no settled estimate in 60 s on this host "
+                                    f"({f.get('reason') or f.get('residual_delay_se_ms')})")
+                    time.sleep(1.0)
+                print(f"settled: residual {f['residual_delay_ms']:.2f} +- "
+                      f"{f['residual_delay_se_ms']:.2f} ms, estimate {f['estimate']['spec']}")
+                late.append(("the settled estimate's residual delay: the drift's 10 ms within "
+                             "2 ms", abs(f["residual_delay_ms"] - 10.0) <= 2.0, f))
+                # that status, saved (the next estimate may be less certain again)
+                saved = tmp_path / "status.json"
+                saved.write_text(json.dumps(seen))
+                p = cli("identify", str(saved), "--from-status", "--axis", "rails_y", "--out",
+                        str(tmp_path / "retune"))
+                assert p.returncode == 0, p.stdout + p.stderr
+                fragment = tmp_path / "retune" / "rails_y.toml"
+                model = parse_model(re.search(r'model = "([^"]+)"',
+                                              fragment.read_text()).group(1))
+                # the band's phase delay is what the estimate knows (a slalom alone trades Td
+                # against Tp1): the drifted truth's, give or take the stack's share
+                at = mm["at_hz"]
+                off = float(model.phase_delay([at])[0]) - float(
+                    parse_model(DRIFTED).phase_delay([at])[0])
+                late.append(("the settled estimate's phase delay in the band: the drifted "
+                             "truth's within 2 ms", abs(off) <= 2.0e-3, (model, at, off)))
+                design = tmp_path / "design.toml"
+                p = cli("design", "--plant", str(fragment), "--rule", "optimal", "--out",
+                        str(design), "--quiet")
+                assert p.returncode == 0, p.stderr
+                site_config(site, fragment, design)
+                p = cli("reload", "-e", svc_ep)
+                assert p.returncode == 0, p.stdout + p.stderr
+                t_reload = time.monotonic()
+                # after: the status' delay window (10 s) filled with the retuned motion
+                while time.monotonic() - t_reload < 30.0 and src.poll() is None:
+                    time.sleep(2.0)
+                    st = status(session)
+                    if time.monotonic() - t_reload > 14.0 and (d := delay_ms(st)) is not None:
+                        after.append(d)
+                assert after, "no valid apparent delay after the reload"
+            else:
+                late.append(("detected within 45 s", False, trace))
         for p_ in (svc, hil):
             p_.terminate()
             assert p_.wait(timeout=30) == 0
+    # what depends on the host's timing (the estimate, the delays), judged only where the host
+    # held the loop's rate (docs/TESTING.md)
     judge_realtime(probe.result, "the drift's detection and the retuned slalom")
+    failed = [(what, data) for what, ok, data in late if not ok]
+    assert not failed, failed
     ref = float(sorted(before)[len(before) // 2])
     now = float(sorted(after)[len(after) // 2])
     print(f"apparent delay: {ref:.2f} ms before the drift, {drifted} ms drifted, {now:.2f} ms "
