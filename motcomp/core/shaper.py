@@ -195,10 +195,11 @@ and its square over 4 (period) and stay there, so that the tracker follows a dri
 while an arrival's jitter moves the line by a ten-thousandth of it (and no sample at all)."""
 MIN_SKIP_STEP = 1e-6
 SKIP_TOLERANCE = 0.15
-CREST_EVIDENCE = 0.25e-6
-"""Frames without ``t`` beside a crest: the least difference between a new step and what one
-frame would move (axis units, and at least four of a float32 value's ulp) that counts samples
-skipped past the crest (:meth:`ReferenceShaper._spanned`)."""
+SKIP_NOISE = 0.25e-6
+"""Frames without ``t``: the values' noise for the skip count (axis units; four ulps of a
+float32 value where more): a change of the step below it is no steady acceleration, and beside a
+crest a step nearer than it (or than four times the spread of the step's last changes) to what
+the frames say moves is read as those frames (:meth:`ReferenceShaper._spanned`)."""
 MAX_SKIP = 1000
 """Frames without ``t``: a step of the fastest axis within SKIP_TOLERANCE of m >= 2 times the
 previous one (per frame), which moved at least MIN_SKIP_STEP (axis units), spans m samples: the
@@ -517,18 +518,19 @@ class ReferenceShaper:
         the sender's samples its step spans (``frames``, or more when the sender skipped some).
         Read from the motion itself, on the axis moving fastest: where its last two steps (per
         sample) agree within SKIP_TOLERANCE (a steady motion) and moved at least MIN_SKIP_STEP,
-        or, at a reversal, where the last two changes of its step agree so and changed it by
-        at least MIN_SKIP_STEP (a steady acceleration: a recorded skip 2 ms past a trough, read
-        as one step, put the compensated rails at their acceleration limit), a new step
+        or, at a reversal, where the last three changes of its step agree so and changed it by
+        more than the values' noise, SKIP_NOISE (a steady acceleration: a recorded skip 2 ms
+        past a trough, read as one step, put the compensated rails at their acceleration limit;
+        the hexapod's 5 cm heave changes by 0.5 um a sample), a new step
         SKIP_TOLERANCE-close to what m > ``frames`` samples move along the last step and its
         change (a constant second difference: the steps of a slowing motion shrink, so m
         samples move less than m times the next step) spans m samples; a wrong count, where
         the motion is too slow or unsteady to tell, misplaces a sample by little.  Beside a
-        crest two counts give the same step, one each side of it: the nearer, unless it is not
-        ``frames`` while the step is CREST_EVIDENCE off what ``frames`` move (a recorded skip of
-        the slalom's trough sample read 0.33 for 2)."""
+        crest two counts give the same step, one each side of it: the nearer, unless, read at a
+        reversal, it is not ``frames`` while the step is off what ``frames`` move by more than
+        the values' noise (a recorded skip of the slalom's trough sample read 0.33 for 2)."""
         q = self._period
-        best, ratio, other, gap, noise = 0.0, 1.0, 0.0, 0.0, 0.0
+        best, ratio, other, gap, noise, bent = 0.0, 1.0, 0.0, 0.0, 0.0, False
         for i, v in pos.items():
             h = self._hist[i]
             if not p.driven[i] or len(h) < 3 or q <= 0.0:
@@ -537,12 +539,20 @@ class ReferenceShaper:
             t0, v0, t1, v1, t2, v2 = k0.t, k0.v, k1.t, k1.v, k2.t, k2.v
             s0 = (v1 - v0) * q / (t1 - t0)  # steps per frame
             s1 = (v2 - v1) * q / (t2 - t1)
-            steady, score = abs(s1 - s0) <= SKIP_TOLERANCE * abs(s1), abs(s1)
-            if not steady and len(h) >= 4:  # a reversal: its steps change steadily
-                km = h[-4]
-                c1, c0 = s1 - s0, s0 - (v0 - km.v) * q / (t0 - km.t)
-                steady = abs(c1) >= MIN_SKIP_STEP and abs(c1 - c0) <= SKIP_TOLERANCE * abs(c1)
+            floor = max(SKIP_NOISE, 4.0 * _float32_ulp(v))
+            curved = False
+            score = abs(s1)
+            steady = score >= MIN_SKIP_STEP and abs(s1 - s0) <= SKIP_TOLERANCE * score
+            if not steady and len(h) >= 5:  # a reversal: its steps change steadily
+                km, kn = h[-4], h[-5]
+                sm = (v0 - km.v) * q / (t0 - km.t)
+                c1, c0, cm = s1 - s0, s0 - sm, sm - (km.v - kn.v) * q / (km.t - kn.t)
+                steady = (abs(c1) >= floor and abs(c1 - c0) <= SKIP_TOLERANCE * abs(c1)
+                          and abs(c0 - cm) <= SKIP_TOLERANCE * abs(c1))
                 score = max(score, abs(c1))
+                curved = steady
+                # the changes' own spread: the values' noise as they show it
+                floor = max(floor, 4.0 * max(abs(c1 - c0), abs(c0 - cm)))
             if steady and score > best:
                 # the k-th step on is s1 + dd (k + e): m of them move a m^2 + b m
                 dd = (s1 - s0) * 2.0 * q / (t2 - t0)  # change of the step per sample
@@ -555,14 +565,13 @@ class ReferenceShaper:
                 best, ratio = score, (2.0 * dv / den if den != 0.0 else 0.0)
                 other = -0.5 * den / a if a != 0.0 and den != 0.0 else 0.0
                 gap = dv - frames * (a * frames + b)
-                noise = max(CREST_EVIDENCE, 4.0 * _float32_ulp(v))
-        if best < MIN_SKIP_STEP:
+                noise, bent = floor, curved
+        if best == 0.0 or abs(ratio - frames) <= SKIP_TOLERANCE:  # the usual case
             return frames
-        if abs(ratio - frames) <= SKIP_TOLERANCE:  # the frames it says: the usual case
-            return frames
-        if not frames + 0.5 <= ratio <= MAX_SKIP and abs(gap) >= noise:
-            # beside a crest both roots can count: dv is what m = frames would move only
-            # if the smaller root says so; else the farther root, past the crest, may
+        if bent and not frames + 0.5 <= ratio <= MAX_SKIP and abs(gap) >= noise:
+            # beside a crest (its steps' change steady: the curvature known) both roots can
+            # count: dv is what m = frames would move only if the nearer says so; else the
+            # farther, past the crest, may
             ratio = other
         if not frames + 0.5 <= ratio <= MAX_SKIP:
             return frames
