@@ -19,7 +19,8 @@ the ideal run has before its motion), on the axis the scenario moves:
 * HF acc RMS above 5 Hz and jerk RMS of the command over the stretches of consecutive ticks,
   each beside the ideal run's over the same stretches and their ratio; the ideal run:
   ``motcomp.sim.ideal.ideal_run`` of the same config and mode fed the motion function sampled
-  at 1 kHz;
+  at the sender's rate, perfectly timed (what the live path adds; the ideal rows of the table:
+  at 1 kHz);
 * missed deadlines (the output frames' ``t`` stepping by more than a period, and the service's
   own ``missed_ticks`` over the run), lost frames, the 1-minute load at the run's end.
 
@@ -152,12 +153,13 @@ class Ideal:
 
 
 def ideal(cfg: ServiceConfig, scenario: str, duration_s: float, a_max: float,
-          truth: Any) -> Ideal:
-    """The ideal run of ``scenario`` through the config of a mode, ``cfg``."""
+          truth: Any, rate_hz: float = IDEAL_RATE_HZ) -> Ideal:
+    """The ideal run of ``scenario`` through the config of a mode, ``cfg``: the motion
+    sampled at ``rate_hz``, perfectly timed."""
     signal, axis = SIGNALS[scenario]
-    tau = np.arange(round(duration_s * IDEAL_RATE_HZ)) / IDEAL_RATE_HZ
+    tau = np.arange(round(duration_s * rate_hz)) / rate_hz
     ref = np.array([signal(x) for x in tau])
-    run = ideal_run(cfg, {axis: ref}, IDEAL_RATE_HZ)  # (the mode's config: its bypass)
+    run = ideal_run(cfg, {axis: ref}, rate_hz)  # (the mode's config: its bypass)
     u = run.u[axis]
     y = simulate_axis(truth, u, run.rate_hz)
     w_out = run.t >= SKIP_S
@@ -285,8 +287,8 @@ def report(args: argparse.Namespace, runs: list[dict[str, Any]], ideals: list[di
                   "limiter | HF | jerk | delay |",
                   "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for mode in args.modes:
-            i = next((r for r in ideals if r["scenario"] == scenario and r["mode"] == mode),
-                     None)
+            i = next((r for r in ideals if r["scenario"] == scenario and r["mode"] == mode
+                      and r["rate_hz"] == IDEAL_RATE_HZ), None)
             if i is not None:
                 lines.append(
                     f"| ideal, 1 kHz | {mode} | {fmt(i['delay_ms'])} | - | {pct(i['at_limit'])}"
@@ -327,8 +329,9 @@ def report(args: argparse.Namespace, runs: list[dict[str, Any]], ideals: list[di
         f"{HF_ABOVE_HZ:g} Hz; *jerk RMS*: its third difference; both over the stretches of "
         "consecutive ticks (a missed deadline or a lost frame cuts a stretch, nothing is "
         "bridged), beside the ideal run's command (`motcomp.sim.ideal.ideal_run`, the same "
-        "config and mode, the motion function sampled at 1 kHz, perfectly timed) cut into the "
-        "same stretches; *ratio* = live / ideal.  *missed deadlines*: in the window, steps of "
+        "config and mode, the motion function sampled at the sender's rate, perfectly timed: "
+        "what the live path adds to what the sender's rate itself costs) cut into the same "
+        "stretches; *ratio* = live / ideal.  *missed deadlines*: in the window, steps of "
         "the output frames' `t` by more than a period / over the whole run, the service's "
         "own `missed_ticks`.  *load*: the 1-minute load average at the run's end.  Targets "
         f"(issue 25): *limiter* sat and at-limit each <= {100 * LIMITER_MAX:g} % of the "
@@ -422,18 +425,23 @@ def measure(args: argparse.Namespace, ap: argparse.ArgumentParser, cfg_path: Pat
     print(f"machine: {machine_line}", flush=True)
     t_start = time.monotonic()
     ideals: list[dict[str, Any]] = []
-    ideal_u: dict[tuple[str, str], np.ndarray] = {}
+    ideal_u: dict[tuple[str, str, float], np.ndarray] = {}
+    rates = sorted({CLASSES[name].rate_hz for name in args.kinds} | {IDEAL_RATE_HZ},
+                   reverse=True)
     for scenario in args.scenarios:
         axis = SIGNALS[scenario][1]
         for mode in args.modes:
-            i = ideal(load_config(configs[mode]), scenario, args.duration,
-                      a_max[scenario], truth[AXIS_INDEX[axis]])
-            ideal_u[scenario, mode] = i.u
-            ideals.append({"scenario": scenario, "mode": mode, "axis": axis, **i.figures})
-            print(f"  ideal {scenario} {mode}: delay {fmt(i.figures['delay_ms'])} ms, at acc "
-                  f"limit {pct(i.figures['at_limit'])} %, HF acc "
-                  f"{fmt(i.figures['hf_acc_rms'], '.3g')}, jerk "
-                  f"{fmt(i.figures['jerk_rms'], '.3g')}", flush=True)
+            for rate in rates:  # each sender beside the ideal run at its own rate
+                i = ideal(load_config(configs[mode]), scenario, args.duration,
+                          a_max[scenario], truth[AXIS_INDEX[axis]], rate)
+                ideal_u[scenario, mode, rate] = i.u
+                ideals.append({"scenario": scenario, "mode": mode, "axis": axis,
+                               "rate_hz": rate, **i.figures})
+                print(f"  ideal {scenario} {mode} {rate:g} Hz: delay "
+                      f"{fmt(i.figures['delay_ms'])} ms, at acc limit "
+                      f"{pct(i.figures['at_limit'])} %, HF acc "
+                      f"{fmt(i.figures['hf_acc_rms'], '.3g')}, jerk "
+                      f"{fmt(i.figures['jerk_rms'], '.3g')}", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     logs = args.out / "logs"
     logs.mkdir(exist_ok=True)
@@ -465,7 +473,7 @@ def measure(args: argparse.Namespace, ap: argparse.ArgumentParser, cfg_path: Pat
                                            "scenario": scenario, "axis": axis,
                                            "bypassed": bool(bypassed[mode][AXIS_INDEX[axis]])}
                     row.update(analyse(rec, cls, scenario, args.duration, a_max[scenario],
-                                       loop_hz, ideal_u[scenario, mode]))
+                                       loop_hz, ideal_u[scenario, mode, cls.rate_hz]))
                     row["targets"] = targets(row, cls, row["bypassed"])
                     runs.append(row)
                     failed = [k for k, v in row["targets"].items() if v is False]
