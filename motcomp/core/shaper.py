@@ -539,14 +539,14 @@ class ReferenceShaper:
             t0, v0, t1, v1, t2, v2 = k0.t, k0.v, k1.t, k1.v, k2.t, k2.v
             s0 = (v1 - v0) * q / (t1 - t0)  # steps per frame
             s1 = (v2 - v1) * q / (t2 - t1)
-            floor = max(SKIP_NOISE, 4.0 * _float32_ulp(v))
-            curved = False
+            curved, floor = False, 0.0
             score = abs(s1)
             steady = score >= MIN_SKIP_STEP and abs(s1 - s0) <= SKIP_TOLERANCE * score
             if not steady and len(h) >= 5:  # a reversal: its steps change steadily
                 km, kn = h[-4], h[-5]
                 sm = (v0 - km.v) * q / (t0 - km.t)
                 c1, c0, cm = s1 - s0, s0 - sm, sm - (km.v - kn.v) * q / (km.t - kn.t)
+                floor = max(SKIP_NOISE, 4.0 * _float32_ulp(v))
                 steady = (abs(c1) >= floor and abs(c1 - c0) <= SKIP_TOLERANCE * abs(c1)
                           and abs(c0 - cm) <= SKIP_TOLERANCE * abs(c1))
                 score = max(score, abs(c1))
