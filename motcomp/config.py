@@ -236,6 +236,7 @@ class InputConfig(BaseModel):
     reconstruction: Literal["smooth", "linear", "hold"] = "smooth"
     max_extrapolation_s: float = Field(0.02, ge=0.0, le=1.0)
     lead_s: float = Field(0.0, ge=0.0, le=0.1)
+    playback_lag_s: float = Field(0.0017, ge=0.0, le=0.1)
     band_hz: float = Field(BAND_HZ_DEFAULT, ge=0.0, le=1000.0)
     axis_band_hz: dict[str, float] = Field(default_factory=dict)
     max_frame_bytes: int = Field(4096, ge=64, le=1_048_576)
@@ -1048,6 +1049,7 @@ def tick_params(cfg: ServiceConfig, axes: ResolvedAxes) -> TickParams:
         rejoin_s=loop.rejoin_s, startup_s=loop.startup_s,
         reconstruction=cfg.input.reconstruction, tick_s=1.0 / loop.rate_hz,
         max_extrapolation_s=cfg.input.max_extrapolation_s, lead_s=cfg.input.lead_s,
+        playback_lag_s=cfg.input.playback_lag_s,
         band=tuple(band_limit_params(hz, loop.rate_hz, _band_key(cfg.input, a)) if d else None
                    for a, hz, d in zip(AXES, cfg.input.bands_hz(), axes.driven, strict=True)))
     return TickParams(loop.rate_hz, shaper, cfg.status.saturation_tolerance,

@@ -32,8 +32,8 @@ from typing import Any
 __all__ = ["ACTIVE", "COMPILED_MODULES", "PURE_ENV", "RECORD", "choose", "frozen_reduce",
            "source_hashes", "verdict"]
 
-COMPILED_MODULES = ("axes", "bandlimit", "compensator", "envelope", "minjerk", "predictor",
-                    "saturation", "shaper", "tick")
+COMPILED_MODULES = ("axes", "bandlimit", "compensator", "envelope", "interp", "minjerk",
+                    "playback", "predictor", "saturation", "shaper", "tick", "timeline")
 """Modules of ``motcomp.core`` compiled (the tick and all it calls per sample)."""
 PURE_ENV = "MOTCOMP_PURE_PYTHON"
 """Set (to anything but ``""`` or ``0``) at install: no compilation; at run time: the plain

@@ -46,15 +46,23 @@ Rules for edge cases
   is live is rejected (``jump``): frames sent meanwhile could not be missed in less than the
   stale time, so it is another sender (or a forged frame) that would lock the live one out;
   once the input is stale it is accepted as a restart (a regress of more than a million counts
-  nothing as superseded: a restart).
+  nothing as superseded: a restart).  Likewise a ``t`` (``smooth`` reconstruction) outside the
+  instants a live sender's next sample can have (:meth:`ReferenceShaper.next_t_bound
+  <motcomp.core.shaper.ReferenceShaper.next_t_bound>`: not before its newest sample, at most
+  ``stale_after_s`` plus the loop time since then after it) is rejected (``jump``) while the
+  input is live.  After a stall of the loop, each frame is judged at the deadline it had
+  landed by (catch-up, below): the loop's stall is not an input loss.
 * Catch-up: when the caller missed deadlines (``skipped`` > 0, a stall of its thread), the
-  compensator is first stepped at the ``min(skipped, MAX_CATCH_UP)`` deadlines just before
-  ``now_ns``, with the reference of each (before this tick's frame is taken) and no output, so
-  that its discrete dynamics stay on the real time grid instead of seeing the reference jump
-  several samples at once: their difference would reach the command as a derivative kick (a
-  36 ms stall of a loaded host, caught up over its last 20 periods only, kicked the rails'
-  command 0.4 m off and the limiter acted for 0.9 s).  A stall longer than ``MAX_CATCH_UP``
-  periods is caught up over its last ones.  One output per call, never a burst.
+  frames that landed meanwhile are taken first (the shaper plays each sample at its own
+  instant, so the deadlines missed see the samples they would have seen), then the
+  compensator is stepped at the ``min(skipped, MAX_CATCH_UP)`` deadlines just before
+  ``now_ns``, with the reference of each and no output, so that its discrete dynamics stay on
+  the real time grid instead of seeing the reference jump several samples at once (their
+  difference would reach the command as a derivative kick).  Every step, sent or not, goes
+  through the limiter and the envelope guard: the limits hold at every deadline of the grid,
+  and so between two consecutive outputs however many periods apart (docs/WIRE.md, "The
+  limits across missed ticks").  A stall longer than ``MAX_CATCH_UP`` periods is caught up
+  over its last ones.  One output per call, never a burst.
 * Input loss (the shaper's mode ``stale`` or ``parking``, catch-up steps included): at the
   first such tick every driven axis gets a window (:meth:`Compensator.open_window
   <motcomp.core.compensator.Compensator.open_window>`): the hull of its command ``p``, its
@@ -135,10 +143,10 @@ rejected (``jump``) while the input is live."""
 REJECT_REASONS: tuple[str, ...] = ("oversize", "decode", "schema", "type", "axis", "nonfinite",
                                    "range", "duplicate", "old", "jump", "internal")
 """Why an input frame was rejected (the status counts each)."""
-MAX_CATCH_UP = 100
-"""Longest stall (in periods) whose samples are computed afterwards: a 100 ms stall costs the
-next tick about 100 reference and compensator steps (3-4 ms at 1 kHz, docs/BENCHMARKS.md
-``tick.step``), whose own overrun is caught up by the tick after."""
+MAX_CATCH_UP = 2000
+"""Longest stall (in periods) whose deadlines are computed afterwards: a 200 ms stall costs the
+next tick about 200 reference and compensator steps (3-6 ms at 1 kHz, docs/BENCHMARKS.md),
+whose own overrun is caught up by the tick after."""
 MAX_ERROR_CHARS = 200
 """Longest text of a rejected frame's error (status ``last_reject``)."""
 _INPUT_KEYS = frozenset({"seq", "t", "pos"})
@@ -198,6 +206,9 @@ class TickOutput:
     limited: list[bool]
     mode: str
     """``""`` when live and settled, else ``rejoin``, ``stale`` or ``parking``."""
+    rx_ns: int = 0
+    """How long after the tick's instant its input frames were taken (ns; 0: at it): what a
+    replay needs to time them as the tick did (output frames carry it as ``rx``)."""
 
 
 @mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
@@ -266,34 +277,46 @@ class TickState:
 
 
 def step(state: TickState, p: TickParams, now_ns: int,
-         payload: bytes | Sequence[bytes] | None = None, skipped: int = 0) -> TickOutput:
+         payload: bytes | Sequence[bytes] | None = None, skipped: int = 0,
+         arrived_ns: int | None = None) -> TickOutput:
     """One tick at the instant ``now_ns`` (ns, the loop's clock) with the input frames that
-    arrived since the last tick, oldest first (one frame, a sequence, or None); ``skipped``
-    deadlines were missed before it.  See the module docstring; never raises because of a
-    payload."""
+    arrived since the last tick, oldest first (one frame, a sequence, or None), taken at
+    ``arrived_ns`` (default ``now_ns``; never before they landed); ``skipped`` deadlines were
+    missed before it.  See the module docstring; never raises because of a payload."""
     now = now_ns / 1e9
+    arrived = now if arrived_ns is None or arrived_ns < now_ns else arrived_ns / 1e9
     shaper, sp = state.shaper, p.shaper
     if p.prediction is not state._pred_src:
         _sync_prediction(state, p)
     env = p.envelope
-    if skipped > 0:  # before the frame: the ticks at those deadlines would not have seen it
+    frames: Sequence[bytes] = ()
+    if payload is not None:
+        if isinstance(payload, bytes | bytearray | memoryview):
+            frames = (bytes(payload),)
+        elif state.last_seq is None:  # no frame accepted yet: a backlog is not history
+            frames = payload[-1:]
+        else:
+            frames = payload
+    if skipped > 0:  # the deadlines missed: computed on the grid, nothing sent
         period = p.period_ns
+        parsed = [_parse(state, p, frame) for frame in frames]
+        k = 0
         for j in range(min(skipped, MAX_CATCH_UP), 0, -1):
-            r, m = shaper.reference(sp, (now_ns - j * period) / 1e9)
+            d = (now_ns - j * period) / 1e9
+            while k < len(parsed) and shaper.landed_by(parsed[k][1], d):
+                _take(state, p, d, d, parsed[k])  # at the deadline it had landed by
+                k += 1
+            r, m = shaper.reference(sp, d)
             if m or state._windowed:
                 _window(state, sp, r, m)
             u_c = state.comp.step(_predicted(state, r, m))
             if env is not None:
                 state.guard.apply(env, u_c)
-    if payload is not None:
-        if isinstance(payload, bytes | bytearray | memoryview):
-            _take(state, p, now, bytes(payload))
-        elif state.last_seq is None:  # no frame accepted yet: a backlog is not history
-            if payload:
-                _take(state, p, now, payload[-1])
-        else:
-            for frame in payload:
-                _take(state, p, now, frame)
+        for item in parsed[k:]:
+            _take(state, p, now, arrived, item)
+    else:
+        for frame in frames:
+            _take(state, p, now, arrived, _parse(state, p, frame))
     ref, mode = shaper.reference(sp, now)
     comp = state.comp
     if mode or state._windowed:
@@ -326,7 +349,8 @@ def step(state: TickState, p: TickParams, now_ns: int,
             if fallen:
                 flags.append(_FALLBACK_FLAGS[i])
         flags.extend(state.nopredict_flags)
-    out = TickOutput(state.ticks, state.src_seq, u, flags, limited, mode)
+    out = TickOutput(state.ticks, state.src_seq, u, flags, limited, mode,
+                     0 if arrived_ns is None or arrived_ns < now_ns else arrived_ns - now_ns)
     state.ticks += 1
     state.mode = mode or "running"
     return out
@@ -389,12 +413,32 @@ def _predicted(state: TickState, ref: list[float], mode: str) -> list[float]:
     return ref if state._windowed else out  # input lost: the plain reference (module docstring)
 
 
-def _take(state: TickState, p: TickParams, now: float, payload: bytes) -> None:
-    """Check one frame and hand it to the shaper; a rejection is counted, never raised."""
-    state.received += 1
-    shaper, sp = state.shaper, p.shaper
+_Parsed = tuple[int, float | None, dict[int, float] | None, FrameError | None]
+"""A frame as read: ``(seq, t, pos, None)``, or ``(0, None, None, why it was rejected)``."""
+
+
+def _parse(state: TickState, p: TickParams, payload: bytes) -> _Parsed:
+    """Read one frame (:func:`parse_input`); never raises."""
+    sp = p.shaper
     try:
         seq, t, pos = parse_input(payload, sp.reach_lo, sp.reach_hi, p.max_frame_bytes)
+    except FrameError as exc:
+        return 0, None, None, exc
+    except Exception as exc:  # a bug must not stop the loop: counted as internal
+        return 0, None, None, FrameError("internal", f"{type(exc).__name__}: "
+                                                     f"{str(exc)[:MAX_ERROR_CHARS]}")
+    return seq, t, pos, None
+
+
+def _take(state: TickState, p: TickParams, now: float, arrived: float, frame: _Parsed) -> None:
+    """Check one frame read by :func:`_parse` and hand it to the shaper; a rejection is
+    counted, never raised."""
+    state.received += 1
+    shaper, sp = state.shaper, p.shaper
+    seq, t, pos, error = frame
+    try:
+        if error is not None or pos is None:
+            raise error or FrameError("internal", "no values")
         last = state.last_seq
         if last is not None and not 0 < seq - last <= MAX_SEQ_STEP \
                 and not shaper.is_stale(sp, now):
@@ -402,8 +446,15 @@ def _take(state: TickState, p: TickParams, now: float, payload: bytes) -> None:
                 raise FrameError("jump", f"seq {seq} is {seq - last} ahead of {last} (more than "
                                          f"{MAX_SEQ_STEP}) while the input is live")
             raise FrameError("duplicate" if seq == last else "old", f"seq {seq} after {last}")
+        if t is not None and sp.reconstruction == "smooth":
+            bound = shaper.next_t_bound(sp, now)
+            if bound is not None and not bound[0] <= t <= bound[1]:
+                lo, hi = bound
+                raise FrameError("jump", f"t {t!r} is {t - hi if t > hi else t - lo:+.6g} s "
+                                         f"beyond [{lo:.6f}, {hi:.6f}], the instants a live "
+                                         "sender's next sample can have")
         step_ = seq - last if last is not None and 0 < seq - last <= MAX_SEQ_STEP else 1
-        shaper.on_input(sp, pos, now, t, step_)
+        shaper.on_input(sp, pos, now, t, step_, arrived)
     except FrameError as exc:
         state._reject(exc.reason, str(exc))
         return

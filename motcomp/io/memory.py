@@ -48,7 +48,7 @@ class MemorySink:
 
     def send(self, out: TickOutput, t: float) -> None:
         """An :class:`~motcomp.io.ports.OutputPort`: keeps the encoded output frame."""
-        self.put(encode_output(out.seq, t, out.src_seq, out.u, out.flags))
+        self.put(encode_output(out.seq, t, out.src_seq, out.u, out.flags, out.rx_ns))
         self.sent += 1
 
     def put(self, payload: bytes) -> None:

@@ -7,7 +7,8 @@ Input (key ``sim/motion/setpoint``)
     others hold their last value).  Checked by :func:`motcomp.core.tick.parse_input`, the one
     validation of input frames (reasons in :data:`motcomp.core.tick.REJECT_REASONS`).
 Output (key ``platform/setpoint``)
-    ``{"seq": int, "t": float, "src_seq": int, "pos": {all 8 axes}, "flags": [str, ...]}``.
+    ``{"seq": int, "t": float, "src_seq": int, "pos": {all 8 axes}, "flags": [str, ...]}``
+    and ``"rx": int`` (ns after ``t`` the tick took its input frames) where not 0.
 Feedback (key ``platform/feedback``)
     ``{"t": float, "pos": {axis: float}, "acc": {axis: float}}``.
 Status (key ``motcomp/status``)
@@ -44,11 +45,15 @@ def encode_input(seq: int, t: float | None, pos: dict[str, float]) -> bytes:
 
 
 def encode_output(seq: int, t: float, src_seq: int, positions: Sequence[float],
-                  flags: Sequence[str]) -> bytes:
-    """An output frame; ``positions`` in :data:`AXES` order (packed as floats)."""
-    return _pack({"seq": seq, "t": float(t), "src_seq": src_seq,
-                  "pos": dict(zip(AXES, map(float, positions), strict=True)),
-                  "flags": list(flags)})
+                  flags: Sequence[str], rx_ns: int = 0) -> bytes:
+    """An output frame; ``positions`` in :data:`AXES` order (packed as floats); ``rx`` (ns
+    after ``t`` the tick took its input frames) only when not 0."""
+    frame: dict[str, Any] = {"seq": seq, "t": float(t), "src_seq": src_seq,
+                             "pos": dict(zip(AXES, map(float, positions), strict=True)),
+                             "flags": list(flags)}
+    if rx_ns:
+        frame["rx"] = int(rx_ns)
+    return _pack(frame)
 
 
 def encode_feedback(t: float, pos: dict[str, float], acc: dict[str, float]) -> bytes:

@@ -160,8 +160,10 @@ def open_session(ep: ZenohEndpoints) -> Iterator[Any]:
         session.close()
 
 
-MAX_BURST = 64
-"""Input frames kept between two ticks (64 ms of a 1 kHz sender: longer is a stale input)."""
+MAX_BURST = 2048
+"""Input frames kept between two ticks: a stall of the loop of up to 2 s of a 1 kHz sender
+is caught up with every sample (:data:`motcomp.core.tick.MAX_CATCH_UP`); longer keeps the
+newest."""
 
 
 class ZenohSource:
@@ -207,7 +209,7 @@ class ZenohSink:
 
     def send(self, out: TickOutput, t: float) -> None:
         """An :class:`~motcomp.io.ports.OutputPort`: the output frame of docs/WIRE.md."""
-        self.put(encode_output(out.seq, t, out.src_seq, out.u, out.flags))
+        self.put(encode_output(out.seq, t, out.src_seq, out.u, out.flags, out.rx_ns))
 
     def close(self) -> None:
         self._pub.undeclare()

@@ -3,9 +3,10 @@
 Three figures for ``motcomp status`` (why and how: docs/DEPLOYMENT.md, "Motion quality"):
 
 ``apparent_delay_ms``
-    how late the platform's feedback position follows the reference ``r`` the compensator is
-    asked to deliver, by :func:`motcomp.core.quality.estimate_delay` over the last ``window_s``;
-    with ``delay_valid``, ``delay_reason`` and ``delay_corr`` (below).
+    how late the platform's feedback position follows the sender's samples at their own ``t``
+    (what a user means by the delay: the input's reconstruction and band limit included), by
+    :func:`motcomp.core.quality.estimate_delay` over the last ``window_s``; with
+    ``delay_valid``, ``delay_reason`` and ``delay_corr`` (below).
 ``limited_share``
     the fraction of ticks over the window on which the limiter changed the axis' command
     (:attr:`motcomp.core.tick.TickState.acted`).
@@ -16,23 +17,26 @@ Three figures for ``motcomp status`` (why and how: docs/DEPLOYMENT.md, "Motion q
     status' ``missed_ticks`` counts those).
 
 Threads and cost: the loop thread calls :meth:`MotionMonitor.record` once per tick (a row written
-into a preallocated ring: under a microsecond); the feedback subscriber's thread calls
-:meth:`MotionMonitor.on_feedback` per frame (an append to a bounded deque); one other thread
-(the service's main thread) calls :meth:`MotionMonitor.drain` and :meth:`MotionMonitor.report`,
-which decode, average and estimate.  Nothing here reads a clock: every instant is an argument,
-in ns on the loop's monotonic clock (``time.perf_counter_ns``).
+into a preallocated ring: under a microsecond): the input as the shaper plays it back
+(:attr:`motcomp.core.shaper.ReferenceShaper.played`, before its averaging and band limit) at its own
+instant on the loop clock (the tick's, less the playback's lag beyond the smallest transit: the
+sample's ``t`` plus that transit), and the command ``u`` at the tick's instant; the feedback
+subscriber's thread calls :meth:`MotionMonitor.on_feedback` per frame (an append to a bounded
+deque); one other thread (the service's main thread) calls :meth:`MotionMonitor.drain` and
+:meth:`MotionMonitor.report`, which decode, average and estimate.  Nothing here reads a clock: every
+instant is an argument, in ns on the loop's monotonic clock (``time.perf_counter_ns``).
 
 The delay, step by step (``h`` = :data:`BIN_S`)
 -----------------------------------------------
-0. Each feedback frame is placed on the loop clock at ``t + min(arrival - t)``: its sender's
-   ``t`` shifted by the smallest transit over the frames held (the fastest delivery; the
-   reference shaper times input frames the same way).  The arrival instants themselves carry
-   the receiving side's dispatch delays (the interpreter lock, a busy host), which are not the
+0. Each feedback frame is placed on the loop clock at ``t + min(arrival - t)``: its sender's ``t``
+   shifted by the smallest transit over the frames held (the fastest delivery; the input's samples
+   are placed the same way, by the shaper's own smallest transit).  The arrival instants themselves
+   carry the receiving side's dispatch delays (the interpreter lock, a busy host), which are not the
    platform's.  If a frame held lacks a finite ``t``, the arrival instants are used.
-1. Both signals are averaged into bins of ``h`` on that clock -- ``r`` at the tick instants, the
-   feedback at its instants of step 0 -- keeping each bin's mean instant; each is resampled
-   linearly from those mean instants onto the bin centres (so the sampling phase of the two
-   streams within a bin biases nothing; empty bins are bridged).
+1. Both signals are averaged into bins of ``h`` on that clock -- the input ``r`` at its own
+   instants, the feedback at its instants of step 0 -- keeping each bin's mean instant; each
+   is resampled linearly from those mean instants onto the bin centres (so the sampling
+   phase of the two streams within a bin biases nothing; empty bins are bridged).
 2. The window ``[A, B)`` of the feedback: its last ``window_s`` (at most :data:`MAX_WINDOW_S`)
    such that ``r`` is known over ``[A - max_lag, B - min_lag)`` (:data:`LAG_RANGE_S`).
 3. From ``d = 0``: ``r(t - d)`` over ``[A, B)`` (linear between bins) and ``y``, each with its
@@ -51,7 +55,8 @@ was computed): no feedback yet, or none for :data:`FEEDBACK_STALE_S`; less than
 :data:`MIN_SPAN_S` of feedback; the axis in fewer than :data:`MIN_FEEDBACK_COVERAGE` of the
 bins; the reference's standard deviation over the window below :data:`MIN_MOTION_FRACTION` of
 the axis range; the feedback constant, the correlation's peak on the edge of the lags, or no
-convergence; ``delay_corr`` below :data:`MIN_CORRELATION`.
+convergence; ``delay_corr`` below :data:`MIN_CORRELATION`; the limiter acting on more than
+:data:`MAX_LIMITED_SHARE` of the window's ticks (the value is still given).
 
 Feedback frames (docs/WIRE.md ``{"t", "pos", "acc"}``): any bytes are accepted by
 :meth:`~MotionMonitor.on_feedback`; a frame that is larger than :data:`MAX_FEEDBACK_BYTES`, does
@@ -89,6 +94,7 @@ __all__ = [
     "FEEDBACK_STALE_S",
     "LAG_RANGE_S",
     "MAX_FEEDBACK_BYTES",
+    "MAX_LIMITED_SHARE",
     "MAX_WINDOW_S",
     "MIN_CORRELATION",
     "MIN_FEEDBACK_COVERAGE",
@@ -115,6 +121,9 @@ MIN_MOTION_FRACTION = 1e-3
 which the motion is too small to tell a delay (5 mm on the 5.2 m rails)."""
 MIN_CORRELATION = 0.9
 """Lowest normalised correlation of the feedback with the delayed reference for a valid delay."""
+MAX_LIMITED_SHARE = 0.25
+"""A delay measured while the limiter acted on more of the window's ticks is not valid: the
+platform then follows the limits, not the compensation (a 256 ms "delay" at 82 %)."""
 FEEDBACK_STALE_S = 0.5
 """No feedback for this long: no delay (the figure would describe the past)."""
 MAX_FEEDBACK_BYTES = 65536
@@ -210,6 +219,7 @@ class MotionMonitor:
         self._keep = max(self._report_rows, math.ceil(min_span_s * rate_hz))
         self._cap = self._keep + max(math.ceil(0.5 * rate_hz), 16)
         self._t = np.zeros(self._cap, dtype=np.int64)
+        self._t_in = np.zeros(self._cap, dtype=np.int64)
         self._ru = np.zeros((self._cap, 2 * N_AXES))
         self._n = 0
         # feedback subscriber's thread -> main thread
@@ -235,11 +245,12 @@ class MotionMonitor:
                                                                       (0,) * N_AXES)])
 
     # --- the loop thread ------------------------------------------------------------------
-    def record(self, t_ns: int, ref: list[float], u: list[float]) -> None:
-        """One tick at ``t_ns``: the reference ``ref`` and the command ``u`` it sent (lists in
-        :data:`AXES` order)."""
+    def record(self, t_ns: int, ref: list[float], u: list[float], lag_ns: int = 0) -> None:
+        """One tick at ``t_ns``: the input ``ref`` at the instant ``t_ns - lag_ns`` and the
+        command ``u`` the tick sent (lists in :data:`AXES` order)."""
         k = self._n % self._cap
         self._t[k] = t_ns
+        self._t_in[k] = t_ns - lag_ns
         self._ru[k] = ref + u
         self._n += 1
 
@@ -315,6 +326,9 @@ class MotionMonitor:
         m = min(n, self._report_rows)
         idx = np.arange(n - m, n) % self._cap
         t_r = self._t[idx]
+        t_in = self._t_in[idx]
+        if t_in.size > 1 and np.any(t_in[1:] < t_in[:-1]):  # the playback's lag grew: in order
+            t_in = np.maximum.accumulate(t_in)
         # r and u of the driven axes, copied now: the loop overwrites the ring's oldest rows
         # while this report runs (it may be preempted for longer than the ring's margin)
         cols = [i for i in range(N_AXES) if driven[i]]
@@ -325,7 +339,7 @@ class MotionMonitor:
         fidx = np.arange(fn - fm, fn) % self._fcap
         arrived = self._ft[fidx]
         t_y, fidx = self._feedback_instants(arrived, self._fsent[fidx], fidx)
-        window = self._window(t_r, t_y, arrived)
+        window = self._window(t_in, t_y, arrived)
         cmd = self._command_grid(t_r)
         axes: dict[str, Any] = {}
         for i, axis in enumerate(AXES):
@@ -341,8 +355,14 @@ class MotionMonitor:
                 if isinstance(window, str):
                     fig["delay_reason"] = window
                 else:
-                    fig.update(self._delay(t_r, ru[:, col[i]], t_y, self._fpos[fidx, i], window,
-                                           float(p_max[i]) - float(p_min[i])))
+                    fig.update(self._delay(t_in, ru[:, col[i]], t_y, self._fpos[fidx, i],
+                                           window, float(p_max[i]) - float(p_min[i])))
+                    if fig["delay_valid"] and share and share[i] > MAX_LIMITED_SHARE:
+                        fig["delay_valid"] = False
+                        fig["delay_reason"] = (
+                            f"the limiter acted on {100 * share[i]:.0f} % of the ticks (more "
+                            f"than {100 * MAX_LIMITED_SHARE:g} %): the platform follows its "
+                            "limits, not the compensation")
                 if cmd is not None:
                     grid, first = cmd
                     u = np.interp(grid, t_r[first:], ru[first:, len(cols) + col[i]])

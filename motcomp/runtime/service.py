@@ -229,6 +229,9 @@ class Service:
         self._platform: dict[str, Any] | None = None
         """The platform's own figures from its last status frame (:meth:`_poll_platform`)."""
         self._perf = time.perf_counter_ns
+        self._clocked = False
+        """The ticks run on the loop's own clock (:meth:`_loop`): input frames are stamped with
+        the instant they were taken; with an instant given by a caller (:meth:`attach`), with it."""
         self._admin_q: queue.Queue[tuple[str, Any] | None] = queue.Queue(ADMIN_QUEUE)
         self._status_cache: tuple[float, bytes] | None = None
 
@@ -275,12 +278,17 @@ class Service:
         self._pending = []
         perf = self._perf
         io = 0
+        taken = now_ns  # when the frames were taken: on the loop's clock, or the tick's instant
         if self._source is not None:
             t_io = perf()
             payload.extend(self._source.drain())
-            io = perf() - t_io
-        out = step(self.state, self.params, now_ns, payload, skipped)
-        self.monitor.record(now_ns, self.state.shaper.ref, out.u)
+            t_end = perf()
+            io = t_end - t_io
+            if self._clocked:
+                taken = t_end
+        out = step(self.state, self.params, now_ns, payload, skipped, taken)
+        shaper = self.state.shaper
+        self.monitor.record(now_ns, shaper.played, out.u, round(shaper.played_lag_s * 1e9))
         t_wall = self._t_wall0 + (now_ns - self._t_mono0) / 1e9
         t_io = perf()
         for port in self._ports:
@@ -298,6 +306,7 @@ class Service:
             gc.freeze()
             clock = DeadlineClock(loop.rate_hz, loop.spin_us, sleep_max_us=loop.sleep_max_us)
             self._clock = clock
+            self._clocked = True
             self._t_mono0 = time.perf_counter_ns()
             self._t_wall0 = time.time()
             park_deadline: float | None = None
@@ -433,6 +442,8 @@ class Service:
                        "last_reject": st.last_reject, "superseded": st.superseded},
             "input": {"reconstruction": self.params.shaper.reconstruction,
                       "period_ms": shaper.period_s * 1e3, "lag_ms": shaper.lag_s * 1e3,
+                      "playback_lag_ms": self.params.shaper.playback_lag_s * 1e3,
+                      "lag_excess_ms": self._lag_excess_ms(),
                       "lead_ms": self.params.shaper.lead_s * 1e3,
                       "band": {a: {"band_hz": b.band_hz, "delay_ms": b.delay_s * 1e3}
                                for a, b in zip(AXES, self.params.shaper.band, strict=False)
@@ -459,6 +470,16 @@ class Service:
             "model_mismatch": self.supervisor.status(),
             **self._quality(),
         }
+
+    def _lag_excess_ms(self) -> float | None:
+        """How much longer the input's reconstruction lags than ``input.playback_lag_s``, the
+        lag the design cancels (ms; None before the playback starts): a sender whose samples
+        lie further apart than that (a slow or irregular one, less its lead) is late by this
+        much; 0 for a regular 1 kHz sender."""
+        shaper, sp = self.state.shaper, self.params.shaper
+        if sp.reconstruction != "smooth" or shaper.playback_delay_s is None:
+            return None
+        return (shaper.lag_s - sp.playback_lag_s) * 1e3
 
     def _quality(self) -> dict[str, Any]:
         """The status' ``feedback``, ``quality`` and ``axes_quality`` blocks (layout in
