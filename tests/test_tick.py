@@ -518,9 +518,11 @@ def assert_verdicts_flagged(state: TickState, outs: list[TickOutput]) -> list[bo
     for o in outs:
         assert o.limited[Y] == ("sat:rails_y" in o.flags)
         assert not any(o.limited[i] for i in range(len(AXES)) if i != Y)
-        # in this order: mode, sat:<axis>, bypass:<axis>
+        # in this order: mode, sat:<axis>, bypass:<axis>, then the band monitor's fallback
+        fallback = ["fallback:rails_y"] if "fallback:rails_y" in o.flags else []
         assert o.flags == ([o.mode] if o.mode else []) + (["sat:rails_y"] if o.limited[Y]
-                                                           else []) + [f"bypass:{a}" for a in HEX]
+                                                           else []) + [f"bypass:{a}" for a in HEX] \
+            + fallback
     assert state.sat[Y] == sum(limited)
     assert state.sat[:Y] + state.sat[Y + 1:] == [0] * (len(AXES) - 1)
     return limited

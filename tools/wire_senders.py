@@ -16,7 +16,13 @@ no_t        grid values and send times, no ``t`` field
 stalls      grid, stalling 50-100 ms about every ``stall_every_s``; afterwards it skips to the
             newest due sample (``stall_policy="skip"``, as WIRE.md asks) or sends the backlog
             in a burst (``"burst"``)
+busy        a vehicle model on a busy PC: each value computed at t = time.time() when the loop
+            wakes, 400-500 us after its deadline, and a stall of 20-30 ms (``stall_ms``) about
+            every ``stall_every_s``, after which it skips to the newest due sample
 ==========  ==================================================================================
+
+Any kind may pause (``pause``: from ``at`` s after its start, for ``for`` s): it sends nothing
+meanwhile, then goes on at the motion's time then (an input pause and resume).
 
 ``t0`` is ``time.time()`` when the sender starts; every ``t`` is on that clock (epoch seconds).
 Every sender skips a sample it would send later than one period plus its designed jitter
@@ -45,10 +51,12 @@ import zenoh
 
 KEY = "sim/motion/setpoint"
 AXES = ("rails_x", "rails_y", "hex_x", "hex_y", "hex_z", "hex_roll", "hex_pitch", "hex_yaw")
-KINDS = ("grid", "float32", "epoch", "wallclock", "varstep", "no_t", "stalls")
+KINDS = ("grid", "float32", "epoch", "wallclock", "varstep", "no_t", "stalls", "busy")
 
 GRID_JITTER_S = (0.0, 600e-6)
 WALLCLOCK_LATE_S = (100e-6, 300e-6)
+BUSY_LATE_S = (400e-6, 500e-6)
+BUSY_STALL_MS = (20.0, 30.0)
 VARSTEP_S = (0.5e-3, 2.0e-3)
 
 
@@ -81,6 +89,8 @@ class SenderSpec:
     stall_every_s: float = 3.0
     stall_ms: tuple[float, float] = (50.0, 100.0)
     stall_policy: str = "skip"
+    pause: tuple[float, float] | None = None
+    """``(at_s, for_s)``: send nothing from ``at_s`` after the start for ``for_s``."""
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -95,6 +105,8 @@ class SenderSpec:
                 f"stalls: stall_ms = {self.stall_ms!r} (need 0 <= A <= B), "
                 f"stall_every_s = {self.stall_every_s!r} (need > 0)"
             )
+        if self.pause is not None and not (self.pause[0] >= 0.0 and self.pause[1] > 0.0):
+            raise ValueError(f"pause = {self.pause!r}: expected (at >= 0 s, for > 0 s)")
 
 
 @dataclass
@@ -108,6 +120,10 @@ class SendLog:
     sent_s: list[float] = field(default_factory=list)
     skipped: int = 0
     stalls: int = 0
+    paused: int = 0
+    """Samples not sent during the pause."""
+    resumed_s: float | None = None
+    """``t`` of the first sample sent after the pause."""
 
     def summary(self) -> dict[str, object]:
         """Counts and timing percentiles (us): sample instant vs its nominal, send vs sample."""
@@ -131,6 +147,8 @@ class SendLog:
             "mean_rate_hz": round((sample.size - 1) / span, 2) if span > 0 else None,
             "skipped": self.skipped,
             "stalls": self.stalls,
+            "paused": self.paused,
+            "resumed_s": self.resumed_s,
             "sample_offset_us": pct(offset_us),
             "send_late_us": pct(late_us),
         }
@@ -184,8 +202,16 @@ def run_sender(publish: Callable[[bytes], None], motion: Mapping[str, Callable[[
     end = t0 + duration_s
     seq = spec.seq_start
 
+    pause = ((t0 + spec.pause[0], t0 + spec.pause[0] + spec.pause[1]) if spec.pause
+             else (math.inf, math.inf))
+
     def send(tau_s: float, t_s: float | None, nominal_s: float) -> None:
         nonlocal seq
+        if pause[0] <= nominal_s < pause[1]:
+            log.paused += 1
+            return
+        if log.resumed_s is None and nominal_s >= pause[1]:
+            log.resumed_s = t0 + tau_s if t_s is None else t_s
         pos = {axis: f(tau_s) for axis, f in motion.items()}
         publish(encode_frame(seq, t_s, pos, float32=spec.kind == "float32"))
         log.sent_s.append(clock.now())
@@ -195,8 +221,8 @@ def run_sender(publish: Callable[[bytes], None], motion: Mapping[str, Callable[[
 
     if spec.kind == "varstep":
         _run_varstep(send, clock, rng, log, t0, end)
-    elif spec.kind == "wallclock":
-        _run_wallclock(send, clock, rng, log, spec.rate_hz, t0, end)
+    elif spec.kind in ("wallclock", "busy"):
+        _run_wallclock(send, clock, rng, log, spec, t0, end)
     else:
         _run_grid(send, clock, rng, log, spec, t0, end)
     return log
@@ -233,15 +259,23 @@ def _run_grid(send: Callable[[float, float | None, float], None], clock: Clock,
 
 
 def _run_wallclock(send: Callable[[float, float | None, float], None], clock: Clock,
-                   rng: np.random.Generator, log: SendLog, rate_hz: float, t0: float,
+                   rng: np.random.Generator, log: SendLog, spec: SenderSpec, t0: float,
                    end: float) -> None:
-    """Wake 100-300 us after each deadline, compute and stamp at time.time()."""
+    """Wake 100-300 us (busy: 400-500 us) after each deadline, compute and stamp at
+    time.time(); busy: a stall of 20-30 ms now and then, then on with the newest sample."""
+    rate_hz = spec.rate_hz
     period = 1.0 / rate_hz
+    late = BUSY_LATE_S if spec.kind == "busy" else WALLCLOCK_LATE_S
+    next_stall = t0 + rng.exponential(spec.stall_every_s) if spec.kind == "busy" else math.inf
     k = 0
     while (deadline := t0 + k * period) < end:
-        clock.sleep_until(deadline + rng.uniform(*WALLCLOCK_LATE_S))
+        clock.sleep_until(deadline + rng.uniform(*late))
+        if clock.now() >= next_stall:
+            clock.sleep(rng.uniform(*spec.stall_ms) / 1000.0)
+            log.stalls += 1
+            next_stall = clock.now() + rng.exponential(spec.stall_every_s)
         t = clock.now()
-        if t - deadline > period + WALLCLOCK_LATE_S[1]:
+        if t - deadline > period + late[1]:
             newest = math.floor((t - t0) * rate_hz)
             log.skipped += newest - k
             k = newest
@@ -313,8 +347,11 @@ def cli(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--seq-start", type=int, default=0)
     p.add_argument("--stall-every-s", type=float, default=3.0, help="stalls: mean interval")
-    p.add_argument("--stall-ms", type=_parse_stall_ms, default=(50.0, 100.0),
-                   help="stalls: durations A-B ms (default 50-100)")
+    p.add_argument("--stall-ms", type=_parse_stall_ms, default=None,
+                   help="stalls, busy: durations A-B ms (default 50-100; busy 20-30)")
+    p.add_argument("--pause-at", type=float, default=None,
+                   help="send nothing from S s after the start ...")
+    p.add_argument("--pause-for", type=float, default=4.0, help="... for S s (default 4)")
     p.add_argument("--stall-policy", choices=("skip", "burst"), default="skip")
     p.add_argument("--key", default=KEY)
     p.add_argument("--wait-peer", type=float, default=5.0,
@@ -330,8 +367,10 @@ def cli(argv: list[str] | None = None) -> int:
     signal, default_axis = SIGNALS[a.signal]
     motion = {axis: signal for axis in (a.axis or [default_axis])}
     try:
-        spec = SenderSpec(a.kind, a.rate, a.seed, a.seq_start, a.stall_every_s, a.stall_ms,
-                          a.stall_policy)
+        stall_ms = a.stall_ms or (BUSY_STALL_MS if a.kind == "busy" else (50.0, 100.0))
+        pause = None if a.pause_at is None else (a.pause_at, a.pause_for)
+        spec = SenderSpec(a.kind, a.rate, a.seed, a.seq_start, a.stall_every_s, stall_ms,
+                          a.stall_policy, pause)
         conf = zenoh_config(a.connect, a.listen, a.zenoh_config, a.scouting)
         summary = main(conf, a.key, motion, spec, a.duration, a.wait_peer)
     except ValueError as exc:

@@ -30,7 +30,7 @@ from mypy_extensions import mypyc_attr
 
 from motcomp.core.minjerk import min_jerk, min_jerk_rate
 
-__all__ = ["FIX_FLOOR", "HISTORY", "STENCIL_S", "Curve", "Knot", "extrapolate",
+__all__ = ["FIX_FLOOR", "HISTORY", "STENCIL_S", "Curve", "Knot", "Transition", "extrapolate",
            "fade_transition", "hermite", "knot", "quintic", "segment", "stencil"]
 
 STENCIL_S: Final = 5e-3
@@ -204,6 +204,24 @@ def fade_transition(dt: float, blend_s: float) -> tuple[float, ...]:
                 n2 += n[3 * r + k] * n[3 * k + c]
             phi.append(e * ((1.0 if r == c else 0.0) + n[3 * r + c] * h + n2 * h2))
     return tuple(phi)
+
+
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
+class Transition:
+    """:func:`fade_transition` of the last ``(dt, blend_s)`` asked, ``dt`` rounded to the ns
+    (a tick's ``dt`` repeats; its float differs at rounding)."""
+
+    def __init__(self) -> None:
+        self.dt_ns = -1
+        self.blend_s = 0.0
+        self.phi: tuple[float, ...] = ()
+
+    def of(self, dt: float, blend_s: float) -> tuple[float, ...]:
+        ns = round(dt * 1e9)
+        if ns != self.dt_ns or blend_s != self.blend_s:
+            self.dt_ns, self.blend_s = ns, blend_s
+            self.phi = fade_transition(ns * 1e-9, blend_s)
+        return self.phi
 
 
 @mypyc_attr(serializable=True, allow_interpreted_subclasses=True)

@@ -36,7 +36,7 @@ from bisect import bisect_left, insort
 
 from mypy_extensions import mypyc_attr
 
-from motcomp.core.interp import fade_transition
+from motcomp.core.interp import Transition
 
 __all__ = ["OFFSET_LEAK", "SETTLE_S", "Playback", "min_transit"]
 
@@ -75,7 +75,7 @@ class Playback:
         self._rate = 0.0  # its first and second derivatives
         self._acc = 0.0
         self._at: float | None = None  # loop instant of the last step
-        self._phi: tuple[float, float, tuple[float, ...]] = (0.0, 0.0, ())
+        self._phi = Transition()  # the triple pole over one tick
 
     def restart(self) -> None:
         """A new timeline: forget the offset, the spacing and the delay."""
@@ -124,10 +124,7 @@ class Playback:
         dt = now - at
         if dt <= 0.0:
             return d
-        key = self._phi
-        if key[0] != dt:
-            key = self._phi = (dt, 0.0, fade_transition(dt, SETTLE_S))
-        phi = key[2]
+        phi = self._phi.of(dt, SETTLE_S)
         e, r, a = d - target, self._rate, self._acc
         self.delay = target + phi[0] * e + phi[1] * r + phi[2] * a
         self._rate = phi[3] * e + phi[4] * r + phi[5] * a

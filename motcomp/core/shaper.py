@@ -55,7 +55,7 @@ from typing import Any
 from mypy_extensions import mypyc_attr
 
 from motcomp.core.bandlimit import BandLimit, BandLimitParams
-from motcomp.core.interp import Curve, fade_transition
+from motcomp.core.interp import Curve, Transition
 from motcomp.core.minjerk import PEAK_SPEED_FACTOR, min_jerk_weight
 from motcomp.core.native import frozen_reduce
 from motcomp.core.playback import Playback, min_transit
@@ -160,7 +160,7 @@ class ReferenceShaper:
         average and the band limit (:attr:`played_lag_s` behind the tick on the loop clock)."""
         self._lead_s = 0.0  # the lead in force (ShaperParams.lead_s)
         self._at: float | None = None  # loop time of the last reference
-        self._fix_step: tuple[float, float, tuple[float, ...]] = (0.0, 0.0, ())
+        self._fix_step = Transition()  # the correction's fade over one tick
         self._rings: list[deque[float]] = [deque() for _ in range(n)]  # moving average
         self._ma_len = 0.0  # its length (ticks)
         self._ma_delay_s = 0.0
@@ -392,10 +392,7 @@ class ReferenceShaper:
         dt = 0.0 if at is None else max(now - at, 0.0)
         self._at = now
         blend_s = max(GAP_BLEND_S, GAP_BLEND_PERIODS * q)
-        key = self._fix_step
-        if key[0] != dt or key[1] != blend_s:
-            key = self._fix_step = (dt, blend_s, fade_transition(dt, blend_s))
-        phi = key[2]
+        phi = self._fix_step.of(dt, blend_s)
         d = pb.step(now, p.playback_lag_s)
         self._lead_s = p.lead_s
         tau = now - d + p.lead_s

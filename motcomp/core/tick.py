@@ -84,8 +84,10 @@ Rules for edge cases
   (holding the end of the range for a target beyond it included), or the command departs from
   its target by more than ``saturation_tolerance`` on a 20 ms exponential average; the limiter
   absorbing zero-mean jitter is not a saturation.
-* Prediction (axes with a ``prediction``): used while the shaper's mode is live (``""``), the
-  config's ``predict`` is true and compensation is on (:func:`set_bypass` turns it off with the
+* Prediction (axes with a ``prediction``): used while the input is live (the shaper's mode
+  ``""``, or ``rejoin``: the blend into live input after a start or a resume, so that the
+  prediction has faded in by the time the blend ends), the config's ``predict`` is true and
+  compensation is on (:func:`set_bypass` turns it off with the
   PID; an axis the config bypasses keeps its prediction when compensation is turned back on);
   otherwise, and while the band monitor finds the reference outside the band, it falls back to
   the plain reference, bumplessly (:mod:`motcomp.core.predictor`), except on an input loss:
@@ -408,8 +410,8 @@ def _predicted(state: TickState, ref: list[float], mode: str) -> list[float]:
     pred = state.pred
     if not pred.idx:
         return ref
-    # live: as wanted while the shaper's mode is live; held off otherwise (no list per tick)
-    out = pred.step(ref, False if mode else state._pred_wanted)
+    # as wanted while the input is live or blending into it; held off on its loss
+    out = pred.step(ref, state._pred_wanted if not mode or mode == "rejoin" else False)
     return ref if state._windowed else out  # input lost: the plain reference (module docstring)
 
 
@@ -563,8 +565,8 @@ def set_bypass(state: TickState, mask: Sequence[object],
 
 def prediction_status(state: TickState) -> dict[str, dict[str, object]]:
     """Per axis with a prediction: ``state`` -- ``predicting``, ``fallback`` (the band monitor
-    holds it off), ``held`` (wanted, but the reference is not live yet or again: start-up,
-    stale, rejoin, parking, or the calm time before prediction resumes) or ``off`` (``predict =
+    holds it off), ``held`` (wanted, but the input is lost -- stale, parking -- or not yet
+    calm for ``resume_after_s`` after a start, a resume or a fallback) or ``off`` (``predict =
     false``, or compensation turned off) --, the prediction's share ``weight`` (0-1), the
     monitor's ``ratio`` and the count of ``fallbacks`` it caused."""
     pred = state.pred
