@@ -47,7 +47,7 @@ from motcomp.core.models import P1D, ProcessModel, parse_model
 from motcomp.core.pid import PIDGains
 from motcomp.core.predictor import MonitorParams, PredictorParams
 from motcomp.core.saturation import AxisLimits
-from motcomp.core.shaper import ShaperParams
+from motcomp.core.shaper import BLEND_ACC_SHARE, ShaperParams
 from motcomp.core.tick import TickParams, TickState
 from motcomp.core.tuning import RULES, tune
 from motcomp.errors import ConfigError
@@ -1050,6 +1050,7 @@ def tick_params(cfg: ServiceConfig, axes: ResolvedAxes) -> TickParams:
         reconstruction=cfg.input.reconstruction, tick_s=1.0 / loop.rate_hz,
         max_extrapolation_s=cfg.input.max_extrapolation_s, lead_s=cfg.input.lead_s,
         playback_lag_s=cfg.input.playback_lag_s,
+        blend_acc=tuple(BLEND_ACC_SHARE * float(a) for a in lim.a_max),
         band=tuple(band_limit_params(hz, loop.rate_hz, _band_key(cfg.input, a)) if d else None
                    for a, hz, d in zip(AXES, cfg.input.bands_hz(), axes.driven, strict=True)))
     return TickParams(loop.rate_hz, shaper, cfg.status.saturation_tolerance,

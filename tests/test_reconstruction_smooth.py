@@ -477,6 +477,31 @@ def test_the_rejoin_blend_starts_where_the_reference_is() -> None:
             assert abs(ref[Y] - held) < 1e-3  # moving on from there, at most ~0.5 m/s
 
 
+@pytest.mark.parametrize("stale_ms", [120, 800], ids=["held", "ramping"])
+def test_the_rejoin_blend_is_smooth_at_both_ends(stale_ms: int) -> None:
+    """A moving input (0.5 m/s) stops, the reference holds (or ramps to neutral), then the input
+    comes back: the blend leaves the held path and meets the live one with the acceleration of
+    a minimum-jerk blend, never a velocity step (a constant offset faded out gave the reference
+    the live input's 0.5 m/s at the blend's first tick: 500 m/s^2 for one tick)."""
+    p = _params()
+    sh = ReferenceShaper(8)
+    refs, modes = [], []
+    back = 1000 + stale_ms
+    for k in range(back + 1500):
+        now = 1e-3 * k + 3e-4
+        if k < 1000 or k >= back:
+            sh.on_input(p, {Y: 0.5 * 1e-3 * k}, now, 1e-3 * k)
+        ref, mode = sh.reference(p, now)
+        refs.append(ref[Y])
+        modes.append(mode)
+    assert modes[back] == "rejoin" and modes[back + int(1e3 * p.rejoin_s) + 5] == ""
+    acc = np.diff(np.array(refs[back - 50:back + 700]), 2) / 1e-6
+    # the blend of a gap of up to 0.6 m over 0.5 s: some m/s^2, changing from tick to tick by
+    # at most a few m/s^2 (a velocity step: 500 m/s^2 at one tick)
+    assert np.max(np.abs(acc)) < 30.0, np.max(np.abs(acc))
+    assert np.max(np.abs(np.diff(acc))) < 5.0, np.max(np.abs(np.diff(acc)))
+
+
 def test_a_lead_plays_a_cubic_back_ahead_exactly() -> None:
     """With ``lead_s`` the playback runs that far ahead of the lag, beyond the newest sample:
     along the newest sample's constant-jerk cubic, exact on a cubic; the lag reported is the

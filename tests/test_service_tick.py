@@ -310,7 +310,7 @@ def test_mode_switches_are_logged_with_their_reason(caplog: pytest.LogCaptureFix
         nonlocal k
         for _ in range(n):
             if frames:
-                src.push(encode_input(k, k / 1000, {"rails_y": 0.1}))
+                src.push(encode_input(k, k / 1000, {"rails_y": 0.01}))  # a 0.2 s blend
             svc.tick(k * MS)
             k += 1
             if k % 20 == 0:  # the main thread's poll

@@ -238,11 +238,14 @@ class Curve:
         """While extrapolating: the knot extrapolated from."""
         self.fix: list[float] | None = None
         """The correction (value, rate, acceleration) being faded out; None: none."""
+        self.slope = 0.0
+        """The curve's slope at the last instant played back."""
 
     def clear(self) -> None:
         self.knots = []
         self.extra = None
         self.fix = None
+        self.slope = 0.0
 
     def add(self, t: float, v: float, min_dt: float) -> None:
         """A sample ``v`` at ``t``.  Closer than ``min_dt`` after the newest knot it replaces
@@ -293,4 +296,8 @@ class Curve:
             fix[0] += xo - x  # continuous in position and velocity, added to what fades
             fix[1] += so - xs
         self.extra = src
-        return x if fix is None else x + fix[0]
+        if fix is None:
+            self.slope = xs
+            return x
+        self.slope = xs + fix[1]
+        return x + fix[0]

@@ -17,7 +17,15 @@ Modes (all times from the loop's clock, passed in)::
     always       the reference lies within ``[reach_lo, reach_hi]`` per axis (the range of
                  accepted input); a non-finite value keeps the previous reference
 
-Blends and ramps are minimum-jerk (:mod:`motcomp.core.minjerk`).  Undriven axes stay at neutral.
+Blends and ramps are minimum-jerk (:mod:`motcomp.core.minjerk`).  A blend fades out the
+difference between the held reference (or the ramp it interrupts) and the live input, in
+position *and* velocity at its start, ``live + w (g + r (t - t0))``: it leaves the held path with
+its position and velocity and meets the live one with its position, velocity and acceleration
+(a difference of position alone would hand the live input's velocity to the reference at the
+blend's first tick: a step the compensator kicks on); it lasts ``startup_s``/``rejoin_s``, or
+longer per axis where its gap and velocity change need more than a quarter of the axis'
+acceleration limit (``blend_acc``: the compensator multiplies the reference's acceleration
+by its in-band gain).  Undriven axes stay at neutral.
 
 Input reconstruction ``smooth`` (the default): the input *played back on the sender's timeline, a
 little behind its newest sample*, interpolated between samples already received.  Three parts,
@@ -47,6 +55,7 @@ last value (for tests of the rest of the chain).
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -56,12 +65,12 @@ from mypy_extensions import mypyc_attr
 
 from motcomp.core.bandlimit import BandLimit, BandLimitParams
 from motcomp.core.interp import Curve, Transition
-from motcomp.core.minjerk import PEAK_SPEED_FACTOR, min_jerk_weight
+from motcomp.core.minjerk import PEAK_SPEED_FACTOR, min_jerk_rate, min_jerk_weight
 from motcomp.core.native import frozen_reduce
 from motcomp.core.playback import Playback, min_transit
 from motcomp.core.timeline import Timeline
 
-__all__ = ["LINEAR_OFFSET_LEAK", "ReferenceShaper", "ShaperParams"]
+__all__ = ["BLEND_ACC_SHARE", "LINEAR_OFFSET_LEAK", "ReferenceShaper", "ShaperParams"]
 
 LINEAR_OFFSET_LEAK = 0.05
 """``linear``: upward drift (s per s) allowed to its clock offset (smallest transit)."""
@@ -73,6 +82,17 @@ MA_MIN_TICKS = 2.0
 MA_HYSTERESIS = 0.02
 """The moving average's length follows the period only when it moved by more than this
 fraction (a length that flickers would warp time)."""
+BLEND_ACC_SHARE = 0.25
+"""A blend may take this share of an axis' acceleration limit (``ShaperParams.blend_acc``,
+set by :func:`motcomp.config.tick_params`): the compensator multiplies the reference's
+acceleration in the band by up to its peak gain (+8 dB, 2.5x), and the live motion has its own,
+so that the limiter need not cut a blend (the rails' slalom rejoined over 0.5 s at full speed:
+the limiter acted for 1.2 s, the platform 40 ms ahead of the motion for a second after)."""
+MIN_JERK_ACC = 10.0 / math.sqrt(3.0)
+"""Peak acceleration of a minimum-jerk move of ``D`` over ``T``: ``MIN_JERK_ACC D / T^2``."""
+MIN_JERK_MERGE = 2.0 * PEAK_SPEED_FACTOR
+"""A blend ``held w + live (1 - w)`` merges velocities differing by ``dv`` with an acceleration
+of at most ``2 |w'| dv``, ``MIN_JERK_MERGE dv / T``."""
 GAP_BLEND_PERIODS = 10.0
 GAP_BLEND_S = 0.2
 """After an extrapolation, the difference to the samples fades out over about this many input
@@ -109,6 +129,10 @@ class ShaperParams:
     """Two samples of an axis closer than this on the sender's timeline are one sample."""
     band: tuple[BandLimitParams | None, ...] = ()
     """``smooth``: each axis' reference band limit (None, or an empty tuple: none)."""
+    blend_acc: tuple[float, ...] = ()
+    """Per axis, the acceleration a start-up or rejoin blend may take (axis units/s^2): a
+    blend lasts ``startup_s``/``rejoin_s`` or longer, as its gap and velocity change need
+    (empty: no bound)."""
 
     def __post_init__(self) -> None:
         if not self.min_dt_s > 0:
@@ -135,6 +159,14 @@ class _Move:
         self.duration = [max(PEAK_SPEED_FACTOR * abs(e - s) / v, min_s) if v > 0 else min_s
                          for s, e, v in zip(start, end, speed, strict=True)]
 
+    def rate(self, t: float) -> list[float]:
+        """Each axis' velocity at ``t``."""
+        out = []
+        for s, e, d in zip(self.start, self.end, self.duration, strict=True):
+            x = (t - self.t0) / d
+            out.append((e - s) * min_jerk_rate(x) / d if 0.0 < x < 1.0 else 0.0)
+        return out
+
     def at(self, t: float) -> tuple[list[float], bool]:
         out = []
         done = True
@@ -159,6 +191,7 @@ class ReferenceShaper:
         """``smooth``: the input at the instant played back this tick, before the moving
         average and the band limit (:attr:`played_lag_s` behind the tick on the loop clock)."""
         self._lead_s = 0.0  # the lead in force (ShaperParams.lead_s)
+        self._playing = False  # the playback has passed the second sample since a restart
         self._at: float | None = None  # loop time of the last reference
         self._fix_step = Transition()  # the correction's fade over one tick
         self._rings: list[deque[float]] = [deque() for _ in range(n)]  # moving average
@@ -176,7 +209,10 @@ class ReferenceShaper:
         self.started_s: float | None = None
         self._blend_t0 = 0.0
         self._blend_s = 0.0
-        self._blend_offset: list[float] | None = None
+        self._blend_each: list[float] = []  # each axis' blend duration
+        self._blend_gap: list[float] | None = None  # held - live at the blend's start, and
+        self._blend_rate: list[float] = []  # its rate: the difference the blend fades out
+        self._blend_move: _Move | None = None  # the ramp to neutral a rejoin interrupts
         self._blend_pending = False
         self._stale_since: float | None = None
         self._move: _Move | None = None
@@ -203,6 +239,12 @@ class ReferenceShaper:
         if pb.delay is None or pb.offset is None:
             return 0.0
         return pb.delay - pb.offset - self._lead_s
+
+    @property
+    def blend_s(self) -> float:
+        """The blend in progress (or pending): its longest axis' duration (s)."""
+        return max(self._blend_each) if self._blend_gap is not None and self._blend_each \
+            else self._blend_s
 
     @property
     def lag_s(self) -> float:
@@ -239,9 +281,9 @@ class ReferenceShaper:
             if self._stale_since is not None:
                 self.stale_total_s += now - self._stale_since
             self._stale_since = None
-            self._move = None
+            self._blend_move, self._move = self._move, None
             self._blend_s = p.startup_s if first else p.rejoin_s
-            self._blend_offset = None
+            self._blend_gap = None
             self._blend_pending = True  # from the reference the next tick plays back
         self.last_input_s = now
 
@@ -254,17 +296,19 @@ class ReferenceShaper:
             return True
         return t_sender - self.timeline.base() + off <= now + LANDED_SLACK_S
 
-    def next_t_bound(self, p: ShaperParams, now: float) -> tuple[float, float] | None:
-        """``(lo, hi)``: the sender instants (s, as ``t``) a live stamped frame may carry at
-        ``now``: not before the newest sample (less ``min_dt_s``, the same sample again), and
-        ahead of it by at most ``stale_after_s`` plus the loop time since it was taken (None:
-        any, the input is not live or not stamped)."""
+    def next_t_bound(self, p: ShaperParams, now: float, arrived: float
+                     ) -> tuple[float, float] | None:
+        """``(lo, hi)``: the sender instants (s, as ``t``) a live stamped frame taken at the
+        loop instant ``arrived`` may carry: not before the newest sample (less ``min_dt_s``, the
+        same sample again), and not after ``arrived`` on the sender's clock (the loop's, less
+        the smallest transit: no sample lands before it is computed) by more than
+        ``stale_after_s`` (None: any, the input is not live at ``now`` or not stamped)."""
         tl = self.timeline
-        last = self.last_input_s
-        if tl.t_last is None or last is None or not tl.stamped or self.is_stale(p, now):
+        off = self.playback.offset
+        if tl.t_last is None or off is None or not tl.stamped or self.is_stale(p, now):
             return None
-        newest = tl.t_last + tl.base()
-        return newest - p.min_dt_s, newest + p.stale_after_s + max(now - last, 0.0)
+        base = tl.base()
+        return tl.t_last + base - p.min_dt_s, arrived - off + base + p.stale_after_s
 
     def _on_input_linear(self, p: ShaperParams, pos: dict[int, float], now: float,
                          t_sender: float | None, rejoin: bool) -> None:
@@ -307,6 +351,7 @@ class ReferenceShaper:
         pb = self.playback
         if rejoin:
             pb.restart()
+            self._playing = False
             for r in self._rings:
                 r.clear()
             self._band.reset()
@@ -327,7 +372,7 @@ class ReferenceShaper:
         if self.parking:
             return
         self.parking = True
-        self._blend_offset = None
+        self._blend_gap = self._blend_move = None
         self._blend_pending = False
         self._move = _Move(now, self.ref, [0.0] * self.n, p.ramp_speed)
 
@@ -346,7 +391,7 @@ class ReferenceShaper:
             if self._stale_since is None:
                 self._stale_since = now
                 self.stale_episodes += 1
-                self._blend_offset = None
+                self._blend_gap = self._blend_move = None
                 self._blend_pending = False
             if now - self._stale_since < p.hold_s:
                 return self.ref, mode
@@ -356,17 +401,26 @@ class ReferenceShaper:
         else:
             ref = self._live_now(p, now)
             mode = ""
-            if self._blend_pending:  # the blend starts where the reference is
+            if self._blend_pending and p.reconstruction == "smooth" and not self._playing \
+                    and self._blend_s > 0.0:  # the blend waits for the playback (a few ticks)
+                ref = (self._blend_move.at(now)[0] if self._blend_move is not None
+                       else self.ref[:])
+                mode = "rejoin"
+            elif self._blend_pending:  # the blend starts where the reference is
                 self._blend_pending = False
-                self._blend_t0 = now
-                self._blend_offset = [r - v for r, v in zip(self.ref, ref, strict=True)]
-            if self._blend_offset is not None:
-                w = min_jerk_weight((now - self._blend_t0) / self._blend_s) if self._blend_s > 0 \
-                    else 0.0
-                if w == 0.0:
-                    self._blend_offset = None
+                self._blend_start(p, ref, now)
+            if self._blend_gap is not None:
+                done = True
+                el = now - self._blend_t0
+                for i, (d, g, r) in enumerate(zip(self._blend_each, self._blend_gap,
+                                                  self._blend_rate, strict=True)):
+                    w = min_jerk_weight(el / d) if d > 0.0 else 0.0
+                    if w != 0.0:
+                        done = False
+                        ref[i] += (g + r * el) * w
+                if done:
+                    self._blend_gap = None
                 else:
-                    ref = [v + o * w for v, o in zip(ref, self._blend_offset, strict=True)]
                     mode = "rejoin"
         prev = self.ref
         for i, (x, lo, hi) in enumerate(zip(ref, p.reach_lo, p.reach_hi, strict=True)):
@@ -374,6 +428,31 @@ class ReferenceShaper:
                 ref[i] = lo if x < lo else hi if x > hi else prev[i]
         self.ref = ref
         return ref, mode
+
+    def _blend_start(self, p: ShaperParams, live: list[float], now: float) -> None:
+        """A blend from the reference held (or ramping) to ``live``: each axis' difference
+        ``g + r (t - t0)`` (position and velocity at the start) fades out through the
+        minimum-jerk weight, over ``_blend_s`` or longer where that would need more than
+        ``blend_acc``: peak acceleration at most ``5.774 |g| / T^2 + 3.75 |r| / T``, solved for
+        ``T`` (none if ``_blend_s`` is 0)."""
+        self._blend_t0 = now
+        move, self._blend_move = self._blend_move, None
+        held, held_v = (move.at(now)[0], move.rate(now)) if move is not None \
+            else (self.ref, [0.0] * self.n)
+        base = self._blend_s
+        gaps, rates, each = [], [], []
+        for i, (x, h, c) in enumerate(zip(live, held, self.curves, strict=True)):
+            g, r = h - x, held_v[i] - (c.slope if c.knots else 0.0)
+            gaps.append(g)
+            rates.append(r)
+            a = p.blend_acc[i] if p.blend_acc else 0.0
+            if base <= 0.0 or a <= 0.0 or not p.driven[i] or (g == 0.0 and r == 0.0):
+                each.append(base)
+                continue
+            k1, k0 = MIN_JERK_ACC * abs(g), MIN_JERK_MERGE * abs(r)
+            # k1 x^2 + k0 x - a = 0 in x = 1/T: its positive root
+            each.append(max(base, (k0 + math.sqrt(k0 * k0 + 4.0 * k1 * a)) / (2.0 * a)))
+        self._blend_gap, self._blend_rate, self._blend_each = gaps, rates, each
 
     def _live_now(self, p: ShaperParams, now: float) -> list[float]:
         """The live values at this tick: reconstructed as ``p.reconstruction`` says."""
@@ -385,6 +464,7 @@ class ReferenceShaper:
         if p.reconstruction != "smooth" or not pb.ready():
             self._band.reset()
             self._at = None
+            self._playing = False
             self.played = self.live[:]
             return self.live[:]
         q = self.timeline.period
@@ -398,8 +478,16 @@ class ReferenceShaper:
         tau = now - d + p.lead_s
         bound = max(p.max_extrapolation_s, 1.5 * q) + p.lead_s
         out = []
+        playing = True
         for i, c in enumerate(self.curves):
-            out.append(c.at(tau, bound, phi, blend_s) if c.knots else self.live[i])
+            h = c.knots
+            if h:
+                out.append(c.at(tau, bound, phi, blend_s))
+                playing = playing and (len(h) > 1 and tau >= h[1].t)
+            else:
+                out.append(self.live[i])
+        self._playing = self._playing or playing  # (before the second sample: its first
+        # knot has no slope yet, the curve starts flat)
         self.played = out[:]
         length = q / p.tick_s
         if abs(length - self._ma_len) > MA_HYSTERESIS * max(self._ma_len, 1.0):

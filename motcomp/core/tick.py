@@ -48,8 +48,9 @@ Rules for edge cases
   once the input is stale it is accepted as a restart (a regress of more than a million counts
   nothing as superseded: a restart).  Likewise a ``t`` (``smooth`` reconstruction) outside the
   instants a live sender's next sample can have (:meth:`ReferenceShaper.next_t_bound
-  <motcomp.core.shaper.ReferenceShaper.next_t_bound>`: not before its newest sample, at most
-  ``stale_after_s`` plus the loop time since then after it) is rejected (``jump``) while the
+  <motcomp.core.shaper.ReferenceShaper.next_t_bound>`: not before its newest sample, and not
+  after the instant the frame was taken, on the sender's clock, by more than
+  ``stale_after_s``: no sample lands before it is computed) is rejected (``jump``) while the
   input is live.  After a stall of the loop, each frame is judged at the deadline it had
   landed by (catch-up, below): the loop's stall is not an input loss.
 * Catch-up: when the caller missed deadlines (``skipped`` > 0, a stall of its thread), the
@@ -449,7 +450,7 @@ def _take(state: TickState, p: TickParams, now: float, arrived: float, frame: _P
                                          f"{MAX_SEQ_STEP}) while the input is live")
             raise FrameError("duplicate" if seq == last else "old", f"seq {seq} after {last}")
         if t is not None and sp.reconstruction == "smooth":
-            bound = shaper.next_t_bound(sp, now)
+            bound = shaper.next_t_bound(sp, now, arrived)
             if bound is not None and not bound[0] <= t <= bound[1]:
                 lo, hi = bound
                 raise FrameError("jump", f"t {t!r} is {t - hi if t > hi else t - lo:+.6g} s "

@@ -138,8 +138,7 @@ class ModeLog:
                         state.last_reject or "none", p.shaper.hold_s)
         elif mode == "rejoin":
             log.info("input %s: blending to the live input over %.2f s",
-                     "started" if self.mode == "startup" else "resumed",
-                     p.shaper.startup_s if self.mode == "startup" else p.shaper.rejoin_s)
+                     "started" if self.mode == "startup" else "resumed", state.shaper.blend_s)
         elif mode == "parking":
             log.info("stop requested: parking (ramping every axis to neutral)")
         elif mode == "running" and self.mode != "startup":
