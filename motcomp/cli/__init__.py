@@ -14,12 +14,17 @@ import argparse
 import importlib
 import pkgutil
 import sys
+import time
 from collections.abc import Sequence
 
 from motcomp import __version__
 from motcomp.errors import ConfigError, DataError, MotcompError
 
-__all__ = ["build_parser", "main"]
+__all__ = ["STARTED", "build_parser", "main"]
+
+STARTED = time.monotonic()
+"""When the command started (its imports included): a ``--timeout`` or ``--wait-peer`` is
+counted from here, so that the whole command takes what the user asked."""
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -89,6 +89,17 @@ def resolve_plant(args: argparse.Namespace) -> tuple[ProcessModel, Preset | None
     raise ConfigError("give --plant NAME or --model SPEC")
 
 
+def remaining(timeout_s: float, floor_s: float = 0.1) -> float:
+    """What is left of ``timeout_s`` counted from the command's start
+    (:data:`motcomp.cli.STARTED`: imports and opening the session take part of it), at least
+    ``floor_s`` (one look at the network)."""
+    import time
+
+    from motcomp.cli import STARTED
+
+    return max(floor_s, timeout_s - (time.monotonic() - STARTED))
+
+
 def print_json(obj: Any) -> None:
     json.dump(obj, sys.stdout, indent=2, allow_nan=False, default=_json_default)
     sys.stdout.write("\n")
