@@ -514,6 +514,13 @@ def read_session(path: str | Path | Sequence[str | Path], keys: dict[str, str] |
             for mb in batch:
                 topic = mb.channel.topic
                 role = role_of.get(topic)
+                if mb.channel.message_encoding != "msgpack" and role is not None:
+                    source = metadata_dict(res, "motcomp_export").get("source")
+                    raise DataError(
+                        f"{p}: {topic} is {mb.channel.message_encoding!r}, not msgpack: "
+                        + (f"an export for viewers (motcomp export); read the recording it "
+                           f"was made from, {source}" if source else
+                           "not a recording of motcomp record"))
                 if role == "status":
                     for i in range(len(mb)):
                         try:
