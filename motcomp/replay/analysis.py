@@ -532,9 +532,9 @@ def model_lines(rep: ReplayReport) -> list[str]:
                 f"{number(a.model_lag_ms, '.1f'):>8}ms {number(a.model_error_ms, '+.1f'):>6}ms | "
                 f"{number(100 * a.model_fit, '.2f'):>7} | {number(a.delay_on_ms, '.1f'):>6}ms "
                 f"{number(a.expected_on_ms, '.1f'):>10}ms")
-        lines.append("(error: the platform's lag minus the model's; the compensator inherits it, "
-                     "so live the delay is about 'on' + error. fit: the share of the platform's "
-                     "motion the model explains)")
+        lines += ["(error: the platform's lag minus the model's, which the compensator "
+                  "inherits: live, the delay is", " about 'on' + error; fit: the share of the "
+                  "platform's motion the model explains)"]
     why: dict[str, list[str]] = {}  # axes with an 'on' delay the recording cannot check
     for a in rep.axes:
         if a.model_check and math.isfinite(a.delay_on_ms):
