@@ -182,3 +182,52 @@ def test_numbers_at_the_bottom_of_the_range_are_zero() -> None:
     assert "e-321" not in report_text([rep], []) and "e-321" not in str(rep.as_dict())
     rep.axes = [AxisReport("rails_y", True, max_diff=1.28e-321)]
     assert "e-321" not in report_text([ReplayReport("x", rep.axes, 1, 1, 1.0, 1)], [])
+
+
+@pytest.mark.parametrize("superseded", [None, 0, 40])
+def test_frames_missing_from_the_recording_are_explained(tmp_path: Path,
+                                                         superseded: int | None) -> None:
+    """40 input frames missing from a recording: the note says what it means from the
+    service's own count of the frames it never received (its status' ``superseded``): none
+    (the recorder lost them: what to do), all of them (the sender skipped them: harmless), or
+    no such count (both possibilities, and how to tell next time)."""
+    import msgpack
+
+    from motcomp.record.mcapio import ScanResult, iter_records
+    from motcomp.record.recorder import SessionWriter
+    from motcomp.replay.offline import replay_files
+    from motcomp.replay.synth import SynthOptions, synthesize
+
+    full = tmp_path / "full.mcap"
+    synthesize(full, CFG, SynthOptions(duration_s=3.0, seed=5, axes=("rails_y",)))
+    res = ScanResult(full)
+    records = list(iter_records(full, result=res))
+    (_, _, cfg_json), = res.attachments
+    holed = tmp_path / "holed.mcap"
+    inputs = 0
+    with SessionWriter(holed, sorted({r.topic for r in records}), None, cfg_json, flush_s=0,
+                       fsync=False) as w:
+        for rec in records:
+            data = rec.data
+            if rec.topic == "sim/motion/setpoint":
+                inputs += 1
+                if 1500 <= inputs < 1540:
+                    continue
+            if rec.topic == "motcomp/status" and superseded is not None:
+                st = msgpack.unpackb(data)
+                st["frames"]["superseded"] = superseded if st["t"] > 1_750_000_002 else 0
+                data = msgpack.packb(st)
+            w.write_raw(rec.topic, rec.log_ns, rec.publish_ns, rec.sequence, data)
+    (fr,) = replay_files([holed], [None])
+    notes = " ".join(fr.runs[0].plan.notes)
+    assert "40 sequence numbers between the first and the last input frame the service used " \
+           "are not in the recording" in notes, notes
+    if superseded == 40:
+        assert "the service did not receive them either" in notes and "nothing it used is " \
+            "missing" in notes
+    elif superseded == 0:
+        assert "the service received 40 of them" in notes and "the recorder lost those" in notes
+        assert "run `motcomp record` where it gets its CPU" in notes
+    else:
+        assert "either the sender skipped them (harmless) or the recorder lost" in notes
+        assert "record the status key too" in notes
