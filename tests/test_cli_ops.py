@@ -441,3 +441,29 @@ def test_info_warns_about_an_unfinished_recording(tmp_path: Path) -> None:
         assert p.returncode == 2, (command, p.stdout, p.stderr)
         assert f"{empty}: unfinished recording" in p.stderr and "no message to read" in p.stderr
         assert "Traceback" not in p.stderr
+
+
+def test_each_command_imports_its_own_module_only() -> None:
+    """The fast path of ``motcomp <command>`` (:data:`motcomp.cli.MODULE_OF`) names the module
+    that registers each command, and a query of the service loads neither the optimiser nor
+    scipy."""
+    import importlib
+    import pkgutil
+
+    import motcomp.cli as cli_pkg
+
+    registered = {}
+    for info in pkgutil.iter_modules(cli_pkg.__path__):
+        if info.name.startswith("_"):
+            continue
+        sub = argparse.ArgumentParser().add_subparsers()
+        importlib.import_module(f"motcomp.cli.{info.name}").register(sub)
+        registered.update(dict.fromkeys(sub.choices, info.name))
+    assert registered == cli_pkg.MODULE_OF
+    code = ("import sys; from motcomp.cli import MODULE_OF, build_parser; "
+            "build_parser(MODULE_OF['status']).parse_args(['status']); "
+            "print(sorted(m for m in sys.modules if m.startswith('motcomp.design') "
+            "or m.split('.')[0] == 'scipy'))")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       env=subprocess_env(), timeout=60)
+    assert p.returncode == 0 and p.stdout.strip() == "[]", (p.stdout, p.stderr)

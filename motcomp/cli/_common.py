@@ -7,11 +7,13 @@ import json
 import math
 import sys
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from motcomp.core.models import ProcessModel, parse_model
 from motcomp.errors import ConfigError
-from motcomp.presets import Preset, load_preset
+
+if TYPE_CHECKING:  # imported where used: a command that needs no model does not load them
+    from motcomp.core.models import ProcessModel
+    from motcomp.presets import Preset
 
 
 def add_plant_args(p: argparse.ArgumentParser, required: bool = True) -> None:
@@ -81,6 +83,9 @@ def non_negative_int(text: str) -> int:
 
 def resolve_plant(args: argparse.Namespace) -> tuple[ProcessModel, Preset | None]:
     """The plant model from ``--plant`` or ``--model``, and the preset if one was named."""
+    from motcomp.core.models import parse_model
+    from motcomp.presets import load_preset
+
     if getattr(args, "plant", None):
         preset = load_preset(args.plant)
         return preset.model, preset
