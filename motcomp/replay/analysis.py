@@ -179,7 +179,10 @@ gone when the window begins (the models' time constants are well below a second)
 
 
 ALIGN_STEPS = 10
-"""Most correlations of one delay estimate (:func:`_estimate`); two to five suffice."""
+"""Most correlations of one delay estimate (:func:`_estimate`); three or four suffice."""
+ALIGN_TOL = 0.05
+"""A delay estimate stops when a step moves it by less than this part of a sample (0.05 ms at
+1 kHz: the report shows tenths of a millisecond)."""
 TAPER_FRACTION = 0.25
 """Part of a delay window under the taper's cosine edges (half at each end)."""
 
@@ -203,8 +206,8 @@ def _estimate(r: np.ndarray, y: np.ndarray, rate_hz: float, lead: int = 0) -> fl
     each window holds that the other lacks (a 0.31 Hz sine delayed 196 ms read 169 ms over
     10 s).  So, as the live monitor does (:mod:`motcomp.runtime.monitor`, step 3), both are
     tapered by the same Tukey window, and the reference is shifted by the delay found --
-    taken from before the window -- and correlated again until a step is below 1 % of a
-    sample: at that fixed point the windows are aligned and the pull is nil (the same sine:
+    taken from before the window -- and correlated again until a step is below
+    :data:`ALIGN_TOL` of a sample: at that fixed point the windows are aligned and the pull is nil (the same sine:
     196.2 ms, its ZOH half sample included)."""
     from motcomp.core.quality import estimate_delay
 
@@ -223,7 +226,7 @@ def _estimate(r: np.ndarray, y: np.ndarray, rate_hz: float, lead: int = 0) -> fl
             step = estimate_delay(w * (rs - float(w @ rs) / wsum), y_w, rate_hz,
                                   max_lag_s=1.0 - d, min_lag_s=-0.5 - d)
             d += step
-            if abs(step) * rate_hz < 0.01:
+            if abs(step) * rate_hz < ALIGN_TOL:
                 return d
     except ConfigError:
         return None
