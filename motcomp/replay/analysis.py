@@ -18,8 +18,8 @@ above :data:`MIN_MOTION`) and the compensation state does not change, at most
   tick's, taken between two ticks sent across a stall on the line joining them (the motion
   went on while nothing was sent), and the limiter of ``off`` steps at every step the service
   computed (ticks and catch-up steps), on that reference, as a service with the axis bypassed
-  would have: stepped on the held reference instead, it lagged a 0.31 Hz slalom recorded with
-  15 % of the deadlines missed by 490 ms (against the rails' 195 ms);
+  would have (stepped on the reference held through the stalls, it fell behind: a slalom
+  recorded while the loop missed 16 % of its deadlines read 494 ms for the rails' 196 ms);
 * *recorded*: the recorded feedback position behind the recorded input (both on the
   recorder's receive times), on windows where the service had compensation on, resp. off
   (from the bypass flags of the recorded outputs).
@@ -207,8 +207,8 @@ def _estimate(r: np.ndarray, y: np.ndarray, rate_hz: float, lead: int = 0) -> fl
     10 s).  So, as the live monitor does (:mod:`motcomp.runtime.monitor`, step 3), both are
     tapered by the same Tukey window, and the reference is shifted by the delay found --
     taken from before the window -- and correlated again until a step is below
-    :data:`ALIGN_TOL` of a sample: at that fixed point the windows are aligned and the pull is nil (the same sine:
-    196.2 ms, its ZOH half sample included)."""
+    :data:`ALIGN_TOL` of a sample: at that fixed point the windows are aligned and the pull
+    is nil (the same sine: 196.2 ms, its zero-order hold's half sample included)."""
     from motcomp.core.quality import estimate_delay
 
     win = r[lead:]
