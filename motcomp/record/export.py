@@ -287,13 +287,11 @@ def _export_mcap(source: Path, out: Path, progress: Callable[[float], None] | No
             return cid
 
         done = 0
-        meta_written = False
+        results = []
         for part in parts:
             res = ScanResult(part)
+            results.append(res)
             for rec in iter_records(part, result=res):
-                if not meta_written:
-                    _copy_metadata(w, res, source)
-                    meta_written = True
                 role = roles.get(rec.topic, "other")
                 obj, why = fit(role, rec.data)
                 if obj is None:
@@ -313,21 +311,24 @@ def _export_mcap(source: Path, out: Path, progress: Callable[[float], None] | No
                 done += 1
                 if progress is not None and total and done % 20000 == 0:
                     progress(done / total)
-            if not meta_written:
-                _copy_metadata(w, res, source)
-                meta_written = True
+        _copy_metadata(w, results, source)
         w.finish()
     return summary
 
 
-def _copy_metadata(w: Any, res: ScanResult, source: Path) -> None:
-    """The source's ``motcomp`` metadata (its last record), attachments and an export
-    record."""
-    meta = metadata_dict(res)
+def _copy_metadata(w: Any, results: list[ScanResult], source: Path) -> None:
+    """The source's ``motcomp`` metadata (its last record, as readers take it: the recorder
+    writes it again when it learns the service's config), its attachments (the last of each
+    name) and an export record."""
+    last = ScanResult(source)
+    last.metadata = [m for res in results for m in res.metadata]
+    meta = metadata_dict(last)
     if meta:
         w.add_metadata("motcomp", {k: json.dumps(v) if k == "keys" else str(v)
                                    for k, v in meta.items()})
-    for name, media, data in res.attachments:
+    attachments = {name: (media, data) for res in results
+                   for name, media, data in res.attachments}
+    for name, (media, data) in attachments.items():
         w.add_attachment(0, 0, name, media, data)
     w.add_metadata("motcomp_export", {"source": str(source), "version": __version__,
                                       "encoding": "json with JSON Schema (docs/RECORDING.md)"})
