@@ -467,3 +467,10 @@ def test_each_command_imports_its_own_module_only() -> None:
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                        env=subprocess_env(), timeout=60)
     assert p.returncode == 0 and p.stdout.strip() == "[]", (p.stdout, p.stderr)
+
+
+def test_a_status_the_service_could_not_build_says_so() -> None:
+    text = format_status({"t": 1.0, "version": "0.1.0", "mode": "running", "ticks": 5,
+                          "error": "status failed: RuntimeError('dictionary changed size')"})
+    assert text.splitlines()[1] == ("ERROR       status failed: RuntimeError('dictionary "
+                                    "changed size') (the service's status is incomplete)")

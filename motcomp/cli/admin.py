@@ -161,8 +161,16 @@ def _unreachable(command: str, exc: NoPeerError) -> int:
 
 def run_status(args: argparse.Namespace) -> int:
     if args.watch is None:
+        ep = endpoints_from_args(args)
         try:
-            st = _request(args, args.key, None)
+            with open_session(ep) as session:
+                st = _ask(session, ep, args.key, None, remaining(args.timeout), args.timeout)
+                # a status the service could not build (its fallback names the error): asked
+                # again while the timeout lasts, else shown as it is
+                while st.get("error") and remaining(args.timeout, 0.0) > 0.2:
+                    time.sleep(0.1)
+                    st = _ask(session, ep, args.key, None, remaining(args.timeout),
+                              args.timeout)
         except NoPeerError as exc:
             return _unreachable("status", exc)
         _show(args, st)
@@ -226,6 +234,8 @@ def format_status(st: dict[str, Any]) -> str:
     cfg = st.get("config") or {}
     lines = [
         f"mode        {st.get('mode', '?')}",
+        *([f"ERROR       {st['error']} (the service's status is incomplete)"]
+          if st.get("error") else []),
         f"config      hash {cfg.get('hash', '?')}  version {cfg.get('version', '?')}  profile "
         f"{st.get('profile') or 'none'}" + (f"  ({cfg['path']})" if cfg.get("path") else ""),
         f"service     motcomp {st.get('version', '?')}",
