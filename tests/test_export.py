@@ -189,3 +189,20 @@ def test_parquet_without_pyarrow_says_how_to_get_it(session: Path, tmp_path: Pat
         in p.stderr, p.stderr
     p = cli("export", str(session), "-o", str(tmp_path / "no" / "such" / "x.mcap"))
     assert p.returncode == 2 and "does not exist" in p.stderr
+
+
+def test_an_unfinished_recording_exports_what_it_holds(session: Path, tmp_path: Path) -> None:
+    data = session.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[:len(data) * 2 // 3])
+    p = cli("export", str(cut), "-o", str(tmp_path / "cut-viewer.mcap"), "--quiet")
+    assert p.returncode == 0, p.stderr
+    assert "warning: " in p.stdout and "unfinished recording" in p.stdout
+    meta, rows = read_mcap(tmp_path / "cut-viewer.mcap")
+    assert rows and meta["motcomp_export"]["source"] == str(cut)
+    cut.write_bytes(data[:300])  # before its first chunk: nothing to export, as nothing to read
+    for fmt in ("mcap", "csv"):
+        out = tmp_path / f"empty.{fmt}"
+        p = cli("export", str(cut), "-o", str(out), "--format", fmt, "--quiet")
+        assert p.returncode == 2 and "no complete chunk" in p.stderr, p.stderr
+        assert not out.exists() or (fmt == "csv" and not any(out.iterdir()))

@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print_json({"paths": [str(p) for p in summary.paths], "format": summary.format,
                     "counts": summary.counts, "invalid": summary.invalid,
-                    "seconds": summary.seconds})
+                    "warnings": summary.warnings, "seconds": summary.seconds})
     else:
         print(summary.text())
     sys.stdout.flush()

@@ -194,6 +194,7 @@ class ExportSummary:
     invalid: dict[str, int] = field(default_factory=dict)
     """Frames that did not fit their key's schema, per key (MCAP)."""
     seconds: float = 0.0
+    warnings: list[str] = field(default_factory=list)
 
     def text(self) -> str:
         what = "messages" if self.format == "mcap" else "rows"
@@ -202,6 +203,7 @@ class ExportSummary:
         lines += [f"  {k}: {n}" for k, n in sorted(self.counts.items())]
         lines += [f"  {k}: {n} frames that do not fit the schema, on {k}{INVALID_SUFFIX}"
                   for k, n in sorted(self.invalid.items()) if n]
+        lines += [f"warning: {w}" for w in self.warnings]
         return "\n".join(lines)
 
 
@@ -311,6 +313,14 @@ def _export_mcap(source: Path, out: Path, progress: Callable[[float], None] | No
                 done += 1
                 if progress is not None and total and done % 20000 == 0:
                     progress(done / total)
+        cut = [r for r in results if r.truncated and not r.complete]
+        if cut and not done:  # as every reader: nothing recovered is nothing to export
+            fh.close()
+            out.unlink(missing_ok=True)
+            raise DataError(f"{cut[0].path}: unfinished recording ({cut[0].truncated}) with no "
+                            "complete chunk: no message to export")
+        summary.warnings += [f"{r.path}: unfinished recording ({r.truncated}): exported its "
+                             f"{r.messages} messages up to its last complete chunk" for r in cut]
         _copy_metadata(w, results, source)
         w.finish()
     return summary
