@@ -132,13 +132,19 @@ def test_live_profile_switch_is_bumpless(tmp_path: Path) -> None:
                                    capture_output=True, text=True, env=subprocess_env(),
                                    timeout=60)
                 assert p.returncode == 0, p.stderr
+                assert p.stdout.startswith("no profile active (the config's base tuning)"
+                                           if name == "none" else f"profile {name} active")
                 st = msgpack.unpackb(first_reply(session, "motcomp/status", None, 2.0))
                 assert st["profile"] == (None if name == "none" else name)
                 assert st["profiles"] == ["fast", "normal", "paper"]
                 time.sleep(1.0)
             p = subprocess.run(motcomp_cmd("profile", "sport", "-e", loopback(port)),
                                capture_output=True, text=True, env=subprocess_env(), timeout=60)
-            assert p.returncode == 1 and "not defined" in p.stderr
+            assert p.returncode == 2 and "rejected: profile 'sport' is not defined" in p.stderr
+            p = subprocess.run(motcomp_cmd("bypass", "on", "--axes", "rails_q", "-e",
+                                           loopback(port)),
+                               capture_output=True, text=True, env=subprocess_env(), timeout=60)
+            assert p.returncode == 2 and "rejected:" in p.stderr and "rails_q" in p.stderr
         finally:
             stop.set()
             th.join()

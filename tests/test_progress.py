@@ -41,9 +41,10 @@ def test_short_jobs_and_quiet_print_nothing_and_a_failure_says_stopped() -> None
 
 
 def test_a_long_command_is_not_silent_when_stderr_is_a_file() -> None:
-    """``motcomp source`` waiting 5 s for a service that is not there, its progress every 5 s:
+    """``motcomp source`` waiting 7 s for a service that is not there, its progress every 5 s:
     a line says how far it got, then the error."""
-    p = subprocess.run(motcomp_cmd("source", "--signal", "slalom", "-e", "tcp/127.0.0.1:1"),
+    p = subprocess.run(motcomp_cmd("source", "--signal", "slalom", "-e", "tcp/127.0.0.1:1",
+                                   "--wait-peer", "7"),
                        capture_output=True, text=True, env=subprocess_env(), timeout=120)
     assert p.returncode != 0
     assert "source: 0.0 of " in p.stderr and " after 5 s" in p.stderr, p.stderr

@@ -40,6 +40,10 @@ def _record_beside(tmp_path: Path, publish_status: bool) -> tuple[Path, str]:
         pub_st = session.declare_publisher("motcomp/status")
         with process(["record", "-o", str(out), "-e", loopback(port), "--status-timeout",
                       "0.05"], log) as rec:
+            t_end = time.monotonic() + 30  # started (a busy host takes seconds to import)
+            while "recording" not in log.read_text():
+                assert time.monotonic() < t_end and rec.poll() is None, log.read_text()
+                time.sleep(0.05)
             t_end = time.monotonic() + 3.5
             k = 0
             while time.monotonic() < t_end:

@@ -110,7 +110,7 @@ def test_reload_refuses_files_outside_and_keeps_running(tmp_path: Path) -> None:
         st0 = wait_status(session)
         for name, (rel, reason) in REFUSED.items():
             r = reload_cmd(p_svc, target(tmp_path, rel))  # a reply, or exit 3 after 5 s
-            assert r.returncode == 1, (name, r.returncode, r.stderr)
+            assert r.returncode == 2, (name, r.returncode, r.stderr)  # a refused request
             assert reason in r.stderr and SECRET not in r.stderr + r.stdout, (name, r.stderr)
             st = status(session)
             assert st["config"]["version"] == 1 and st["config"]["hash"] == st0["config"]["hash"]
@@ -155,7 +155,7 @@ def test_reload_config_file_becomes_the_config_in_force(tmp_path: Path) -> None:
         assert st["config"]["version"] == 3 and st["reloads"][-1]["path"] == str(other)
         in_force(st, other)
         # a refused reload --config leaves the config in force as it was
-        assert reload_cmd(p_svc, files["secret"]).returncode == 1
+        assert reload_cmd(p_svc, files["secret"]).returncode == 2
         in_force(status(session), other)
         # a profile switch: the same file, its hash with the profile, still attached
         r = subprocess.run(motcomp_cmd("profile", "fast", "-e", loopback(p_svc)),

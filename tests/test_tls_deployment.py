@@ -136,3 +136,30 @@ def test_tls_and_password_deployments_share_their_rules() -> None:
                for a, k in zip(acl, ("usernames", "cert_common_names"), strict=True)]
     assert by_name[0] == by_name[1]
     assert all(set(names) <= set(ROLES) for names in by_name[0].values())
+
+
+def test_a_tcp_endpoint_under_the_tls_config_is_named_before_zenoh_refuses_it(
+        tmp_path: Path, certs: Path) -> None:
+    """The shipped TLS config allows the tls protocol only: a service config that listens on
+    tcp/ (or a -l/-e that says so) is bad input, exit 2 naming the endpoint and the rule, from
+    ``motcomp run`` and ``motcomp config check`` alike (zenoh's own refusal exited 1)."""
+    zfile = tmp_path / "zenoh-tls.json5"
+    zfile.write_text(config_file("zenoh-tls.json5").read_text().replace(
+        "/etc/motcomp/tls", str(certs)))
+    tcp = f"tcp/127.0.0.1:{free_tcp_port()}"
+    cfg = tmp_path / "service.toml"
+    cfg.write_text(f'include = ["{config_file("motcomp.toml")}"]\n'
+                   f'[zenoh]\nconfig_file = "{zfile.name}"\nlisten = ["{tcp}"]\n')
+    env = subprocess_env()
+    rule = (f"listen endpoint '{tcp}': protocol 'tcp' is not allowed by {zfile} "
+            "(transport/link/protocols = ['tls']): use tls/ endpoints")
+    for args in (["run", "--config", str(cfg)], ["config", "check", str(cfg)]):
+        p = subprocess.run(motcomp_cmd(*args), capture_output=True, text=True, env=env,
+                           timeout=60)
+        assert p.returncode == 2, (args, p.stdout, p.stderr)
+        assert rule in p.stderr and "Traceback" not in p.stderr, p.stderr
+    tls = f"tls/127.0.0.1:{free_tcp_port()}"  # a tls/ listener: accepted
+    cfg.write_text(cfg.read_text().replace(tcp, tls))
+    p = subprocess.run(motcomp_cmd("config", "check", str(cfg)), capture_output=True, text=True,
+                       env=env, timeout=60)
+    assert p.returncode == 0, p.stderr

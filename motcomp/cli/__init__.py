@@ -14,15 +14,33 @@ import argparse
 import importlib
 import pkgutil
 import sys
+import time
 from collections.abc import Sequence
 
 from motcomp import __version__
 from motcomp.errors import ConfigError, DataError, MotcompError
 
-__all__ = ["build_parser", "main"]
+__all__ = ["MODULE_OF", "STARTED", "build_parser", "main"]
+
+STARTED = time.monotonic()
+"""When the command started (its imports included): a ``--timeout`` or ``--wait-peer`` is
+counted from here, so that the whole command takes what the user asked."""
 
 
-def build_parser() -> argparse.ArgumentParser:
+MODULE_OF = {
+    "run": "run", "status": "admin", "bypass": "admin", "profile": "admin", "reload": "admin",
+    "hil": "hil", "source": "source", "record": "record", "replay": "replay", "info": "info",
+    "export": "export", "config": "config_cmd", "demo": "demo", "design": "design",
+    "evaluate": "design", "pareto": "design", "excite": "excite", "identify": "identify",
+}
+"""The module of each command, so that a command imports its own module only (``motcomp
+status`` need not import the optimiser: on a busy host the imports were most of a 2 s
+timeout).  A command missing here still works, through the whole parser
+(tests/test_cli_ops.py checks the table against the modules' registrations)."""
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every command, or of the commands of the module ``only``."""
     parser = argparse.ArgumentParser(
         prog="motcomp",
         description="Identify a motion platform's lag and compensate it in real time.",
@@ -32,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     modules = []
     for info in pkgutil.iter_modules(__path__):
-        if info.name.startswith("_"):
+        if info.name.startswith("_") or (only is not None and info.name != only):
             continue
         module = importlib.import_module(f"{__name__}.{info.name}")
         if hasattr(module, "register"):
@@ -44,7 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(MODULE_OF.get(argv[0]) if argv else None)
     args = parser.parse_args(argv)
     try:
         code = args.func(args)

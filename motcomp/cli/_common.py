@@ -7,11 +7,13 @@ import json
 import math
 import sys
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from motcomp.core.models import ProcessModel, parse_model
 from motcomp.errors import ConfigError
-from motcomp.presets import Preset, load_preset
+
+if TYPE_CHECKING:  # imported where used: a command that needs no model does not load them
+    from motcomp.core.models import ProcessModel
+    from motcomp.presets import Preset
 
 
 def add_plant_args(p: argparse.ArgumentParser, required: bool = True) -> None:
@@ -81,12 +83,26 @@ def non_negative_int(text: str) -> int:
 
 def resolve_plant(args: argparse.Namespace) -> tuple[ProcessModel, Preset | None]:
     """The plant model from ``--plant`` or ``--model``, and the preset if one was named."""
+    from motcomp.core.models import parse_model
+    from motcomp.presets import load_preset
+
     if getattr(args, "plant", None):
         preset = load_preset(args.plant)
         return preset.model, preset
     if getattr(args, "model", None):
         return parse_model(args.model), None
     raise ConfigError("give --plant NAME or --model SPEC")
+
+
+def remaining(timeout_s: float, floor_s: float = 0.1) -> float:
+    """What is left of ``timeout_s`` counted from the command's start
+    (:data:`motcomp.cli.STARTED`: imports and opening the session take part of it), at least
+    ``floor_s`` (one look at the network)."""
+    import time
+
+    from motcomp.cli import STARTED
+
+    return max(floor_s, timeout_s - (time.monotonic() - STARTED))
 
 
 def print_json(obj: Any) -> None:

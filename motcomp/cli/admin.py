@@ -13,7 +13,7 @@ from typing import Any
 
 import msgpack
 
-from motcomp.cli._common import positive_float, print_json
+from motcomp.cli._common import positive_float, print_json, remaining
 from motcomp.core.axes import AXES, ROTATIONAL
 from motcomp.errors import ServiceError
 from motcomp.io.zenoh_io import (
@@ -50,7 +50,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.set_defaults(func=run_status)
 
     b = sub.add_parser("bypass", help="turn compensation off (on) or back on (off), bumplessly",
-                       description="Admin command (needs [admin] enabled = true).")
+                       description="Admin command (needs [admin] enabled = true). Exits 2 if "
+                                   "the service rejects the request (an axis it does not "
+                                   "drive), 1 if it could not serve it (busy, stopping).")
     b.add_argument("state", choices=["on", "off"],
                    help="on: compensation off (the reference passes through); off: back on")
     b.add_argument("--axes", nargs="+", metavar="AXIS",
@@ -63,14 +65,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     pr = sub.add_parser("profile", help="switch the running service's scenario profile",
                         description="Make a profile of the service's config active (its gains "
                                     "replace the current ones, bumplessly). Needs [admin] "
-                                    "enabled = true.")
+                                    "enabled = true. Exits 2 if the service rejects it (a "
+                                    "profile its config does not define), 1 if it could not "
+                                    "serve the request (busy, stopping).")
     pr.add_argument("name", help="profile name, or 'none' for the config's base tuning")
     _service_args(pr, "motcomp/admin", 5.0)
     pr.set_defaults(func=run_profile)
 
     r = sub.add_parser("reload", help="reload a running service's config",
                        description="Ask the running service to re-read its config file (or "
-                                   "FILE); prints the outcome, exits 1 if it was rejected. "
+                                   "FILE); prints the outcome; exits 2 if the service rejects the "
+                                   "file (every reason, the first one first), 1 if it could not "
+                                   "serve the request (busy, stopping). "
                                    "Needs [admin] enabled = true.")
     r.add_argument("--config", type=Path, metavar="FILE",
                    help="file to load instead of the config in force; it must lie in the "
@@ -82,8 +88,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _ask(session: Any, ep: ZenohEndpoints, key: str, payload: bytes | None,
-         timeout_s: float) -> dict[str, Any]:
-    """The service's reply on ``key``, asked until one comes or ``timeout_s`` has passed.
+         timeout_s: float, asked_s: float | None = None) -> dict[str, Any]:
+    """The service's reply on ``key``, asked until one comes or ``timeout_s`` has passed
+    (``asked_s``: the timeout the user gave, for the message; default ``timeout_s``).
 
     A query that no queryable matches returns at once with no reply (nobody connected yet, or
     an endpoint that is down): it is asked again until the timeout, so that a service still
@@ -109,28 +116,41 @@ def _ask(session: Any, ep: ZenohEndpoints, key: str, payload: bytes | None,
         time.sleep(min(0.1, max(0.0, t_end - time.monotonic())))
     peers = len(list(session.info.peers_zid())) + len(list(session.info.routers_zid()))
     raise NoPeerError(
-        f"no reply from the service at {ep.describe()} (key {key}) within {timeout_s:g} s; "
+        f"no reply from the service at {ep.describe()} (key {key}) within "
+        f"{timeout_s if asked_s is None else asked_s:g} s; "
         + (f"{peers} zenoh peer(s) connected, but none answers on this key (another service, "
            "admin off, or an access-control rule that drops the query?)" if peers
            else "no zenoh peer was reachable"))
 
 
 def _request(args: argparse.Namespace, key: str, body: dict[str, Any] | None) -> dict[str, Any]:
+    """One request; ``--timeout`` counts from the command's start (opening the session, about
+    0.5 s of zenoh's scouting delay, is part of it)."""
     ep = endpoints_from_args(args)
     with open_session(ep) as session:
         payload = msgpack.packb(body) if body is not None else None
-        return _ask(session, ep, key, payload, args.timeout)
+        return _ask(session, ep, key, payload, remaining(args.timeout), args.timeout)
 
 
-def _command(args: argparse.Namespace, name: str, body: dict[str, Any]) -> dict[str, Any] | None:
-    """Call the admin endpoint ``name``; ``None`` (with the reason on stderr) if rejected."""
+NOT_NOW = {
+    "busy": "busy (the service is serving other admin requests: try again shortly)",
+    "stopping": "stopping (the service is parking the platform before it exits)",
+}
+"""Rejections that say nothing of the request (exit 1, a failure): the service could not
+serve it now.  Any other rejection names what is wrong with the request (exit 2, bad input)."""
+
+
+def _command(args: argparse.Namespace, name: str, body: dict[str, Any]) -> dict[str, Any] | int:
+    """Call the admin endpoint ``name``: its reply, or the exit code of a rejection (the reason
+    on stderr): 2 for a request the service refuses (unknown axis or profile, a config it does
+    not accept), 1 when it could not serve it (busy, stopping, an internal error)."""
     out = _request(args, f"{args.key}/{name}", body)
     if not out.get("ok"):
-        error = out.get("error")
-        if error == "busy":
-            error = "busy (the service is serving other admin requests: try again shortly)"
-        print(f"motcomp {name}: rejected: {error}", file=sys.stderr)
-        return None
+        error = str(out.get("error"))
+        failure = error in NOT_NOW or error.startswith("internal error")
+        print(f"motcomp {name}: {'failed' if failure else 'rejected'}: "
+              f"{NOT_NOW.get(error, error)}", file=sys.stderr)
+        return 1 if failure else 2
     return out
 
 
@@ -141,8 +161,16 @@ def _unreachable(command: str, exc: NoPeerError) -> int:
 
 def run_status(args: argparse.Namespace) -> int:
     if args.watch is None:
+        ep = endpoints_from_args(args)
         try:
-            st = _request(args, args.key, None)
+            with open_session(ep) as session:
+                st = _ask(session, ep, args.key, None, remaining(args.timeout), args.timeout)
+                # a status the service could not build (its fallback names the error): asked
+                # again while the timeout lasts, else shown as it is
+                while st.get("error") and remaining(args.timeout, 0.0) > 0.2:
+                    time.sleep(0.1)
+                    st = _ask(session, ep, args.key, None, remaining(args.timeout),
+                              args.timeout)
         except NoPeerError as exc:
             return _unreachable("status", exc)
         _show(args, st)
@@ -206,6 +234,8 @@ def format_status(st: dict[str, Any]) -> str:
     cfg = st.get("config") or {}
     lines = [
         f"mode        {st.get('mode', '?')}",
+        *([f"ERROR       {st['error']} (the service's status is incomplete)"]
+          if st.get("error") else []),
         f"config      hash {cfg.get('hash', '?')}  version {cfg.get('version', '?')}  profile "
         f"{st.get('profile') or 'none'}" + (f"  ({cfg['path']})" if cfg.get("path") else ""),
         f"service     motcomp {st.get('version', '?')}",
@@ -355,8 +385,8 @@ def run_bypass(args: argparse.Namespace) -> int:
         out = _command(args, "bypass", {"on": args.state == "on", "axes": args.axes})
     except NoPeerError as exc:
         return _unreachable("bypass", exc)
-    if out is None:
-        return 1
+    if isinstance(out, int):
+        return out
     print(f"bypassed axes: {', '.join(out['bypass']) or 'none'}")
     return 0
 
@@ -368,8 +398,8 @@ def run_reload(args: argparse.Namespace) -> int:
         out = _command(args, "reload", body)
     except NoPeerError as exc:
         return _unreachable("reload", exc)
-    if out is None:
-        return 1
+    if isinstance(out, int):
+        return out
     print(f"reloaded: {out.get('path')} (hash {out.get('hash')}, version {out.get('version')})")
     return 0
 
@@ -380,8 +410,10 @@ def run_profile(args: argparse.Namespace) -> int:
         out = _command(args, "profile", {"name": name})
     except NoPeerError as exc:
         return _unreachable("profile", exc)
-    if out is None:
-        return 1
-    print(f"profile {out.get('profile')} active (config hash {out.get('hash')}, version "
-          f"{out.get('version')})")
+    if isinstance(out, int):
+        return out
+    active = out.get("profile")
+    print((f"profile {active} active" if active is not None
+           else "no profile active (the config's base tuning)")
+          + f" (config hash {out.get('hash')}, version {out.get('version')})")
     return 0

@@ -31,8 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "replay", help="replay a recording through the compensator (offline) or onto zenoh",
         description="Offline (default): feed the recorded inputs through the service's own "
                     "tick with the recorded config (or --config), tick by tick as the service "
-                    "did, as fast as possible; report the apparent delay gained, saturation and "
-                    "the differences from the recorded outputs (docs/REPLAY.md). Several files "
+                    "did, as fast as possible; report the apparent delay gained, saturation, "
+                    "the differences from the recorded outputs and each config's platform model "
+                    "against the recorded platform's feedback (docs/REPLAY.md). Several files "
                     "are replayed each on its own. --realtime: republish the recorded inputs of "
                     "one file on zenoh at their recorded timing.")
     p.add_argument("files", type=Path, nargs="+", metavar="FILE.mcap",

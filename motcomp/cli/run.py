@@ -8,7 +8,7 @@ from pathlib import Path
 
 from motcomp.cli._common import add_log_arg, setup_logging
 from motcomp.config import check_envelope, load_config
-from motcomp.io.zenoh_deploy import check_deployment, service_endpoints
+from motcomp.io.zenoh_deploy import check_deployment, check_endpoints, service_endpoints
 from motcomp.io.zenoh_io import add_zenoh_args, endpoints_from_args
 
 ORDER = 1
@@ -41,4 +41,5 @@ def run(args: argparse.Namespace) -> int:
         logging.getLogger("motcomp.run").warning("%s", w)
     ep = endpoints_from_args(args, service_endpoints(cfg.zenoh, args.config))
     check_deployment(ep.config_file)  # the files it names and their modes: as `config check`
+    check_endpoints(ep)  # protocols the zenoh config allows (exit 2, not zenoh's failure)
     return Service(cfg, ep, config_path=args.config).run()

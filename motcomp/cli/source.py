@@ -14,6 +14,7 @@ from motcomp.cli._common import (
     positive_float,
     positive_int,
     rate_arg,
+    remaining,
 )
 from motcomp.errors import ConfigError
 from motcomp.io.zenoh_io import NoPeerError, add_zenoh_args, endpoints_from_args
@@ -119,7 +120,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         with Progress("source", total_s, quiet=args.quiet, unit="s", every_s=5.0) as bar:
             stats = publish(traj, ep, args.key, args.seq_start, args.repeat,
-                            lead_in_s=args.lead_in, wait_peer_s=args.wait_peer,
+                            lead_in_s=args.lead_in,
+                            wait_peer_s=remaining(args.wait_peer) if args.wait_peer > 0 else 0.0,
+                            wait_peer_asked_s=args.wait_peer,
                             progress=bar.update, timing=timing, with_t=not args.no_t)
     except NoPeerError as exc:
         print(f"motcomp source: {exc}; is the service running and its endpoint right?",

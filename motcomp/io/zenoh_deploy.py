@@ -11,7 +11,11 @@ Rules, each problem named with its file, the zenoh key that names it and what is
   takes them;
 - a secret -- the credentials dictionary, a private key, or the zenoh config itself when it
   holds a password or a private key inline (:data:`INLINE_SECRETS`) -- gives group and others
-  no access at all (mode 600 or stricter).
+  no access at all (mode 600 or stricter);
+- every endpoint the service listens on or connects to (``-l``/``-e``, ``[zenoh] listen`` and
+  ``connect``, or the zenoh config's own) uses a protocol the zenoh config allows
+  (``transport/link/protocols``: the shipped TLS config allows ``tls`` only, and zenoh refuses
+  to open a ``tcp/`` listener with it) -- :func:`check_endpoints`.
 
 Readability is that of the calling user: run ``motcomp config check`` as the service's user.
 :func:`probe` (``config check`` only) then opens a session as the service will, with its
@@ -38,6 +42,7 @@ __all__ = [
     "FILE_KEYS",
     "INLINE_SECRETS",
     "check_deployment",
+    "check_endpoints",
     "check_service_zenoh",
     "deployment_problems",
     "probe",
@@ -133,6 +138,44 @@ def check_deployment(zenoh_file: str) -> None:
                           f"{'s' if len(problems) > 1 else ''}:\n  " + "\n  ".join(problems))
 
 
+def endpoint_problems(ep: ZenohEndpoints) -> list[str]:
+    """Endpoints of ``ep`` whose protocol its zenoh config does not allow, in words (empty:
+    none, or the config restricts no protocol)."""
+    import zenoh
+
+    if not ep.config_file:
+        return []
+    try:
+        cfg = zenoh.Config.from_file(ep.config_file)
+    except Exception:  # deployment_problems says why it does not parse
+        return []
+    allowed = _value(cfg, "transport/link/protocols")
+    if not allowed:
+        return []
+    out = []
+    for role, given in (("listen", ep.listen), ("connect", ep.connect)):
+        endpoints = list(given)
+        if not endpoints:
+            configured = _value(cfg, f"{role}/endpoints")
+            endpoints = (configured.get(ep.mode, []) if isinstance(configured, dict)
+                         else configured or [])
+        for e in endpoints:
+            proto = str(e).split("/", 1)[0]
+            if proto not in allowed:
+                out.append(f"{role} endpoint {e!r}: protocol {proto!r} is not allowed by "
+                           f"{ep.config_file} (transport/link/protocols = {allowed}): use "
+                           + " or ".join(f"{p}/" for p in allowed) + " endpoints")
+    return out
+
+
+def check_endpoints(ep: ZenohEndpoints) -> None:
+    """Raise :class:`ConfigError` listing every endpoint :func:`endpoint_problems` finds."""
+    problems = endpoint_problems(ep)
+    if problems:
+        raise ConfigError(f"zenoh endpoints, {len(problems)} problem"
+                          f"{'s' if len(problems) > 1 else ''}:\n  " + "\n  ".join(problems))
+
+
 def probe(ep: ZenohEndpoints) -> str:
     """Open and close a session of ``ep`` (the service's endpoints) listening on an ephemeral
     loopback port of each protocol it listens on, connecting nowhere; a summary of what was
@@ -164,4 +207,5 @@ def check_service_zenoh(zenoh_cfg: ZenohConfig, service_config: Path) -> str:
     the service's endpoints; the summary, or :class:`ConfigError`."""
     ep = service_endpoints(zenoh_cfg, service_config)
     check_deployment(ep.config_file)
+    check_endpoints(ep)
     return probe(ep)

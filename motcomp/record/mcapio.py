@@ -27,7 +27,7 @@ import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, NamedTuple
 
 import numpy as np
 
@@ -37,8 +37,10 @@ __all__ = [
     "MAGIC",
     "ChannelInfo",
     "MessageBatch",
+    "Record",
     "ScanResult",
     "iter_messages",
+    "iter_records",
     "scan",
 ]
 
@@ -80,6 +82,13 @@ class MessageBatch:
     def payload(self, i: int) -> bytes:
         o = int(self.offset[i])
         return bytes(self.buf[o:o + int(self.length[i])])
+
+    def sequences(self) -> np.ndarray:
+        """The messages' MCAP ``sequence`` fields (u32)."""
+        at = self.offset - _MSG_HEADER + 2  # after the channel id
+        b = self.buf
+        return (b[at].astype(np.int64) | b[at + 1].astype(np.int64) << 8
+                | b[at + 2].astype(np.int64) << 16 | b[at + 3].astype(np.int64) << 24)
 
 
 @dataclass
@@ -430,21 +439,41 @@ def message_counts(path: str | Path) -> dict[str, Any] | None:
     return out
 
 
-def iter_messages(path: str | Path, topics: set[str] | None = None,
-                  result: ScanResult | None = None) -> Iterator[tuple[str, int, int, bytes]]:
-    """``(topic, log_ns, publish_ns, payload)`` of each message, in file order, batch by batch
-    (memory stays bounded by the batch size)."""
+class Record(NamedTuple):
+    """One message of a file, as :func:`iter_records` yields it."""
+
+    topic: str
+    sequence: int
+    log_ns: int
+    publish_ns: int
+    data: bytes
+
+
+def iter_records(path: str | Path, topics: set[str] | None = None,
+                 result: ScanResult | None = None) -> Iterator[Record]:
+    """Each message (:class:`Record`) in file order, batch by batch (memory stays bounded by
+    the batch size)."""
     for batch in scan(path, topics, batch_bytes=4 << 20, result=result):
         if not batch:
             continue
         rows = []
         for mb in batch:
+            seq = mb.sequences()
             for i in range(len(mb)):
-                rows.append((int(mb.offset[i]), mb.channel.topic, int(mb.log_ns[i]),
-                             int(mb.publish_ns[i]), mb.payload(i)))
+                rows.append((int(mb.offset[i]), Record(mb.channel.topic, int(seq[i]),
+                                                       int(mb.log_ns[i]), int(mb.publish_ns[i]),
+                                                       mb.payload(i))))
         rows.sort(key=lambda r: r[0])
-        for _, topic, log_ns, pub_ns, data in rows:
-            yield topic, log_ns, pub_ns, data
+        for _, rec in rows:
+            yield rec
+
+
+def iter_messages(path: str | Path, topics: set[str] | None = None,
+                  result: ScanResult | None = None) -> Iterator[tuple[str, int, int, bytes]]:
+    """``(topic, log_ns, publish_ns, payload)`` of each message, in file order (as
+    :func:`iter_records`)."""
+    for rec in iter_records(path, topics, result):
+        yield rec.topic, rec.log_ns, rec.publish_ns, rec.data
 
 
 def metadata_dict(res: ScanResult, name: str = "motcomp") -> dict[str, Any]:

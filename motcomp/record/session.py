@@ -468,7 +468,7 @@ def read_session(path: str | Path | Sequence[str | Path], keys: dict[str, str] |
     Raises
     ------
     DataError
-        If a file cannot be read or is not MCAP.
+        If a file cannot be read, is not MCAP, or is unfinished with no message recovered.
     """
     paths = (session_parts(path) if isinstance(path, str | Path)
              else [Path(p) for p in path])
@@ -514,6 +514,13 @@ def read_session(path: str | Path | Sequence[str | Path], keys: dict[str, str] |
             for mb in batch:
                 topic = mb.channel.topic
                 role = role_of.get(topic)
+                if mb.channel.message_encoding != "msgpack" and role is not None:
+                    source = metadata_dict(res, "motcomp_export").get("source")
+                    raise DataError(
+                        f"{p}: {topic} is {mb.channel.message_encoding!r}, not msgpack: "
+                        + (f"an export for viewers (motcomp export); read the recording it "
+                           f"was made from, {source}" if source else
+                           "not a recording of motcomp record"))
                 if role == "status":
                     for i in range(len(mb)):
                         try:
@@ -537,6 +544,14 @@ def read_session(path: str | Path | Sequence[str | Path], keys: dict[str, str] |
         if config_json is None:
             config_json = _config_attachment(res, warnings)
         if res.truncated and not res.complete:
+            if not res.messages:
+                meta = metadata_dict(res)
+                raise DataError(
+                    f"{p}: unfinished recording ({res.truncated}) with no complete chunk: no "
+                    "message to read"
+                    + (f" (started {meta['started']}: the recorder stopped before it wrote "
+                       "its first chunk, at most --flush-s after the start)"
+                       if meta.get("started") else ""))
             msg = (f"{p}: unfinished recording ({res.truncated}); recovered {res.messages} "
                    f"messages from {res.chunks} complete chunks")
             warnings.append(msg)

@@ -12,10 +12,25 @@ above :data:`MIN_MOTION`) and the compensation state does not change, at most
   :func:`motcomp.core.saturation.limit_axis`, the compensator's own limiter), behind the tick's
   reference plus the delay of the axis' band limit before it (``input.band_hz``: a pure delay
   in the driver's band), so that both figures are behind the motion-cueing input as the
-  recorded ones are (the playback's own lag, about one input period, is not added);
+  recorded ones are (the playback's own lag, about one input period, is not added).  Both
+  commands reach the model as the platform gets them: held through the deadlines the service
+  missed (nothing is sent at a catch-up step).  The reference they are measured behind is the
+  tick's, taken between two ticks sent across a stall on the line joining them (the motion
+  went on while nothing was sent), and the limiter of ``off`` steps at every step the service
+  computed (ticks and catch-up steps), on that reference, as a service with the axis bypassed
+  would have (stepped on the reference held through the stalls, it fell behind: a slalom
+  recorded while the loop missed 16 % of its deadlines read 494 ms for the rails' 196 ms);
 * *recorded*: the recorded feedback position behind the recorded input (both on the
   recorder's receive times), on windows where the service had compensation on, resp. off
   (from the bypass flags of the recorded outputs).
+
+* *the platform against the model*: the recorded feedback and the config's model, both driven
+  by the recorded commands (frame clocks: the outputs' and the feedback's own ``t``), on windows
+  where the commands move: the lag of each behind the commands, and the share of the platform's
+  motion the model explains.  Their difference is the model's delay error, which the
+  compensator inherits: live, the ``on`` delay is about ``delay_on + platform - model``.  With
+  no feedback of the axis, or no motion in it, this cannot be judged offline, and the report
+  says so (``model_check``).
 
 Saturation is the replayed tick's own verdict (``TickOutput.limited``: the ``sat:<axis>``
 flag), counted in samples and in events (runs of saturated samples).  At catch-up steps nothing
@@ -33,7 +48,7 @@ import numpy as np
 from motcomp.config import ResolvedAxes, ServiceConfig, tick_params
 from motcomp.core.axes import AXES
 from motcomp.core.saturation import at_rest, axis_constants, limit_axis
-from motcomp.errors import ConfigError
+from motcomp.errors import ConfigError, DataError
 from motcomp.jsonsafe import finite
 from motcomp.record.frames import FLAG_BITS
 from motcomp.record.session import Session
@@ -67,10 +82,29 @@ class AxisReport:
     recorded_saturated: int = -1
     max_diff: float = math.nan
     rms_diff: float = math.nan
+    platform_lag_ms: float = math.nan
+    """The recorded platform's lag behind the recorded commands (feedback)."""
+    model_lag_ms: float = math.nan
+    """The config's platform model's lag behind the same commands."""
+    model_fit: float = math.nan
+    """Share of the platform's recorded motion the model explains (1: all of it)."""
+    model_check: str = ""
+    """Why the model could not be checked against the recorded platform ("" if it was)."""
 
     @property
     def reduction_ms(self) -> float:
         return self.delay_off_ms - self.delay_on_ms
+
+    @property
+    def model_error_ms(self) -> float:
+        """The platform's lag minus the model's (positive: the platform is slower)."""
+        return self.platform_lag_ms - self.model_lag_ms
+
+    @property
+    def expected_on_ms(self) -> float:
+        """The ``on`` delay corrected by the model's delay error: what the platform would
+        show live, to first order."""
+        return self.delay_on_ms + self.model_error_ms
 
     @property
     def recorded_reduction_ms(self) -> float:
@@ -93,6 +127,8 @@ class ReplayReport:
         for a, rep in zip(out["axes"], self.axes, strict=True):
             a["reduction_ms"] = rep.reduction_ms
             a["recorded_reduction_ms"] = rep.recorded_reduction_ms
+            a["model_error_ms"] = rep.model_error_ms
+            a["expected_on_ms"] = rep.expected_on_ms
         return finite(out)
 
 
@@ -134,20 +170,67 @@ def _windows(mask: np.ndarray, rate_hz: float) -> list[slice]:
     return out
 
 
+FEEDBACK_GAP_S = 1.0
+"""Feedback further apart than this is two stretches (the windows a long recording's feedback
+is read in: :data:`motcomp.replay.offline.FEEDBACK_WINDOWS`); closer, it is interpolated."""
 PREROLL_S = 5.0
 """Simulated windows start this much earlier, so the platform model's initial transient is
 gone when the window begins (the models' time constants are well below a second)."""
 
 
-def _estimate(r: np.ndarray, y: np.ndarray, rate_hz: float) -> float | None:
+ALIGN_STEPS = 10
+"""Most correlations of one delay estimate (:func:`_estimate`); three or four suffice."""
+ALIGN_TOL = 0.05
+"""A delay estimate stops when a step moves it by less than this part of a sample (0.05 ms at
+1 kHz: the report shows tenths of a millisecond)."""
+TAPER_FRACTION = 0.25
+"""Part of a delay window under the taper's cosine edges (half at each end)."""
+
+
+def _tukey(n: int) -> np.ndarray:
+    """A Tukey window of ``n`` samples, :data:`TAPER_FRACTION` of it in cosine edges."""
+    edge = max(1, round(TAPER_FRACTION / 2 * n))
+    w = np.ones(n)
+    ramp = 0.5 * (1.0 - np.cos(np.pi * (np.arange(edge) + 0.5) / edge))
+    w[:edge] = ramp
+    w[n - edge:] = ramp[::-1]
+    return w
+
+
+def _estimate(r: np.ndarray, y: np.ndarray, rate_hz: float, lead: int = 0) -> float | None:
+    """Delay (s) of ``y`` behind the reference ``r[lead:]`` (equal lengths; ``r[:lead]`` is
+    the reference before the window, and before that it is taken as ``r[0]``: at rest), or
+    None (no motion, a non-finite sample, no peak in -0.5..1 s).
+
+    One correlation of two equal windows pulls a slow motion's estimate towards zero by what
+    each window holds that the other lacks (a 0.31 Hz sine delayed 196 ms read 169 ms over
+    10 s).  So, as the live monitor does (:mod:`motcomp.runtime.monitor`, step 3), both are
+    tapered by the same Tukey window, and the reference is shifted by the delay found --
+    taken from before the window -- and correlated again until a step is below
+    :data:`ALIGN_TOL` of a sample: at that fixed point the windows are aligned and the pull
+    is nil (the same sine: 196.2 ms, its zero-order hold's half sample included)."""
     from motcomp.core.quality import estimate_delay
 
-    if not np.all(np.isfinite(r)) or not np.all(np.isfinite(y)) or np.ptp(r) < MIN_MOTION:
+    win = r[lead:]
+    if not np.all(np.isfinite(r)) or not np.all(np.isfinite(y)) or np.ptp(win) < MIN_MOTION:
         return None
+    w = _tukey(y.size)
+    wsum = float(w.sum())
+    y_w = w * (y - float(w @ y) / wsum)
+    grid = np.arange(r.size, dtype=float)
+    at = grid[lead:]
+    d = 0.0
     try:
-        return estimate_delay(r, y, rate_hz, max_lag_s=1.0)
+        for _ in range(ALIGN_STEPS):
+            rs = win if d == 0.0 else np.interp(at - d * rate_hz, grid, r)
+            step = estimate_delay(w * (rs - float(w @ rs) / wsum), y_w, rate_hz,
+                                  max_lag_s=1.0 - d, min_lag_s=-0.5 - d)
+            d += step
+            if abs(step) * rate_hz < ALIGN_TOL:
+                return d
     except ConfigError:
         return None
+    return None  # no convergence
 
 
 def _median_ms(values: list[float]) -> float:
@@ -171,6 +254,25 @@ def _grid_rows(plan: TickPlan) -> np.ndarray:
     return np.searchsorted(t, g, side="right") - 1
 
 
+def _grid_ns(plan: TickPlan) -> np.ndarray:
+    """The instants of the uniform grid of :func:`_grid_rows` (ns, the plan's clock)."""
+    d = np.diff(plan.now_ns)
+    if np.all(d == plan.period_ns):
+        return np.asarray(plan.now_ns)
+    span = int(plan.now_ns[-1] - plan.now_ns[0])
+    return np.asarray(plan.now_ns[0] + np.arange(0, span + 1, plan.period_ns, dtype=np.int64))
+
+
+def flush_subnormal(x: float) -> float:
+    """``x``, or 0.0 if it is a subnormal number (below the smallest normal double, about
+    2.2e-308: the residue of a decay or of a difference at the bottom of the range, which is
+    0 for any purpose of a report)."""
+    return 0.0 if abs(x) < _TINY else x
+
+
+_TINY = float(np.finfo(float).tiny)
+
+
 def analyse(session: Session, plan: TickPlan, res: EngineResult, cfg: ServiceConfig,
             axes: ResolvedAxes, label: str, recorded_config: bool = True) -> ReplayReport:
     """The report of one replay (see the module docstring)."""
@@ -182,6 +284,8 @@ def analyse(session: Session, plan: TickPlan, res: EngineResult, cfg: ServiceCon
     sat_e = res.limited[emit]
     held = np.maximum.accumulate(np.where(emit, np.arange(plan.rows), 0))
     gi = held[_grid_rows(plan)]  # grid point -> the row whose output is in force
+    grid_ns = _grid_ns(plan)
+    sent = np.flatnonzero(emit)
     lims = axis_constants(axes.limits, plan.period_ns / 1e9)
     bands = tick_params(cfg, axes).shaper.band
     rec_rows = np.flatnonzero(plan.output >= 0)
@@ -204,7 +308,8 @@ def analyse(session: Session, plan: TickPlan, res: EngineResult, cfg: ServiceCon
         rep = AxisReport(name, compensated=bool((~res.bypass[:, a]).any()))
         rep.saturated_samples = int(np.count_nonzero(sat_e[:, a]))
         rep.saturation_events = _events(sat_e[:, a])
-        ref = res.ref[gi, a]
+        ref_sent = res.ref[sent, a]
+        ref = np.interp(grid_ns, plan.now_ns[sent], ref_sent) if sent.size else res.ref[gi, a]
         mask = ~res.bypass[gi, a] if rep.compensated else np.ones(gi.size, bool)
         on_d, off_d = [], []
         for w in _windows(mask, rate):
@@ -214,11 +319,16 @@ def analyse(session: Session, plan: TickPlan, res: EngineResult, cfg: ServiceCon
             rows = gi[lo:w.stop]
             cut = w.start - lo
             cmd_on = res.u[rows, a]
+            # the limiter at every step computed from the first row in force to the last
+            r0, r1 = int(rows[0]), int(rows[-1]) + 1
+            ref_rows = np.interp(plan.now_ns[r0:r1], plan.now_ns[sent], ref_sent)
             lim_lo, lim_hi = float(axes.limits.p_min[a]), float(axes.limits.p_max[a])
-            cmd_off = limiter_alone(res.ref[rows, a], lims[a],
-                                    min(max(float(res.ref[rows[0], a]), lim_lo), lim_hi))
-            d_on = _estimate(ref[w], simulate_axis(axes.plants[a], cmd_on, rate)[cut:], rate)
-            d_off = _estimate(ref[w], simulate_axis(axes.plants[a], cmd_off, rate)[cut:], rate)
+            off_rows = limiter_alone(ref_rows, lims[a], min(max(float(ref_rows[0]), lim_lo),
+                                                            lim_hi))
+            cmd_off = off_rows[rows - r0]  # held through the missed deadlines, as on
+            r = ref[lo:w.stop]
+            d_on = _estimate(r, simulate_axis(axes.plants[a], cmd_on, rate)[cut:], rate, cut)
+            d_off = _estimate(r, simulate_axis(axes.plants[a], cmd_off, rate)[cut:], rate, cut)
             if d_on is not None and d_off is not None:
                 band = bands[a] if a < len(bands) else None
                 lag = 0.0 if band is None else band.delay_s
@@ -234,13 +344,84 @@ def analyse(session: Session, plan: TickPlan, res: EngineResult, cfg: ServiceCon
             d = mine - out.pos[:, a][out_idx]
             d = d[np.isfinite(d)]
             if d.size:
-                rep.max_diff = float(np.max(np.abs(d)))
-                rep.rms_diff = float(np.sqrt(np.mean(d * d)))
+                rep.max_diff = flush_subnormal(float(np.max(np.abs(d))))
+                rep.rms_diff = flush_subnormal(float(np.sqrt(np.mean(d * d))))
         reports.append(rep)
     _recorded_delays(session, reports, rate)
+    _model_against_platform(session, reports, axes, rate)
     n_cmp = 0 if out_idx is None else int(out_idx.size)
     return ReplayReport(label, reports, int(np.count_nonzero(emit)), plan.rows,
                         float(plan.t_s[-1]) if plan.rows else 0.0, n_cmp, recorded_config)
+
+
+def _model_against_platform(session: Session, reports: list[AxisReport], axes: ResolvedAxes,
+                            rate: float) -> None:
+    """The config's platform models against the recorded platform, both driven by the recorded
+    commands (the module docstring); fills ``platform_lag_ms``, ``model_lag_ms``,
+    ``model_fit``, or ``model_check`` with the reason it cannot be judged."""
+    from motcomp.sim.platform import simulate_axis
+
+    out, fb = session.outputs, session.feedback
+    for rep in reports:
+        if out is None or not len(out):
+            rep.model_check = "no outputs recorded"
+        elif fb is None or not len(fb):
+            rep.model_check = "no platform feedback recorded"
+        if rep.model_check:
+            continue
+        assert out is not None and fb is not None
+        a = AXES.index(rep.axis)
+        ok = fb.valid & np.isfinite(fb.pos[:, a]) & np.isfinite(fb.t)
+        t_fb, y_fb = fb.t[ok], fb.pos[ok, a]
+        if t_fb.size < 10 or np.any(np.diff(t_fb) <= 0):
+            rep.model_check = ("no feedback of this axis in the recording" if t_fb.size < 10
+                               else "the feedback's t is not increasing (several platforms?)")
+            continue
+        try:
+            _, known_all = session.command_in_force(rep.axis, t_fb)
+        except DataError as exc:
+            rep.model_check = str(exc)
+            continue
+        # stretches of feedback without a gap (a busy platform skips cycles: up to a few
+        # hundred ms); windows in them where the commands are known
+        brk = np.flatnonzero(np.diff(t_fb) > FEEDBACK_GAP_S) + 1
+        spans = []
+        for s0, s1 in zip(np.concatenate([[0], brk]).tolist(),
+                          np.concatenate([brk, [t_fb.size]]).tolist(), strict=True):
+            g = _uniform(t_fb[s0], t_fb[s1 - 1], rate)
+            if g.size < MIN_WINDOW_S * rate or not known_all[s0:s1].any():
+                continue
+            cmd, _ = session.command_in_force(rep.axis, g)
+            unknown = np.flatnonzero(~np.isfinite(cmd))
+            for w in _windows(np.isfinite(cmd), rate):  # each from the known run it is in
+                k = int(np.searchsorted(unknown, w.start))
+                spans.append((g, cmd, s0, s1, w, int(unknown[k - 1]) + 1 if k else 0))
+        if len(spans) > MAX_WINDOWS:
+            spans = [spans[i] for i in np.linspace(0, len(spans) - 1, MAX_WINDOWS).round()
+                     .astype(int)]
+        plat, model, fits = [], [], []
+        for g, cmd, s0, s1, w, first in spans:
+            lo = max(w.start - int(PREROLL_S * rate), first)
+            c = cmd[lo:w.stop]
+            if np.ptp(cmd[w]) < MIN_MOTION:
+                continue
+            y_p = np.interp(g[w], t_fb[s0:s1], y_fb[s0:s1])
+            y_m = simulate_axis(axes.plants[a], c, rate)[w.start - lo:]
+            d_p = _estimate(c, y_p, rate, w.start - lo)
+            d_m = _estimate(c, y_m, rate, w.start - lo)
+            if d_p is None or d_m is None:
+                continue
+            plat.append(d_p)
+            model.append(d_m)
+            v = y_p - y_p.mean()
+            e = v - (y_m - y_m.mean())
+            fits.append(1.0 - float(np.dot(e, e)) / float(np.dot(v, v)))
+        if not plat:
+            rep.model_check = ("the recorded commands do not move this axis where the platform's "
+                               "feedback was recorded")
+            continue
+        rep.platform_lag_ms, rep.model_lag_ms = _median_ms(plat), _median_ms(model)
+        rep.model_fit = float(np.median(fits))
 
 
 def _recorded_delays(session: Session, reports: list[AxisReport], rate: float) -> None:
@@ -275,15 +456,23 @@ def _recorded_delays(session: Session, reports: list[AxisReport], rate: float) -
                            (bypassed & usable, "recorded_off_ms")):
             vals = []
             for w in _windows(mask, rate):
-                g = np.arange(t_ref[w.start], t_ref[w.stop - 1], 1.0 / rate)
+                g = _uniform(t_ref[w.start], t_ref[w.stop - 1], rate)
                 if g.size < MIN_WINDOW_S * rate / 2:
                     continue
-                r = _interp_valid(g, t_in, inp.pos[:, a], inp.decoded)
+                lead = int(min(PREROLL_S, g[0] - t_in[0]) * rate)  # the input before it
+                r = _interp_valid(np.concatenate([g[0] - np.arange(lead, 0, -1) / rate, g]),
+                                  t_in, inp.pos[:, a], inp.decoded)
                 y = _interp_valid(g, t_fb, fb.pos[:, a], fb.valid)
-                d = None if r is None or y is None else _estimate(r, y, rate)
+                d = None if r is None or y is None else _estimate(r, y, rate, lead)
                 if d is not None:
                     vals.append(d)
             setattr(rep, attr, _median_ms(vals))
+
+
+def _uniform(t0: float, t1: float, rate: float) -> np.ndarray:
+    """Instants ``t0 + k / rate`` up to ``t1`` (s; each rounded once: ``np.arange`` from an
+    epoch-seconds start accumulates its step's rounding, 2.9 ms over 40 s at 1 kHz)."""
+    return np.asarray(t0 + np.arange(int(np.floor((t1 - t0) * rate)) + 1) / rate)
 
 
 def _interp_valid(g: np.ndarray, t: np.ndarray, v: np.ndarray, ok: np.ndarray
@@ -299,12 +488,22 @@ def _interp_valid(g: np.ndarray, t: np.ndarray, v: np.ndarray, ok: np.ndarray
     return np.interp(g, tt[sel], vv[sel])
 
 
+def number(x: float, fmt: str) -> str:
+    """``x`` formatted for a report: ``-`` if it is not finite, ``0`` if it is zero or a
+    subnormal (:func:`flush_subnormal`), else ``format(x, fmt)``."""
+    if not math.isfinite(x):
+        return "-"
+    x = flush_subnormal(x)
+    return "0" if x == 0 else format(x, fmt)
+
+
 def report_text(reps: list[ReplayReport], extra_lines: list[str]) -> str:
-    """The table printed by ``motcomp replay``."""
+    """The tables printed by ``motcomp replay``: per config, the replay's figures, then its
+    platform model against the recorded platform."""
     lines = list(extra_lines)
 
-    def f(x: float, nd: int = 1) -> str:
-        return f"{x:.{nd}f}" if math.isfinite(x) else "-"
+    def f(x: float, fmt: str = ".1f") -> str:
+        return number(x, fmt)
 
     for rep in reps:
         lines += ["", f"{rep.label}: {rep.ticks} ticks ({rep.duration_s:.1f} s)", "",
@@ -317,5 +516,36 @@ def report_text(reps: list[ReplayReport], extra_lines: list[str]) -> str:
                 f"{a.axis:<10} {f(a.delay_off_ms):>8}ms {f(a.delay_on_ms):>6}ms "
                 f"{f(a.reduction_ms):>6}ms | {f(a.recorded_off_ms):>10}ms "
                 f"{f(a.recorded_on_ms):>6}ms | {a.saturated_samples:>9} {a.saturation_events:>6} | "
-                f"{(f'{a.max_diff:.2e}' if math.isfinite(a.max_diff) else '-'):>16}{note}")
+                f"{f(a.max_diff, '.2e'):>16}{note}")
+        lines += model_lines(rep)
     return "\n".join(lines)
+
+
+def model_lines(rep: ReplayReport) -> list[str]:
+    """The model check of one replay (:func:`_model_against_platform`) in words and figures."""
+    judged = [a for a in rep.axes if not a.model_check]
+    lines = ["", "the config's platform model against the recorded platform (both driven by the "
+             "recorded commands):"]
+    if judged:
+        lines += [f"{'axis':<10} {'platform lag':>12} {'model lag':>10} {'error':>8} | "
+                  f"{'fit %':>7} | {'on':>8} {'live, about':>12}", "-" * 78]
+        for a in judged:
+            lines.append(
+                f"{a.axis:<10} {number(a.platform_lag_ms, '.1f'):>10}ms "
+                f"{number(a.model_lag_ms, '.1f'):>8}ms {number(a.model_error_ms, '+.1f'):>6}ms | "
+                f"{number(100 * a.model_fit, '.2f'):>7} | {number(a.delay_on_ms, '.1f'):>6}ms "
+                f"{number(a.expected_on_ms, '.1f'):>10}ms")
+        lines += ["(error: the platform's lag minus the model's, which the compensator "
+                  "inherits: live, the delay is", " about 'on' + error; fit: the share of the "
+                  "platform's motion the model explains)"]
+    why: dict[str, list[str]] = {}  # axes with an 'on' delay the recording cannot check
+    for a in rep.axes:
+        if a.model_check and math.isfinite(a.delay_on_ms):
+            why.setdefault(a.model_check, []).append(a.axis)
+    for reason, names in why.items():
+        lines.append(f"{', '.join(names)}: a model error cannot be judged offline ({reason}): "
+                     "'on' is what the config's model says; a platform that differs from the "
+                     "model gets another delay")
+    if len(lines) == 2:
+        return []
+    return lines

@@ -293,12 +293,11 @@ def _from_outputs(session: Session, cfg: ServiceConfig, params: TickParams, run:
     missing_frames = int((~found).sum())
     if missing_frames:
         notes.append(f"{missing_frames} input frames the service used are not in the "
-                     "recording: their ticks see no new input")
+                     "recording (the recorder lost them): their ticks see no new input here, so "
+                     "the replay departs from the recorded outputs after them; " + _RECORD_BETTER)
     holes = _seq_holes(inp.seq, want)
     if holes:
-        notes.append(f"{holes} sequence numbers between the first and the last frame the "
-                     "service used are not in the recording (lost to the recorder, or never "
-                     "sent): the replay reads the frames it has")
+        notes.append(_holes_note(holes, _superseded(session, log_ns)))
     # frames consumed in ticks the recorder lost: by arrival time (mapped to the tick clock),
     # newer than the frame in use before the gap and older than the one in use after it
     lost = np.flatnonzero((row_src == -2) | (row_src == -3))
@@ -340,6 +339,41 @@ def _from_outputs(session: Session, cfg: ServiceConfig, params: TickParams, run:
     by_axes = np.array([a in rec_driven[-1] for a in AXES]) if rec_driven else None
     return TickPlan(now_ns, frame, output, emit, bypass0, events, park, warm, method, period,
                     missing_frames, notes, holes, by_axes)
+
+
+_RECORD_BETTER = ("to record every frame, run `motcomp record` where it gets its CPU (not "
+                  "beside a busy service on two cores) and check its summary's 'dropped'")
+
+
+def _superseded(session: Session, log_ns: np.ndarray) -> int | None:
+    """Input frames the service never received over the replayed run (the rise of its
+    status' ``frames.superseded``: ``seq`` steps between the frames it accepted), or None
+    without two status frames in the run."""
+    rec = log_ns[log_ns >= 0]  # the run's recorded outputs (receive times)
+    counts = [int(st["frames"]["superseded"]) for ns, st in session.status
+              if rec.size and rec[0] <= ns <= rec[-1] + 2 * 10**9
+              and isinstance(st.get("frames"), dict)
+              and isinstance(st["frames"].get("superseded"), int)]
+    return counts[-1] - counts[0] if len(counts) > 1 else None
+
+
+def _holes_note(holes: int, superseded: int | None) -> str:
+    """What ``holes`` sequence numbers missing from the recorded input mean, and what to do."""
+    head = (f"{holes} sequence numbers between the first and the last input frame the service "
+            "used are not in the recording")
+    if superseded is not None and superseded >= holes:
+        return (f"{head}; the service did not receive them either (its status counted "
+                f"{superseded} frames superseded: the sender skipped those numbers, or they "
+                "were lost before both): nothing it used is missing, the replay reads what it "
+                "read")
+    if superseded is not None:
+        return (f"{head}, and the service received {holes - superseded} of them (its status "
+                f"counted {superseded} superseded): the recorder lost those, so the replay "
+                "reads a shorter input history near them and may differ from the recorded "
+                "outputs there (docs/REPLAY.md); " + _RECORD_BETTER)
+    return (f"{head}: either the sender skipped them (harmless) or the recorder lost frames "
+            "the service used (the replay then differs from the recorded outputs near them); "
+            "the recording has no service status to tell which: record the status key too")
 
 
 def _seq_holes(seq: np.ndarray, used: np.ndarray) -> int:

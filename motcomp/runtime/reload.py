@@ -11,8 +11,9 @@
    one ``Compensator.reconfigure`` (bumpless: the integrator is re-seeded so that the raw output
    is continuous; the limiter keeps the output within the limits through any change) and one
    assignment of the tick's parameters.
-3. An invalid config changes nothing; the reason is returned (``motcomp reload`` exits non-zero
-   with it).  Every attempt is logged with the config's hash and kept in the status; systemd is
+3. An invalid config changes nothing; every reason is returned, what is wrong with the file
+   itself first, then the keys that would need a restart (``motcomp reload`` exits 2 with
+   them).  Every attempt is logged with the config's hash and kept in the status; systemd is
    told ``RELOADING=1`` ... ``READY=1``.
 """
 
@@ -108,13 +109,28 @@ def prepare_config(old: ServiceConfig, old_axes: ResolvedAxes, path: Path | None
                           "without a config file, so it has no config directory to read from")
     path = confinement.check(path)
     data = read_toml(path)
-    try:  # a key that needs a restart is the first thing to say (before what follows from it)
-        shallow = ServiceConfig.model_validate(data)
+    where = str(path)
+    errors: list[str] = []
+    new: ServiceConfig | None = None
+    try:  # what is wrong with the file itself comes first: a restart would not cure it
+        new = parse_config(data, where)
+    except ConfigError as exc:
+        errors.append(str(exc))
+    try:
+        shallow = new if new is not None else ServiceConfig.model_validate(data)
     except ValidationError:
-        pass  # parse_config says what is wrong
-    else:
-        _refuse_restart_keys(old, shallow, str(path))
-    return _prepare(old, old_axes, parse_config(data, str(path)), str(path))
+        shallow = None  # nothing to compare: parse_config said what is wrong
+    changed = [] if shallow is None else restart_changes(old, shallow)
+    if changed:
+        errors.append(f"{where}: {', '.join(changed)} cannot change live (restart the "
+                      "service)")
+    if len(errors) > 1:
+        raise ConfigError(f"{len(errors)} problems: " + "; ".join(
+            f"({k}) {e}" for k, e in enumerate(errors, 1)))
+    if errors:
+        raise ConfigError(errors[0])
+    assert new is not None
+    return _prepare(old, old_axes, new, where)
 
 
 def prepare_profile(old: ServiceConfig, old_axes: ResolvedAxes, name: str | None) -> Prepared:

@@ -437,7 +437,8 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
             seq_start: int = 0, repeat: int = 1, stop: threading.Event | None = None,
             spin_us: float = 100.0, lead_in_s: float = 0.0, wait_peer_s: float = 0.0,
             progress: Callable[[float], None] | None = None,
-            timing: SenderTiming | None = None, with_t: bool = True) -> PublishStats:
+            timing: SenderTiming | None = None, with_t: bool = True,
+            wait_peer_asked_s: float | None = None) -> PublishStats:
     """Publish the trajectory (``repeat`` times) on absolute deadlines.
 
     The motion stays on wall time, as a vehicle model's does: samples whose send instants pass
@@ -446,7 +447,9 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
     consecutive.  ``timing`` makes the sender misbehave on purpose: jitter, and stalls whose
     frames go out in a burst (module docstring); ``with_t`` False leaves ``t`` out of the
     frames.  With ``wait_peer_s`` > 0 nothing is sent until a subscriber of ``key`` is
-    reachable; ``progress`` is called with the seconds of motion sent so far, about ten times
+    reachable, waiting at most ``wait_peer_s`` from this call (opening the session included;
+    ``wait_peer_asked_s``, default the same, is the wait the caller was asked for, which the
+    error names); ``progress`` is called with the seconds of motion sent so far, about ten times
     a second.
 
     Raises
@@ -487,9 +490,11 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
                             timing.describe(), seed, stalls, held)
 
     with open_session(endpoints) as session:
-        if wait_peer_s > 0 and not wait_for_subscriber(session, key, wait_peer_s, stop):
+        left = max(0.1, wait_peer_s - (time.monotonic() - t_start))
+        if wait_peer_s > 0 and not wait_for_subscriber(session, key, left, stop):
             if not stop.is_set():
-                raise NoPeerError(f"no subscriber of {key} reachable within {wait_peer_s:g} s "
+                asked = wait_peer_s if wait_peer_asked_s is None else wait_peer_asked_s
+                raise NoPeerError(f"no subscriber of {key} reachable within {asked:g} s "
                                   f"({endpoints.describe()})")
             return stats()
         sink = ZenohSink(session, key)
