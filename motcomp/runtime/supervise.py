@@ -187,8 +187,8 @@ class DriftJudge:
         st.last_t = t
         if not fig.get("informative"):
             reason = str(fig.get("reason") or "")
-            if reason.startswith("too little motion"):  # nothing to see: not blind
-                return None
+            if reason.startswith(("too little motion", "the command is constant")):
+                return None  # the axis did not move: nothing to see, not blind
             st.blind_s += since
             st.blind[_kind(reason)] += 1
             st.last_reason[_kind(reason)] = reason
