@@ -7,8 +7,8 @@ Each of the 8 axes is a pure delay TD followed by a unit-gain first-order lag TP
 y' = (u(t - TD) - y) / TP1, with u the held setpoint, simulated at --rate Hz (default 1000) and
 discretised exactly for the zero-order-hold input (a fractional delay splits the cycle in two).
 Defaults: TD = 20 ms and TP1 = 50 ms, rails_y TP1 = 150 ms; --truth AXIS=TD_MS,TP1_MS overrides.
---drift AXIS=TD_MS,TP1_MS@T changes an axis' truth T seconds after the start (said on stderr):
-a platform whose lag drifts, to try a supervisor on.
+--drift AXIS=TD_MS,TP1_MS@T changes an axis' truth T seconds after the start, or @usr1 when the
+process receives SIGUSR1 (said on stderr): a platform whose lag drifts, to try a supervisor on.
 
 - `platform/setpoint` frames are applied at the first control cycle after they arrive and held
   (zero-order hold); a frame that breaks the contract is counted as bad and ignored.
@@ -64,7 +64,8 @@ def parse_truth(specs: list[str]) -> dict[str, tuple[float, float]]:
 
 
 def parse_drift(spec: str) -> tuple[str, float, float, float]:
-    """Parse --drift AXIS=TD_MS,TP1_MS@T: (axis, TD ms, TP1 ms, T s)."""
+    """Parse --drift AXIS=TD_MS,TP1_MS@T: (axis, TD ms, TP1 ms, T s); T = usr1: infinity (the
+    drift waits for SIGUSR1)."""
     truth, sep, at = spec.rpartition("@")
     if not sep:
         raise ValueError(f"bad --drift {spec!r} (AXIS=TD_MS,TP1_MS@SECONDS)")
@@ -73,10 +74,12 @@ def parse_drift(spec: str) -> tuple[str, float, float, float]:
         td, tp1 = parse_truth([truth])[axis]
     except ValueError as exc:
         raise ValueError(str(exc).replace("--truth", "--drift")) from None
+    if at == "usr1":
+        return axis, td, tp1, math.inf
     try:
         t = float(at)
     except ValueError:
-        raise ValueError(f"bad --drift {spec!r}: SECONDS is not a number") from None
+        raise ValueError(f"bad --drift {spec!r}: SECONDS is not a number nor usr1") from None
     if not (math.isfinite(t) and t >= 0):
         raise ValueError(f"bad --drift {spec!r}: SECONDS finite and >= 0")
     return axis, td, tp1, t
@@ -173,6 +176,7 @@ class Platform:
         drifts = drifts or []
         self.plant = Plant(truth_ms, self.rate, max((d[1] for d in drifts), default=0.0))
         self.drifts = sorted(drifts, key=lambda d: d[3])  # (axis, TD ms, TP1 ms, at s)
+        self.usr1 = threading.Event()  # the drifts @usr1 are due
         self.feedback = session.declare_publisher(args.feedback_key, express=True)
         self.status = session.declare_publisher(args.status_key)
         self.inbox: collections.deque[tuple[float, bytes]] = collections.deque()
@@ -264,7 +268,8 @@ class Platform:
         next_status = start + 1.0
         k = 0
         while not self.stop.is_set() and (duration is None or deadline - start < duration):
-            while self.drifts and deadline - start >= self.drifts[0][3]:
+            while self.drifts and (deadline - start >= self.drifts[0][3] or (
+                    self.usr1.is_set() and math.isinf(self.drifts[0][3]))):
                 axis, td, tp1, _ = self.drifts.pop(0)
                 self.plant.set_truth(AXES.index(axis), td, tp1)
                 print(f"wire_platform: {axis} truth now TD = {td:g} ms, TP1 = {tp1:g} ms "
@@ -297,7 +302,8 @@ def main() -> int:
     ap.add_argument("--truth", action="append", default=[], metavar="AXIS=TD_MS,TP1_MS",
                     help="an axis' delay and time constant, ms (default 20,50; rails_y 20,150)")
     ap.add_argument("--drift", action="append", default=[], metavar="AXIS=TD_MS,TP1_MS@T",
-                    help="change an axis' delay and time constant T seconds after the start")
+                    help="change an axis' delay and time constant T seconds after the start "
+                         "(T = usr1: when the process receives SIGUSR1)")
     ap.add_argument("--duration", type=float, help="stop after this many seconds")
     ap.add_argument("--feedback-key", default="platform/feedback")
     ap.add_argument("--setpoint-key", default="platform/setpoint")
@@ -319,6 +325,8 @@ def main() -> int:
 
     signal.signal(signal.SIGTERM, on_signal)  # before zenoh opens: a stop at any time exits 0
     signal.signal(signal.SIGINT, on_signal)
+    usr1 = threading.Event()
+    signal.signal(signal.SIGUSR1, lambda *_: usr1.set())
 
     conf = zenoh.Config.from_file(args.zenoh_config) if args.zenoh_config else zenoh.Config()
     conf.insert_json5("mode", '"peer"')
@@ -330,6 +338,7 @@ def main() -> int:
     sys.setswitchinterval(2e-4)  # let zenoh's callbacks in promptly while the loop runs
     with zenoh.open(conf) as session:
         platform = Platform(session, args, truth, stop, drifts)
+        platform.usr1 = usr1
         try:
             platform.run(args.duration)
         finally:

@@ -4,9 +4,11 @@ window a supervising process keeps of the service's outputs and feedback: :class
 The command-to-feedback path is the platform itself, open loop, whatever the compensator does:
 its P1D model (``K e^{-Td s} / (1 + Tp1 s)``) is identified from the service's outputs and the
 platform's measured acceleration over the last ``window_s``, with the pairing rule of
-``motcomp identify`` on a recording (the output in force at each feedback instant, on the
-frames' own clocks: :func:`motcomp.record.session.output_in_force`) and its checks and
-resampling (:func:`motcomp.ident.data.check_and_resample`).
+``motcomp identify`` on a recording (the output in force at each instant, on the frames' own
+clocks: :func:`motcomp.record.session.output_in_force`), on a uniform grid whose stalls are cut
+out: a gap of the feedback or of the outputs during which the command moved (the platform held
+a stale setpoint the pairing does not know of) costs its samples and ``settle_s`` after, not
+the window.
 
 The fit (why and how: docs/SUPERVISION.md) is an output-error fit: the command's second
 difference and the measured acceleration, low-passed by one causal filter and decimated, the
@@ -20,8 +22,10 @@ errors come from the Jacobian and the residual's long-run covariance.
 
 The mismatch is what the difference between the estimate ``P`` and the compensator's model ``M``
 does to the delivered response: the compensator makes ``M`` follow its design, so the platform
-delivers ``P / M`` times it.  At the motion's centre frequency in the configured band:
-``residual_delay_ms`` = phase delay of ``P / M``, ``gain_error`` = ``|P / M| - 1``.
+delivers ``P / M`` times it.  ``residual_delay_ms`` = phase delay of ``P / M``, ``gain_error`` =
+``|P / M| - 1``, at the driven frequency (in the configured band) where the data determine the
+residual delay best -- a delay is a phase over a frequency, and the driving's low end (a
+slalom's 0.3 Hz) tells it least.
 
 Nothing here reads a clock or raises on data: a window that cannot tell says why
 (``informative`` false, ``reason``).

@@ -61,6 +61,14 @@ CPU_SHARE_MAX = 0.10
 sent no sooner than the last estimate's CPU time over this share after the one before."""
 
 
+def _p1d_spec(model: ProcessModel) -> str | None:
+    """The spec of ``model``'s P1D reduction (what an OE model is judged through), if any."""
+    try:
+        return model.to_p1d().spec()
+    except Exception:  # a model without one is judged in its own form
+        return None
+
+
 def settings_of(cfg: SupervisionConfig) -> EstimateSettings:
     """The estimator's settings from the config's ``[supervision]``."""
     return EstimateSettings(window_s=cfg.window_s, band_hz=tuple(cfg.band_hz),  # type: ignore[arg-type]
@@ -373,8 +381,17 @@ class Supervisor:
     def set_axes(self, axes: ResolvedAxes) -> None:
         """The config's models in force (at start and after each accepted reload): each axis'
         ``model`` as written, a P2UZD as a P2UZD (:func:`~motcomp.runtime.estimate.estimate_axis`
-        says how each kind is judged)."""
+        says how each kind is judged).  An axis whose model a reload replaced is judged anew
+        against it (its alarm, runs and blindness start over): the estimate of the platform is
+        the compensator's business no more than before, the model it is judged against is."""
+        old = getattr(self, "models", {})
         self.models = {a: axes.plants[i] for i, a in enumerate(AXES) if axes.driven[i]}
+        for axis, model in self.models.items():
+            before = old.get(axis)
+            if before is not None and before.spec() != model.spec() and \
+                    self.judge.axes.pop(axis, None) is not None:
+                log.info("%s: the model is now %s (was %s): supervision judges against it "
+                         "from the next estimate", axis, model.spec(), before.spec())
 
     def reconfigure(self, cfg: SupervisionConfig, axes: ResolvedAxes) -> None:
         """A reload's ``[supervision]`` and models (``window_s`` is a restart key)."""
@@ -481,6 +498,9 @@ class Supervisor:
         limited, missed = self._window_conditions(now)
         out = []
         for axis, fig in results.items():
+            model = self.models.get(axis)
+            if model is None or fig.get("model") not in (model.spec(), _p1d_spec(model)):
+                continue  # estimated against a model a reload has replaced meanwhile
             fig["missed_share"] = missed  # the loop's stalls are cut out of the estimate
             if fig.get("informative"):
                 share = limited[AXES.index(axis)] if limited else 0.0
