@@ -22,7 +22,7 @@ on loopback, the example config with its supervision defaults unless said):
     ``--axis`` (``--truth TD_MS,TP1_MS``, default 21.5,190: about 8 ms late in the band against
     the example config's model, or ``--model SPEC`` in force), ``--signal driving``, a drift of
     ``--drift-ms`` at ``--drift-at`` (0: none): per window, informative or why, the residual
-    delay against the truth plus the stack's share (the platform's mean setpoint age); the
+    delay against the truth plus the stack's share (docs/SUPERVISION.md); the
     alarm after the driving starts and after the drift; alarms; the estimator's CPU share.
 
 Writes ``--out`` (JSON, one row per status read) and, for ``drift``, a figure of the estimate
@@ -387,6 +387,7 @@ def scenario_outside(args: argparse.Namespace, work: Path) -> dict[str, Any]:
                              "residual_delay_se_ms": fig.get("residual_delay_se_ms"),
                              "window_to_t": fig.get("to_t"), "cut_s": fig.get("cut_s"),
                              "age_ms": plat_st.get("setpoint_age_mean_ms"),
+                             "phase_ms": fig.get("pairing_phase_ms"),
                              "age_median_ms": plat_st.get("setpoint_age_ms"),
                              "estimates": mm.get("estimates"), "cpu_s": mm.get("cpu_s"),
                              "cpu_share": mm.get("cpu_share"),
@@ -409,7 +410,7 @@ def scenario_outside(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     wins = _windows(rows)
     errors = []
     for w in wins:
-        if not w["informative"] or w["age_ms"] is None:
+        if not w["informative"] or w["age_ms"] is None or w["phase_ms"] is None:
             continue
         t_win = w["window_to_t"] - t_src
         if t_drift is not None and t_drift < t_win < t_drift + 15.0:
@@ -419,7 +420,19 @@ def scenario_outside(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         against = parse_model(w["model"])
         d = (float(truth.phase_delay([w["at_hz"]])[0]) - float(against.phase_delay(
             [w["at_hz"]])[0])) * 1e3
-        errors.append(w["residual_delay_ms"] - (d + w["age_ms"]))
+        # the stack's share (docs/SUPERVISION.md): the mean setpoint age less the pairing's
+        # phase, plus the one cycle the platform's acceleration is centred before its t
+        errors.append(w["residual_delay_ms"] - (d + w["age_ms"] - w["phase_ms"] + 1.0))
+    # the drift seen: the first window wholly after it whose residual exceeds the median of
+    # those before it by half the drift
+    seen_after = None
+    if t_drift is not None:
+        pre = [w["residual_delay_ms"] for w in wins if w["informative"]
+               and w["window_to_t"] - t_src < t_drift]
+        ref = float(np.median(pre)) if pre else 0.0
+        seen_after = next((w["window_to_t"] - t_src - t_drift for w in wins
+                           if w["informative"] and w["window_to_t"] - t_src > t_drift
+                           and w["residual_delay_ms"] > ref + 0.5 * args.drift_ms), None)
     reasons: dict[str, int] = {}
     for w in wins:
         if not w["informative"]:
@@ -439,6 +452,7 @@ def scenario_outside(args: argparse.Namespace, work: Path) -> dict[str, Any]:
                                   if wins else None),
             "not_informative": reasons, "error_ms": _summary(errors),
             "alarms_after_driving_start_s": alarms,
+            "drift_seen_after_s": seen_after,
             "first_alarm_after_drift_s": next((a - t_drift for a in alarms
                                                if t_drift is not None and a > t_drift), None),
             "all_alarms": last.get("all_alarms"), "cpu_share": last.get("cpu_share"),

@@ -137,7 +137,7 @@ class _AxisState:
 # what each kind of reason a window is not judged for asks of the host or of the driving
 _NEEDS = (
     ("stalls", "a host that keeps the service's and the platform's deadlines: the stalls cut "
-               "out more than half of each window (docs/DEPLOYMENT.md: a core of its own, "
+               "out most of each window (docs/DEPLOYMENT.md: a core of its own, "
                "real-time priority)"),
     ("uncertain", "driving that moves the axis in the band for longer: the delay was not "
                   "determined to the bound (more slaloms and lane changes, or a longer "
