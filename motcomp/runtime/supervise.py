@@ -14,6 +14,7 @@ Layout of the block, the rules and what an alarm means: docs/SUPERVISION.md.
 from __future__ import annotations
 
 import contextlib
+import importlib
 import logging
 import math
 import os
@@ -105,6 +106,8 @@ def serve() -> None:
     except (AttributeError, OSError):
         with contextlib.suppress(OSError):  # not permitted either: the service's priority
             os.nice(WORKER_NICE)
+    for name in ("scipy.optimize", "scipy.signal"):  # once, before the first estimate's CPU
+        importlib.import_module(name)  # time is counted against its budget
     child.serve(_estimate)
 
 
