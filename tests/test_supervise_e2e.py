@@ -94,7 +94,7 @@ class Watch:
                           "to_t": f.get("to_t"), "at_hz": f.get("at_hz"),
                           "residual_ms": f.get("residual_delay_ms"),
                           "se_ms": f.get("residual_delay_se_ms"), "reason": f.get("reason"),
-                          "age_ms": plat.get("setpoint_age_mean_ms"),
+                          "age_ms": plat.get("setpoint_age_ms"),
                           "phase_ms": f.get("pairing_phase_ms"),
                           "delay_ms": q["apparent_delay_ms"] if q["delay_valid"] else None,
                           "missed": st["missed_ticks"], "ticks": st["ticks"]})
@@ -111,9 +111,9 @@ class Watch:
     def errors_ms(self, phase: str, td_ms: float, since: float = 0.0) -> list[float]:
         """Residual delay of the informative windows ending after ``since`` (epoch s) minus the
         truth's against ``model`` at the window's frequency plus the stack's share
-        (docs/SUPERVISION.md): the platform's mean setpoint age (a fit averages the ages a
-        stall stretches too) less the pairing's phase, plus the one cycle the platform's
-        acceleration is centred before its ``t`` (docs/WIRE.md)."""
+        (docs/SUPERVISION.md): the platform's setpoint age (the median: the stalls that
+        stretch the others are cut out of the estimate) less the pairing's phase, plus the one
+        cycle the platform's acceleration is centred before its ``t`` (docs/WIRE.md)."""
         out = []
         for r in self.windows(phase):
             if (r["informative"] and r["to_t"] >= since and r["age_ms"] is not None

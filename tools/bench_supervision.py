@@ -410,7 +410,7 @@ def scenario_outside(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     wins = _windows(rows)
     errors = []
     for w in wins:
-        if not w["informative"] or w["age_ms"] is None or w["phase_ms"] is None:
+        if not w["informative"] or w["age_median_ms"] is None or w["phase_ms"] is None:
             continue
         t_win = w["window_to_t"] - t_src
         if t_drift is not None and t_drift < t_win < t_drift + 15.0:
@@ -420,9 +420,9 @@ def scenario_outside(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         against = parse_model(w["model"])
         d = (float(truth.phase_delay([w["at_hz"]])[0]) - float(against.phase_delay(
             [w["at_hz"]])[0])) * 1e3
-        # the stack's share (docs/SUPERVISION.md): the mean setpoint age less the pairing's
-        # phase, plus the one cycle the platform's acceleration is centred before its t
-        errors.append(w["residual_delay_ms"] - (d + w["age_ms"] - w["phase_ms"] + 1.0))
+        # the stack's share (docs/SUPERVISION.md): the (median) setpoint age less the
+        # pairing's phase, plus the one cycle the platform's acceleration is centred before t
+        errors.append(w["residual_delay_ms"] - (d + w["age_median_ms"] - w["phase_ms"] + 1.0))
     # the drift seen: the first window wholly after it whose residual exceeds the median of
     # those before it by half the drift
     seen_after = None

@@ -303,7 +303,7 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
     sent); ``t_fb``/``acc``: the feedback's ``t`` and measured acceleration over the window
     (its first :data:`LEAD_IN_S` is a lead-in: simulated, not judged).  Returns the figures of
     docs/SUPERVISION.md (``informative``, ``reason``, ``estimate``, ``residual_delay_ms``,
-    ``pairing_phase_ms`` -- the mean time from the output in force to the feedback sample...);
+    ``pairing_phase_ms`` -- the median time from the output in force to the feedback sample...);
     never raises on data.
     """
     from scipy import optimize  # here, not at import: the service imports this module for
@@ -319,8 +319,8 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
         out["reason"] = f"no feedback acceleration of {axis} in the window"
         return out
     k, known = output_in_force(t_out, np.full(t_out.size, np.inf), t_fb)
-    if known.any():
-        out["pairing_phase_ms"] = float(np.mean(t_fb[known] - t_out[k[known]])) * 1e3
+    if known.any():  # the median: a stall of the loop holds an old output in force
+        out["pairing_phase_ms"] = float(np.median(t_fb[known] - t_out[k[known]])) * 1e3
     t_fb, acc = t_fb[known], acc[known]
     span = float(t_fb[-1] - t_fb[0]) if t_fb.size else 0.0
     out["span_s"] = span
