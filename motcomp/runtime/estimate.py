@@ -79,8 +79,8 @@ class EstimateSettings:
     min_fit: float = 0.5
     """Least share of the in-band acceleration the fitted model explains (1 - |res|^2/|A|^2)."""
     stall_s: float = 0.02
-    """A gap longer than this between two feedback samples, or between two outputs, is a
-    stall of the host (or of the platform's link): the samples it touched are cut out."""
+    """A gap between two feedback samples, or between two outputs, longer than this is a stall
+    of the host (or of the platform's link) always cut out (:func:`_grid`)."""
     stall_area: float = 1e-6
     """A shorter gap is cut too when the command's change over it, held for it, exceeds this
     (m s or rad s): the error of the platform's input had the stall held it stale."""
@@ -147,9 +147,11 @@ def _grid(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: np.ndarra
     ``t_fb`` (increasing, every sample with an output in force) and ``acc``: the feedback;
     the grid runs from its first sample to its last at its median rate (rounded to whole
     hertz within 0.1 %).  The command is known at every grid instant (the outputs in force),
-    the acceleration where the feedback is: a gap of the feedback or of the outputs longer
-    than ``settings.stall_s`` is a stall, and the grid instants from its start to
-    ``settings.settle_s`` after its end are cut (``keep`` false).
+    the acceleration where the feedback is.  A gap of the feedback or of the outputs (longer
+    than 1.5 of their median periods) is a stall, cut -- the grid instants from its start to
+    ``settings.settle_s`` after its end, ``keep`` false -- when half the command's change over
+    it times its length exceeds ``settings.stall_area``, or it lasts longer than
+    ``settings.stall_s``.
     """
     new = np.concatenate([[True], np.diff(t_fb) > 0])  # a repeated stamp: its first sample
     t_fb, acc = t_fb[new], acc[new]
@@ -168,6 +170,8 @@ def _grid(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: np.ndarra
     cut_from: list[np.ndarray] = []
     cut_to: list[np.ndarray] = []
     for ts in (t_fb, to):
+        if ts.size < 3:
+            continue
         dt = np.diff(ts)
         i = np.flatnonzero(dt > 1.5 * float(np.median(dt)))
         a_, b_ = ts[i], ts[i + 1]
@@ -179,7 +183,8 @@ def _grid(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: np.ndarra
         cut = (area > settings.stall_area) | (b_ - a_ > settings.stall_s)
         cut_from.append(a_[cut])
         cut_to.append(b_[cut])
-    starts, ends = np.concatenate(cut_from), np.concatenate(cut_to)
+    starts = np.concatenate(cut_from) if cut_from else np.zeros(0)
+    ends = np.concatenate(cut_to) if cut_to else np.zeros(0)
     edges = np.zeros(n + 1)
     np.add.at(edges, np.searchsorted(t, starts), 1.0)
     np.add.at(edges, np.searchsorted(t, ends + settings.settle_s), -1.0)
