@@ -618,3 +618,28 @@ def test_the_estimator_is_held_to_its_cpu_budget() -> None:
         stub.now = 0.1 * k
         sup.poll(_StubMonitor(), lambda ns: ns / 1e9, stub.now, 0, [0] * 8, 0)
     assert np.allclose(np.diff(stub.asked[1:]), 2.0, atol=0.11), stub.asked
+
+
+def test_an_estimator_that_gets_no_cpu_is_said(caplog: pytest.LogCaptureFixture) -> None:
+    from motcomp.config import load_config, resolve_axes
+    from motcomp.runtime.supervise import BLIND_AFTER_S, Supervisor
+
+    class Silent(_StubEstimator):
+        def answer(self) -> tuple[str, object] | None:
+            return None  # starved: never answers
+
+        def kill(self) -> None:
+            pass
+
+    axes = resolve_axes(load_config(config_file("motcomp.toml")))
+    sup = Supervisor(SupervisionConfig(period_s=2.0), axes)
+    stub = Silent(cpu_s=0.0)
+    sup._estimator = stub  # type: ignore[assignment]
+    said = []
+    for k in range(round((BLIND_AFTER_S + 10.0) / 0.5)):
+        said += sup.poll(_StubMonitor(), lambda ns: ns / 1e9, 0.5 * k, 0, [0] * 8, 0)
+    assert len(said) == 1 and said[0].startswith(
+        "model supervision: unsupervised: no estimate in 120 s"), said
+    assert "gets no CPU time on this host" in said[0]
+    block = sup.status()
+    assert block["starved"] and block["axes"]["rails_y"]["state"] == "unsupervised"

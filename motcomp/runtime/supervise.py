@@ -43,8 +43,9 @@ log = logging.getLogger("motcomp.supervise")
 ALARM_LOG_S = 60.0
 """An alarm still on is logged again after this long."""
 WORKER_NICE = 19
-"""The estimator process' niceness where ``SCHED_IDLE`` is refused: the loop's CPU comes
-first."""
+"""The estimator process' niceness: the lowest weight of the ordinary scheduler, so the loop's
+CPU comes first and the estimator still gets its share on a saturated host (``SCHED_IDLE``,
+tried first, starved it there: no estimate in 120 s at load 18 on 2 cores)."""
 ESTIMATE_TIMEOUT_S = 30.0
 """An estimate not answered within this long: the estimator process is stopped (a new one
 starts with the next period)."""
@@ -99,13 +100,13 @@ def _estimate(request: tuple[dict[str, np.ndarray], list[str], dict[str, Process
 
 
 def serve() -> None:
-    """The estimator process' main: answer chunks until stdin closes, on CPU time nothing else
-    wants (``SCHED_IDLE``; where that is refused, niceness :data:`WORKER_NICE`)."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    except (AttributeError, OSError):
-        with contextlib.suppress(OSError):  # not permitted either: the service's priority
-            os.nice(WORKER_NICE)
+    """The estimator process' main: answer chunks until stdin closes, at niceness
+    :data:`WORKER_NICE` (its CPU time bounded by the supervisor's budget,
+    :data:`CPU_SHARE_MAX`)."""
+    with contextlib.suppress(AttributeError, OSError):  # the ordinary scheduler, lowest weight
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    with contextlib.suppress(OSError):  # not permitted: the service's priority
+        os.nice(WORKER_NICE - os.nice(0))
     for name in ("scipy.optimize", "scipy.signal"):  # once, before the first estimate's CPU
         importlib.import_module(name)  # time is counted against its budget
     child.serve(_estimate)
@@ -371,6 +372,10 @@ class Supervisor:
         self._started: float | None = None
         """When the first chunk was taken (for the estimator's CPU share)."""
         self._now = 0.0
+        self._answered: float | None = None
+        """When the last estimate was answered (or the first request sent)."""
+        self.starved = False
+        """No estimate answered for :data:`BLIND_AFTER_S`: every axis is unsupervised."""
         self._cursor = (0, 0)
         self._next = 0.0
         self._pending: list[dict[str, Any]] = []
@@ -441,13 +446,26 @@ class Supervisor:
                     results, cpu = value
                     self.cpu_s += float(cpu)
                     self.estimates += 1
+                    self._answered = now
+                    if self.starved:
+                        self.starved = False
+                        log.info("model supervision: estimates again")
                     # the budget: this estimate's CPU time is at most CPU_SHARE_MAX of the
                     # time from its request to the next
                     self._send_after = self._sent_at + float(cpu) / CPU_SHARE_MAX
                     warnings = self._judge(results, now)
+        if (self._answered is not None and not self.starved
+                and now - self._answered >= BLIND_AFTER_S):
+            self.starved = True
+            warnings.append(
+                f"model supervision: unsupervised: no estimate in {now - self._answered:.0f} s "
+                f"({self.errors} failed: {self.last_error or 'none answered'}); its process gets "
+                "no CPU time on this host, so no drift of any axis would be seen.  It needs a "
+                "host with CPU to spare for it (at most "
+                f"{100 * CPU_SHARE_MAX:g} % of a core): stop other work on this one")
         if now >= self._next:
             if self._started is None:
-                self._started = now
+                self._started = self._answered = now
             self._next = now + self.cfg.period_s
             self._take(monitor, to_frame_s, now, ticks, acted, missed)
         if self._pending and self._busy_since is None and now >= self._send_after:
@@ -529,4 +547,11 @@ class Supervisor:
                 "errors": self.errors,
                 "last_error": self.last_error,
                 "alarm": any(self.judge.block(a)["alarm"] for a in self.models),
-                "axes": {a: self.judge.block(a) for a in self.models}}
+                "starved": self.starved,
+                "axes": {a: self._block(a) for a in self.models}}
+
+    def _block(self, axis: str) -> dict[str, Any]:
+        block = self.judge.block(axis)
+        if self.starved and not block["alarm"]:
+            block.update(state="unsupervised", unsupervised=True)
+        return block
