@@ -58,7 +58,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="write the running service's current estimate of --axis (its "
                           "status' model_mismatch block; default: the axis in alarm) as the "
                           "config fragment <axis>.toml into --out; exit 2 without a fragment "
-                          "when the estimate is not informative (unless --force)")
+                          "when the estimate is not informative or describes no plausible "
+                          "platform (--force writes it, marked forced)")
     sup.add_argument("--status-key", default="motcomp/status", metavar="KEY",
                      help="the service's status key (default: motcomp/status)")
     live = p.add_argument_group(
@@ -123,8 +124,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--force", action="store_true",
                    help=f"write the config fragment even when the fit explains little of the "
-                        f"measurement (validation fit below {MIN_FIT_PERCENT:g} %%; exit 2 "
-                        "without it)")
+                        f"measurement (validation fit below {MIN_FIT_PERCENT:g} %%) or the "
+                        "service missed more than 5 %% of its deadlines (exit 2 without it), "
+                        "marked forced (config check and the service warn); with --live, run "
+                        "even when the service misses them before the run")
     p.set_defaults(func=run_identify)
 
 
