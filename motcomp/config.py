@@ -43,6 +43,7 @@ from motcomp.core.axes import AXES
 from motcomp.core.bandlimit import BAND_HZ_DEFAULT, band_limit_params
 from motcomp.core.compensator import Compensator
 from motcomp.core.envelope import EnvelopeParams
+from motcomp.core.loop import stability
 from motcomp.core.models import P1D, ProcessModel, parse_model
 from motcomp.core.pid import PIDGains
 from motcomp.core.predictor import MonitorParams, PredictorParams
@@ -169,6 +170,16 @@ class TuningConfig(BaseModel):
         return self
 
 
+class ForcedConfig(BaseModel):
+    """``forced = { model = "...", why = "..." }``: the mark ``motcomp identify --force`` puts
+    on a fragment it wrote against its own refusal; the service and ``motcomp config check``
+    warn while the axis' model is that ``model``."""
+
+    model_config = _STRICT
+    model: str
+    why: str
+
+
 class AxisConfig(TuningConfig, LimitsConfig):
     """One axis: model, tuning, bypass and limits (tuning keys from :class:`TuningConfig`, limit
     keys from :class:`LimitsConfig`)."""
@@ -176,6 +187,7 @@ class AxisConfig(TuningConfig, LimitsConfig):
     model_config = _STRICT
     model: str | None = None
     prediction: PredictionTable | None = None
+    forced: ForcedConfig | None = None
 
     @field_validator("model")
     @classmethod
@@ -443,6 +455,29 @@ def _tuning_layers(cfg: ServiceConfig, name: str, profile: str | None) -> list[d
     return [{k: v for k, v in layer.items() if k in _TUNING_KEYS} for layer in layers]
 
 
+BYPASS_STAND_IN_RULE = "amigo"
+"""The rule whose gains stand in for a bypassed axis' own gains when those make the internal
+loop unstable with its model (:func:`_bypassed_gains`)."""
+
+
+def _bypassed_gains(name: str, gains: PIDGains, model: P1D, rate_hz: float, filter_n: float,
+                    warnings: list[str]) -> PIDGains:
+    """A bypassed axis' gains: its own, or -- when they make the internal loop unstable with its
+    model (gains designed for a model a retune replaced, the design recommending bypass) --
+    :data:`BYPASS_STAND_IN_RULE`'s for that model, with a warning.  The axis is not compensated
+    either way; those gains are what a ``bypass off`` of that axis would compensate with."""
+    if stability(gains, model, rate_hz)[0]:
+        return gains
+    stand_in = tune(BYPASS_STAND_IN_RULE, model, filter_n=filter_n).gains
+    warnings.append(
+        f"{name}: bypassed, and its gains (kp={gains.kp:.4g}, ki={gains.ki:.4g}, "
+        f"kd={gains.kd:.4g}) make the internal loop unstable with its model {model.spec()} "
+        f"(gains designed for another model): not used; the {BYPASS_STAND_IN_RULE} rule's gains "
+        f"for this model stand in, which a `motcomp bypass off --axes {name}` would compensate "
+        "with (`motcomp design --plant` designs gains for this model)")
+    return stand_in
+
+
 def resolve_axes(cfg: ServiceConfig, profile: str | None = "") -> ResolvedAxes:
     """Models, gains, limits and bypass of all eight axes.
 
@@ -510,11 +545,18 @@ def resolve_axes(cfg: ServiceConfig, profile: str | None = "") -> ResolvedAxes:
                               "it again for this rate (motcomp design --rate-hz)")
         if "gains" in tuning_layer:
             g = GainsConfig(**tuning_layer["gains"]).to_gains()
+            if bypass_on:
+                g = _bypassed_gains(name, g, model, cfg.loop.rate_hz, filter_n, warnings)
         else:
             tuning = tune(tuning_layer.get("rule", "zn"), model, filter_n=filter_n)
             g = tuning.gains
             if not bypass_on:  # a bypassed axis is not compensated
                 warnings += [f"{name}: {w}" for w in tuning.warnings]
+        forced = merged.get("forced")
+        if forced is not None and parse_model(forced["model"]).spec() == plant.spec():
+            warnings.append(f"{name}: its model {plant.spec()} was written by `motcomp identify "
+                            f"--force` against identify's refusal ({forced['why']}): check it "
+                            "before relying on it (docs/IDENTIFICATION.md)")
         limits_cfg = LimitsConfig(**{k: v for k, v in merged.items()
                                      if k in LimitsConfig.model_fields})
         try:

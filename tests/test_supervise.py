@@ -456,3 +456,190 @@ def test_a_reversed_accelerometer_is_estimated_with_its_sign() -> None:
     assert fig["informative"], fig["reason"]
     assert fig["estimate"]["K"] == pytest.approx(-1.0, rel=1e-3)
     assert abs(fig["residual_delay_ms"]) < 0.05 and abs(fig["gain_error"]) < 1e-3
+
+
+def _stalled(truth: ProcessModel, u: np.ndarray, at_s: float, stall_s: float,
+             sensor: Accelerometer = QUIET) -> tuple[np.ndarray, np.ndarray]:
+    """A platform that stalls ``stall_s`` at ``at_s``: it applies no new setpoint meanwhile
+    (its input stays the one before) and sends no feedback; then it goes on with the newest."""
+    sim = PlatformSimulator([truth], RATE, [-5.0], [5.0], None, sensor, seed=1)
+    a, b = round(at_s * RATE), round((at_s + stall_s) * RATE)
+    acc = np.array([sim.step([float(u[min(k, a - 1)] if a <= k < b else u[k])])[1][0]
+                    for k in range(u.size)])
+    keep = np.ones(u.size, bool)
+    keep[a:b] = False
+    t = np.arange(u.size) / RATE
+    return t[keep], acc[keep]
+
+
+def test_a_stall_costs_the_samples_it_touched_not_the_window() -> None:
+    truth = P1D(K=1.0, Td=0.0255, Tp1=0.2)
+    u = driving(20.0)
+    t = np.arange(u.size) / RATE
+    # the platform stalls 50 ms at 9 s, during the lane change's motion; the loop misses 50 ms
+    # of outputs at 14 s (the platform holds the last one, as the pairing does)
+    t_fb, acc = _stalled(truth, u, 9.0, 0.05)
+    keep_out = (t < 14.0) | (t >= 14.05)
+    v = float(np.max(np.abs(np.diff(u[9000:9050])))) * RATE
+    assert v > 0.1  # the platform missed motion there: 0.5 v (50 ms)^2 > stall_area
+    fig = estimate_axis(t[keep_out], u[keep_out], t_fb, acc, MODEL,
+                        EstimateSettings(window_s=20.0))
+    assert fig["informative"], fig["reason"]
+    assert fig["stalls"] == 2
+    settle = EstimateSettings().settle_s
+    assert fig["cut_s"] == pytest.approx(2 * (0.05 + settle), abs=0.01)
+    d, _ = mismatch(truth, MODEL, fig["at_hz"])
+    assert fig["residual_delay_ms"] == pytest.approx(d * 1e3, abs=0.05)
+    assert fig["estimate"]["Td_ms"] == pytest.approx(25.5, abs=0.05)
+    # the same window with the stall judged: the stale input's error is in the fit
+    whole = estimate_axis(t[keep_out], u[keep_out], t_fb, acc, MODEL,
+                          EstimateSettings(window_s=20.0, stall_s=1.0, stall_area=1.0))
+    assert whole["stalls"] == 0
+    off = abs(whole["residual_delay_ms"] - d * 1e3)
+    assert off > 10 * abs(fig["residual_delay_ms"] - d * 1e3) and off > 0.1, (off, whole)
+
+
+def test_stalls_that_leave_too_little_to_judge_are_said() -> None:
+    u = driving(20.0)
+    t = np.arange(u.size) / RATE
+    keep = np.ones(u.size, bool)
+    for at in np.arange(3.0, 19.0, 0.5):  # a 30 ms stall of the outputs every 0.5 s
+        keep[round(at * RATE):round((at + 0.03) * RATE)] = False
+    _, acc = drive(MODEL, u)
+    fig = estimate_axis(t[keep], u[keep], t, acc, MODEL, EstimateSettings(window_s=20.0))
+    assert not fig["informative"]
+    assert fig["reason"].startswith("32 stalls of the host or the platform's link cut out")
+    assert "left to judge (needs 6.1 s)" in fig["reason"], fig["reason"]
+
+
+def test_the_residual_is_judged_where_the_driving_determines_it_best() -> None:
+    # a platform whose lag differs from the model's: the residual delay depends on the
+    # frequency; it is reported at the driven frequency of least standard error, and equals
+    # the closed form there
+    truth = P1D(K=1.0, Td=0.0215, Tp1=0.19)
+    u = driving(15.0)
+    t, acc = drive(truth, u, NOISY)
+    fig = estimate_axis(t, u, t, acc, MODEL)
+    assert fig["informative"], fig["reason"]
+    d, _ = mismatch(truth, MODEL, fig["at_hz"])
+    se = fig["residual_delay_se_ms"]
+    assert fig["residual_delay_ms"] == pytest.approx(d * 1e3, abs=3 * se)
+    # at the motion's power centre (the slalom's 0.3 Hz) the delay is less certain: the
+    # chosen frequency's standard error is the smallest of those the driving moves
+    e = fig["estimate"]
+    assert e["identified"] == "K, Td, Tp1"
+    assert 0.1 <= fig["at_hz"] <= 2.0
+
+
+def _uncertain(se: float = 3.0) -> dict[str, object]:
+    return {**_fig(5.0, se=se, informative=False),
+            "reason": f"the residual delay is uncertain (+-{se:.2f} ms > 1 ms)"}
+
+
+def test_an_axis_blind_for_two_minutes_of_motion_is_said_unsupervised(
+        caplog: pytest.LogCaptureFixture) -> None:
+    from motcomp.runtime.supervise import BLIND_AFTER_S
+
+    j = DriftJudge(SupervisionConfig())
+    texts = []
+    t = 0.0
+    # standing still tells nothing and is not blindness
+    for _ in range(100):
+        texts.append(j.update("rails_y", {**_fig(0.0, informative=False),
+                                          "reason": "too little motion in 0.1-2 Hz"}, t, t))
+        t += 2.0
+    assert j.block("rails_y")["blind_s"] == 0.0 and not any(texts)
+    for k in range(int(BLIND_AFTER_S / 2.0) + 5):
+        fig = _uncertain() if k % 4 else {**_fig(0.0, informative=False),
+                                          "reason": "3 stalls of the host or the platform's "
+                                                    "link cut out 8.1 s of the window"}
+        texts.append(j.update("rails_y", fig, t, t))
+        t += 2.0
+    said = [x for x in texts if x]
+    assert len(said) == 1, said  # once
+    assert said[0].startswith("rails_y: unsupervised: no window was judged in 120 s of motion")
+    assert "uncertain" in said[0] and "stalls" in said[0] and "It needs" in said[0]
+    assert "driving that moves the axis" in said[0] and "a host that keeps" in said[0]
+    block = j.block("rails_y")
+    assert block["state"] == "unsupervised" and block["unsupervised"]
+    with caplog.at_level("INFO", logger="motcomp.supervise"):
+        j.update("rails_y", _fig(0.3), t, t)
+    assert j.block("rails_y")["state"] == "ok" and j.block("rails_y")["blind_s"] == 0.0
+    assert "supervised again" in caplog.text
+
+
+class _StubEstimator:
+    """In place of the estimator process: answers each request at once with ``cpu_s``."""
+
+    def __init__(self, cpu_s: float) -> None:
+        self.cpu_s = cpu_s
+        self.asked: list[float] = []
+        self.now = 0.0
+        self._reply: tuple[str, object] | None = None
+
+    def ask(self, request: object) -> None:
+        self.asked.append(self.now)
+        self._reply = ("ok", ({}, self.cpu_s))
+
+    def answer(self) -> tuple[str, object] | None:
+        reply, self._reply = self._reply, None
+        return reply
+
+    def close(self) -> None:
+        pass
+
+
+class _StubMonitor:
+    def chunk(self, since: tuple[int, int]) -> tuple[tuple[int, int], dict[str, object]]:
+        return since, {"t_ns": np.zeros(0, np.int64), "u": np.zeros((0, 8)),
+                       "fb_sent": np.zeros(0), "fb_ns": np.zeros(0, np.int64),
+                       "acc": np.zeros((0, 8)), "lost": False}
+
+
+def test_the_estimator_is_held_to_its_cpu_budget() -> None:
+    from motcomp.config import load_config, resolve_axes
+    from motcomp.runtime.supervise import CPU_SHARE_MAX, Supervisor
+
+    axes = resolve_axes(load_config(config_file("motcomp.toml")))
+    sup = Supervisor(SupervisionConfig(period_s=2.0), axes)
+    stub = _StubEstimator(cpu_s=0.5)  # an estimate of 0.5 s CPU: one per 5 s at most
+    sup._estimator = stub  # type: ignore[assignment]
+    for k in range(200):  # 20 s, polled every 0.1 s
+        stub.now = 0.1 * k
+        sup.poll(_StubMonitor(), lambda ns: ns / 1e9, stub.now, 0, [0] * 8, 0)
+    gaps = np.diff(stub.asked)
+    assert len(stub.asked) >= 4 and np.all(gaps >= 0.5 / CPU_SHARE_MAX - 1e-9), stub.asked
+    # each estimate's CPU time over the time to the next request
+    assert (len(gaps) * 0.5) / (stub.asked[-1] - stub.asked[0]) <= CPU_SHARE_MAX + 1e-9
+    assert sup.status()["cpu_share"] == pytest.approx(len(stub.asked) * 0.5 / 19.9)
+    # a cheap estimate: one per period, as configured
+    stub.cpu_s, stub.asked = 0.01, []
+    for k in range(200, 400):
+        stub.now = 0.1 * k
+        sup.poll(_StubMonitor(), lambda ns: ns / 1e9, stub.now, 0, [0] * 8, 0)
+    assert np.allclose(np.diff(stub.asked[1:]), 2.0, atol=0.11), stub.asked
+
+
+def test_an_estimator_that_gets_no_cpu_is_said(caplog: pytest.LogCaptureFixture) -> None:
+    from motcomp.config import load_config, resolve_axes
+    from motcomp.runtime.supervise import BLIND_AFTER_S, Supervisor
+
+    class Silent(_StubEstimator):
+        def answer(self) -> tuple[str, object] | None:
+            return None  # starved: never answers
+
+        def kill(self) -> None:
+            pass
+
+    axes = resolve_axes(load_config(config_file("motcomp.toml")))
+    sup = Supervisor(SupervisionConfig(period_s=2.0), axes)
+    stub = Silent(cpu_s=0.0)
+    sup._estimator = stub  # type: ignore[assignment]
+    said = []
+    for k in range(round((BLIND_AFTER_S + 10.0) / 0.5)):
+        said += sup.poll(_StubMonitor(), lambda ns: ns / 1e9, 0.5 * k, 0, [0] * 8, 0)
+    assert len(said) == 1 and said[0].startswith(
+        "model supervision: unsupervised: no estimate in 120 s"), said
+    assert "gets no CPU time on this host" in said[0]
+    block = sup.status()
+    assert block["starved"] and block["axes"]["rails_y"]["state"] == "unsupervised"

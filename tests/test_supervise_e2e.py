@@ -1,45 +1,53 @@
-"""Model supervision end to end on the real processes: a simulated platform whose pure delay
-drifts by +10 ms mid-run (``hil --drift``), the service driving it with ordinary driving
-(``source --signal slalom``): the drift is detected, ``identify --from-status`` writes the
-estimate as a fragment, ``design`` tunes for it, the site config includes both, ``reload`` --
-and the slalom's apparent delay returns to its figure before the drift.
+"""Model supervision end to end, from the outside: a platform written from docs/WIRE.md alone
+(``tools/wire_platform.py``) whose rails_y is not the example config's model (a hidden truth,
+Td 21.5 ms and Tp1 190 ms against 17.5 and 185.8: about 8 ms late in the band), ordinary driving
+(``motcomp source --signal driving``: slaloms and lane changes) through the service.
 
-The estimate's accuracy is judged on the settled estimate a retune is taken from (standard
-error <= 0.4 ms), not on the one that raised the alarm: that one is known only to its standard
-error (0.16-0.2 ms on a quiet host; 0.5-1 ms beside a CPU hog, where windows read 11-12.5 ms for
-the 10 ms drift).  What depends on the host's timing is judged after the run, where the host
-probe says the host held the loop's rate (docs/TESTING.md).
+The lab's path, as docs/SUPERVISION.md gives it: the mismatch is seen (the alarm, within 30 s
+of driving plus one window); ``identify --from-status`` writes the estimate as a fragment,
+``design`` tunes for it, the site config includes both, ``reload`` -- the alarm clears and the
+lag the mismatch added is gone (the residual delay back within 1 ms of zero); then the platform
+drifts by +10 ms (SIGUSR1 to the platform) and that is seen within 30 s.  The estimate is
+judged against the truth plus the stack's share (docs/SUPERVISION.md).
 
-In the suite (about two minutes, four processes; ``pytest -m e2e`` runs it alone).  Figures
-of real runs: docs/SUPERVISION.md."""
+What depends on the host's timing is judged after the run, where the host probe says the host
+held the loop's rate (docs/TESTING.md); the checks that do not (exit codes, the fragment, the
+reload) fail as usual.  About 100 s of wall time, four processes."""
 
 from __future__ import annotations
 
 import json
 import re
+import signal
 import subprocess
+import sys
 import time
-from collections import Counter
 from pathlib import Path
 from typing import Any
 
 import msgpack
+import numpy as np
 import pytest
 
 from motcomp.core.models import parse_model
+from motcomp.errors import TransportError
 from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loopback, open_session
+from motcomp.runtime.estimate import mismatch
 from motcomp.runtime.probe import HostProbe
-from tests.conftest import judge_realtime, motcomp_cmd, site_config, subprocess_env
+from tests.conftest import ROOT, judge_realtime, motcomp_cmd, site_config, subprocess_env
 from tests.test_service_process import process, wait_status
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
-TRUTH = "p1d:K=1,Td=0.0175,Tp1=0.1857683128"
-"""The example config's rails model: the platform matches it until the drift."""
-DRIFTED = "p1d:K=1,Td=0.0275,Tp1=0.1857683128"
-DRIFT_AT_S = 50.0
+MODEL = parse_model("p1d:K=1,Td=0.0175,Tp1=0.1857683128")
+"""The example config's rails model."""
+TRUTH_MS = (21.5, 190.0)
+"""The platform's rails_y: pure delay and time constant (ms)."""
+DRIFT_MS = 10.0
+WINDOW_S = 15.0
+"""The example config's supervision.window_s."""
 SETTLED_SE_MS = 0.4
-"""The residual delay's standard error of the estimate the retune is taken from."""
+"""The residual delay's standard error of the estimate a retune is taken from."""
 
 
 def cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
@@ -54,142 +62,204 @@ def status(session: Any) -> dict[str, Any]:
     return out
 
 
-def log_instant(log: Path, text: str) -> float:
-    """The wall-clock instant of the first line of a motcomp log that holds ``text``."""
-    line = next(ln for ln in log.read_text().splitlines() if text in ln)
-    return time.mktime(time.strptime(line[:19], "%Y-%m-%d %H:%M:%S")) + int(line[20:23]) / 1e3
+def truth(td_ms: float) -> Any:
+    return parse_model(f"p1d:K=1,Td={td_ms / 1e3:g},Tp1={TRUTH_MS[1] / 1e3:g}")
 
 
-def delay_ms(st: dict[str, Any]) -> float | None:
-    q = st["axes_quality"]["rails_y"]
-    return q["apparent_delay_ms"] if q["delay_valid"] else None
+def log_instant(log: Path, text: str, after: float = 0.0) -> float | None:
+    """The epoch instant of the first line of a motcomp log after ``after`` that holds
+    ``text``."""
+    for line in log.read_text().splitlines():
+        if text in line:
+            t = time.mktime(time.strptime(line[:19], "%Y-%m-%d %H:%M:%S")) + int(line[20:23]) / 1e3
+            if t > after:
+                return t
+    return None
 
 
-def test_a_drift_is_detected_retuned_from_the_status_and_the_delay_returns(
+class Watch:
+    """The status read every second: rows of rails_y's supervision, and the figures the
+    estimate is judged on."""
+
+    def __init__(self, session: Any) -> None:
+        self.session = session
+        self.rows: list[dict[str, Any]] = []
+        self.last: dict[str, Any] | None = None
+
+    def read(self, phase: str) -> dict[str, Any]:
+        """The status now (a row), or the last one when the service did not answer in time
+        (a stall of this loaded host: the next read tries again)."""
+        try:
+            st = status(self.session)
+        except TransportError:
+            if self.last is None:
+                raise
+            return self.last
+        self.last = st
+        f = st["model_mismatch"]["axes"]["rails_y"]
+        plat = st.get("platform") or {}
+        q = st["axes_quality"]["rails_y"]
+        self.rows.append({"t": time.time(), "phase": phase, "state": f["state"],
+                          "alarm": f["alarm"], "informative": f.get("informative"),
+                          "to_t": f.get("to_t"), "at_hz": f.get("at_hz"),
+                          "residual_ms": f.get("residual_delay_ms"),
+                          "se_ms": f.get("residual_delay_se_ms"), "reason": f.get("reason"),
+                          "age_ms": plat.get("setpoint_age_ms"),
+                          "phase_ms": f.get("pairing_phase_ms"),
+                          "delay_ms": q["apparent_delay_ms"] if q["delay_valid"] else None,
+                          "missed": st["missed_ticks"], "ticks": st["ticks"]})
+        return st
+
+    def windows(self, phase: str) -> list[dict[str, Any]]:
+        """One row per window (the status repeats a window until the next)."""
+        seen: dict[float, dict[str, Any]] = {}
+        for r in self.rows:
+            if r["phase"] == phase and r["to_t"] is not None:
+                seen.setdefault(r["to_t"], r)
+        return list(seen.values())
+
+    def errors_ms(self, phase: str, td_ms: float, since: float = 0.0) -> list[float]:
+        """Residual delay of the informative windows ending after ``since`` (epoch s) minus the
+        truth's against ``model`` at the window's frequency plus the stack's share
+        (docs/SUPERVISION.md): the platform's setpoint age (the median: the stalls that
+        stretch the others are cut out of the estimate) less the pairing's phase, plus the one
+        cycle the platform's acceleration is centred before its ``t`` (docs/WIRE.md)."""
+        out = []
+        for r in self.windows(phase):
+            if (r["informative"] and r["to_t"] >= since and r["age_ms"] is not None
+                    and r["phase_ms"] is not None):
+                d, _ = mismatch(truth(td_ms), self.model, r["at_hz"])
+                share = r["age_ms"] - r["phase_ms"] + 1.0
+                out.append(r["residual_ms"] - (d * 1e3 + share))
+        return out
+
+    model: Any = MODEL
+
+
+def test_an_outside_platform_off_its_model_is_seen_retuned_and_its_drift_seen(
         tmp_path: Path) -> None:
-    p_svc, p_hil = free_tcp_port(), free_tcp_port()
-    svc_ep, hil_ep = loopback(p_svc), loopback(p_hil)
+    p_svc, p_plat = free_tcp_port(), free_tcp_port()
+    svc_ep, plat_ep = loopback(p_svc), loopback(p_plat)
     site = site_config(tmp_path / "site.toml")
     late: list[tuple[str, bool, Any]] = []  # what depends on the host's timing: judged last
-    after: list[float] = []
-    drifted = None
-    with HostProbe() as probe, \
-            process(["hil", "-l", hil_ep, "--truth", f"rails_y={TRUTH}", "--drift",
-                     f"rails_y={DRIFTED}@{DRIFT_AT_S:g}", "--log-level", "info"],
-                    tmp_path / "hil.log") as hil, \
-            process(["run", "--config", str(site), "-l", svc_ep, "-e", hil_ep],
-                    tmp_path / "svc.log") as svc, \
-            open_session(ZenohEndpoints(connect=(svc_ep,))) as session:
-        t_hil = time.monotonic()
-        wait_status(session)
-        time.sleep(2.0)
-        with process(["source", "--signal", "slalom", "--repeat", "10", "--quiet", "-e",
-                      svc_ep], tmp_path / "src.log") as src:
-            # before the drift: the compensated slalom's delay, and no alarm
-            before = []
-            while time.monotonic() - t_hil < DRIFT_AT_S - 2.0:
-                time.sleep(2.0)
-                st = status(session)
-                assert not st["model_mismatch"]["alarm"], st["model_mismatch"]
-                if (d := delay_ms(st)) is not None:
-                    before.append(d)
-            assert before, "no valid apparent delay before the drift"
-            # the drift, detected within 30 s of it
-            detected = None
-            trace = []
-            while time.monotonic() - t_hil < DRIFT_AT_S + 45.0:
-                time.sleep(1.0)
-                st = status(session)
-                f = st["model_mismatch"]["axes"]["rails_y"]
-                plat = st.get("platform") or {}
-                trace.append((round(time.monotonic() - t_hil, 1), f["state"],
-                              f.get("residual_delay_ms"), f.get("residual_delay_se_ms"),
-                              f.get("reason"), st["missed_ticks"], plat.get("missed_ticks"),
-                              plat.get("setpoint_age_mean_ms")))
-                if f["alarm"]:
-                    detected = time.monotonic() - t_hil - DRIFT_AT_S
-                    break
-            mm = st["model_mismatch"]["axes"]["rails_y"]
-            print("(s, state, residual ms, +- ms, reason, service's missed ticks, platform's "
-                  "missed ticks, platform's mean setpoint age ms)")
-            for row in trace:
-                print(row)
-            if detected is None and not any(row[1] == "ok" for row in trace):
-                # no window after the drift was judged, for the reasons the product gives
-                # (the loop degraded: the host's stalls in the data; the estimator starved)
-                reasons = Counter(row[4] or row[1] for row in trace)
-                pytest.skip(f"not judged: no window after the drift was informative "
-                            f"({dict(reasons)})")
-            if detected is not None:
-                assert "model mismatch starts" in (tmp_path / "svc.log").read_text()
-                # from the platform's log line of the drift to the service's WARNING (one clock)
-                after_s = log_instant(tmp_path / "svc.log", "model mismatch starts") - \
-                    log_instant(tmp_path / "hil.log", "truth now")
-                print(f"drift detected {after_s:.1f} s after it; residual "
-                      f"{mm['residual_delay_ms']:.2f} +- {mm['residual_delay_se_ms']:.2f} ms, "
-                      f"estimate {mm['estimate']['spec']}")
-                late.append(("detected within 30 s", after_s <= 30.0, trace))
-                drifted = delay_ms(st)
-                # the retune, from a settled estimate as an operator would take it (the
-                # status shows its uncertainty): the estimate as a fragment, designed,
-                # included, reloaded
-                t_end = time.monotonic() + 60.0
-                while True:
-                    seen = status(session)
-                    f = seen["model_mismatch"]["axes"]["rails_y"]
-                    if f["informative"] and f["residual_delay_se_ms"] <= SETTLED_SE_MS:
-                        break
-                    if time.monotonic() > t_end:  # the product says it cannot tell
-                        pytest.skip("not judged: no settled estimate in 60 s on this host "
-                                    f"({f.get('reason') or f.get('residual_delay_se_ms')})")
-                    time.sleep(1.0)
-                print(f"settled: residual {f['residual_delay_ms']:.2f} +- "
-                      f"{f['residual_delay_se_ms']:.2f} ms, estimate {f['estimate']['spec']}")
-                late.append(("the settled estimate's residual delay: the drift's 10 ms within "
-                             "2 ms", abs(f["residual_delay_ms"] - 10.0) <= 2.0, f))
-                # that status, saved (the next estimate may be less certain again)
-                saved = tmp_path / "status.json"
-                saved.write_text(json.dumps(seen))
-                p = cli("identify", str(saved), "--from-status", "--axis", "rails_y", "--out",
-                        str(tmp_path / "retune"))
-                assert p.returncode == 0, p.stdout + p.stderr
-                fragment = tmp_path / "retune" / "rails_y.toml"
-                model = parse_model(re.search(r'model = "([^"]+)"',
-                                              fragment.read_text()).group(1))
-                # the band's phase delay is what the estimate knows (a slalom alone trades Td
-                # against Tp1): the drifted truth's, give or take the stack's share
-                at = mm["at_hz"]
-                off = float(model.phase_delay([at])[0]) - float(
-                    parse_model(DRIFTED).phase_delay([at])[0])
-                late.append(("the settled estimate's phase delay in the band: the drifted "
-                             "truth's within 2 ms", abs(off) <= 2.0e-3, (model, at, off)))
-                design = tmp_path / "design.toml"
-                p = cli("design", "--plant", str(fragment), "--rule", "optimal", "--out",
-                        str(design), "--quiet")
-                assert p.returncode == 0, p.stderr
-                site_config(site, fragment, design)
-                p = cli("reload", "-e", svc_ep)
-                assert p.returncode == 0, p.stdout + p.stderr
-                t_reload = time.monotonic()
-                # after: the status' delay window (10 s) filled with the retuned motion
-                while time.monotonic() - t_reload < 30.0 and src.poll() is None:
-                    time.sleep(2.0)
-                    st = status(session)
-                    if time.monotonic() - t_reload > 14.0 and (d := delay_ms(st)) is not None:
-                        after.append(d)
-                assert after, "no valid apparent delay after the reload"
-            else:
-                late.append(("detected within 45 s", False, trace))
-        for p_ in (svc, hil):
-            p_.terminate()
-            assert p_.wait(timeout=30) == 0
-    # what depends on the host's timing (the estimate, the delays), judged only where the host
-    # held the loop's rate (docs/TESTING.md)
-    judge_realtime(probe.result, "the drift's detection and the retuned slalom")
+    plat_log = tmp_path / "platform.log"
+    with HostProbe() as probe, plat_log.open("wb") as fh:
+        plat = subprocess.Popen(
+            [sys.executable, str(ROOT / "tools" / "wire_platform.py"), "-l", plat_ep,
+             "--truth", f"rails_y={TRUTH_MS[0]:g},{TRUTH_MS[1]:g}",
+             "--drift", f"rails_y={TRUTH_MS[0] + DRIFT_MS:g},{TRUTH_MS[1]:g}@usr1"],
+            stdout=fh, stderr=subprocess.STDOUT, env=subprocess_env())
+        try:
+            with process(["run", "--config", str(site), "-l", svc_ep, "-e", plat_ep],
+                         tmp_path / "svc.log") as svc, \
+                    open_session(ZenohEndpoints(connect=(svc_ep,))) as session:
+                wait_status(session)
+                watch = Watch(session)
+                with process(["source", "--signal", "driving", "--repeat", "3", "--quiet",
+                              "-e", svc_ep], tmp_path / "src.log") as src:
+                    t_src = time.time()
+                    # 1. the platform 8 ms off its model: the alarm
+                    while time.time() - t_src < 30.0 + WINDOW_S + 15.0:
+                        time.sleep(1.0)
+                        if watch.read("off")["model_mismatch"]["axes"]["rails_y"]["alarm"]:
+                            break
+                    alarm = log_instant(tmp_path / "svc.log", "rails_y: model mismatch starts")
+                    late.append(("the alarm within 30 s of driving plus one window",
+                                 alarm is not None and alarm - t_src <= 30.0 + WINDOW_S,
+                                 (alarm and alarm - t_src, watch.windows("off"))))
+                    # 2. the retune, from a settled estimate as an operator would take it
+                    t_end = time.time() + 30.0
+                    while True:
+                        seen = watch.read("off")
+                        f = seen["model_mismatch"]["axes"]["rails_y"]
+                        if f["informative"] and f["residual_delay_se_ms"] <= SETTLED_SE_MS:
+                            break
+                        if time.time() > t_end:
+                            break
+                        time.sleep(1.0)
+                    saved = tmp_path / "status.json"
+                    saved.write_text(json.dumps(seen))
+                    before = [r["delay_ms"] for r in watch.rows[-10:] if r["delay_ms"]]
+                    p = cli("identify", str(saved), "--from-status", "--axis", "rails_y",
+                            "--out", str(tmp_path / "retune"))
+                    settled = f["informative"] and f["residual_delay_se_ms"] <= SETTLED_SE_MS
+                    if not settled:  # the product refuses what it cannot tell: said, judged
+                        late.append(("a settled estimate to retune from in 30 s", False, f))
+                        assert p.returncode == 2 and "not informative" in p.stderr, p.stderr
+                    else:
+                        assert p.returncode == 0, p.stdout + p.stderr
+                        fragment = tmp_path / "retune" / "rails_y.toml"
+                        assert "forced" not in fragment.read_text()
+                        design = tmp_path / "design.toml"
+                        p = cli("design", "--plant", str(fragment), "--rule", "optimal",
+                                "--out", str(design), "--quiet")
+                        assert p.returncode == 0, p.stderr
+                        site_config(site, fragment, design)
+                        p = cli("config", "check", str(site))
+                        assert p.returncode == 0, p.stderr
+                        p = cli("reload", "-e", svc_ep)
+                        assert p.returncode == 0, p.stdout + p.stderr
+                        t_reload = time.time()
+                        watch.model = parse_model(re.search(
+                            r'model = "([^"]+)"', fragment.read_text()).group(1))
+                        # the alarm clears; the driving's delay comes back (the status' 10 s
+                        # delay window filled after the reload)
+                        while time.time() - t_reload < 16.0:
+                            time.sleep(1.0)
+                            watch.read("retuned")
+                        cleared = [r for r in watch.rows if r["phase"] == "retuned"
+                                   and not r["alarm"]]
+                        late.append(("the alarm cleared after the reload", bool(cleared),
+                                     watch.windows("retuned")))
+                        # the lag the mismatch added to the delivered motion is gone: the
+                        # residual delay within 1 ms of zero.  (The driving's apparent delay is
+                        # the design's: a design with prediction leads by some ms, which the
+                        # 8 ms mismatch had hidden -- printed, not judged.)
+                        back = [r["residual_ms"] for r in watch.windows("retuned")
+                                if r["informative"]]
+                        late.append(("the delay back: the residual within 1 ms of zero once "
+                                     "retuned", bool(back)
+                                     and abs(float(np.median(back))) <= 1.0, back))
+                        after = [r["delay_ms"] for r in watch.rows[-4:] if r["delay_ms"]]
+                        print(f"apparent delay before the retune {before}, after {after}")
+                        # 3. the drift
+                        plat.send_signal(signal.SIGUSR1)
+                        t_drift = time.time()
+                        while time.time() - t_drift < 40.0 and src.poll() is None:
+                            time.sleep(1.0)
+                            if watch.read("drifted")["model_mismatch"]["axes"]["rails_y"][
+                                    "alarm"]:
+                                break
+                        drift_line = next((ln for ln in plat_log.read_text().splitlines()
+                                           if "truth now" in ln), "")
+                        m = re.search(r"at epoch ([\d.]+) s", drift_line)
+                        assert m, plat_log.read_text()[-2000:]
+                        t_truth = float(m.group(1))
+                        seen_at = log_instant(tmp_path / "svc.log",
+                                              "rails_y: model mismatch starts", t_truth)
+                        late.append(("the +10 ms drift seen within 30 s",
+                                     seen_at is not None and seen_at - t_truth <= 30.0,
+                                     (seen_at and seen_at - t_truth, watch.windows("drifted"))))
+                        errs = watch.errors_ms("drifted", TRUTH_MS[0] + DRIFT_MS,
+                                               t_truth + WINDOW_S)
+                        late.append(("after the drift, the estimate within 1 ms of the truth "
+                                     "plus the stack's share", bool(errs)
+                                     and float(np.median(np.abs(errs))) <= 1.0, errs))
+                    errs = watch.errors_ms("off", TRUTH_MS[0])
+                    late.append(("the estimate within 1 ms of the truth plus the stack's share",
+                                 bool(errs) and float(np.median(np.abs(errs))) <= 1.0, errs))
+                    off = watch.windows("off")
+                    judged = [r for r in off if r["informative"]]
+                    late.append(("at least half the windows informative",
+                                 2 * len(judged) >= len(off) > 0,
+                                 [(r["informative"], r["reason"]) for r in off]))
+                svc.terminate()
+                assert svc.wait(timeout=30) == 0
+        finally:
+            plat.terminate()
+            assert plat.wait(timeout=30) == 0
+    for r in watch.rows:
+        print({k: (round(v, 2) if isinstance(v, float) else v) for k, v in r.items()})
+    judge_realtime(probe.result, "the supervision's figures on the outside platform")
     failed = [(what, data) for what, ok, data in late if not ok]
     assert not failed, failed
-    ref = float(sorted(before)[len(before) // 2])
-    now = float(sorted(after)[len(after) // 2])
-    print(f"apparent delay: {ref:.2f} ms before the drift, {drifted} ms drifted, {now:.2f} ms "
-          "retuned")
-    assert abs(now - ref) <= 3.0, (before, drifted, after)

@@ -67,6 +67,10 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
                 "--excite-s", "30", "--out", str(ident), "--json", "--quiet", "--no-figures",
                 "-e", svc_ep, "-e", hil_ep)
         skip_if_starved(p, "identification on a host that starved the service")
+        if p.returncode == 2 and "so nothing was excited" in p.stderr:
+            # its probe found the service starved before the run: said, nothing moved
+            pytest.skip(f"not judged (identification on a host that starved the service): "
+                        f"{p.stderr.strip().splitlines()[-1]}")
         assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
         m = re.search(r"limiter acted on (\d+) of (\d+) feedback samples, compensation on at "
                       r"(\d+)", p.stderr)

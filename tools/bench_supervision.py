@@ -17,6 +17,13 @@ on loopback, the example config with its supervision defaults unless said):
 ``twins``
     two stacks at once, one service with supervision and one without (``--repeats`` runs):
     the loop's missed ticks of one against the other under the same host conditions.
+``outside``
+    the platform written from docs/WIRE.md (``tools/wire_platform.py``) with a hidden truth on
+    ``--axis`` (``--truth TD_MS,TP1_MS``, default 21.5,190: about 8 ms late in the band against
+    the example config's model, or ``--model SPEC`` in force), ``--signal driving``, a drift of
+    ``--drift-ms`` at ``--drift-at`` (0: none): per window, informative or why, the residual
+    delay against the truth plus the stack's share (docs/SUPERVISION.md); the
+    alarm after the driving starts and after the drift; alarms; the estimator's CPU share.
 
 Writes ``--out`` (JSON, one row per status read) and, for ``drift``, a figure of the estimate
 against the truth (``--figure``).  ``--doc`` writes the summary into docs/SUPERVISION.md.
@@ -329,9 +336,140 @@ def scenario_twins(args: argparse.Namespace, work: Path) -> dict[str, Any]:
             "ratio": on / off if off else math.inf}
 
 
+def _windows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per estimate window (the status repeats a window until the next)."""
+    seen: dict[float, dict[str, Any]] = {}
+    for r in rows:
+        if r.get("window_to_t") is not None:
+            seen.setdefault(r["window_to_t"], r)
+    return list(seen.values())
+
+
+def scenario_outside(args: argparse.Namespace, work: Path) -> dict[str, Any]:
+    td, tp1 = (float(x) for x in args.truth.split(","))
+    p_svc, p_plat = free_tcp_port(), free_tcp_port()
+    svc_ep, plat_ep = loopback(p_svc), loopback(p_plat)
+    site = work / "site.toml"
+    model = f'[axes.{args.axis}]\nmodel = "{args.model}"\n' if args.model else ""
+    site.write_text(f'include = ["{config_file("motcomp.toml")}"]\n{model}')
+    plat_args = [sys.executable, str(ROOT / "tools" / "wire_platform.py"), "-l", plat_ep,
+                 "--truth", f"{args.axis}={td:g},{tp1:g}"]
+    if args.drift_at:
+        plat_args += ["--drift", f"{args.axis}={td + args.drift_ms:g},{tp1:g}@{args.drift_at:g}"]
+    with (work / "platform.log").open("wb") as fh:
+        plat = subprocess.Popen(plat_args, stdout=fh, stderr=subprocess.STDOUT)
+    svc = _spawn(["run", "--config", str(site), "-l", svc_ep, "-e", plat_ep], work / "svc.log")
+    rows: list[dict[str, Any]] = []
+    src = None
+    loads = []
+    try:
+        with open_session(ZenohEndpoints(connect=(svc_ep,))) as session:
+            time.sleep(3.0)
+            src = _spawn(["source", "--signal", "driving", "--repeat",
+                          str(max(1, math.ceil(args.seconds / 120.0))), "--quiet", "-e",
+                          svc_ep], work / "src.log")
+            t_src = time.time()
+            while time.time() - t_src < args.seconds:
+                time.sleep(1.0)
+                loads.append(os.getloadavg()[0])
+                try:
+                    st = msgpack.unpackb(first_reply(session, "motcomp/status", None, 2.0))
+                except Exception:
+                    continue
+                mm = st.get("model_mismatch", {})
+                fig = mm.get("axes", {}).get(args.axis, {})
+                plat_st = st.get("platform") or {}
+                rows.append({"t": time.time() - t_src, "state": fig.get("state"),
+                             "informative": bool(fig.get("informative")),
+                             "alarm": fig.get("alarm"), "reason": fig.get("reason"),
+                             "at_hz": fig.get("at_hz"), "model": fig.get("model"),
+                             "residual_delay_ms": fig.get("residual_delay_ms"),
+                             "residual_delay_se_ms": fig.get("residual_delay_se_ms"),
+                             "window_to_t": fig.get("to_t"), "cut_s": fig.get("cut_s"),
+                             "age_ms": plat_st.get("setpoint_age_mean_ms"),
+                             "phase_ms": fig.get("pairing_phase_ms"),
+                             "age_median_ms": plat_st.get("setpoint_age_ms"),
+                             "estimates": mm.get("estimates"), "cpu_s": mm.get("cpu_s"),
+                             "cpu_share": mm.get("cpu_share"),
+                             "all_alarms": sum(int(a.get("alarms") or 0)
+                                               for a in mm.get("axes", {}).values()),
+                             "ticks": st.get("ticks"), "missed": st.get("missed_ticks"),
+                             "plat_ticks": plat_st.get("ticks"),
+                             "plat_missed": plat_st.get("missed_ticks")})
+    finally:
+        _stop(*(p for p in (src, svc) if p is not None))
+        plat.terminate()
+        plat.wait(timeout=30)
+    svc_log = (work / "svc.log").read_text()
+    alarms = [_log_time(ln) - t_src for ln in svc_log.splitlines()
+              if f"{args.axis}: model mismatch starts" in ln]
+    drift_line = next((ln for ln in (work / "platform.log").read_text().splitlines()
+                       if "truth now" in ln), "")
+    m = re.search(r"at epoch ([\d.]+) s", drift_line)
+    t_drift = float(m.group(1)) - t_src if m else None
+    wins = _windows(rows)
+    errors = []
+    for w in wins:
+        if not w["informative"] or w["age_median_ms"] is None or w["phase_ms"] is None:
+            continue
+        t_win = w["window_to_t"] - t_src
+        if t_drift is not None and t_drift < t_win < t_drift + 15.0:
+            continue  # a window that straddles the drift holds two platforms
+        now = td + (args.drift_ms if t_drift is not None and t_win >= t_drift else 0.0)
+        truth = parse_model(f"p1d:K=1,Td={now / 1e3:g},Tp1={tp1 / 1e3:g}")
+        against = parse_model(w["model"])
+        d = (float(truth.phase_delay([w["at_hz"]])[0]) - float(against.phase_delay(
+            [w["at_hz"]])[0])) * 1e3
+        # the stack's share (docs/SUPERVISION.md): the (median) setpoint age less the
+        # pairing's phase, plus the one cycle the platform's acceleration is centred before t
+        errors.append(w["residual_delay_ms"] - (d + w["age_median_ms"] - w["phase_ms"] + 1.0))
+    # the drift seen: the first window wholly after it whose residual exceeds the median of
+    # those before it by half the drift
+    seen_after = None
+    if t_drift is not None:
+        pre = [w["residual_delay_ms"] for w in wins if w["informative"]
+               and w["window_to_t"] - t_src < t_drift]
+        ref = float(np.median(pre)) if pre else 0.0
+        seen_after = next((w["window_to_t"] - t_src - t_drift for w in wins
+                           if w["informative"] and w["window_to_t"] - t_src > t_drift
+                           and w["residual_delay_ms"] > ref + 0.5 * args.drift_ms), None)
+    reasons: dict[str, int] = {}
+    for w in wins:
+        if not w["informative"]:
+            key = re.sub(r"[\d.+-]+", "#", w["reason"] or "")[:60]
+            reasons[key] = reasons.get(key, 0) + 1
+    last = rows[-1] if rows else {}
+
+    def share(a: str, b: str) -> float | None:
+        if not rows or rows[0].get(a) is None or last.get(a) is None:
+            return None
+        m_ = last[a] - rows[0][a]
+        return m_ / (m_ + last[b] - rows[0][b])
+    return {"scenario": "outside", "truth_ms": [td, tp1], "model": args.model or "example",
+            "seconds": args.seconds, "drift_ms": args.drift_ms if t_drift else None,
+            "drift_at_s": t_drift, "windows": len(wins),
+            "informative_share": (sum(w["informative"] for w in wins) / len(wins)
+                                  if wins else None),
+            "not_informative": reasons, "error_ms": _summary(errors),
+            "alarms_after_driving_start_s": alarms,
+            "drift_seen_after_s": seen_after,
+            "first_alarm_after_drift_s": next((a - t_drift for a in alarms
+                                               if t_drift is not None and a > t_drift), None),
+            "all_alarms": last.get("all_alarms"), "cpu_share": last.get("cpu_share"),
+            "cpu_per_estimate_ms": (1e3 * last["cpu_s"] / last["estimates"]
+                                    if last.get("estimates") else None),
+            "missed_share": share("missed", "ticks"),
+            "platform_missed_share": share("plat_missed", "plat_ticks"),
+            "load": [min(loads), max(loads)] if loads else None, "rows": rows}
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--scenario", choices=("drift", "steady", "cost", "twins"), default="drift")
+    p.add_argument("--scenario", choices=("drift", "steady", "cost", "twins", "outside"),
+                   default="drift")
+    p.add_argument("--truth", default="21.5,190",
+                   help="outside: the platform's TD_MS,TP1_MS on --axis")
+    p.add_argument("--model", default="", help="outside: the model in force on --axis")
     p.add_argument("--signal", default="slalom")
     p.add_argument("--axis", default="rails_y")
     p.add_argument("--seconds", type=float, default=120.0)
@@ -352,7 +490,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         res = {"drift": scenario_drift, "steady": scenario_steady, "cost": scenario_cost,
-               "twins": scenario_twins}[args.scenario](args, work)
+               "twins": scenario_twins, "outside": scenario_outside}[args.scenario](args, work)
     res["machine"] = machine()
     res["load_end"] = os.getloadavg()[0]
     summary = {k: v for k, v in res.items() if k != "rows"}

@@ -7,6 +7,8 @@ Each of the 8 axes is a pure delay TD followed by a unit-gain first-order lag TP
 y' = (u(t - TD) - y) / TP1, with u the held setpoint, simulated at --rate Hz (default 1000) and
 discretised exactly for the zero-order-hold input (a fractional delay splits the cycle in two).
 Defaults: TD = 20 ms and TP1 = 50 ms, rails_y TP1 = 150 ms; --truth AXIS=TD_MS,TP1_MS overrides.
+--drift AXIS=TD_MS,TP1_MS@T changes an axis' truth T seconds after the start, or @usr1 when the
+process receives SIGUSR1 (said on stderr): a platform whose lag drifts, to try a supervisor on.
 
 - `platform/setpoint` frames are applied at the first control cycle after they arrive and held
   (zero-order hold); a frame that breaks the contract is counted as bad and ignored.
@@ -61,23 +63,59 @@ def parse_truth(specs: list[str]) -> dict[str, tuple[float, float]]:
     return truth
 
 
+def parse_drift(spec: str) -> tuple[str, float, float, float]:
+    """Parse --drift AXIS=TD_MS,TP1_MS@T: (axis, TD ms, TP1 ms, T s); T = usr1: infinity (the
+    drift waits for SIGUSR1)."""
+    truth, sep, at = spec.rpartition("@")
+    if not sep:
+        raise ValueError(f"bad --drift {spec!r} (AXIS=TD_MS,TP1_MS@SECONDS)")
+    axis = truth.split("=", 1)[0]
+    try:
+        td, tp1 = parse_truth([truth])[axis]
+    except ValueError as exc:
+        raise ValueError(str(exc).replace("--truth", "--drift")) from None
+    if at == "usr1":
+        return axis, td, tp1, math.inf
+    try:
+        t = float(at)
+    except ValueError:
+        raise ValueError(f"bad --drift {spec!r}: SECONDS is not a number nor usr1") from None
+    if not (math.isfinite(t) and t >= 0):
+        raise ValueError(f"bad --drift {spec!r}: SECONDS finite and >= 0")
+    return axis, td, tp1, t
+
+
 class Plant:
     """The 8 axes' delay + first-order lag, exact for an input held over each cycle."""
 
-    def __init__(self, truth_ms: dict[str, tuple[float, float]], rate: float) -> None:
-        h = 1.0 / rate
-        delays = np.array([truth_ms[a][0] * rate / 1000.0 for a in AXES])
-        delays = np.where(np.abs(delays - np.round(delays)) < 1e-9, np.round(delays), delays)
-        self.n = np.floor(delays).astype(np.int64)  # whole cycles of delay ...
-        frac = delays - self.n  # ... and the fraction f of a cycle
-        tp1 = np.array([truth_ms[a][1] / 1000.0 for a in AXES])
-        safe = np.where(tp1 > 0, tp1, 1.0)  # TP1 = 0: a pure delay (phi = 0 over any interval)
-        self.phi1 = np.where(tp1 > 0, np.exp(-frac * h / safe), np.where(frac > 0, 0.0, 1.0))
-        self.phi2 = np.where(tp1 > 0, np.exp(-(1.0 - frac) * h / safe), 0.0)
-        self.size = int(self.n.max()) + 2  # the held inputs u[k-n-1] .. u[k]
+    def __init__(self, truth_ms: dict[str, tuple[float, float]], rate: float,
+                 max_delay_ms: float = 0.0) -> None:
+        self.rate = rate
+        self.n = np.zeros(len(AXES), dtype=np.int64)  # whole cycles of delay ...
+        self.phi1 = np.zeros(len(AXES))
+        self.phi2 = np.zeros(len(AXES))
+        for i, a in enumerate(AXES):
+            self.set_truth(i, *truth_ms[a])
+        longest = max(max(td for td, _ in truth_ms.values()), max_delay_ms)
+        self.size = math.floor(longest * rate / 1000.0 + 1e-9) + 2  # u[k-n-1] .. u[k]
         self.u = np.zeros((self.size, len(AXES)))
         self.cols = np.arange(len(AXES))
         self.y = np.zeros(len(AXES))
+
+    def set_truth(self, i: int, td_ms: float, tp1_ms: float) -> None:
+        """Axis i's delay and time constant from the next cycle on (the position carries on)."""
+        h = 1.0 / self.rate
+        delay = td_ms * self.rate / 1000.0
+        if abs(delay - round(delay)) < 1e-9:
+            delay = float(round(delay))
+        self.n[i] = math.floor(delay)
+        frac = delay - self.n[i]  # ... and the fraction f of a cycle
+        tp1 = tp1_ms / 1000.0
+        if tp1 > 0:
+            self.phi1[i] = math.exp(-frac * h / tp1)
+            self.phi2[i] = math.exp(-(1.0 - frac) * h / tp1)
+        else:  # a pure delay (phi = 0 over any interval)
+            self.phi1[i], self.phi2[i] = (0.0 if frac > 0 else 1.0), 0.0
 
     def step(self, k: int, u: np.ndarray) -> None:
         """Hold u over cycle k: y[k] -> y[k+1].
@@ -131,10 +169,14 @@ class Platform:
     """The control loop: setpoints in, simulation, feedback and status out."""
 
     def __init__(self, session: Any, args: argparse.Namespace,
-                 truth_ms: dict[str, tuple[float, float]], stop: threading.Event) -> None:
+                 truth_ms: dict[str, tuple[float, float]], stop: threading.Event,
+                 drifts: list[tuple[str, float, float, float]] | None = None) -> None:
         self.rate = float(args.rate)
         self.h = 1.0 / self.rate
-        self.plant = Plant(truth_ms, self.rate)
+        drifts = drifts or []
+        self.plant = Plant(truth_ms, self.rate, max((d[1] for d in drifts), default=0.0))
+        self.drifts = sorted(drifts, key=lambda d: d[3])  # (axis, TD ms, TP1 ms, at s)
+        self.usr1 = threading.Event()  # the drifts @usr1 are due
         self.feedback = session.declare_publisher(args.feedback_key, express=True)
         self.status = session.declare_publisher(args.status_key)
         self.inbox: collections.deque[tuple[float, bytes]] = collections.deque()
@@ -226,6 +268,13 @@ class Platform:
         next_status = start + 1.0
         k = 0
         while not self.stop.is_set() and (duration is None or deadline - start < duration):
+            while self.drifts and (deadline - start >= self.drifts[0][3] or (
+                    self.usr1.is_set() and math.isinf(self.drifts[0][3]))):
+                axis, td, tp1, _ = self.drifts.pop(0)
+                self.plant.set_truth(AXES.index(axis), td, tp1)
+                print(f"wire_platform: {axis} truth now TD = {td:g} ms, TP1 = {tp1:g} ms "
+                      f"({deadline - start:.2f} s after the start, at epoch "
+                      f"{wall_time_at(deadline):.3f} s)", file=sys.stderr, flush=True)
             while (wait := deadline - time.perf_counter()) > 0:
                 time.sleep(wait - SPIN_S if wait > SPIN_S + 1e-4 else 0)  # sleep(0) yields
             late = int((time.perf_counter() - deadline) / self.h)
@@ -252,6 +301,9 @@ def main() -> int:
     ap.add_argument("--rate", type=float, default=1000.0, help="control rate, Hz (1000)")
     ap.add_argument("--truth", action="append", default=[], metavar="AXIS=TD_MS,TP1_MS",
                     help="an axis' delay and time constant, ms (default 20,50; rails_y 20,150)")
+    ap.add_argument("--drift", action="append", default=[], metavar="AXIS=TD_MS,TP1_MS@T",
+                    help="change an axis' delay and time constant T seconds after the start "
+                         "(T = usr1: when the process receives SIGUSR1)")
     ap.add_argument("--duration", type=float, help="stop after this many seconds")
     ap.add_argument("--feedback-key", default="platform/feedback")
     ap.add_argument("--setpoint-key", default="platform/setpoint")
@@ -262,7 +314,8 @@ def main() -> int:
     if not (args.connect or args.listen or args.zenoh_config):
         ap.error("give -e/--connect and/or -l/--listen endpoints (multicast scouting is off)")
     try:
-        truth = parse_truth(args.truth)  # reject bad --truth before opening zenoh
+        truth = parse_truth(args.truth)  # reject bad --truth and --drift before opening zenoh
+        drifts = [parse_drift(d) for d in args.drift]
     except ValueError as exc:
         ap.error(str(exc))
     stop = threading.Event()
@@ -272,6 +325,8 @@ def main() -> int:
 
     signal.signal(signal.SIGTERM, on_signal)  # before zenoh opens: a stop at any time exits 0
     signal.signal(signal.SIGINT, on_signal)
+    usr1 = threading.Event()
+    signal.signal(signal.SIGUSR1, lambda *_: usr1.set())
 
     conf = zenoh.Config.from_file(args.zenoh_config) if args.zenoh_config else zenoh.Config()
     conf.insert_json5("mode", '"peer"')
@@ -282,7 +337,8 @@ def main() -> int:
         conf.insert_json5("listen/endpoints", json.dumps(args.listen))
     sys.setswitchinterval(2e-4)  # let zenoh's callbacks in promptly while the loop runs
     with zenoh.open(conf) as session:
-        platform = Platform(session, args, truth, stop)
+        platform = Platform(session, args, truth, stop, drifts)
+        platform.usr1 = usr1
         try:
             platform.run(args.duration)
         finally:

@@ -8,7 +8,7 @@ import logging
 import sys
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from motcomp.cli._common import positive_float, print_json, rate_arg
 from motcomp.core.axes import AXIS_INDEX
@@ -58,7 +58,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="write the running service's current estimate of --axis (its "
                           "status' model_mismatch block; default: the axis in alarm) as the "
                           "config fragment <axis>.toml into --out; exit 2 without a fragment "
-                          "when the estimate is not informative (unless --force)")
+                          "when the estimate is not informative or describes no plausible "
+                          "platform (--force writes it, marked forced)")
     sup.add_argument("--status-key", default="motcomp/status", metavar="KEY",
                      help="the service's status key (default: motcomp/status)")
     live = p.add_argument_group(
@@ -123,8 +124,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--force", action="store_true",
                    help=f"write the config fragment even when the fit explains little of the "
-                        f"measurement (validation fit below {MIN_FIT_PERCENT:g} %%; exit 2 "
-                        "without it)")
+                        f"measurement (validation fit below {MIN_FIT_PERCENT:g} %%) or the "
+                        "service missed more than 5 %% of its deadlines (exit 2 without it), "
+                        "marked forced (config check and the service warn); with --live, run "
+                        "even when the service misses them before the run")
     p.set_defaults(func=run_identify)
 
 
@@ -216,13 +219,15 @@ def run_identify(args: argparse.Namespace) -> int:
     poor = {axis: _untrusted(ident) for axis, ident in idents.items()}
     poor = {axis: why for axis, why in poor.items() if why}
     held = frozenset(poor) if not args.force else frozenset()
+    forced = poor if args.force else {}
     try:
         if len(idents) == 1:
             (axis, ident), = idents.items()
             written = write_report(ident, out, axis=axis, figures=not args.no_figures,
-                                   fragment=axis not in held)
+                                   fragment=axis not in held, forced=forced.get(axis))
         else:
-            written = write_reports(idents, out, figures=not args.no_figures, no_fragment=held)
+            written = write_reports(idents, out, figures=not args.no_figures, no_fragment=held,
+                                    forced=forced)
     except OSError as exc:
         raise ConfigError(f"--out {out}: cannot write the report: {exc.strerror or exc}"
                           ) from None
@@ -250,7 +255,9 @@ def run_identify(args: argparse.Namespace) -> int:
             print(f"warning: {where}{msg}", file=sys.stderr)
     for axis, why in poor.items():
         print(f"{'warning' if args.force else 'error'}: {axis}: {why}; "
-              + ("its config fragment is written anyway (--force)" if args.force else
+              + ("its config fragment is written anyway (--force), marked forced: `motcomp "
+                 "config check` and the service warn while it is the axis' model"
+                 if args.force else
                  f"no config fragment written (the report in {out} says more; --force writes "
                  "it anyway)"), file=sys.stderr)
     return 2 if held else 0
@@ -301,7 +308,7 @@ def _run_from_status(args: argparse.Namespace) -> int:
     when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(float(st.get("t", 0.0))))
     comments = [
         f"# Estimated by motcomp's model supervision from ordinary driving ({where}, {when}):",
-        f"# {fig['to_t'] - fig['from_t']:.0f} s window, motion centred at {fig['at_hz']:.2f} Hz; "
+        f"# {fig['to_t'] - fig['from_t']:.0f} s window, judged at {fig['at_hz']:.2f} Hz; "
         f"identified {est['identified']}; the model explains {100 * est['explained']:.2f} %.",
         f"# Td {est['Td_ms']:.2f} +- {est['Td_se_ms']:.2f} ms, "
         + ("" if est.get("Tp1_ms") is None else
@@ -312,16 +319,17 @@ def _run_from_status(args: argparse.Namespace) -> int:
         f"{100 * fig['gain_error']:+.2f} % in the band.",
     ]
     out = args.out or Path(f"retune_{axis}")
-    if not informative and not args.force:
-        print(f"error: {axis}: the estimate is not informative ({fig.get('reason')}); no "
-              "config fragment written (--force writes it anyway)", file=sys.stderr)
+    refusals = ([] if informative else [f"not informative ({fig.get('reason')})"]) + [
+        f"implausible: {why}" for why in implausible(est, fig)]
+    if refusals and not args.force:
+        print(f"error: {axis}: the estimate is {'; '.join(refusals)}; no config fragment "
+              "written (--force writes it anyway, marked forced)", file=sys.stderr)
         return 2
-    if not informative:
-        comments.append(f"# Written with --force although not informative: {fig.get('reason')}")
+    forced = "; ".join(refusals) if refusals else None
     try:
         out.mkdir(parents=True, exist_ok=True)
         path = out / f"{axis}.toml"
-        path.write_text(model_fragment(axis, est["spec"], comments))
+        path.write_text(model_fragment(axis, est["spec"], comments, forced))
     except OSError as exc:
         raise ConfigError(f"--out {out}: cannot write the fragment: {exc.strerror or exc}"
                           ) from None
@@ -331,6 +339,50 @@ def _run_from_status(args: argparse.Namespace) -> int:
         print("\n".join(comments))
         print(f"wrote {path}")
     return 0
+
+
+PLAUSIBLE_GAIN = (0.5, 2.0)
+"""An estimate's gain within these multiples of the model's: a platform moves about what it is
+told, and an accelerometer's scale does not change in service."""
+PLAUSIBLE_SE = {"Td": 10.0, "Tp1": 0.25, "K": 0.1}
+"""Largest standard errors of a plausible estimate: ``Td`` in ms, ``Tp1`` and ``K`` relative."""
+ESTIMATE_BOUNDS_MS = {"Td": (0.0, 250.0), "Tp1": (0.1, 2000.0)}
+"""The supervision fit's bounds (motcomp.runtime.estimate): an estimate on one is the search's
+end, not a platform."""
+
+
+def implausible(est: dict[str, Any], fig: dict[str, Any]) -> list[str]:
+    """Why the supervision's estimate ``est`` (of the status block ``fig``) describes no
+    plausible platform: a parameter on the fit's bounds or undetermined, a gain far from the
+    model's, a model that explains too little.  Empty when plausible."""
+    from motcomp.core.models import parse_model
+
+    why = []
+    for name, (lo, hi) in ESTIMATE_BOUNDS_MS.items():
+        v = est.get(f"{name}_ms")
+        if isinstance(v, int | float) and not lo + 1e-3 < v < hi - 1e-3:
+            why.append(f"{name} {v:.2f} ms is on the fit's bound ({lo:g}-{hi:g} ms)")
+    td_se, tp_se, tp = est.get("Td_se_ms"), est.get("Tp1_se_ms"), est.get("Tp1_ms")
+    if not (isinstance(td_se, int | float) and td_se <= PLAUSIBLE_SE["Td"]):
+        why.append(f"Td is undetermined (+-{td_se} ms, more than {PLAUSIBLE_SE['Td']:g} ms)")
+    if isinstance(tp, int | float) and not (isinstance(tp_se, int | float)
+                                            and tp_se <= PLAUSIBLE_SE["Tp1"] * tp):
+        why.append(f"Tp1 is undetermined ({tp:.1f} +- {tp_se} ms)")
+    k, k_se = est.get("K"), est.get("K_se")
+    try:
+        k_model = parse_model(str(fig.get("model"))).gain
+    except (ConfigError, ValueError):
+        k_model = 1.0
+    if not isinstance(k, int | float) or not (
+            PLAUSIBLE_GAIN[0] <= k / k_model <= PLAUSIBLE_GAIN[1]):
+        why.append(f"its gain K = {k} is not within {PLAUSIBLE_GAIN[0]:g}-"
+                   f"{PLAUSIBLE_GAIN[1]:g} times the model's ({k_model:g})")
+    elif not (isinstance(k_se, int | float) and k_se <= PLAUSIBLE_SE["K"] * abs(k)):
+        why.append(f"K is undetermined ({k:.3f} +- {k_se})")
+    explained = est.get("explained")
+    if not (isinstance(explained, int | float) and explained >= 0.5):
+        why.append(f"it explains {explained} of the measured acceleration (less than half)")
+    return why
 
 
 def _untrusted(ident: Identification) -> str:
@@ -367,7 +419,9 @@ def _run_live(args: argparse.Namespace) -> None:
                           "first)")
     run = run_live(LiveOptions(axis=args.axis, out=args.data, kind=args.excite,
                                duration_s=args.excite_s, usage=args.usage,
-                               admin_key=args.admin_key, quiet=args.quiet),
+                               admin_key=args.admin_key, quiet=args.quiet,
+                               max_missed_share=None if args.force
+                               else MAX_MISSED_SHARE_FRAGMENT),
                    endpoints_from_args(args))
     cols = read_session(run.path).identification_columns(args.axis, "frame")
     t0, t1 = (t - cols.start_s for t in run.window_unix_s)

@@ -55,7 +55,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="built-in motion: slalom (rails_y, 22 s), lanechange (rails_y: 1.5 m "
                         "in 2 s and back, 8 s), sweep (rails_x, 0.1-3 Hz, 60 s), bandsweep "
                         "(rails_x, 0.1-2 Hz sized for the exact inverse of the rails' model, "
-                        "22 s), demo (rails and hexapod, about 12 s)")
+                        "22 s), demo (rails and hexapod, about 12 s), driving (rails_y: "
+                        "slaloms and lane changes, 120 s)")
     g.add_argument("--file", type=Path,
                    help="msgpack stream of input frames, or CSV t,<axis>... (t,cmd with --axis)")
     p.add_argument("--axis", metavar="AXIS", help="axis of a CSV 'cmd' column")

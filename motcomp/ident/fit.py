@@ -1082,6 +1082,21 @@ def _equivalent(a: ModelFit, ref: ModelFit) -> bool:
     return close("phase_delay_0p2hz_ms", 2.0) and close("pure_delay_ms", 1.0)
 
 
+def _same_numbers(f: ModelFit, kind: str, ref: ModelFit) -> str:
+    """Why ``f`` (of kind ``kind``) gives what ``ref`` gives (:func:`_equivalent` holds): the
+    same Table 1 numbers, or numbers ``ref``'s standard errors cannot tell from ``f``'s."""
+    pairs = [(f.table1[key], ref.table1[key],
+              max(f.table1.get(f"{key}_stderr") or 0.0, ref.table1.get(f"{key}_stderr") or 0.0),
+              floor)
+             for key, floor in (("pure_delay_ms", 1.0), ("phase_delay_0p2hz_ms", 2.0))]
+    nums = ", ".join(f"{a:.1f} vs {b:.1f}" + (f" +- {se:.1f}" if se else "") + " ms"
+                     for a, b, se, _ in pairs)
+    if all(abs(a - b) <= floor for a, b, _, floor in pairs):
+        return f"but gives the same pure delay and phase delay at 0.2 Hz ({nums})"
+    return (f"but its pure delay and phase delay at 0.2 Hz are too uncertain to differ from "
+            f"{kind}'s ({nums}: within two standard errors)")
+
+
 def select_model(fits: dict[str, ModelFit], tolerance: float) -> tuple[str, str]:
     """The simplest adequate model, and why.
 
@@ -1113,11 +1128,7 @@ def select_model(fits: dict[str, ModelFit], tolerance: float) -> tuple[str, str]
             elif ok_stat:
                 parts.append(f"AIC within {d_aic:.1f} of the lowest ({ref})")
             else:
-                parts.append(f"{ref} lowers the AIC by {-d_aic:.1f} but gives the same pure "
-                             f"delay and phase delay at 0.2 Hz ({f.table1['pure_delay_ms']:.1f} "
-                             f"vs {r.table1['pure_delay_ms']:.1f} ms, "
-                             f"{f.table1['phase_delay_0p2hz_ms']:.1f} vs "
-                             f"{r.table1['phase_delay_0p2hz_ms']:.1f} ms)")
+                parts.append(f"{ref} lowers the AIC by {d_aic:.1f}, " + _same_numbers(f, k, r))
             if rejected:
                 parts.append("simpler models rejected: " + "; ".join(rejected))
             return k, "; ".join(parts)

@@ -3,7 +3,9 @@
 Steps, each on the real processes (the service must run with ``[admin] enabled = true``, and no
 other motion source may publish meanwhile)::
 
-    1  ask the service's status: which axes it drives and bypasses, which config it runs
+    0  the host's probe: the service's own loop over ``probe_s`` (its status read twice); a
+       service missing more than ``max_missed_share`` of its deadlines now would starve the
+       run, whose identification is then refused: said before anything moves
     2  bypass the axis (compensation off, its prediction too): the platform receives the
        excitation itself
     3  record inputs, outputs, feedback and status (motcomp.record.recorder) to an MCAP file
@@ -22,6 +24,7 @@ ticks, at 0.5 on none (docs/IDENTIFICATION.md).
 
 from __future__ import annotations
 
+import gc
 import logging
 import threading
 import time
@@ -33,14 +36,14 @@ import msgpack
 import numpy as np
 
 from motcomp.core.axes import AXES
-from motcomp.errors import ServiceError
+from motcomp.errors import DataError, ServiceError
 from motcomp.ident.excitation import AxisRange, excitation
 from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, open_session
 from motcomp.progress import Progress
 from motcomp.record.recorder import RecordOptions, record
 from motcomp.record.session import DEFAULT_KEYS
 
-__all__ = ["LiveOptions", "LiveRun", "run_live"]
+__all__ = ["LiveOptions", "LiveRun", "probe_host", "run_live"]
 
 log = logging.getLogger("motcomp.ident")
 
@@ -63,6 +66,10 @@ class LiveOptions:
     input_key: str = DEFAULT_KEYS["input"]
     keys: list[str] = field(default_factory=lambda: list(DEFAULT_KEYS.values()))
     timeout_s: float = 3.0
+    probe_s: float = 3.0
+    """How long the service's loop is watched before the run (step 0)."""
+    max_missed_share: float | None = 0.05
+    """Step 0 refuses when the service misses more of its deadlines (None: no check)."""
     quiet: bool = False
     """No progress of the excitation on stderr (:class:`~motcomp.progress.Progress`)."""
 
@@ -85,6 +92,10 @@ def _ask(session: Any, key: str, body: dict[str, Any] | None, timeout_s: float) 
     return msgpack.unpackb(raw, raw=False)
 
 
+def _pct(share: float | None) -> str:
+    return "(unknown)" if share is None else f"{100 * share:.1f} %"
+
+
 def _limits(status: dict[str, Any], axis: str) -> AxisRange:
     """The axis' limits from the config the service runs (its file), else the preset's."""
     from motcomp.config import load_config, resolve_axes
@@ -102,18 +113,55 @@ def _limits(status: dict[str, Any], axis: str) -> AxisRange:
                      float(lim.a_max[0]))
 
 
+def probe_host(first: dict[str, Any], second: dict[str, Any]) -> dict[str, float | None]:
+    """The deadlines the service's loop (and the platform's, where its status says) missed
+    between two of the service's status frames: ``{"service": share, "platform": share}``
+    (None where unknown)."""
+    out: dict[str, float | None] = {}
+    for who, a, b in (("service", first, second),
+                      ("platform", first.get("platform") or {}, second.get("platform") or {})):
+        try:
+            missed = float(b["missed_ticks"]) - float(a["missed_ticks"])
+            ticks = float(b["ticks"]) - float(a["ticks"])
+        except (KeyError, TypeError, ValueError):
+            out[who] = None
+            continue
+        out[who] = missed / (missed + ticks) if missed + ticks > 0 else None
+    return out
+
+
 def run_live(opts: LiveOptions, endpoints: ZenohEndpoints) -> LiveRun:
-    """Steps 1-5 of the module docstring; returns the recording to identify (step 6).
+    """Steps 0-5 of the module docstring; returns the recording to identify (step 6).
 
     Raises
     ------
     ServiceError
         If the service does not answer, does not drive the axis, or refuses the bypass.
+    DataError
+        If the host's probe (step 0) finds the service missing more than
+        ``opts.max_missed_share`` of its deadlines: the message says what the host must give.
     """
     from motcomp.sim.source import Trajectory, publish
 
     with open_session(endpoints) as session:
         status = _ask(session, opts.status_key, None, opts.timeout_s)
+        if opts.max_missed_share is not None and opts.probe_s > 0:
+            time.sleep(opts.probe_s)
+            later = _ask(session, opts.status_key, None, opts.timeout_s)
+            shares = probe_host(status, later)
+            service = shares["service"]
+            log.info("host probe over %.1f s: the service missed %s of its deadlines, the "
+                     "platform %s", opts.probe_s, _pct(service), _pct(shares["platform"]))
+            if service is not None and service > opts.max_missed_share:
+                raise DataError(
+                    f"the service missed {100 * service:.1f} % of its deadlines over the last "
+                    f"{opts.probe_s:g} s (the platform {_pct(shares['platform'])}), more than "
+                    f"{100 * opts.max_missed_share:g} %: an identification run now would carry "
+                    "the host's stalls and be refused, so nothing was excited.  The host must "
+                    "give the service's loop its CPU: stop other work on it, or give the "
+                    "service a core of its own and real-time priority (docs/DEPLOYMENT.md); "
+                    "--force runs it anyway")
+            status = later
         if opts.axis not in status.get("driven", []):
             raise ServiceError(f"the service does not drive {opts.axis} (driven: "
                                f"{', '.join(status.get('driven', [])) or 'none'})")
@@ -148,12 +196,22 @@ def run_live(opts: LiveOptions, endpoints: ZenohEndpoints) -> LiveRun:
             thread.start()
             time.sleep(1.0)  # the recorder's subscriptions reach the peers
             traj = Trajectory(rate_hz=exc.rate_hz, pos={opts.axis: np.asarray(exc.cmd)})
-            t0 = time.time()
-            with Progress(f"excitation on {opts.axis}", traj.duration_s, quiet=opts.quiet,
-                          unit="s") as bar:
-                stats = publish(traj, endpoints, opts.input_key, wait_peer_s=opts.timeout_s,
-                                progress=bar.update)
-            t1 = time.time()
+            # the recorder's thread allocates a frame's objects at every message: the cyclic
+            # collector's full pass then stalls this process, the excitation's sender, for
+            # tens of ms (72 ms measured, at the same instant of every run), which the service
+            # bridges by holding its input and the limiter catches up after -- ending the
+            # fit's window there.  Nothing here makes cycles: the collector waits for the end
+            gc.collect()
+            gc.disable()
+            try:
+                t0 = time.time()
+                with Progress(f"excitation on {opts.axis}", traj.duration_s, quiet=opts.quiet,
+                              unit="s") as bar:
+                    stats = publish(traj, endpoints, opts.input_key, wait_peer_s=opts.timeout_s,
+                                    progress=bar.update)
+                t1 = time.time()
+            finally:
+                gc.enable()
             # the recording says where the excitation lies: `identify FILE` finds it again
             rec_opts.extra_info.update(excitation_axis=opts.axis,
                                        excitation_window=f"{t0!r} {t1!r}")

@@ -256,8 +256,10 @@ def table1_markdown(rows: list[dict[str, Any]]) -> str:
     return "\n".join([*lines, "", DELAY_CONVENTION])
 
 
-def config_fragment(ident: Identification, axis: str | None = None) -> str:
-    """The TOML fragment ``[axes.<axis>] model = "<spec>"`` with the fit quality in comments."""
+def config_fragment(ident: Identification, axis: str | None = None,
+                    forced: str | None = None) -> str:
+    """The TOML fragment ``[axes.<axis>] model = "<spec>"`` with the fit quality in comments;
+    ``forced``: why identify refused it (written with ``--force``: :func:`model_fragment`)."""
     rep = report_json(ident, axis)
     sel = ident.best
     t1 = rep["table1"]
@@ -278,12 +280,20 @@ def config_fragment(ident: Identification, axis: str | None = None) -> str:
         if k != ident.selected:
             lines.append(f"# Also fitted: {f.model.spec()} (validation fit "
                          f"{f.fit_percent:.2f} %, AIC {f.aic:.1f})")
-    return model_fragment(t1["axis"], rep["model_spec"], lines)
+    return model_fragment(t1["axis"], rep["model_spec"], lines, forced)
 
 
-def model_fragment(axis: str, spec: str, comments: list[str]) -> str:
-    """The TOML fragment ``[axes.<axis>] model = "<spec>"`` after the comment lines given."""
-    return "\n".join([*comments, f"[axes.{axis}]", f"model = \"{spec}\"", ""])
+def model_fragment(axis: str, spec: str, comments: list[str], forced: str | None = None) -> str:
+    """The TOML fragment ``[axes.<axis>] model = "<spec>"`` after the comment lines given.
+
+    ``forced``: why ``motcomp identify`` refused to write it, when ``--force`` wrote it
+    anyway: said in a comment and marked ``forced = { model, why }``, on which the service and
+    ``motcomp config check`` warn while the axis runs that model."""
+    lines = [*comments, f"[axes.{axis}]", f"model = {json.dumps(spec)}"]
+    if forced is not None:
+        lines[len(comments):len(comments)] = [f"# FORCED (--force) although: {forced}"]
+        lines.append(f"forced = {{ model = {json.dumps(spec)}, why = {json.dumps(forced)} }}")
+    return "\n".join([*lines, ""])
 
 
 def write_figures(ident: Identification, out_dir: Path) -> list[Path]:
@@ -419,14 +429,14 @@ def write_figures(ident: Identification, out_dir: Path) -> list[Path]:
 
 
 def _write_one(ident: Identification, directory: Path, axis: str | None, figures: bool,
-               fragment: bool = True) -> list[Path]:
+               fragment: bool = True, forced: str | None = None) -> list[Path]:
     name = _axis(ident, axis)
     (directory / "report.json").write_text(
         json.dumps(report_json(ident, axis), indent=2, allow_nan=False) + "\n")
     (directory / "report.md").write_text(markdown(ident, axis))
     files = [directory / "report.json", directory / "report.md"]
     if fragment:
-        (directory / f"{name}.toml").write_text(config_fragment(ident, axis))
+        (directory / f"{name}.toml").write_text(config_fragment(ident, axis, forced))
         files.append(directory / f"{name}.toml")
     if figures:
         files += write_figures(ident, directory)
@@ -446,22 +456,26 @@ def _commit(tmp_path: Path, out_dir: Path) -> list[Path]:
 
 
 def write_report(ident: Identification, out_dir: Path, axis: str | None = None,
-                 figures: bool = True, fragment: bool = True) -> list[Path]:
-    """Write ``report.json``, ``report.md``, ``<axis>.toml`` (unless not ``fragment``) and
-    (optionally) the figures into ``out_dir``, through a temporary directory: on any failure
-    nothing is left behind."""
+                 figures: bool = True, fragment: bool = True,
+                 forced: str | None = None) -> list[Path]:
+    """Write ``report.json``, ``report.md``, ``<axis>.toml`` (unless not ``fragment``; marked
+    ``forced``: :func:`model_fragment`) and (optionally) the figures into ``out_dir``, through a
+    temporary directory: on any failure nothing is left behind."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out_dir, prefix=".tmp-") as tmp:
-        _write_one(ident, Path(tmp), axis, figures, fragment)
+        _write_one(ident, Path(tmp), axis, figures, fragment, forced)
         return _commit(Path(tmp), out_dir)
 
 
 def write_reports(idents: dict[str, Identification], out_dir: Path, figures: bool = True,
-                  no_fragment: frozenset[str] = frozenset()) -> list[Path]:
+                  no_fragment: frozenset[str] = frozenset(),
+                  forced: dict[str, str] | None = None) -> list[Path]:
     """Several axes of one recording: a sub-directory per axis with its full report, and at the
     top ``table1.md`` / ``table1.json`` (one row per axis) and ``axes.toml`` (the fragment of
-    every axis not in ``no_fragment``), all written before any is moved into place."""
+    every axis not in ``no_fragment``; those in ``forced`` marked so), all written before any
+    is moved into place."""
+    forced = forced or {}
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = [table1(ident, axis) for axis, ident in idents.items()]
@@ -469,11 +483,12 @@ def write_reports(idents: dict[str, Identification], out_dir: Path, figures: boo
         tmp_path = Path(tmp)
         for axis, ident in idents.items():
             (tmp_path / axis).mkdir()
-            _write_one(ident, tmp_path / axis, axis, figures, axis not in no_fragment)
+            _write_one(ident, tmp_path / axis, axis, figures, axis not in no_fragment,
+                       forced.get(axis))
         (tmp_path / "table1.md").write_text(table1_markdown(rows) + "\n")
         (tmp_path / "table1.json").write_text(
             json.dumps(finite(rows), indent=2, allow_nan=False) + "\n")
         (tmp_path / "axes.toml").write_text(
-            "\n".join(config_fragment(ident, axis) for axis, ident in idents.items()
-                      if axis not in no_fragment))
+            "\n".join(config_fragment(ident, axis, forced.get(axis))
+                      for axis, ident in idents.items() if axis not in no_fragment))
         return _commit(tmp_path, out_dir)

@@ -4,9 +4,11 @@ window a supervising process keeps of the service's outputs and feedback: :class
 The command-to-feedback path is the platform itself, open loop, whatever the compensator does:
 its P1D model (``K e^{-Td s} / (1 + Tp1 s)``) is identified from the service's outputs and the
 platform's measured acceleration over the last ``window_s``, with the pairing rule of
-``motcomp identify`` on a recording (the output in force at each feedback instant, on the
-frames' own clocks: :func:`motcomp.record.session.output_in_force`) and its checks and
-resampling (:func:`motcomp.ident.data.check_and_resample`).
+``motcomp identify`` on a recording (the output in force at each instant, on the frames' own
+clocks: :func:`motcomp.record.session.output_in_force`), on a uniform grid whose stalls are cut
+out: a gap of the feedback or of the outputs during which the command moved (the platform held
+a stale setpoint the pairing does not know of) costs its samples and ``settle_s`` after, not
+the window.
 
 The fit (why and how: docs/SUPERVISION.md) is an output-error fit: the command's second
 difference and the measured acceleration, low-passed by one causal filter and decimated, the
@@ -20,8 +22,10 @@ errors come from the Jacobian and the residual's long-run covariance.
 
 The mismatch is what the difference between the estimate ``P`` and the compensator's model ``M``
 does to the delivered response: the compensator makes ``M`` follow its design, so the platform
-delivers ``P / M`` times it.  At the motion's centre frequency in the configured band:
-``residual_delay_ms`` = phase delay of ``P / M``, ``gain_error`` = ``|P / M| - 1``.
+delivers ``P / M`` times it.  ``residual_delay_ms`` = phase delay of ``P / M``, ``gain_error`` =
+``|P / M| - 1``, at the driven frequency (in the configured band) where the data determine the
+residual delay best -- a delay is a phase over a frequency, and the driving's low end (a
+slalom's 0.3 Hz) tells it least.
 
 Nothing here reads a clock or raises on data: a window that cannot tell says why
 (``informative`` false, ``reason``).
@@ -37,8 +41,6 @@ from typing import Any
 import numpy as np
 
 from motcomp.core.models import P1D, ProcessModel
-from motcomp.errors import MotcompError
-from motcomp.ident.data import RawRecording, check_and_resample
 from motcomp.jsonsafe import finite
 from motcomp.record.session import output_in_force
 
@@ -51,6 +53,9 @@ LEAD_IN_S = 2.5
 """The start of a window simulated but not judged: the simulation starts in a steady state,
 and the P1D's memory of what came before fades (13 time constants of the rails' 186 ms; the
 filter's own transient is shorter)."""
+DRIVEN_DB = 0.1
+"""A frequency of the band is driven where the command's acceleration power there is at least
+this share of its peak in the band (10 dB)."""
 TD_GRID_S = np.arange(0.0, 0.2501, 0.01)
 """The coarse delay grid the fit starts from (the delay range of ``motcomp identify``; the
 filtered signals vary on a scale of 100 ms, the fit refines from the best point)."""
@@ -73,14 +78,33 @@ class EstimateSettings:
     """Least part of the window the feedback (paired with outputs) must cover."""
     min_fit: float = 0.5
     """Least share of the in-band acceleration the fitted model explains (1 - |res|^2/|A|^2)."""
+    stall_s: float = 0.02
+    """A gap between two feedback samples, or between two outputs, longer than this is a stall
+    of the host (or of the platform's link) always cut out (:func:`_grid`)."""
+    stall_area: float = 1e-6
+    """A shorter gap is cut too when the command's change over it, held for it, exceeds this
+    (m s or rad s): the error of the platform's input had the stall held it stale."""
+    settle_s: float = 0.4
+    """How long after a stall its samples are cut: the fit's filter and the platform's own
+    memory carry its error this long."""
+    min_judged: float = 0.35
+    """Least part of the window (after the lead-in) left to judge once the stalls are cut (a
+    third: 4.4 s of a 15 s window; the residual delay's standard error says what is left)."""
 
 
 def mismatch(est: ProcessModel, model: ProcessModel, f_hz: float) -> tuple[float, float]:
     """``(residual delay s, gain error)`` of the delivered response ``P / M`` at ``f_hz``: the
     phase delay of ``est / model`` (the difference of their unwrapped phase delays) and
     ``|est / model| - 1``."""
-    delay = float(est.phase_delay([f_hz])[0]) - float(model.phase_delay([f_hz])[0])
-    return delay, float(est.magnitude([f_hz])[0] / model.magnitude([f_hz])[0]) - 1.0
+    delay, gain = _mismatch(est, model, np.array([f_hz]))
+    return float(delay[0]), float(gain[0])
+
+
+def _mismatch(est: ProcessModel, model: ProcessModel, f_hz: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`mismatch` at each of ``f_hz``."""
+    delay = np.asarray(est.phase_delay(f_hz)) - np.asarray(model.phase_delay(f_hz))
+    return delay, np.asarray(est.magnitude(f_hz)) / np.asarray(model.magnitude(f_hz)) - 1.0
 
 
 @dataclass(frozen=True)
@@ -94,20 +118,92 @@ class _Signals:
     rate: float
     hold_s: float
     """Half the recorded period: the hold's lag."""
-    judged: slice
-    """Samples whose residual is judged (after the lead-in)."""
+    judged: np.ndarray
+    """Which samples' residuals are judged: after the lead-in, outside the stalls' cuts."""
     lags: int
     """Correlation length of the residual (samples) for its long-run covariance."""
 
 
-def _signals(cmd: np.ndarray, acc: np.ndarray, rate: float, settings: EstimateSettings
-             ) -> _Signals:
+@dataclass(frozen=True)
+class _Grid:
+    """The window on a uniform grid at the feedback's rate."""
+
+    rate: float
+    cmd: np.ndarray
+    """The output in force at each grid instant: what the platform held."""
+    acc: np.ndarray
+    """The measured acceleration, interpolated at the grid instants."""
+    keep: np.ndarray
+    """The grid instants outside the stalls' cuts."""
+    stalls: int
+    """Stretches cut out (overlapping cuts count once)."""
+    cut_s: float
+
+
+def _grid(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: np.ndarray,
+          settings: EstimateSettings) -> _Grid:
+    """The window on a uniform grid, its stalls cut out.
+
+    ``t_fb`` (increasing, every sample with an output in force) and ``acc``: the feedback;
+    the grid runs from its first sample to its last at its median rate (rounded to whole
+    hertz within 0.1 %).  The command is known at every grid instant (the outputs in force),
+    the acceleration where the feedback is.  A gap of the feedback or of the outputs (longer
+    than 1.5 of their median periods) is a stall, cut -- the grid instants from its start to
+    ``settings.settle_s`` after its end, ``keep`` false -- when half the command's change over
+    it times its length exceeds ``settings.stall_area``, or it lasts longer than
+    ``settings.stall_s``.
+    """
+    new = np.concatenate([[True], np.diff(t_fb) > 0])  # a repeated stamp: its first sample
+    t_fb, acc = t_fb[new], acc[new]
+    d = np.diff(t_fb)
+    rate = 1.0 / float(np.median(d))
+    if abs(rate - round(rate)) <= 1e-3 * rate:
+        rate = float(round(rate))
+    n = math.floor((t_fb[-1] - t_fb[0]) * rate + 1e-9) + 1
+    t = t_fb[0] + np.arange(n) / rate
+    cmd = u_out[np.searchsorted(t_out, t, side="right") - 1]
+    a = np.interp(t, t_fb, acc)
+    # the outputs around the window: a loop stall just before it reaches into it
+    i0 = max(int(np.searchsorted(t_out, t[0] - settings.settle_s)) - 1, 0)
+    i1 = int(np.searchsorted(t_out, t[-1], side="right"))
+    to = t_out[i0:i1]
+    cut_from: list[np.ndarray] = []
+    cut_to: list[np.ndarray] = []
+    for ts in (t_fb, to):
+        if ts.size < 3:
+            continue
+        dt = np.diff(ts)
+        i = np.flatnonzero(dt > 1.5 * float(np.median(dt)))
+        a_, b_ = ts[i], ts[i + 1]
+        # the command's motion the stall held back from the platform: its change over the
+        # gap, held stale for the gap (the area of the input's error, m s)
+        ua = u_out[np.maximum(np.searchsorted(t_out, a_, side="right") - 1, 0)]
+        ub = u_out[np.maximum(np.searchsorted(t_out, b_, side="right") - 1, 0)]
+        area = 0.5 * np.abs(ub - ua) * (b_ - a_)
+        cut = (area > settings.stall_area) | (b_ - a_ > settings.stall_s)
+        cut_from.append(a_[cut])
+        cut_to.append(b_[cut])
+    starts = np.concatenate(cut_from) if cut_from else np.zeros(0)
+    ends = np.concatenate(cut_to) if cut_to else np.zeros(0)
+    edges = np.zeros(n + 1)
+    np.add.at(edges, np.searchsorted(t, starts), 1.0)
+    np.add.at(edges, np.searchsorted(t, ends + settings.settle_s), -1.0)
+    keep = np.cumsum(edges[:-1]) < 0.5
+    runs = int(np.count_nonzero(np.diff(np.concatenate([[1], keep.astype(np.int8)])) == -1))
+    return _Grid(rate=rate, cmd=cmd, acc=a, keep=keep, stalls=runs,
+                 cut_s=float(np.count_nonzero(~keep)) / rate)
+
+
+def _signals(cmd: np.ndarray, acc: np.ndarray, rate: float, keep: np.ndarray,
+             settings: EstimateSettings) -> _Signals:
+    """``keep``: the grid samples outside the stalls' cuts."""
     from scipy import signal
 
     from motcomp.ident.fit import second_difference
 
     v = second_difference(cmd, rate)
-    y = acc - float(np.mean(acc))
+    v[0], v[-1] = v[1], v[-2]  # the command moves on at the window's ends: it is not held
+    y = acc - float(np.mean(acc[keep]))
     cutoff = settings.fit_max_hz
     # one causal filter on both (it commutes with the platform's model), started in the
     # steady state of each signal's first value: its transient lies in the lead-in
@@ -117,8 +213,9 @@ def _signals(cmd: np.ndarray, acc: np.ndarray, rate: float, settings: EstimateSe
     vf = signal.sosfilt(sos, v, zi=zi * v[0])[0][::m]
     yf = signal.sosfilt(sos, y, zi=zi * y[0])[0][::m]
     r = rate / m
-    return _Signals(v=vf, y=yf, rate=r, hold_s=0.5 / rate,
-                    judged=slice(math.ceil(LEAD_IN_S * r), vf.size),
+    judged = keep[::m].copy()
+    judged[:math.ceil(LEAD_IN_S * r)] = False
+    return _Signals(v=vf, y=yf, rate=r, hold_s=0.5 / rate, judged=judged,
                     lags=math.ceil(2.0 * r / cutoff))
 
 
@@ -182,15 +279,19 @@ def _fft_len(n: int) -> int:
     return size
 
 
-def _sandwich(jac: np.ndarray, e: np.ndarray, lags: int) -> np.ndarray:
-    """The parameters' covariance for residuals ``e`` correlated over ``lags`` samples."""
+def _sandwich(jac: np.ndarray, e: np.ndarray, lags: int, judged: np.ndarray) -> np.ndarray:
+    """The parameters' covariance for residuals ``e`` of the ``judged`` samples, correlated
+    over ``lags`` samples (a cut is a stretch of zero scores: the correlation does not jump
+    over it)."""
     from motcomp.ident.fit import long_run_cov
 
     try:
         inv = np.linalg.inv(jac.T @ jac)
     except np.linalg.LinAlgError:
         return np.full((jac.shape[1], jac.shape[1]), np.inf)
-    return np.asarray(inv @ long_run_cov(jac.T * e[None, :], lags) @ inv)
+    scores = np.zeros((jac.shape[1], judged.size))
+    scores[:, judged] = jac.T * e[None, :]
+    return np.asarray(inv @ long_run_cov(scores, lags) @ inv)
 
 
 def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: np.ndarray,
@@ -207,7 +308,7 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
     sent); ``t_fb``/``acc``: the feedback's ``t`` and measured acceleration over the window
     (its first :data:`LEAD_IN_S` is a lead-in: simulated, not judged).  Returns the figures of
     docs/SUPERVISION.md (``informative``, ``reason``, ``estimate``, ``residual_delay_ms``,
-    ``pairing_phase_ms`` -- the mean time from the output in force to the feedback sample...);
+    ``pairing_phase_ms`` -- the median time from the output in force to the feedback sample...);
     never raises on data.
     """
     from scipy import optimize  # here, not at import: the service imports this module for
@@ -223,27 +324,33 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
         out["reason"] = f"no feedback acceleration of {axis} in the window"
         return out
     k, known = output_in_force(t_out, np.full(t_out.size, np.inf), t_fb)
-    t_fb, acc, cmd = t_fb[known], acc[known], u_out[k[known]]
+    if known.any():  # the median: a stall of the loop holds an old output in force
+        out["pairing_phase_ms"] = float(np.median(t_fb[known] - t_out[k[known]])) * 1e3
+    t_fb, acc = t_fb[known], acc[known]
     span = float(t_fb[-1] - t_fb[0]) if t_fb.size else 0.0
     out["span_s"] = span
-    if t_fb.size:
-        out["pairing_phase_ms"] = float(np.mean(t_fb - t_out[k[known]])) * 1e3
     if span < settings.min_coverage * settings.window_s:
         out["reason"] = (f"{span:.1f} s of feedback paired with outputs (needs "
                          f"{settings.min_coverage * settings.window_s:.1f} s)")
         return out
-    try:
-        rec = check_and_resample(RawRecording(source=f"{axis} window", t_acc=t_fb - t_fb[0],
-                                              acc=acc, t_cmd=t_fb - t_fb[0], cmd=cmd,
-                                              axis=axis))
-    except MotcompError as exc:
-        out["reason"] = f"data: {exc}"
+    grid = _grid(t_out, u_out, t_fb, acc, settings)
+    out["stalls"] = grid.stalls
+    out["cut_s"] = grid.cut_s
+    if np.ptp(grid.cmd) <= 1e-12 * max(float(np.max(np.abs(grid.cmd))), 1.0):
+        out["reason"] = f"the command is constant ({grid.cmd[0]:.6g}): nothing moved {axis}"
         return out
-    sig = _signals(rec.cmd, rec.acc, rec.rate_hz, settings)
-    judged = sig.v[sig.judged]
-    if judged.size < 4 * sig.lags:
-        out["reason"] = f"{rec.duration_s:.1f} s of data is too short"
+    sig = _signals(grid.cmd, grid.acc, grid.rate, grid.keep, settings)
+    lead = math.ceil(LEAD_IN_S * sig.rate)
+    judged_s = float(np.count_nonzero(sig.judged)) / sig.rate
+    out["judged_s"] = judged_s
+    need = settings.min_judged * (sig.v.size / sig.rate - LEAD_IN_S)
+    if np.count_nonzero(sig.judged) < 4 * sig.lags or judged_s < need:
+        out["reason"] = (f"{grid.stalls} stalls of the host or the platform's link cut out "
+                         f"{grid.cut_s:.1f} s of the window: {judged_s:.1f} s left to judge "
+                         f"(needs {need:.1f} s)" if grid.stalls else
+                         f"{span:.1f} s of data is too short")
         return out
+    judged = sig.v[lead:]  # the motion: the command is known over the whole window
     # the motion in the band: its RMS and centre frequency, from the command's spectrum
     lo_band, hi_band = settings.band_hz
     f = np.fft.rfftfreq(judged.size, 1.0 / sig.rate)
@@ -258,8 +365,11 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
         out["reason"] = (f"too little motion in {lo_band:g}-{hi_band:g} Hz (command "
                          f"acceleration RMS {motion:.3g} < {settings.min_motion:g})")
         return out
-    fc = float((f[band] * power[band]).sum() / power[band].sum())
-    out["at_hz"] = fc
+    # the driven frequencies: where the command's acceleration spectrum (smoothed over five
+    # bins) is within 10 dB of its peak in the band
+    smooth = np.convolve(power[band], np.ones(5) / 5.0, mode="same")
+    centre = float((f[band] * power[band]).sum() / power[band].sum())
+    driven = np.append(f[band][smooth >= DRIVEN_DB * float(smooth.max())], centre)
     if not isinstance(model, P1D) and not _shaped(model):
         model = model.to_p1d()
         out["model"] = model.spec()
@@ -276,7 +386,7 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
     if not shaped:
         full = optimize.least_squares(oe.residual, np.clip(x0, lo, hi), bounds=(lo, hi),
                                       x_scale=[1.0, 0.01, 0.05])
-        cov = _sandwich(full.jac, full.fun, sig.lags)
+        cov = _sandwich(full.jac, full.fun, sig.lags, sig.judged)
         corr = (cov[1, 2] / math.sqrt(cov[1, 1] * cov[2, 2])
                 if cov[1, 1] > 0 and cov[2, 2] > 0 else 1.0)
     if not shaped and abs(corr) <= MAX_CORRELATION and np.all(np.isfinite(cov)):
@@ -285,7 +395,7 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
         held = optimize.least_squares(lambda th: oe.residual(th, tp0), np.clip(x0[:2], lo[:2],
                                       hi[:2]), bounds=(lo[:2], hi[:2]), x_scale=[1.0, 0.01])
         cov = np.zeros((3, 3))
-        cov[:2, :2] = _sandwich(held.jac, held.fun, sig.lags)
+        cov[:2, :2] = _sandwich(held.jac, held.fun, sig.lags, sig.judged)
         theta = np.array([held.x[0], held.x[1], tp0])
         identified, fun = ("K, Td (the model's dynamics held)" if shaped
                            else "K, Td (Tp1 held at the model's)"), held.fun
@@ -298,15 +408,24 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
     est = as_model(theta)
     y_judged = sig.y[sig.judged] - sig.y[sig.judged].mean()
     explained = 1.0 - float(fun @ fun) / max(float(y_judged @ y_judged), 1e-300)
-    delay, gain_err = mismatch(est, model, fc)
-    # standard errors of the two figures by the delta method
-    grads = np.zeros((2, 3))
+    # the mismatch at each driven frequency, with its standard errors (delta method); judged
+    # where the driving determines it best
+    delays, gains = _mismatch(est, model, driven)
+    grads = np.zeros((2, driven.size, 3))
     for j, step in enumerate((1e-4, 1e-5, 1e-5)[:2 if shaped else 3]):
         th = theta.copy()
         th[j] += step
-        d2, g2 = mismatch(as_model(th), model, fc)
-        grads[:, j] = ((d2 - delay) / step, (g2 - gain_err) / step)
-    se = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", grads, cov, grads), 0.0))
+        d2, g2 = _mismatch(as_model(th), model, driven)
+        grads[0, :, j], grads[1, :, j] = (d2 - delays) / step, (g2 - gains) / step
+    ses = np.sqrt(np.maximum(np.einsum("xij,jk,xik->xi", grads, cov, grads), 0.0))
+    if identified == "K, Td, Tp1":
+        best = int(np.argmin(np.where(np.isfinite(ses[0]), ses[0], np.inf)))
+    else:  # the dynamics held: the data tell the delay at the motion's centre only
+        best = driven.size - 1
+    fc = float(driven[best])
+    out["at_hz"] = fc
+    delay, gain_err = float(delays[best]), float(gains[best])
+    se = ses[:, best]
     out.update({
         "estimate": {"spec": est.spec(), "K": float(theta[0]), "Td_ms": float(theta[1]) * 1e3,
                      "Tp1_ms": None if shaped else float(theta[2]) * 1e3,

@@ -14,6 +14,7 @@ Layout of the block, the rules and what an alarm means: docs/SUPERVISION.md.
 from __future__ import annotations
 
 import contextlib
+import importlib
 import logging
 import math
 import os
@@ -22,7 +23,7 @@ import queue
 import subprocess
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -32,18 +33,19 @@ from motcomp.config import ResolvedAxes, SupervisionConfig
 from motcomp.core.axes import AXES
 from motcomp.core.models import ProcessModel
 from motcomp.runtime import child
-from motcomp.runtime.clock import DEGRADED_MISSED_SHARE
 from motcomp.runtime.estimate import EstimateSettings, LiveWindow
 
-__all__ = ["ALARM_LOG_S", "CONFIDENCE_Z", "MIN_RUN", "DriftJudge", "Supervisor", "settings_of"]
+__all__ = ["ALARM_LOG_S", "BLIND_AFTER_S", "CONFIDENCE_Z", "CPU_SHARE_MAX", "MIN_RUN",
+           "DriftJudge", "Supervisor", "settings_of"]
 
 log = logging.getLogger("motcomp.supervise")
 
 ALARM_LOG_S = 60.0
 """An alarm still on is logged again after this long."""
 WORKER_NICE = 19
-"""The estimator process' niceness where ``SCHED_IDLE`` is refused: the loop's CPU comes
-first."""
+"""The estimator process' niceness: the lowest weight of the ordinary scheduler, so the loop's
+CPU comes first and the estimator still gets its share on a saturated host (``SCHED_IDLE``,
+tried first, starved it there: no estimate in 120 s at load 18 on 2 cores)."""
 ESTIMATE_TIMEOUT_S = 30.0
 """An estimate not answered within this long: the estimator process is stopped (a new one
 starts with the next period)."""
@@ -53,6 +55,20 @@ MIN_RUN = 3
 """Fewest informative estimates that start (or clear) an alarm, however long the hold."""
 KEEP_MARGIN_S = 5.0
 """The estimator keeps this much more than a window."""
+BLIND_AFTER_S = 120.0
+"""An axis none of whose windows of motion was judged for this long is *unsupervised*: said in
+its status and, once, in the log (docs/SUPERVISION.md)."""
+CPU_SHARE_MAX = 0.10
+"""The estimator process' CPU time is at most this share of the wall time: the next chunk is
+sent no sooner than the last estimate's CPU time over this share after the one before."""
+
+
+def _p1d_spec(model: ProcessModel) -> str | None:
+    """The spec of ``model``'s P1D reduction (what an OE model is judged through), if any."""
+    try:
+        return model.to_p1d().spec()
+    except Exception:  # a model without one is judged in its own form
+        return None
 
 
 def settings_of(cfg: SupervisionConfig) -> EstimateSettings:
@@ -84,13 +100,15 @@ def _estimate(request: tuple[dict[str, np.ndarray], list[str], dict[str, Process
 
 
 def serve() -> None:
-    """The estimator process' main: answer chunks until stdin closes, on CPU time nothing else
-    wants (``SCHED_IDLE``; where that is refused, niceness :data:`WORKER_NICE`)."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    except (AttributeError, OSError):
-        with contextlib.suppress(OSError):  # not permitted either: the service's priority
-            os.nice(WORKER_NICE)
+    """The estimator process' main: answer chunks until stdin closes, at niceness
+    :data:`WORKER_NICE` (its CPU time bounded by the supervisor's budget,
+    :data:`CPU_SHARE_MAX`)."""
+    with contextlib.suppress(AttributeError, OSError):  # the ordinary scheduler, lowest weight
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    with contextlib.suppress(OSError):  # not permitted: the service's priority
+        os.nice(WORKER_NICE - os.nice(0))
+    for name in ("scipy.optimize", "scipy.signal"):  # once, before the first estimate's CPU
+        importlib.import_module(name)  # time is counted against its budget
     child.serve(_estimate)
 
 
@@ -109,6 +127,42 @@ class _AxisState:
     last: dict[str, Any] = field(default_factory=dict)
     informative: int = 0
     judged: int = 0
+    last_t: float | None = None
+    """The end of the last window judged (frame clock)."""
+    blind_s: float = 0.0
+    """Time of motion since the last informative window."""
+    blind: Counter[str] = field(default_factory=Counter)
+    """Why the windows of that time were not judged: a count per kind of reason."""
+    last_reason: dict[str, str] = field(default_factory=dict)
+    """The latest reason of each kind."""
+    unsupervised: bool = False
+
+
+# what each kind of reason a window is not judged for asks of the host or of the driving
+_NEEDS = (
+    ("stalls", "a host that keeps the service's and the platform's deadlines: the stalls cut "
+               "out most of each window (docs/DEPLOYMENT.md: a core of its own, "
+               "real-time priority)"),
+    ("uncertain", "driving that moves the axis in the band for longer: the delay was not "
+                  "determined to the bound (more slaloms and lane changes, or a longer "
+                  "supervision.window_s; the host's stalls that are not cut widen it too)"),
+    ("limiter", "a command within the axis' limits: the limiter acted on most ticks"),
+    ("explains", "a model of the platform's kind: the model explains too little of the "
+                 "measured acceleration (or the accelerometer does not measure this axis)"),
+    ("feedback", "the platform's measured acceleration of this axis in its feedback "
+                 "(acc, docs/WIRE.md)"),
+)
+
+
+def _kind(reason: str) -> str:
+    """The kind of a reason a window was not judged for (a key of :data:`_NEEDS`), or
+    ``"other"``."""
+    for key, words in (("stalls", ("stalls of the host",)), ("uncertain", ("uncertain",)),
+                       ("limiter", ("the limiter acted",)), ("explains", ("explains",)),
+                       ("feedback", ("feedback", "no outputs"))):
+        if any(w in reason for w in words):
+            return key
+    return "other"
 
 
 class DriftJudge:
@@ -121,8 +175,12 @@ class DriftJudge:
     estimates over ``hold_s`` -- at least :data:`MIN_RUN` of them, the first at least
     ``hold_s`` before the last -- all exceeded; it clears when they were all within.  An
     estimate that is neither (its interval holds a bound) restarts both runs; one that is not
-    informative (also a window the loop was degraded in) tells nothing either way and changes
-    neither run.  An alarm stays as it is until it clears.
+    informative tells nothing either way and changes neither run.  An alarm stays as it is
+    until it clears.
+
+    An axis whose windows with motion in the band were not informative for
+    :data:`BLIND_AFTER_S` is *unsupervised* (its state; a WARNING once, with the reasons and
+    what the host or the driving would need) until a window is informative again.
     """
 
     def __init__(self, cfg: SupervisionConfig) -> None:
@@ -137,9 +195,26 @@ class DriftJudge:
         st = self.axes.setdefault(axis, _AxisState())
         st.judged += 1
         st.last = fig
+        since = 0.0 if st.last_t is None else max(t - st.last_t, 0.0)
+        st.last_t = t
         if not fig.get("informative"):
+            reason = str(fig.get("reason") or "")
+            if reason.startswith(("too little motion", "the command is constant")):
+                return None  # the axis did not move: nothing to see, not blind
+            st.blind_s += since
+            st.blind[_kind(reason)] += 1
+            st.last_reason[_kind(reason)] = reason
+            if not st.unsupervised and st.blind_s >= BLIND_AFTER_S:
+                st.unsupervised = True
+                return self.blind_text(axis, st)
             return None
         st.informative += 1
+        if st.unsupervised:
+            log.info("%s: supervised again: a window was judged after %.0f s of motion without",
+                     axis, st.blind_s)
+        st.blind_s, st.unsupervised = 0.0, False
+        st.blind.clear()
+        st.last_reason.clear()
         delay, gain = fig["residual_delay_ms"], fig["gain_error"]
         z_delay = CONFIDENCE_Z * fig["residual_delay_se_ms"]
         z_gain = CONFIDENCE_Z * fig["gain_error_se"]
@@ -187,16 +262,25 @@ class DriftJudge:
                 f"{e['identified']}) against the model {fig['model']}; retune: motcomp "
                 f"identify --from-status --axis {axis}")
 
+    def blind_text(self, axis: str, st: _AxisState) -> str:
+        """The WARNING of an axis that became unsupervised: why, and what would help."""
+        whys = "; ".join(f"{n} x {st.last_reason[k]!r}" for k, n in st.blind.most_common())
+        needs = [need for key, need in _NEEDS if key in st.blind]
+        return (f"{axis}: unsupervised: no window was judged in {st.blind_s:.0f} s of motion "
+                f"({whys}); a drift of the platform would not be seen.  It needs "
+                + ("; or ".join(needs) if needs else "the reasons above addressed") + ".")
+
     def block(self, axis: str) -> dict[str, Any]:
         st = self.axes.get(axis)
         if st is None:
-            return {"state": "waiting", "alarm": False, "alarms": 0}
+            return {"state": "waiting", "alarm": False, "alarms": 0, "blind_s": 0.0,
+                    "unsupervised": False}
         fig = st.last
-        state = ("drift" if st.alarm else "ok" if fig.get("informative")
-                 else "not informative")
+        state = ("drift" if st.alarm else "unsupervised" if st.unsupervised
+                 else "ok" if fig.get("informative") else "not informative")
         return {"state": state, "alarm": st.alarm, "alarm_since_t": st.alarm_since,
                 "alarms": st.alarms, "windows": st.judged, "informative_windows": st.informative,
-                **fig}
+                "blind_s": st.blind_s, "unsupervised": st.unsupervised, **fig}
 
 
 # --- the service's side ------------------------------------------------------------------------
@@ -281,6 +365,17 @@ class Supervisor:
         self._estimator: _Estimator | None = None
         self._busy_since: float | None = None
         """When the request the estimator works on was handed over (None: idle)."""
+        self._sent_at = -math.inf
+        """When the last request was handed over."""
+        self._send_after = -math.inf
+        """The CPU budget: no request before this."""
+        self._started: float | None = None
+        """When the first chunk was taken (for the estimator's CPU share)."""
+        self._now = 0.0
+        self._answered: float | None = None
+        """When the last estimate was answered (or the first request sent)."""
+        self.starved = False
+        """No estimate answered for :data:`BLIND_AFTER_S`: every axis is unsupervised."""
         self._cursor = (0, 0)
         self._next = 0.0
         self._pending: list[dict[str, Any]] = []
@@ -294,8 +389,17 @@ class Supervisor:
     def set_axes(self, axes: ResolvedAxes) -> None:
         """The config's models in force (at start and after each accepted reload): each axis'
         ``model`` as written, a P2UZD as a P2UZD (:func:`~motcomp.runtime.estimate.estimate_axis`
-        says how each kind is judged)."""
+        says how each kind is judged).  An axis whose model a reload replaced is judged anew
+        against it (its alarm, runs and blindness start over): the estimate of the platform is
+        the compensator's business no more than before, the model it is judged against is."""
+        old = getattr(self, "models", {})
         self.models = {a: axes.plants[i] for i, a in enumerate(AXES) if axes.driven[i]}
+        for axis, model in self.models.items():
+            before = old.get(axis)
+            if before is not None and before.spec() != model.spec() and \
+                    self.judge.axes.pop(axis, None) is not None:
+                log.info("%s: the model is now %s (was %s): supervision judges against it "
+                         "from the next estimate", axis, model.spec(), before.spec())
 
     def reconfigure(self, cfg: SupervisionConfig, axes: ResolvedAxes) -> None:
         """A reload's ``[supervision]`` and models (``window_s`` is a restart key)."""
@@ -312,16 +416,21 @@ class Supervisor:
 
     def poll(self, monitor: Any, to_frame_s: Any, now: float, ticks: int, acted: list[int],
              missed: int) -> list[str]:
-        """Collect, judge and send; returns the WARNING texts of alarms to log.
+        """Collect, judge and send; returns the WARNING texts to log (alarms, an axis become
+        unsupervised).
 
         ``to_frame_s(ns)`` maps loop instants to the outputs' ``t``; ``ticks``, ``acted`` and
-        ``missed`` are the loop's counters (for the window's limiter share and deadlines)."""
+        ``missed`` are the loop's counters (for the window's limiter share and deadlines).
+        Every ``period_s`` the new outputs and feedback are taken from ``monitor``; they are
+        sent to the estimator when it is idle and its CPU budget allows
+        (:data:`CPU_SHARE_MAX`), kept meanwhile."""
         if not self.cfg.enabled or not self.models:
             if self._estimator is not None:  # turned off by a reload: nothing is judged
                 self.close()
                 self.judge = DriftJudge(self.cfg)
                 self._pending, self._cursor = [], monitor.chunk((0, 0))[0]
             return []
+        self._now = now
         warnings: list[str] = []
         est = self._estimator
         if self._busy_since is not None and est is not None:
@@ -337,33 +446,54 @@ class Supervisor:
                     results, cpu = value
                     self.cpu_s += float(cpu)
                     self.estimates += 1
+                    self._answered = now
+                    if self.starved:
+                        self.starved = False
+                        log.info("model supervision: estimates again")
+                    # the budget: this estimate's CPU time is at most CPU_SHARE_MAX of the
+                    # time from its request to the next
+                    self._send_after = self._sent_at + float(cpu) / CPU_SHARE_MAX
                     warnings = self._judge(results, now)
-        if now < self._next:
-            return warnings
-        self._next = now + self.cfg.period_s
-        self._shares.append((now, ticks, tuple(acted), missed))
-        self._cursor, raw = monitor.chunk(self._cursor)
-        cols = [AXES.index(a) for a in self.models]
-        fb_t = np.where(np.isfinite(raw["fb_sent"]), raw["fb_sent"], to_frame_s(raw["fb_ns"]))
-        chunk = {"t_out": to_frame_s(raw["t_ns"]), "u": raw["u"][:, cols], "t_fb": fb_t,
-                 "acc": raw["acc"][:, cols], "lost": raw["lost"]}
-        self._pending.append(chunk)
-        # what the estimator keeps at most: older chunks are of no use to it
-        keep = max(1, math.ceil((self.cfg.window_s + KEEP_MARGIN_S) / self.cfg.period_s))
-        if len(self._pending) > keep:
-            del self._pending[:-keep]
-            self._pending[0]["lost"] = True
-        if self._busy_since is None:  # else still busy: sent with the next chunk
+        if (self._answered is not None and not self.starved
+                and now - self._answered >= BLIND_AFTER_S):
+            self.starved = True
+            warnings.append(
+                f"model supervision: unsupervised: no estimate in {now - self._answered:.0f} s "
+                f"({self.errors} failed: {self.last_error or 'none answered'}); its process gets "
+                "no CPU time on this host, so no drift of any axis would be seen.  It needs a "
+                "host with CPU to spare for it (at most "
+                f"{100 * CPU_SHARE_MAX:g} % of a core): stop other work on this one")
+        if now >= self._next:
+            if self._started is None:
+                self._started = self._answered = now
+            self._next = now + self.cfg.period_s
+            self._take(monitor, to_frame_s, now, ticks, acted, missed)
+        if self._pending and self._busy_since is None and now >= self._send_after:
             merged: dict[str, Any] = {k: np.concatenate([c[k] for c in self._pending])
-                                      for k in chunk if k != "lost"}
+                                      for k in self._pending[0] if k != "lost"}
             merged["lost"] = any(c["lost"] for c in self._pending)
             self._pending = []
             if self._estimator is None:
                 self._estimator = _Estimator()
             self._estimator.ask((merged, list(self.models), dict(self.models),
                                  settings_of(self.cfg)))
-            self._busy_since = now
+            self._busy_since = self._sent_at = now
         return warnings
+
+    def _take(self, monitor: Any, to_frame_s: Any, now: float, ticks: int, acted: list[int],
+              missed: int) -> None:
+        """The outputs and feedback since the last chunk, kept until they are sent."""
+        self._shares.append((now, ticks, tuple(acted), missed))
+        self._cursor, raw = monitor.chunk(self._cursor)
+        cols = [AXES.index(a) for a in self.models]
+        fb_t = np.where(np.isfinite(raw["fb_sent"]), raw["fb_sent"], to_frame_s(raw["fb_ns"]))
+        self._pending.append({"t_out": to_frame_s(raw["t_ns"]), "u": raw["u"][:, cols],
+                              "t_fb": fb_t, "acc": raw["acc"][:, cols], "lost": raw["lost"]})
+        # what the estimator keeps at most: older chunks are of no use to it
+        keep = max(1, math.ceil((self.cfg.window_s + KEEP_MARGIN_S) / self.cfg.period_s))
+        if len(self._pending) > keep:
+            del self._pending[:-keep]
+            self._pending[0]["lost"] = True
 
     def _failed(self, text: str) -> None:
         self.errors += 1
@@ -389,16 +519,16 @@ class Supervisor:
         limited, missed = self._window_conditions(now)
         out = []
         for axis, fig in results.items():
+            model = self.models.get(axis)
+            if model is None or fig.get("model") not in (model.spec(), _p1d_spec(model)):
+                continue  # estimated against a model a reload has replaced meanwhile
+            fig["missed_share"] = missed  # the loop's stalls are cut out of the estimate
             if fig.get("informative"):
                 share = limited[AXES.index(axis)] if limited else 0.0
                 if share > self.cfg.max_limited_share:
                     fig["informative"] = False
                     fig["reason"] = (f"the limiter acted on {100 * share:.0f} % of the ticks "
                                      f"(more than {100 * self.cfg.max_limited_share:g} %)")
-                elif missed is not None and missed > DEGRADED_MISSED_SHARE:
-                    fig["informative"] = False
-                    fig["reason"] = (f"the loop missed {100 * missed:.1f} % of its deadlines "
-                                     "in the window (the host's stalls are in the data)")
             text = self.judge.update(axis, fig, float(fig.get("to_t") or 0.0), now)
             if text is not None:
                 out.append(text)
@@ -410,7 +540,18 @@ class Supervisor:
         return {"enabled": cfg.enabled, "window_s": cfg.window_s, "period_s": cfg.period_s,
                 "band_hz": list(cfg.band_hz), "delay_bound_ms": cfg.delay_bound_ms,
                 "gain_bound": cfg.gain_bound, "hold_s": cfg.hold_s,
-                "estimates": self.estimates, "cpu_s": self.cpu_s, "errors": self.errors,
+                "estimates": self.estimates, "cpu_s": self.cpu_s,
+                "cpu_share": (self.cpu_s / (self._now - self._started)
+                              if self._started is not None and self._now > self._started
+                              else None),
+                "errors": self.errors,
                 "last_error": self.last_error,
                 "alarm": any(self.judge.block(a)["alarm"] for a in self.models),
-                "axes": {a: self.judge.block(a) for a in self.models}}
+                "starved": self.starved,
+                "axes": {a: self._block(a) for a in self.models}}
+
+    def _block(self, axis: str) -> dict[str, Any]:
+        block = self.judge.block(axis)
+        if self.starved and not block["alarm"]:
+            block.update(state="unsupervised", unsupervised=True)
+        return block

@@ -184,7 +184,8 @@ class HilPlatform:
         self._next_drift_s = 0.0
 
     def drift_to(self, elapsed_s: float) -> None:
-        """Apply the drifts due ``elapsed_s`` after the start (each start and end is logged)."""
+        """Apply the drifts due ``elapsed_s`` after the start (each start and end is logged at
+        WARNING: the platform changed under the service)."""
         if elapsed_s < self._next_drift_s or not self._drifts:
             return
         self._next_drift_s = elapsed_s + DRIFT_STEP_S
@@ -195,14 +196,16 @@ class HilPlatform:
             if j not in self._ramp_from:
                 self._ramp_from[j] = self.sim.models[i]
                 if d.ramp_s > 0:
-                    log.info("%s: truth ramping from %s to %s over %g s", d.axis,
-                             self.sim.models[i].spec(), d.model.spec(), d.ramp_s)
+                    log.warning("%s: the simulated platform drifts (--drift): truth ramping from "
+                                "%s to %s over %g s (%.1f s after the start)", d.axis,
+                                self.sim.models[i].spec(), d.model.spec(), d.ramp_s, elapsed_s)
             f = 1.0 if d.ramp_s <= 0 else min((elapsed_s - d.at_s) / d.ramp_s, 1.0)
             if f >= 1.0:
+                was = self.sim.models[i].spec() if d.ramp_s <= 0 else self._ramp_from[j].spec()
                 self.sim.set_model(i, d.model)
                 self._ramp_from[j] = d.model
-                log.info("%s: truth now %s (%.1f s after the start)", d.axis, d.model.spec(),
-                         elapsed_s)
+                log.warning("%s: the simulated platform drifted (--drift): truth now %s, was %s "
+                            "(%.1f s after the start)", d.axis, d.model.spec(), was, elapsed_s)
             else:
                 self.sim.set_model(i, _between(self._ramp_from[j], d.model, f))
 

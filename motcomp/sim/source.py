@@ -57,7 +57,7 @@ from motcomp.io.zenoh_io import (
 __all__ = ["PublishStats", "Send", "SenderTiming", "Trajectory", "band_sweep", "builtin",
            "lane_change", "load_trajectory", "publish", "send_schedule"]
 
-SIGNALS = ("bandsweep", "demo", "lanechange", "slalom", "sweep")
+SIGNALS = ("bandsweep", "demo", "driving", "lanechange", "slalom", "sweep")
 
 RAILS_MODEL = P1D(K=1.0, Td=0.0175, Tp1=0.1857683128)
 """The rails preset's model, whose exact inverse sizes ``bandsweep`` (written out here, so that
@@ -100,6 +100,9 @@ def builtin(name: str, rate_hz: float = 1000.0, duration_s: float | None = None)
         there, back in 2 s, 1 s at rest (8 s).  Peak acceleration ``10/sqrt(3) 1.5 / 2^2 =
         2.17 m/s^2``, 36 % of the rails' 6 m/s^2 (its exact inverse, below: 2.6 m/s^2); peak
         speed 1.41 m/s (limit 2 m/s).
+    ``driving``
+        rails_y, :func:`ordinary_driving`: 0.3 m slaloms at 0.3 Hz and minimum-jerk lane
+        changes of 0.5-1 m in 3-4 s, in a seeded order (``duration_s``, default 120 s).
     ``bandsweep``
         rails_x, :func:`band_sweep`: 1 s at rest, a logarithmic sweep over the driver band
         0.1-2 Hz in ``duration_s`` (default 20 s) with 2 s minimum-jerk fades, 1 s at rest.
@@ -117,6 +120,10 @@ def builtin(name: str, rate_hz: float = 1000.0, duration_s: float | None = None)
     if name == "lanechange":
         return Trajectory(rate_hz, {"rails_y": lane_change(rate_hz)},
                           "lane change on rails_y (1.5 m in 2 s and back)")
+    if name == "driving":
+        dur = duration_s or 120.0
+        return Trajectory(rate_hz, {"rails_y": ordinary_driving(rate_hz, dur)},
+                          f"ordinary driving on rails_y: slaloms and lane changes, {dur:g} s")
     if name == "bandsweep":
         dur = duration_s or 20.0
         return Trajectory(rate_hz, {"rails_x": band_sweep(rate_hz, dur)},
@@ -159,6 +166,32 @@ def lane_change(rate_hz: float, width_m: float = 1.5, move_s: float = 2.0, hold_
     up = width_m * min_jerk(np.arange(n_move) / n_move)
     rest = np.zeros(n_rest)
     return np.concatenate([rest, up, np.full(n_hold, width_m), width_m - up, rest])
+
+
+def ordinary_driving(rate_hz: float, duration_s: float = 120.0, seed: int = 0) -> np.ndarray:
+    """Ordinary driving, ``duration_s`` long after 1 s at rest: stretches of 2-4 periods of a
+    0.3 m slalom at 0.3 Hz (1 s minimum-jerk fades) about the current lane, and minimum-jerk
+    lane changes of 0.5-1 m in 3-4 s (toward the centre) each held 0.5-2 s, in an order drawn
+    from ``seed``.  Peak acceleration 2.7 m/s^2 (a slalom's fade; 1.07 m/s^2 in it), peak speed
+    0.65 m/s; it stays within +-1.3 m (the rails' range)."""
+    rng = np.random.default_rng(seed)
+    parts = [np.zeros(round(rate_hz))]
+    lane, n, total = 0.0, parts[0].size, round(duration_s * rate_hz)
+    while n < total:
+        if rng.random() < 0.5:
+            span = int(rng.integers(2, 5)) / 0.3
+            t = np.arange(round(span * rate_hz)) / rate_hz
+            fade = min_jerk(np.clip(np.minimum(t, span - t), 0.0, 1.0))
+            part = lane + 0.3 * np.sin(2 * math.pi * 0.3 * t) * fade
+        else:
+            width = rng.uniform(0.5, 1.0) * (1.0 if lane <= 0 else -1.0)
+            move = round(rng.uniform(3.0, 4.0) * rate_hz)
+            part = np.concatenate([lane + width * min_jerk(np.arange(move) / move),
+                                   np.full(round(rng.uniform(0.5, 2.0) * rate_hz), lane + width)])
+            lane += width
+        parts.append(part)
+        n += part.size
+    return np.concatenate(parts)[:total]
 
 
 def band_sweep(rate_hz: float, duration_s: float = 20.0, rest_s: float = 1.0) -> np.ndarray:
