@@ -50,6 +50,9 @@ def test_the_compiled_modules_are_used_only_all_present_and_built_from_their_sou
     fake_build(tmp_path)
     (tmp_path / native.RECORD).unlink()
     assert "no record of the compiled sources" in native.verdict(tmp_path, MODULES)
+    fake_build(tmp_path)
+    (tmp_path / "a.py").unlink()
+    assert native.verdict(tmp_path, MODULES).startswith("sources unreadable (FileNotFoundError: ")
 
 
 def test_plain_python_is_loaded_from_the_source_beside_a_stale_extension(tmp_path: Path) -> None:

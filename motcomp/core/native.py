@@ -84,7 +84,10 @@ def verdict(folder: Path, modules: Sequence[str] = COMPILED_MODULES) -> str:
         built = json.loads((folder / RECORD).read_text())
     except (OSError, ValueError) as exc:
         return f"no record of the compiled sources ({type(exc).__name__})"
-    now = source_hashes(folder, modules)
+    try:
+        now = source_hashes(folder, modules)
+    except OSError as exc:
+        return f"sources unreadable ({type(exc).__name__}: {exc})"
     stale = [m for m in modules if built.get(m) != now[m]]
     if stale:
         return (f"source changed since the build: {', '.join(stale)} "
