@@ -1,12 +1,15 @@
-"""Deployment files: the systemd unit (verified by systemd-analyze when present)."""
+"""Deployment files: the systemd unit (verified by systemd-analyze when present), the
+Dockerfile, the wheel, and the compiler range the build compiles the tick with."""
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -148,3 +151,32 @@ def test_wheel_ships_the_config_and_finds_it_installed(tmp_path: Path) -> None:
                           str(site / "motcomp" / "_config" / "motcomp.toml")],
                          capture_output=True, text=True, env=env, cwd=tmp_path, timeout=60)
     assert chk.returncode == 0, chk.stderr
+
+
+def setup_py() -> Any:
+    """setup.py's functions (``setup()`` itself runs only as ``__main__``, as setuptools runs
+    it)."""
+    spec = importlib.util.spec_from_file_location("_motcomp_setup", ROOT / "setup.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_tick_is_compiled_only_with_a_tested_mypy() -> None:
+    """mypyc 1.10 cannot compile the tick, 1.16-1.19 build modules that raise ``KeyError:
+    'ndarray'`` at import (a dataclass field typed by a numpy alias); 1.20.0, 1.20.2, 2.0.0 and
+    2.4.1 were tested (tools/check_toolchain.py, docs/DEPLOYMENT.md).  A build without
+    isolation checks the mypy it finds, which pip does not."""
+    import tomllib
+
+    setup = setup_py()
+    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    requirement = setup.tested_mypy()
+    assert requirement in pyproject["build-system"]["requires"]
+    assert requirement in pyproject["project"]["optional-dependencies"]["dev"]  # the same mypy
+    for bad in ("1.10.0", "1.16.0", "1.18.2", "1.19.1", "99.0"):
+        why = setup.untested_mypy(bad)
+        assert why.startswith(f"mypy {bad} is outside the range the tick was tested with"), why
+    for tested in ("1.20.0", "1.20.2", "2.0.0", "2.4.1"):
+        assert setup.untested_mypy(tested) == ""

@@ -463,7 +463,7 @@ class Service:
                     if self._can is not None else None),
             "reloads": self.reloads[-RELOADS_KEPT:],
             "realtime": self.rt_report,
-            "tick": native.ACTIVE,
+            "tick": native.status(),  # what runs, and a reinstall since
             "clock": self.tick_clock(),
             "platform": self._platform,
             "model_mismatch": self.supervisor.status(),
