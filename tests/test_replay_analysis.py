@@ -184,7 +184,7 @@ def test_numbers_at_the_bottom_of_the_range_are_zero() -> None:
     assert "e-321" not in report_text([ReplayReport("x", rep.axes, 1, 1, 1.0, 1)], [])
 
 
-@pytest.mark.parametrize("superseded", [None, 0, 40])
+@pytest.mark.parametrize("superseded", [None, 0, 40, 55])
 def test_frames_missing_from_the_recording_are_explained(tmp_path: Path,
                                                          superseded: int | None) -> None:
     """40 input frames missing from a recording: the note says what it means from the
@@ -225,6 +225,9 @@ def test_frames_missing_from_the_recording_are_explained(tmp_path: Path,
     if superseded == 40:
         assert "the service did not receive them either" in notes and "nothing it used is " \
             "missing" in notes
+    elif superseded == 55:
+        assert "but the service missed 55" in notes and "15 frames the recorder received never " \
+            "reached the service" in notes
     elif superseded == 0:
         assert "the service received 40 of them" in notes and "the recorder lost those" in notes
         assert "run `motcomp record` where it gets its CPU" in notes

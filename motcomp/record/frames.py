@@ -495,8 +495,8 @@ class _FramesBase(Extractor):
 
 
 class OutputColumns(_FramesBase):
-    """Output frames (``{"seq", "t", "src_seq", "pos", "flags"}``) as columns; ``flags`` as a
-    bit field (:data:`FLAG_BITS`)."""
+    """Output frames (``{"seq", "t", "src_seq", "pos", "flags", "rx"?}``) as columns; ``flags``
+    as a bit field (:data:`FLAG_BITS`), ``rx`` (ns; 0 where absent) as an integer column."""
 
     fields = ("seq", "t", "src_seq")
     maps = ("pos",)
@@ -508,6 +508,7 @@ class OutputColumns(_FramesBase):
     def __init__(self, n: int) -> None:
         super().__init__(n)
         self.flags = np.zeros(n, dtype=np.int64)
+        self.rx = np.zeros(n, dtype=np.int64)
 
     def value_masks(self, layout: Layout) -> dict[str, np.ndarray]:
         mask = np.zeros(layout.length, dtype=np.uint8)
@@ -518,6 +519,9 @@ class OutputColumns(_FramesBase):
 
     def _extra(self, layout: Layout, g: np.ndarray, rows: np.ndarray,
                leaves: dict[tuple[Any, ...], Leaf], same: dict[str, np.ndarray]) -> None:
+        rx = leaves.get(("rx",))
+        if rx is not None and rx.kind in INTEGER and rx.dtype != ">u8":
+            self.rx[rows] = _int_column(g, rx)
         strs = [leaves[("flags", i)] for i in range(layout.lists.get(("flags",), 0))
                 if leaves.get(("flags", i)) is not None and leaves[("flags", i)].kind == STR]
         if not strs:
@@ -540,6 +544,9 @@ class OutputColumns(_FramesBase):
         self.flags[rows] |= bits
 
     def _extra_obj(self, obj: dict[str, Any], row: int) -> None:
+        rx = obj.get("rx")
+        if rx.__class__ is int and 0 <= rx < 2**63:
+            self.rx[row] = rx
         flags = obj.get("flags")
         if isinstance(flags, list):
             bits = 0

@@ -111,6 +111,8 @@ class OutputStream(RawStream):
     pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 8)))
     flags: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     valid: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    rx: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    """ns after ``t`` the tick took its input frames (0: at ``t``, or not recorded)."""
 
 
 @dataclass
@@ -440,7 +442,8 @@ class _Collector:
                 src_seq=cat(lambda x: x[0].src_seq, np.zeros(0)).astype(np.int64),
                 pos=cat(lambda x: x[0].pos, np.zeros((0, 8))),
                 flags=cat(lambda x: x[0].flags, np.zeros(0, np.int64)),
-                valid=cat(lambda x: x[0].valid, np.zeros(0, bool)))
+                valid=cat(lambda x: x[0].valid, np.zeros(0, bool)),
+                rx=cat(lambda x: x[0].rx, np.zeros(0, np.int64)))
         if self.role == "feedback":
             return FeedbackStream(**base, t=cat(lambda x: x[0].t, np.zeros(0)),
                                   pos=cat(lambda x: x[0].pos, np.zeros((0, 8))),

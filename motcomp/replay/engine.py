@@ -141,6 +141,8 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
         lo = np.where(has, first, -1).tolist()
         hi = (fr + 1).tolist()
         now_l = plan.now_ns[rows].tolist()
+        rx_l = (plan.rx_ns[rows] if plan.rx_ns is not None else np.zeros(rows.size, np.int64)
+                ).tolist()
         skip_l = skipped[b0:b0 + _BLOCK].tolist()
         u_b: array[float] = array("d")
         ref_b: array[float] = array("d")
@@ -156,7 +158,7 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
             o = lo[i]
             frames = ([data[bounds[k]:bounds[k + 1]] for k in range(o, hi[i])] if o >= 0
                       else None)
-            out = step(state, current, now_l[i], frames, skip_l[i])
+            out = step(state, current, now_l[i], frames, skip_l[i], now_l[i] + rx_l[i])
             if warm_pending and state.accepted:
                 warm_pending = False
                 current = params

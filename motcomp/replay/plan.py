@@ -87,6 +87,9 @@ class TickPlan:
     frame_lo: np.ndarray | None = None
     """Index of the oldest input frame the step's tick reads (it reads ``frame_lo`` to
     ``frame``); None: :func:`consumed_ranges` of :attr:`frame`."""
+    rx_ns: np.ndarray | None = None
+    """Per row, how long after its instant the tick took its input frames (the outputs'
+    ``rx``; 0: at the instant).  None: 0 everywhere."""
 
     def __post_init__(self) -> None:
         if self.frame_lo is None:
@@ -265,6 +268,15 @@ def _from_outputs(session: Session, cfg: ServiceConfig, params: TickParams, run:
     output = np.concatenate(rows_out)
     emit = np.concatenate(rows_emit)
     row_src = np.concatenate(rows_src)
+    lost_ticks = np.flatnonzero(row_src == -3)
+    if lost_ticks.size:
+        first = (int(now_ns[lost_ticks[0]]) - int(now_ns[0])) / 1e9
+        notes.append(f"{lost_ticks.size} output frames are not in the recording (the recorder "
+                     f"lost them; the first {first:.3f} s into the run): the replay cannot know "
+                     "when those ticks took their input frames nor which of the deadlines around "
+                     "them the service missed, so from there on it may differ from the recorded "
+                     "outputs at the rounding of a floating-point number, growing with the "
+                     "compensator's dynamics (see 'max |replay-rec|'); " + _RECORD_BETTER)
     # frames: a change of src_seq between recorded ticks marks the frame consumed there
     frame = np.full(now_ns.size, -1, dtype=np.int64)
     rec = np.flatnonzero(row_src >= -1)
@@ -337,8 +349,9 @@ def _from_outputs(session: Session, cfg: ServiceConfig, params: TickParams, run:
                      "warm start at rest at the first input")
     rec_driven = [st["driven"] for _, st in session.status if isinstance(st.get("driven"), list)]
     by_axes = np.array([a in rec_driven[-1] for a in AXES]) if rec_driven else None
+    rx = np.where(output >= 0, out.rx[np.maximum(output, 0)], 0) if out.rx.size else None
     return TickPlan(now_ns, frame, output, emit, bypass0, events, park, warm, method, period,
-                    missing_frames, notes, holes, by_axes)
+                    missing_frames, notes, holes, by_axes, rx_ns=rx)
 
 
 _RECORD_BETTER = ("to record every frame, run `motcomp record` where it gets its CPU (not "
@@ -361,11 +374,17 @@ def _holes_note(holes: int, superseded: int | None) -> str:
     """What ``holes`` sequence numbers missing from the recorded input mean, and what to do."""
     head = (f"{holes} sequence numbers between the first and the last input frame the service "
             "used are not in the recording")
-    if superseded is not None and superseded >= holes:
+    if superseded is not None and superseded == holes:
         return (f"{head}; the service did not receive them either (its status counted "
                 f"{superseded} frames superseded: the sender skipped those numbers, or they "
                 "were lost before both): nothing it used is missing, the replay reads what it "
                 "read")
+    if superseded is not None and superseded > holes:
+        return (f"{head}, but the service missed {superseded} (its status' superseded count): "
+                f"{superseded - holes} frames the recorder received never reached the service "
+                "(dropped on its link, under load), and the replay reads them: near them it "
+                "may differ from the recorded outputs at the rounding of a floating-point "
+                "number, growing with the compensator's dynamics (see 'max |replay-rec|')")
     if superseded is not None:
         return (f"{head}, and the service received {holes - superseded} of them (its status "
                 f"counted {superseded} superseded): the recorder lost those, so the replay "
