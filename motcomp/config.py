@@ -217,8 +217,8 @@ class LoopConfig(BaseModel):
     rate_hz: float = Field(1000.0, ge=50.0, le=2000.0)
     sync_to_input: bool = False
     poll_us: float = Field(50.0, ge=10.0, le=1000.0)
-    spin_us: float = Field(200.0, ge=0.0, le=2000.0)
-    sleep_max_us: float = Field(100.0, ge=0.0, le=100_000.0)
+    spin_us: float = Field(50.0, ge=0.0, le=2000.0)
+    sleep_max_us: float = Field(0.0, ge=0.0, le=100_000.0)
     stale_after_s: float = Field(0.05, gt=0.0, le=10.0)
     hold_s: float = Field(0.5, ge=0.0, le=60.0)
     ramp_speed_fraction: float = Field(0.25, gt=0.0, le=1.0)

@@ -1,17 +1,19 @@
 """Absolute-deadline pacing: the one place that reads the clock in the loop.
 
-``time.sleep()`` until ``spin_us`` before the deadline, then spin on ``perf_counter_ns``: plain
-sleep alone has millisecond tails on Linux without real-time priority; sleep-then-spin measured
-~9 us p99.9 lateness at 1 kHz here.  Deadlines are absolute (``t0 + k * period``), so errors do
-not accumulate; a late tick is counted as missed periods and the schedule skips ahead instead
-of catching up in a burst.
+``time.sleep()`` until ``spin_us`` before the deadline, then spin on ``perf_counter_ns``.  The
+clock sets its thread's timer slack to :data:`TIMER_SLACK_NS` (``prctl(PR_SET_TIMERSLACK)``, no
+privilege needed): with the kernel's default of 50 us for a normal thread a sleep ends up to
+50 us late, and the spin before the deadline then never happens; with 1 us it ends within a
+few microseconds and a spin of 50 us absorbs the rest.  Deadlines are absolute (``t0 + k *
+period``), so errors do not accumulate; a late tick is counted as missed periods and the
+schedule skips ahead instead of catching up in a burst.
 
-The sleep is cut into naps of at most ``sleep_max_us``.  On a virtual machine a virtual CPU
-that stays idle longer than the hypervisor's halt-polling window (KVM: 200 us by default) is
-given back to the host, and under load on the host it can come back milliseconds late; naps
-shorter than the window keep it.  Measured here on a busy host, the clock alone at 1 kHz for
-10 s: one sleep 9-627 missed ticks, naps of 100 us 1-3 and of 50 us 2-14, for about 7 % more of
-a core (docs/BENCHMARKS.md).  0 sleeps in one piece.
+``sleep_max_us`` (0 by default: one sleep) cuts the sleep into naps.  On a virtual machine a
+virtual CPU that stays idle longer than the hypervisor's halt-polling window (KVM: 200 us by
+default) is given back to the host, and under load on the host it can come back milliseconds
+late; naps shorter than the window keep it, at a price: measured here, the clock alone at 1 kHz
+takes 2-4 % of a core in one sleep and 14-22 % in naps of 100 us (docs/BENCHMARKS.md).  Use
+naps where the host probe (:mod:`motcomp.runtime.probe`) shows such stalls.
 """
 
 from __future__ import annotations
@@ -19,7 +21,11 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-__all__ = ["DEGRADED_MISSED_SHARE", "INPUT_GRACE", "DeadlineClock"]
+__all__ = ["DEGRADED_MISSED_SHARE", "INPUT_GRACE", "TIMER_SLACK_NS", "DeadlineClock",
+           "set_timer_slack"]
+
+TIMER_SLACK_NS = 1000
+"""Timer slack of the thread that waits (ns): how late the kernel may end its sleeps."""
 
 DEGRADED_MISSED_SHARE = 0.02
 """A loop that missed more than this share of its deadlines over a stretch is degraded there:
@@ -28,6 +34,18 @@ that stretch warns (docs/DEPLOYMENT.md, docs/IDENTIFICATION.md)."""
 INPUT_GRACE = 25
 """Input-synchronous mode: after a tick on an input, the own clock waits this percentage of a
 period beyond the period for the next input before it ticks without one."""
+
+
+def set_timer_slack(ns: int) -> bool:
+    """The calling thread's timer slack (Linux ``prctl(PR_SET_TIMERSLACK)``); False where it
+    cannot be set (another OS)."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        return bool(libc.prctl(29, ctypes.c_ulong(ns), 0, 0, 0) == 0)
+    except (OSError, AttributeError):
+        return False
 
 
 class DeadlineClock:
@@ -40,9 +58,10 @@ class DeadlineClock:
     last tick, when ``poll()`` returns True; it is called every ``poll_us``.
     """
 
-    def __init__(self, rate_hz: float, spin_us: float = 200.0,
+    def __init__(self, rate_hz: float, spin_us: float = 50.0,
                  clock: Callable[[], int] = time.perf_counter_ns,
-                 sleep_max_us: float = 100.0) -> None:
+                 sleep_max_us: float = 0.0) -> None:
+        set_timer_slack(TIMER_SLACK_NS)
         self.period_ns = round(1e9 / rate_hz)
         self.spin_ns = int(spin_us * 1000)
         self.nap_ns = int(sleep_max_us * 1000)

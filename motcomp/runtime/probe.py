@@ -78,7 +78,7 @@ class HostProbe:
     """
 
     def __init__(self, rate_hz: float = 1000.0, spin_us: float = 50.0,
-                 sleep_max_us: float = 100.0) -> None:
+                 sleep_max_us: float = 0.0) -> None:
         self.args = [str(rate_hz), str(spin_us), str(sleep_max_us)]
         self._proc: subprocess.Popen[str] | None = None
         self.result: HostClock | None = None
