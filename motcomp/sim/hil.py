@@ -125,7 +125,7 @@ class HilConfig:
     can_interface: str = "udp_multicast"
     can_channel: str = "239.74.163.2"
     dbc: str = ""
-    spin_us: float = 100.0
+    spin_us: float = 20.0
     duration_s: float = math.inf
     drifts: Sequence[Drift] = ()
 
