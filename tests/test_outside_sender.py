@@ -355,12 +355,25 @@ def test_hexapod_heave_from_a_wallclock_sender_is_on_time(runs: Runs) -> None:
     assert heave.sat_share <= MAX_SAT_SHARE, describe(heave)
 
 
-FIRST_WINDOWS_S = ((1.0, 4.0), (4.0, 7.0), (7.0, 10.0))
-"""The first 10 s after a start (or a resume), less the start-up blend (1 s; a rejoin's 0.5 s),
-in windows of a little less than a period of the slalom, each fitted on its own."""
-PAUSE_S = (10.0, 3.0)
-"""The busy sender pauses 10 s after its start, for 3 s (the input goes stale, ramps to
-neutral, and rejoins), and goes on for 10 s more."""
+FIRST_WINDOWS_S = ((0.0, 3.0), (3.0, 6.0), (6.0, 9.0))
+"""After the blend into the live input that follows a start (or a resume) -- the blend from
+neutral is not the driver's motion; it lasts ``loop.startup_s`` (``rejoin_s``) or longer, as
+the gap and the velocity to merge need (a slalom joined at full speed: about 2 s) --, in
+windows of a little less than a period of the slalom, each fitted on its own."""
+PAUSE_S = (12.0, 3.0)
+"""The busy sender pauses 12 s after its start, for 3 s (the input goes stale, ramps to
+neutral, and rejoins), and goes on for 11.5 s more."""
+
+
+def blend_end(rec: Recording, after: float) -> float:
+    """The ``t`` of the first output frame after ``after`` that no longer blends (``rejoin``)
+    after one that did."""
+    out = sorted((f for _, f in rec.decoded("platform/setpoint") if f["t"] >= after),
+                 key=lambda f: f["t"])
+    blending = [("rejoin" in f["flags"]) for f in out]
+    first = blending.index(True)
+    return float(next(f["t"] for f, b in zip(out[first:], blending[first:], strict=True)
+                      if not b))
 
 
 def window_delays(rec: Recording, t_from: float, t0: float, signal: str = "slalom"
@@ -385,12 +398,12 @@ def test_a_busy_sender_is_on_time_from_the_first_second_and_after_a_resume(tmp_p
     """Issue 36's sender, written from docs/WIRE.md alone: 1 kHz, each value computed at the
     wall time it stamps 0.4-0.5 ms after its deadline, stalls of 20-30 ms, a pause and a resume.
     The compensated slalom is within MAX_DELAY_MS of the motion in every window of the first
-    10 s after the start and after the resume (the playback's lag settled within the blends),
-    and the status' lag is the configured one."""
+    9 s after the blend into the live input that follows the start and the resume (the
+    playback's lag settled within the blends), and the status' lag is the configured one."""
     keep: list[Recording] = []
     fig = run_sender("busy", 1000.0, tmp_path / "busy",
                      ("--pause-at", f"{PAUSE_S[0]:g}", "--pause-for", f"{PAUSE_S[1]:g}"),
-                     keep=keep, duration_s=sum(PAUSE_S) + 10.5)
+                     keep=keep, duration_s=sum(PAUSE_S) + 11.5)
     assert fig.status and fig.status["frames"]["rejected"] == 0, (
         fig.status.get("frames"), fig.status.get("frames", {}).get("last_reject"))
     assert fig.exit_codes == {"service": 0, "hil": 0}, fig.exit_codes
@@ -401,9 +414,11 @@ def test_a_busy_sender_is_on_time_from_the_first_second_and_after_a_resume(tmp_p
     lag = fig.status["input"]
     assert lag["lag_ms"] == pytest.approx(lag["playback_lag_ms"], abs=0.5), lag
     for label, start in (("start", t0), ("resume", resumed)):
-        for (a, b), f in zip(FIRST_WINDOWS_S, window_delays(keep[0], start, t0), strict=True):
+        joined = blend_end(keep[0], start)
+        assert joined - start < 2.5, (label, joined - start)  # the blend: 1 s, or as needed
+        for (a, b), f in zip(FIRST_WINDOWS_S, window_delays(keep[0], joined, t0), strict=True):
             assert f.r2 >= 0.99 and abs(f.delay_s * 1e3) <= MAX_DELAY_MS, (
-                f"{label} + {a:g}-{b:g} s: {f}; {describe(fig)}")
+                f"{label}, {a:g}-{b:g} s after the blend: {f}; {describe(fig)}")
 
 
 def load_senders() -> Any:

@@ -31,8 +31,15 @@ the same stretches; the compensated slalom's delay <= 3 ms from the ~1 kHz sende
 ``--out``, ``senders.json`` (every number) and ``senders.md``.  The config, motcomp's code and
 the senders' script are frozen at the start (``bench_motion.snapshot_code``).
 
-Usage: ``python tools/bench_senders.py [--quick] [--kinds NAME ...] [--modes on bypass]
-[--scenarios slalom heave] [--duration S] [--no-write] [--out DIR]``
+With ``--first`` every run's sender pauses :data:`PAUSE_S` into its motion (the input goes
+stale, holds, ramps to neutral, and rejoins): beside the settled figures (from 10 s after the
+resume to the end) each run reports the first 10 s after its start and after its resume -- the
+feedback's delay in the windows :data:`FIRST_WINDOWS_S` after each (the blend's first second
+left out), and the command's HF acceleration and jerk over them beside the ideal run's -- and
+writes the "first seconds" section of docs/BENCHMARKS.md.
+
+Usage: ``python tools/bench_senders.py [--quick] [--first] [--kinds NAME ...] [--modes on
+bypass] [--scenarios slalom heave] [--duration S] [--no-write] [--out DIR]``
 """
 
 from __future__ import annotations
@@ -136,7 +143,16 @@ CLASSES = {
     "varstep": SenderClass("varstep"),
     "no_t": SenderClass("no_t"),
     "stalls": SenderClass("stalls", extra=("--stall-ms", "2-15")),
+    "busy": SenderClass("busy"),
 }
+PAUSE_S = (12.0, 3.0)
+"""``--first``: the sender pauses this far into its motion, for this long ..."""
+FIRST_S = 10.0
+"""... and the first seconds are this long after the start and after the resume, ..."""
+FIRST_WINDOWS_S = ((0.0, 3.0), (3.0, 6.0), (6.0, 9.0))
+"""... the delay fitted in each of these windows after the blend into the live input ends (the
+blend from neutral is not the driver's motion: it lasts ``loop.startup_s``/``rejoin_s``, or
+longer where the gap and the velocity to merge need it)."""
 QUICK_KINDS = ["grid-1k", "wallclock", "no_t"]
 QUICK_SCENARIOS = ["slalom"]
 QUICK_DURATION_S = 8.0
@@ -224,6 +240,67 @@ def analyse(rec: Recording, cls: SenderClass, scenario: str, duration_s: float, 
         "steal_pct": rec.steal,
         "load": rec.load,
     }
+
+
+def first_seconds(rec: Recording, scenario: str, a_max: float, loop_hz: float,
+                  ideal_u: np.ndarray, duration_s: float) -> dict[str, Any]:
+    """``--first``: the figures of the first :data:`FIRST_S` after the start and after the
+    resume, and of the settled motion (from :data:`FIRST_S` after the resume to the end)."""
+    signal, axis = SIGNALS[scenario]
+    t0 = float(rec.source["t0_s"])
+    resumed = rec.source.get("resumed_s")
+    fb = [msgpack.unpackb(p) for p in rec.feedback]
+    t_fb = np.array([f["t"] for f in fb])
+    y_fb = np.array([f["pos"][axis] for f in fb])
+    frames = sorted((msgpack.unpackb(p) for p in rec.outputs), key=lambda f: f["seq"])
+    seq = np.array([f["seq"] for f in frames], dtype=np.int64)
+    t = np.array([f["t"] for f in frames])
+    u = np.array([f["pos"][axis] for f in frames])
+    blending = np.array(["rejoin" in f["flags"] for f in frames])
+
+    def blend_end(start: float) -> float:
+        """The first output after ``start`` (and after its blend began) no longer blending."""
+        after = np.flatnonzero((t >= start) & blending)
+        if not after.size:
+            return start
+        done = np.flatnonzero((t > t[after[0]]) & ~blending)
+        return float(t[done[0]]) if done.size else math.inf
+
+    def delay(a: float, b: float) -> float:
+        keep = (t_fb >= a) & (t_fb <= b)
+        return float(sine_delay(t_fb[keep], y_fb[keep], t0, signal.frequency_hz).delay_s * 1e3)
+
+    def quality(a: float, b: float) -> dict[str, float]:
+        keep = (t >= a) & (t < b)
+        parts = segments(seq[keep], t[keep], loop_hz) if keep.any() else []
+        if not parts:
+            return {"hf_ratio": math.nan, "jerk_ratio": math.nan}
+        live = command_figures(u[keep], parts, loop_hz, a_max)
+        k = np.rint((t[keep] - t0) * loop_hz).astype(np.int64)
+        same = [slice(int(np.clip(k[p.start], 0, ideal_u.size)),
+                      int(np.clip(k[p.stop - 1] + 1, 0, ideal_u.size))) for p in parts]
+        floor = command_figures(ideal_u, same, loop_hz, a_max)
+        return {"hf_ratio": live["hf_acc_rms"] / floor["hf_acc_rms"],
+                "jerk_ratio": live["jerk_rms"] / floor["jerk_rms"]}
+
+    out: dict[str, Any] = {}
+    settled_from = None
+    for label, start in (("start", t0), ("resume", resumed)):
+        if start is None:
+            continue
+        end = blend_end(start)
+        windows = [delay(end + a, end + b) for a, b in FIRST_WINDOWS_S]
+        out[label] = {"blend_s": end - start, "delays_ms": windows,
+                      "worst_ms": max(windows, key=abs),
+                      **quality(end, end + FIRST_WINDOWS_S[-1][1])}
+        settled_from = end + FIRST_WINDOWS_S[-1][1]
+    if resumed is not None and settled_from is not None \
+            and t0 + duration_s > settled_from + 2.0:
+        out["settled"] = {"delay_ms": delay(settled_from, t0 + duration_s),
+                          **quality(settled_from, t0 + duration_s)}
+    lag = rec.status_after.get("input", {})
+    out["lag_ms"], out["playback_lag_ms"] = lag.get("lag_ms"), lag.get("playback_lag_ms")
+    return out
 
 
 def targets(row: dict[str, Any], cls: SenderClass, bypassed: bool) -> dict[str, bool | None]:
@@ -348,6 +425,56 @@ def report(args: argparse.Namespace, runs: list[dict[str, Any]], ideals: list[di
     return "\n".join(lines)
 
 
+def first_report(args: argparse.Namespace, runs: list[dict[str, Any]], elapsed_s: float,
+                 machine_line: str, cfg: ServiceConfig, code: str) -> str:
+    """The "first seconds" section (``--first``)."""
+    loads = [r["load"] for r in runs]
+    lines = [
+        f"Machine: {machine_line}; 1-minute load average at the runs' ends "
+        f"{min(loads, default=math.nan):.1f}-{max(loads, default=math.nan):.1f}.",
+        "",
+        f"`python tools/bench_senders.py --first{' --kinds ' + ' '.join(args.kinds) if args.kinds != list(CLASSES) else ''}"  # noqa: E501
+        f"{' --modes ' + ' '.join(args.modes) if args.modes != list(MODES) else ''}"
+        f"{' --scenarios ' + ' '.join(args.scenarios) if args.scenarios != list(SCENARIOS) else ''}`"  # noqa: E501
+        f" ({elapsed_s / 60:.1f} min; config hash {config_hash(cfg)}, code {code}): each sender "
+        f"pauses {PAUSE_S[0]:g} s into its motion for {PAUSE_S[1]:g} s; the blend into the live "
+        "input after the start and after the resume (its length: `loop.startup_s`/`rejoin_s` "
+        "or longer, as the gap and the velocity to merge need); delays of the feedback behind "
+        "the sender's motion in the windows "
+        f"{', '.join(f'{a:g}-{b:g} s' for a, b in FIRST_WINDOWS_S)} after each blend (the worst "
+        "of the three shown, then all three), and settled (from then to the end); the "
+        "command's HF acceleration and jerk over those 9 s, and settled, as ratios to the "
+        "ideal run's over the same stretches; the status' input lag at the end beside "
+        "`input.playback_lag_s`.",
+        "",
+        "| sender | mode | scenario | blend start / resume (s) | start: worst delay (ms) "
+        "[windows] | resume: worst delay (ms) [windows] | settled delay (ms) | HF ratio start / "
+        "resume / settled | jerk ratio start / resume / settled | lag / configured (ms) | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    def fmt(x: Any, spec: str = ".1f") -> str:  # (None: not measured)
+        return "-" if x is None or not math.isfinite(x) else format(x, spec)
+
+    for r in runs:
+        f = r.get("first", {})
+        st, rs, se = f.get("start", {}), f.get("resume", {}), f.get("settled", {})
+
+        def win(x: dict[str, Any]) -> str:
+            if not x:
+                return "-"
+            each = ", ".join(fmt(d) for d in x.get("delays_ms", []))
+            return f"{fmt(x.get('worst_ms'))} [{each}]"
+        lines.append(
+            f"| {CLASSES[r['sender']].label()} | {r['mode']} | {r['scenario']} | "
+            f"{fmt(st.get('blend_s'), '.2f')} / {fmt(rs.get('blend_s'), '.2f')} | {win(st)} | "
+            f"{win(rs)} | {fmt(se.get('delay_ms'))} | {fmt(st.get('hf_ratio'), '.2f')} / "
+            f"{fmt(rs.get('hf_ratio'), '.2f')} / {fmt(se.get('hf_ratio'), '.2f')} | "
+            f"{fmt(st.get('jerk_ratio'), '.2f')} / {fmt(rs.get('jerk_ratio'), '.2f')} / "
+            f"{fmt(se.get('jerk_ratio'), '.2f')} | {fmt(f.get('lag_ms'))} / "
+            f"{fmt(f.get('playback_lag_ms'))} | {r['load']:.1f} |")
+    return "\n".join(lines)
+
+
 # --- main -------------------------------------------------------------------------------------
 def words(items: list[str] | None) -> list[str]:
     return [w for w in " ".join(items or []).replace(",", " ").split() if w]
@@ -368,7 +495,10 @@ def main() -> None:
     ap.add_argument("--scenarios", nargs="+", metavar="NAME",
                     help=f"scenarios (default all: {', '.join(SCENARIOS)})")
     ap.add_argument("--duration", type=float, default=None,
-                    help="seconds of motion per run (default 20; --quick 8)")
+                    help="seconds of motion per run (default 20; --quick 8; --first 24)")
+    ap.add_argument("--first", action="store_true",
+                    help="each sender pauses and resumes: the first 10 s after the start and "
+                         "the resume beside the settled figures (the 'first seconds' section)")
     ap.add_argument("--no-write", action="store_true", help="do not write docs/BENCHMARKS.md")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "bench_senders",
                     help="directory for senders.json and senders.md (default out/bench_senders)")
@@ -383,7 +513,8 @@ def main() -> None:
         if bad:
             ap.error(f"unknown {what} {bad[0]!r}; expected one of {', '.join(known)}")
     if args.duration is None:
-        args.duration = QUICK_DURATION_S if args.quick else 20.0
+        args.duration = (sum(PAUSE_S) + FIRST_S + 8.0 if args.first
+                         else QUICK_DURATION_S if args.quick else 20.0)
     if not (math.isfinite(args.duration) and args.duration > SKIP_S + 2.0):
         ap.error(f"--duration {args.duration!r}: expected more than {SKIP_S + 2.0:g} s")
     cfg_path = Path(args.config)
@@ -460,8 +591,11 @@ def measure(args: argparse.Namespace, ap: argparse.ArgumentParser, cfg_path: Pat
                     print(f"[{n}/{n_runs}] {cls.label()}, {mode}, {scenario}: ", end="",
                           flush=True)
                     seq_start = bench.seq
+                    pause = (["--pause-at", f"{PAUSE_S[0]:g}", "--pause-for", f"{PAUSE_S[1]:g}"]
+                             if args.first else [])
                     rec = bench.record(
-                        [sys.executable, str(sender_script), *cls.args(), "--signal", scenario,
+                        [sys.executable, str(sender_script), *cls.args(), *pause,
+                         "--signal", scenario,
                          "--duration", f"{args.duration:g}", "--seed",
                          str(seed_of(name, scenario, 0)), "--seq-start", str(seq_start),
                          "--key", cfg.input.key, "--json", "-e", loopback(bench.p_svc), "-e",
@@ -475,6 +609,10 @@ def measure(args: argparse.Namespace, ap: argparse.ArgumentParser, cfg_path: Pat
                     row.update(analyse(rec, cls, scenario, args.duration, a_max[scenario],
                                        loop_hz, ideal_u[scenario, mode, cls.rate_hz]))
                     row["targets"] = targets(row, cls, row["bypassed"])
+                    if args.first:
+                        row["first"] = first_seconds(rec, scenario, a_max[scenario], loop_hz,
+                                                     ideal_u[scenario, mode, cls.rate_hz],
+                                                     args.duration)
                     runs.append(row)
                     failed = [k for k, v in row["targets"].items() if v is False]
                     print(f"delay {fmt(row['delay_ms'])} ms, sat {pct(row['sat'])} %, at "
@@ -488,7 +626,8 @@ def measure(args: argparse.Namespace, ap: argparse.ArgumentParser, cfg_path: Pat
     steal = 100 * host[7] / max(sum(host), 1)
     elapsed = time.monotonic() - t_start
     load_end = os.getloadavg()
-    text = report(args, runs, ideals, elapsed, machine_line, load_end, steal, cfg, code)
+    text = (first_report(args, runs, elapsed, machine_line, cfg, code) if args.first else
+            report(args, runs, ideals, elapsed, machine_line, load_end, steal, cfg, code))
     result = {"machine": machine_line, "load_end": load_end, "steal_pct": steal,
               "elapsed_s": elapsed, "config": str(cfg_path), "config_hash": config_hash(cfg),
               "config_toml": cfg_file.read_text(), "code": code, "skip_s": SKIP_S,
@@ -500,8 +639,9 @@ def measure(args: argparse.Namespace, ap: argparse.ArgumentParser, cfg_path: Pat
     print(text)
     print(f"\nwritten: {args.out / 'senders.json'}, {args.out / 'senders.md'}")
     if not (args.quick or args.no_write):
-        write_section("senders", text)
-        print("and the 'senders' section of docs/BENCHMARKS.md")
+        section = "first-seconds" if args.first else "senders"
+        write_section(section, text)
+        print(f"and the '{section}' section of docs/BENCHMARKS.md")
 
 
 if __name__ == "__main__":
