@@ -67,6 +67,7 @@ def test_design_with_model_spec_and_hexapod_warning() -> None:
 @pytest.mark.parametrize(("args", "msg"), [
     (("--model", "p1d:K=1,Td=0.01"), "missing parameter"),
     (("--plant", "nonesuch"), "unknown plant preset 'nonesuch'"),
+    (("--plant", "p1d:K=1,Td=0.01,Tp1=0.1"), "a model spec goes with --model: --model p1d:"),
     (("--model", "p1d:K=1,Td=0.01,Tp1=0.1", "--rate", "-5"), "positive"),
     (("--plant", "rails", "--axis", "hex_x"), "preset rails has no axis hex_x"),
     (("--plant", "rails", "--axis", "rails_z"), "--axis: unknown axis 'rails_z'"),
@@ -156,10 +157,37 @@ def test_rails_chain_hf_gain_states_the_noise_figure_and_buys_delay_with_it() ->
         assert pred["with"]["peak_gain_db"] <= 8.0 + 0.005
         assert pred["with"]["gain_error_db"] <= 1.0 + 0.005
         worst[g] = pred["with"]["max_delay_ms"]
+        assert_one_story(out)
     default = run(*base)
     assert default.returncode == 0, default.stderr
     held = json.loads(default.stdout)["prediction"]["with"]["max_delay_ms"]
     assert worst[20.0] < worst[16.0] < held, (worst, held)
+
+
+def assert_one_story(out: dict) -> None:
+    """A chain's report never contradicts itself: the metrics table is the deployed chain, the
+    optimised PID's block and the prefilter's "without" are the same PID alone, each labelled
+    with what it includes and the band it is over."""
+    from motcomp.design.report import markdown
+
+    pred, opt = out["prediction"], out["optimal"]
+    assert out["chain"] == "the prefilter, then the PID"
+    assert out["corrected"]["max_residual_delay_ms"] == pytest.approx(
+        pred["with"]["max_delay_ms"], abs=1e-9)
+    assert opt["values"]["max_residual_delay_ms"] == pytest.approx(
+        pred["without"]["max_delay_ms"], abs=1e-9)
+    assert opt["constraints"]["hf_command_gain"] == (
+        pred["pid_hf_bound"] or opt["constraints"]["max_command_gain"])
+    lo, hi = out["band_hz"]
+    text = markdown(out)
+    chain = (f"| worst residual phase delay {lo:g}-{hi:g} Hz (input lag, prefilter, PID, "
+             f"platform) | {out['corrected']['max_residual_delay_ms']:.2f} ms")
+    alone = (f"| worst residual phase delay {lo:g}-{hi:g} Hz, the PID alone | minimised | "
+             f"{opt['values']['max_residual_delay_ms']:.2f} ms")
+    assert chain in text and alone in text, text
+    assert text.count("worst residual phase delay") == 2
+    assert f"| worst phase delay in band | {pred['without']['max_delay_ms']:.2f} ms | " \
+        f"{pred['with']['max_delay_ms']:.2f} ms |" in text
 
 
 def test_chain_hf_gain_needs_prediction_on() -> None:

@@ -70,11 +70,13 @@ import numpy as np
 from motcomp.core.models import OE, P1D, ProcessModel, p1d_coefficients
 from motcomp.core.pid import PIDGains
 from motcomp.core.tuning import RULES, tune
+from motcomp.design.blas import with_one_blas_thread
 from motcomp.design.fastloop import LoopGrid
 from motcomp.design.frequency import HF_FROM_HZ, Evaluation, evaluate
 from motcomp.errors import ConfigError
 
 __all__ = [
+    "GAIN_RTOL",
     "Constraints",
     "MemberResult",
     "OptimalDesign",
@@ -355,6 +357,11 @@ a smoother problem, with fewer local optima for the starts to end in; the best i
 START_TIE_MS = 1e-4
 """Starts whose objectives differ by less than this are equivalent: the first in the fixed
 order of starts is kept."""
+GAIN_RTOL = 1e-4
+"""What "the same design" means: the same problem, on any x86-64 CPU, BLAS and thread count,
+gives gains within this relative tolerance of each other (measured across BLAS threads, a
+1e-12 change of the starts or of the model and another summation order: 1e-7;
+tests/test_optimal_determinism.py)."""
 
 
 class _Problem:
@@ -714,6 +721,7 @@ def _check(gains: PIDGains, model: P1D, dense: LoopGrid, c: Constraints, rate_hz
     return nominal, worst, violations, over
 
 
+@with_one_blas_thread
 def optimise(plant: ProcessModel, model: P1D | None = None, rate_hz: float = 1000.0,
              constraints: Constraints | None = None, uncertainty: Uncertainty | None = None,
              setpoint_weights: bool = True, min_gain_ms: float = 5.0,
