@@ -13,13 +13,14 @@ import json
 import math
 import platform
 import subprocess
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from motcomp.core.bandlimit import band_limit_params
-from motcomp.core.models import ProcessModel
+from motcomp.core.models import P1D, ProcessModel
 from motcomp.core.pid import PIDGains
 from motcomp.design import optimal
 from motcomp.design.optimal import Constraints, optimise, perturb
@@ -39,13 +40,20 @@ EXAMPLE_RAILS = ("design", "--plant", "rails", "--rule", "optimal", "--input-lag
 """The example config's rails design (config/motcomp.toml)."""
 
 
-def _chain_pid_problem() -> tuple[ProcessModel, Constraints]:
+def _chain_pid_problem() -> tuple[ProcessModel, P1D, Constraints]:
     """The PID the example's rails chain runs: behind the 48 Hz band limit and 2.8 ms, over
     0.03-2 Hz, command gain <= 10 above 10 Hz (the problem that stopped where the CPU said)."""
     band = band_limit_params(48.0, 1000.0)
     assert band is not None
-    return (perturb(RAILS, dead_time_s=0.0028 + band.delay_s),
+    return (perturb(RAILS, dead_time_s=0.0028 + band.delay_s), RAILS,
             Constraints(band_hz=(0.03, 2.0), hf_command_gain=10.0))
+
+
+def _hexapod_problem() -> tuple[ProcessModel, P1D, Constraints]:
+    """The hexapod at the default bounds: its best starts miss the peak bound by a hair on the
+    fixed grid (tightened and solved again), others end feasible but 20 ms worse."""
+    hexapod = load_preset("hexapod").model
+    return hexapod, hexapod.to_p1d(), Constraints()
 
 
 def _reversed_softmin(a: np.ndarray, nblocks: int, tol: float) -> np.ndarray:
@@ -67,11 +75,14 @@ def _reversed_softmin(a: np.ndarray, nblocks: int, tol: float) -> np.ndarray:
     return np.asarray(m - np.log(total) / beta)
 
 
+@pytest.mark.parametrize("problem", [_chain_pid_problem, _hexapod_problem],
+                         ids=["example-rails-chain-pid", "hexapod"])
 def test_the_pid_is_the_same_whatever_differs_between_machines(
+        problem: Callable[[], tuple[ProcessModel, P1D, Constraints]],
         monkeypatch: pytest.MonkeyPatch) -> None:
-    plant, bounds = _chain_pid_problem()
-    reference = optimise(plant, RAILS, constraints=bounds)
-    assert reference.feasible and reference.evaluation.hf_command_gain <= 10.0 * 1.002
+    plant, model, bounds = problem()
+    reference = optimise(plant, model, constraints=bounds)
+    assert reference.feasible, reference.violations
 
     # the last bits of every starting point
     rules, screen = optimal._rule_starts, optimal._screen
@@ -79,16 +90,16 @@ def test_the_pid_is_the_same_whatever_differs_between_machines(
         (n, replace(g, kp=g.kp * (1 + EPS), ki=g.ki * (1 - EPS))) for n, g in rules(m)])
     monkeypatch.setattr(optimal, "_screen", lambda p, n_best=2: [
         (n, replace(g, kd=g.kd * (1 + EPS), tf=g.tf * (1 - EPS))) for n, g in screen(p, n_best)])
-    starts = optimise(plant, RAILS, constraints=bounds)
+    starts = optimise(plant, model, constraints=bounds)
     monkeypatch.undo()
     # the last bits of the model
-    model = optimise(perturb(plant, dead_time_s=plant.pure_delay_s * EPS), RAILS,
-                     constraints=bounds)
+    last_bits = optimise(perturb(plant, dead_time_s=plant.pure_delay_s * EPS), model,
+                         constraints=bounds)
     # the order of the sums
     monkeypatch.setattr(optimal, "_softmin", _reversed_softmin)
-    order = optimise(plant, RAILS, constraints=bounds)
+    order = optimise(plant, model, constraints=bounds)
 
-    for other in (starts, model, order):
+    for other in (starts, last_bits, order):
         assert_same_gains(other.gains, reference.gains)
         assert other.evaluation.max_residual_delay_ms == pytest.approx(
             reference.evaluation.max_residual_delay_ms, abs=1e-3)
@@ -114,7 +125,7 @@ def _another_machine() -> dict[str, str]:
     if platform.machine().lower() in ("x86_64", "amd64"):
         env["OPENBLAS_CORETYPE"] = "Nehalem"
         try:
-            from numpy._core._multiarray_umath import (  # type: ignore[attr-defined]
+            from numpy._core._multiarray_umath import (
                 __cpu_dispatch__,
                 __cpu_features__,
             )

@@ -40,13 +40,16 @@ Solution method
 The frequency responses of all members are computed on a fixed grid by
 :class:`~motcomp.design.fastloop.LoopGrid` (vectorised; finite-difference Jacobians are one
 batched call; the poles are batched eigenvalues of companion matrices).  The minimax is solved
-in epigraph form (minimise ``t`` subject to ``-t <= tau(f_i) <= t``, grouped in small frequency
-blocks) with SLSQP, in log coordinates for kp, ki, kd, tf, from a fixed sequence of starts: the
-best point of a fixed-seed Sobol sample of the gain space, the ZN, CC, AMIGO and SIMC gains,
-then the second-best sample; the search stops once two starts agree.  The same inputs always
-give the same gains.  Every candidate is re-checked on dense grids
+in epigraph form (minimise ``t`` subject to ``-t <= tau(f_i) <= t``) with SLSQP, each bound on
+the grid taken as the smooth soft minimum of small frequency blocks (:class:`_Problem`), in log
+coordinates for kp, ki, kd, tf and the reference path's gains ``kp b``, ``kd c``.  The starts
+are fixed -- the best point of a deterministic (Halton) sample of the gain space, the ZN, CC,
+AMIGO and SIMC gains, the second-best sample --, every one is solved on a ten times softer
+problem and the best is refined: the same inputs give gains within :data:`GAIN_RTOL` on any
+machine.  Every candidate is re-checked on dense grids
 (:func:`motcomp.design.frequency.evaluate` for the nominal plant, poles included); a peak or
 command bound that the fixed grid missed by a little is tightened and the design re-solved.
+docs/TUNING.md ("How it is solved") has the reasons and the figures.
 
 No harm
 -------
@@ -352,8 +355,8 @@ WEIGHT_MIN = 1e-3
 MAX_ITER = 300
 """SLSQP iterations per start (the smooth problem converges in 10-100)."""
 COARSE_SOFTNESS = 10.0
-"""The starts are solved with the soft minima this many times softer (0.1 ms, 0.1 dB, 1 %):
-a smoother problem, with fewer local optima for the starts to end in; the best is refined."""
+"""Each start is first solved with the soft minima this many times softer (0.1 ms, 0.1 dB,
+1 %): a smoother problem, with fewer local optima for the starts to end in; then refined."""
 START_TIE_MS = 1e-4
 """Starts whose objectives differ by less than this are equivalent: the first in the fixed
 order of starts is kept."""
@@ -745,7 +748,8 @@ def optimise(plant: ProcessModel, model: P1D | None = None, rate_hz: float = 100
     min_gain_ms
         Recommend bypass if the design gains less than this over the uncompensated platform.
     progress
-        Called as ``progress(done, total, note)`` after each start.
+        Called as ``progress(done, total, note)`` after the screening, each start and the
+        refinement.
 
     Raises
     ------
@@ -776,7 +780,7 @@ def optimise(plant: ProcessModel, model: P1D | None = None, rate_hz: float = 100
                               c, setpoint_weights, c.peak_db, np.zeros(1), gain_limit,
                               COARSE_SOFTNESS)
     rules = _rule_starts(internal)
-    total = 2 + len(rules) + 3  # screening, the starts, the refinement
+    total = 2 + len(rules) + 2  # screening, the starts, the final check
     if progress is not None:
         progress(0, total, "screening the gain space")
     screened = _screen(screen_problem)
@@ -784,55 +788,51 @@ def optimise(plant: ProcessModel, model: P1D | None = None, rate_hz: float = 100
     total = 2 + len(starts)
     if progress is not None:
         progress(1, total, f"screened; {len(starts)} starts")
-    # 1. every start on the coarse problem (none is skipped on what an earlier one found, so
-    #    the result does not hang on the order in which near-equal starts finish)
+    # every start (none is skipped on what an earlier one found, so that the result does not
+    # hang on the order in which near-equal starts finish) solved on the coarse problem, whose
+    # smoother floor has fewer local optima, then refined on the sharp one
     coarse = _Problem(grid, c, setpoint_weights, c.peak_db, floor_ms, gain_limit,
                       COARSE_SOFTNESS)
     records: list[dict[str, Any]] = []
-    best: tuple[int, float, PIDGains, str] | None = None
+    best: tuple[int, float, PIDGains, Evaluation, list[str]] | None = None
     for i, (name, g0) in enumerate(starts):
-        g, status, nit = coarse.solve(g0)
-        _, objective, violations, _ = _check(g, internal, dense, c, rate_hz, gain_limit,
-                                             c.peak_db)
+        g, _, _ = coarse.solve(g0)
+        target = c
+        for _ in range(3):
+            problem = _Problem(grid, target, setpoint_weights, target.peak_db, floor_ms,
+                               gain_limit)
+            g, status, nit = problem.solve(g)
+            nominal, objective, violations, over = _check(g, internal, dense, c, rate_hz,
+                                                          gain_limit, c.peak_db)
+            # a small excess is the fixed grid missing a sharp peak: that bound is tightened
+            # and the start solved again; a large one is a start that did not converge, which
+            # tightening would not help
+            missed_peak = 0.02 < over["peak_db"] < 0.5
+            missed_cmd = 2e-3 < over["max_command_gain"] < 0.05
+            missed_hf = 2e-3 < over["hf_command_gain"] < 0.05
+            if not nominal.stable or not (missed_peak or missed_cmd or missed_hf):
+                break
+            target = replace(
+                target,
+                peak_db=max(target.peak_db - missed_peak * (over["peak_db"] + 0.01), 0.0),
+                max_command_gain=target.max_command_gain
+                / (1.0 + missed_cmd * (over["max_command_gain"] + 1e-3)),
+                hf_command_gain=target.hf_gain
+                / (1.0 + missed_hf * (over["hf_command_gain"] + 1e-3)))
         records.append({"start": name, "status": status, "iterations": nit,
                         "objective_ms": objective, "feasible": not violations})
         # fewest violations, then the least objective, the earlier among equivalent ones
         if best is None or len(violations) < best[0] or (
                 len(violations) == best[0] and objective < best[1] - START_TIE_MS):
-            best = (len(violations), objective, g, name)
+            best = (len(violations), objective, g, nominal, violations)
         if progress is not None:
             progress(1 + i + 1, total, f"start {i + 1} of {len(starts)} ({name}): "
                      f"{objective:.2f} ms{', bounds not met' if violations else ''}; best "
                      f"{best[1]:.2f} ms")
     assert best is not None
-    # 2. the best refined on the sharp problem; a bound the fixed grid missed by a little is
-    #    tightened and the problem solved again
-    g = best[2]
-    target = c
-    for _ in range(3):
-        problem = _Problem(grid, target, setpoint_weights, target.peak_db, floor_ms,
-                           gain_limit)
-        g, status, nit = problem.solve(g)
-        nominal, objective, violations, over = _check(g, internal, dense, c, rate_hz,
-                                                      gain_limit, c.peak_db)
-        # a small excess is the fixed grid missing a sharp peak; a large one is a start
-        # that did not converge, which tightening would not help
-        missed_peak = 0.02 < over["peak_db"] < 0.5
-        missed_cmd = 2e-3 < over["max_command_gain"] < 0.05
-        missed_hf = 2e-3 < over["hf_command_gain"] < 0.05
-        if not nominal.stable or not (missed_peak or missed_cmd or missed_hf):
-            break
-        target = replace(
-            target,
-            peak_db=max(target.peak_db - missed_peak * (over["peak_db"] + 0.01), 0.0),
-            max_command_gain=target.max_command_gain
-            / (1.0 + missed_cmd * (over["max_command_gain"] + 1e-3)),
-            hf_command_gain=target.hf_gain
-            / (1.0 + missed_hf * (over["hf_command_gain"] + 1e-3)))
-    records.append({"start": f"refined ({best[3]})", "status": status, "iterations": nit,
-                    "objective_ms": objective, "feasible": not violations})
+    _, objective, g, nominal, violations = best
     if progress is not None:
-        progress(total, total, f"refined: {objective:.2f} ms")
+        progress(total, total, f"best: {objective:.2f} ms")
     gains = g
     gain_ms = uncomp_ms - nominal.max_residual_delay_ms
     worse = (nominal.max_residual_delay_ms > uncomp_ms

@@ -146,7 +146,8 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
             if chosen is not None:
                 pid, params = chosen
                 if pid is not None and pid.gains != gains:  # a PID re-optimised for the chain
-                    design = pid
+                    # the chain was designed for a compensated axis: it stays one
+                    design = replace(pid, recommend_bypass=design.recommend_bypass)
                     gains = pid.gains
                     warnings = list(pid.warnings)
                     std = gains.to_standard()
