@@ -35,6 +35,7 @@ from motcomp.design.predictor import (
     PredictionOptions,
     PredictorBounds,
     PredictorDesign,
+    check_chain,
     design_predictor,
 )
 from motcomp.design.timedomain import (
@@ -245,6 +246,8 @@ PID_HF_LADDER = (10.0, 4.0)
 it (``--prediction on`` on a compensated axis): the prefilter then supplies the lead."""
 
 
+DEFAULT_CHECK_S = 6.0
+"""Step simulations of the ``prediction_off`` column last this long (``check_chain``'s default)."""
 STAGE_PID = 1.0
 """Estimated weight of one PID optimisation in the progress of a design (a prefilter's design
 weighs :data:`STAGE_PREFILTER`, the final checks :data:`STAGE_CHECK`)."""
@@ -352,6 +355,10 @@ def _predict(plant: ProcessModel, internal: P1D, rate_hz: float, design: opt.Opt
                                                        t[2].check.hf_command_gain))
     gain_ms = baseline - best.worst_delay_ms
     used = p.mode == "on" or gain_ms >= o.min_gain_ms
+    # what --prediction off deploys: the optimal PID alone (the platform alone if bypassed)
+    off = best.without if hf is None else check_chain(
+        plant, rate_hz, None if bypass else (design.gains, internal), None, bounds,
+        p.step_rise_s, DEFAULT_CHECK_S)
     block.update({
         "used": used,
         "pid_hf_bound": hf,
@@ -360,6 +367,7 @@ def _predict(plant: ProcessModel, internal: P1D, rate_hz: float, design: opt.Opt
         "design": best.summary(),
         "without": best.without.as_dict(),  # the chain's own PID (or the platform) alone
         "with": best.check.as_dict(),
+        "prediction_off": off.as_dict(),
     })
     if not used:
         block["note"] = (f"the prefilter gains {gain_ms:.2f} ms of worst delay, less than "
@@ -623,10 +631,15 @@ def prediction_markdown(block: dict[str, Any]) -> list[str]:
         series += (f"; least worst delay with the chain's command gain <= "
                    f"{block['chain_hf_bound']:g} above the band")
     alone = "the PID alone" if block["series"] == "pid" else "the platform alone"
+    columns = [(alone, block["without"]), ("with the prefilter", block["with"])]
+    if block.get("pid_hf_bound") is not None and "prediction_off" in block:
+        columns.insert(0, ("the optimal PID alone (--prediction off)", block["prediction_off"]))
+        columns[1] = (f"the chain's PID alone (<= {block['pid_hf_bound']:g} above the band)",
+                      block["without"])
     lines += [f"{d['order']} Laguerre functions, pole {p['pole_hz']:g} Hz, {series}; "
               f"used: **{'yes' if block['used'] else 'no'}**.", "",
-              f"| metric | {alone} | with the prefilter |", "|---|---|---|"]
-    wo, wi = block["without"], block["with"]
+              "| metric | " + " | ".join(name for name, _ in columns) + " |",
+              "|---|" + "---|" * len(columns)]
     rows = [("worst phase delay in band", "max_delay_ms", "{:.2f} ms"),
             ("in-band gain error", "gain_error_db", "{:.2f} dB"),
             ("peak gain", "peak_gain_db", "{:+.2f} dB"),
@@ -636,7 +649,9 @@ def prediction_markdown(block: dict[str, Any]) -> list[str]:
         rows.append((f"{d['step_rise_s']:g} s min-jerk step: overshoot",
                      "design_step_overshoot", "{:.1%}"))
     for label, key, fmt in rows:
-        lines.append(f"| {label} | {fmt.format(wo[key])} | {fmt.format(wi[key])} |")
+        lines.append(f"| {label} | " + " | ".join(
+            "-" if values.get(key) is None else fmt.format(values[key])
+            for _, values in columns) + " |")
     if block.get("note"):
         lines += ["", block["note"]]
     return lines
