@@ -14,6 +14,7 @@ from the stages' estimated weights.
 
 from __future__ import annotations
 
+import shutil
 import sys
 import threading
 import time
@@ -91,12 +92,13 @@ class Progress:
             return
         self._last = now
         frac = self.done / self.total
-        width = 30
+        columns = max(shutil.get_terminal_size((120, 24)).columns - 1, 40)
+        width = 30 if columns >= 120 else 20
         filled = round(frac * width)
         bar = "#" * filled + "-" * (width - filled)
         elapsed = now - self._t0
-        text = f"\r{self.label:<18} [{bar}] {frac * 100:5.1f}% {elapsed:6.1f}s {note}"
-        self.stream.write(text[:120].ljust(100))
+        text = f"{self.label:<18} [{bar}] {frac * 100:5.1f}% {elapsed:6.1f}s {note}"
+        self.stream.write("\r" + text[:columns].ljust(columns))
         if final:
             self.stream.write("\n")
         self.stream.flush()
