@@ -45,8 +45,8 @@ the grid taken as the smooth soft minimum of small frequency blocks (:class:`_Pr
 coordinates for kp, ki, kd, tf and the reference path's gains ``kp b``, ``kd c``.  The starts
 are fixed -- the best point of a deterministic (Halton) sample of the gain space, the ZN, CC,
 AMIGO and SIMC gains, the second-best sample --, every one is solved on a ten times softer
-problem and the best is refined: the same inputs give gains within :data:`GAIN_RTOL` on any
-machine.  Every candidate is re-checked on dense grids
+problem, then refined, and the best is kept: the same inputs give gains within
+:data:`GAIN_RTOL` on any machine.  Every candidate is re-checked on dense grids
 (:func:`motcomp.design.frequency.evaluate` for the nominal plant, poles included); a peak or
 command bound that the fixed grid missed by a little is tightened and the design re-solved.
 docs/TUNING.md ("How it is solved") has the reasons and the figures.
