@@ -141,7 +141,8 @@ def test_rails_prediction_on_keeps_delay_and_peak_with_a_quieter_command(
 def test_rails_chain_hf_gain_states_the_noise_figure_and_buys_delay_with_it() -> None:
     """``--chain-hf-gain G``: the whole chain's command gain above 10 Hz is at most G (as the
     report's noise figure says) and its worst delay is the least within it: a looser G buys
-    less delay, and G = 20 beats the default, which only holds the optimal PID's delay."""
+    less delay, and G = 16 already beats the default, which only holds the optimal PID's
+    delay (what --prediction off deploys, reported beside the chain)."""
     base = ("design", "--plant", "rails", "--rule", "optimal", "--prediction", "on",
             "--band", "0.03", "2", "--input-lag-ms", "1.1", "--quiet", "--json")
     worst: dict[float, float] = {}
@@ -157,10 +158,9 @@ def test_rails_chain_hf_gain_states_the_noise_figure_and_buys_delay_with_it() ->
         assert pred["with"]["peak_gain_db"] <= 8.0 + 0.005
         assert pred["with"]["gain_error_db"] <= 1.0 + 0.005
         worst[g] = pred["with"]["max_delay_ms"]
+        held = pred["prediction_off"]["max_delay_ms"]
+        assert pred["baseline_delay_ms"] == pytest.approx(held, abs=1e-6)
         assert_one_story(out)
-    default = run(*base)
-    assert default.returncode == 0, default.stderr
-    held = json.loads(default.stdout)["prediction"]["with"]["max_delay_ms"]
     assert worst[20.0] < worst[16.0] < held, (worst, held)
 
 
