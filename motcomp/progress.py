@@ -6,17 +6,26 @@ is not a terminal (a log file, journald, CI): a plain line every ``every_s`` sec
 step that reports nothing in between is never silent; and, if it said anything, one line when
 it ends, with its duration.  A job shorter than ``every_s`` prints nothing there.  Nothing at
 all with ``quiet``.
+
+:class:`Stages` turns a job of several stages (each reporting its own ``done of total``) into
+one progress: the stage's name and number, its own progress, and the whole job's share done,
+from the stages' estimated weights.
 """
 
 from __future__ import annotations
 
+import shutil
 import sys
 import threading
 import time
+from collections.abc import Callable, Sequence
 from types import TracebackType
 from typing import TextIO
 
-__all__ = ["PLAIN_EVERY_S", "Progress"]
+__all__ = ["PLAIN_EVERY_S", "Progress", "ProgressCallback", "Stages"]
+
+ProgressCallback = Callable[[float, float, str], None]
+"""``callback(done, total, note)``: how far a job got, and what it is doing."""
 
 PLAIN_EVERY_S = 10.0
 """Plain progress lines come at most this often on a stream that is not a terminal."""
@@ -27,8 +36,9 @@ class Progress:
 
     def __init__(self, label: str, total: float, quiet: bool = False, force: bool = False,
                  stream: TextIO | None = None, unit: str = "",
-                 every_s: float = PLAIN_EVERY_S) -> None:
+                 every_s: float = PLAIN_EVERY_S, counts: bool = True) -> None:
         self.label = label
+        self.counts = counts  # False: the share done only (weights, not counts of anything)
         self.total = max(float(total), 1e-12)
         self.done = 0.0
         self.note = ""
@@ -82,12 +92,13 @@ class Progress:
             return
         self._last = now
         frac = self.done / self.total
-        width = 30
+        columns = max(shutil.get_terminal_size((120, 24)).columns - 1, 40)
+        width = 30 if columns >= 120 else 20
         filled = round(frac * width)
         bar = "#" * filled + "-" * (width - filled)
         elapsed = now - self._t0
-        text = f"\r{self.label:<18} [{bar}] {frac * 100:5.1f}% {elapsed:6.1f}s {note}"
-        self.stream.write(text[:120].ljust(100))
+        text = f"{self.label:<18} [{bar}] {frac * 100:5.1f}% {elapsed:6.1f}s {note}"
+        self.stream.write("\r" + text[:columns].ljust(columns))
         if final:
             self.stream.write("\n")
         self.stream.flush()
@@ -97,9 +108,10 @@ class Progress:
         while not self._stop.wait(self.every_s):
             unit = f" {self.unit}" if self.unit else ""
             note = f" {self.note}" if self.note else ""
-            self._write(f"{self.label}: {self.done:.1f} of {self.total:.1f}{unit} "
-                        f"({self.done / self.total * 100:.0f} %) after "
-                        f"{time.monotonic() - self._t0:.0f} s{note}")
+            share = f"{self.done / self.total * 100:.0f} %"
+            head = f"{self.done:.1f} of {self.total:.1f}{unit} ({share})" if self.counts \
+                else share
+            self._write(f"{self.label}: {head} after {time.monotonic() - self._t0:.0f} s{note}")
             self._said = True
 
     def _write(self, line: str) -> None:
@@ -108,3 +120,58 @@ class Progress:
             self.stream.flush()
         except (OSError, ValueError):  # a closed stream: the job goes on
             pass
+
+
+class Stages:
+    """One progress for a job of stages: ``Stages(report, [("optimising the PID", 1.0),
+    ("designing the prefilter", 3.0)])``, then ``stages.start("designing the prefilter")``
+    returns the ``(done, total, note)`` callback of that stage (or None without ``report``).
+
+    ``report(done, total, note)`` receives the share of the job done in weight units (the
+    finished stages' weights plus the running one's share of its own) and a note such as
+    ``stage 2 of 3, designing the prefilter: 4 of 14, 0.912 ms met``.  :meth:`plan` replaces the
+    stages still to come when what remains becomes known; the share done never goes back.
+    """
+
+    def __init__(self, report: ProgressCallback | None,
+                 plan: Sequence[tuple[str, float]]) -> None:
+        self.report = report
+        self.stages: list[tuple[str, float]] = list(plan)
+        self.index = -1
+        self.done = 0.0  # the weight of the finished stages
+        self._shown = 0.0
+
+    def plan(self, remaining: Sequence[tuple[str, float]]) -> None:
+        """The stages after the running one are ``remaining``."""
+        self.stages = self.stages[: self.index + 1] + list(remaining)
+
+    def start(self, name: str, weight: float | None = None
+              ) -> Callable[[int, int, str], None] | None:
+        """Finish the running stage and start ``name`` (the next planned one, or a new one of
+        ``weight``)."""
+        if self.index >= 0:
+            self.done += self.stages[self.index][1]
+        self.index += 1
+        if self.index < len(self.stages) and self.stages[self.index][0] == name:
+            if weight is not None:
+                self.stages[self.index] = (name, weight)
+        else:
+            self.stages.insert(self.index, (name, 1.0 if weight is None else weight))
+        self._emit(0.0, "")
+        if self.report is None:
+            return None
+
+        def update(done: int, total: int, note: str) -> None:
+            frac = min(max(done / total, 0.0), 1.0) if total > 0 else 0.0
+            self._emit(frac, f": {done} of {total}, {note}" if note else f": {done} of {total}")
+
+        return update
+
+    def _emit(self, frac: float, detail: str) -> None:
+        if self.report is None:
+            return
+        name, weight = self.stages[self.index]
+        total = sum(w for _, w in self.stages)
+        self._shown = max(self._shown, self.done + frac * weight)
+        self.report(min(self._shown, total), total,
+                    f"stage {self.index + 1} of {len(self.stages)}, {name}{detail}")

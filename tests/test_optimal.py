@@ -14,7 +14,13 @@ from motcomp.core.loop import stability
 from motcomp.core.tuning import tune
 from motcomp.design.fastloop import LoopGrid
 from motcomp.design.frequency import evaluate
-from motcomp.design.optimal import Constraints, OptimalDesign, Uncertainty, optimise
+from motcomp.design.optimal import (
+    GAIN_RTOL,
+    Constraints,
+    OptimalDesign,
+    Uncertainty,
+    optimise,
+)
 from motcomp.design.timedomain import simulate_compensated, slalom, swept_sine
 from motcomp.errors import ConfigError
 from motcomp.presets import load_preset
@@ -64,7 +70,9 @@ def test_command_excess_bound_holds_in_band(nominal: OptimalDesign) -> None:
 
 def test_deterministic(nominal: OptimalDesign) -> None:
     again = optimise(RAILS, rate_hz=1000.0)
-    assert again.gains == nominal.gains
+    for name in ("kp", "ki", "kd", "tf", "b", "c"):
+        assert getattr(again.gains, name) == pytest.approx(getattr(nominal.gains, name),
+                                                           rel=GAIN_RTOL), name
 
 
 def test_setpoint_weights_are_the_extra_degree_of_freedom_for_6db() -> None:
@@ -109,7 +117,7 @@ def _saturated_samples(gains: object, f1_hz: float) -> tuple[int, float]:
 def test_time_domain_slalom_and_sweeps_with_saturation(nominal: OptimalDesign) -> None:
     _, r = slalom(1000.0)
     res = simulate_compensated(r, nominal.gains, RAILS, None, RAILS_LIMITS, 1000.0)
-    assert res.reduction_s >= 0.190  # measured 195.3 ms (ZN: 192.6 ms)
+    assert res.reduction_s >= 0.190  # measured 195.1 ms (ZN: 192.4 ms)
     assert res.saturated_samples_on == 0
     # the `motcomp evaluate` sweep (0.1-3 Hz at 80 % of the plain limits) and a 0.1-2 Hz one:
     # every compensator saturates the acceleration limit there; no more than ZN does

@@ -6,6 +6,7 @@ import json
 import subprocess
 from pathlib import Path
 
+from tests._designs import assert_same_gains, assert_same_prefilter
 from tests.conftest import motcomp_cmd, subprocess_env
 
 
@@ -40,7 +41,8 @@ def test_design_optimal_fragment_is_the_example_configs_rails_tuning(tmp_path: P
     """``--out`` writes the gains and the prefilter in the config's keys, exactly; the example
     config's rails are this design -- the live stack's 2.8 ms (a 1 kHz sender's playback and the
     platform's setpoint age), the default 48 Hz band limit, the PID and the prefilter in series
-    over 0.03-2 Hz, the chain's command gain above 10 Hz bounded to 20 -- to the last digit."""
+    over 0.03-2 Hz, the chain's command gain above 10 Hz bounded to 20 -- within the design's
+    stated tolerance (the same design on any machine: tests/test_optimal_determinism.py)."""
     import re
     import tomllib
 
@@ -70,9 +72,13 @@ def test_design_optimal_fragment_is_the_example_configs_rails_tuning(tmp_path: P
     assert run("config", "check", str(site)).returncode == 0
     axes = resolve_axes(load_config(site))
     y, x = axes.names.index("rails_y"), axes.names.index("rails_x")
-    assert axes.gains[y] == PIDGains.from_config(out["gains"])
-    assert axes.gains[y] == axes.gains[x]  # rails_x: the example's, untouched
-    assert axes.prediction[y] == axes.prediction[x] and axes.prediction[y] is not None
+    assert axes.gains[y] == PIDGains.from_config(out["gains"])  # the fragment, exactly
+    pred_y, pred_x = axes.prediction[y], axes.prediction[x]
+    assert pred_y is not None and pred_x is not None
+    assert pred_y.to_config() == out["prediction"]["design"]["params"]
+    # rails_x: the example's own lines, which this design reproduces
+    assert_same_gains(axes.gains[y], axes.gains[x])
+    assert_same_prefilter(pred_y, pred_x)
 
 
 def test_design_optimal_options_reach_the_optimiser() -> None:

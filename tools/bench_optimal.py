@@ -1,17 +1,26 @@
 """Benchmark of the optimised tuning: writes the "optimal" section of docs/BENCHMARKS.md and the
 Pareto figure docs/optimal_pareto_rails.png.
 
-    python tools/bench_optimal.py
+    python tools/bench_optimal.py [--repeats N] [--baseline DIR]
 
 Everything is recomputed: rails nominal and robust designs against the rules, the Pareto
 frontier, the <= 6 dB experiment, the command-bound trade-off, the uncertainty-set table, the
-time-domain runs with saturation, and the hexapod.
+time-domain runs with saturation, the hexapod, and the time ``motcomp design`` takes for the
+example config's designs (``--repeats`` runs each, medians of CPU and wall time; with
+``--baseline DIR``, another checkout's ``motcomp`` -- the code before a change -- runs each
+command too, interleaved with this one's, so that both see the same load).
 """
 
 from __future__ import annotations
 
+import argparse
+import os
+import resource
+import statistics
+import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 from _bench import DOC, machine, write_section
@@ -58,7 +67,68 @@ HEAD = ("| design | max residual delay 0.1-2 Hz (ms) | peak gain (dB) | in-band 
         "command over inverse (dB) | max abs(F) | Ms |")
 
 
+ROOT = Path(__file__).resolve().parent.parent
+DESIGNS = (
+    ("rails, default bounds", ("design", "--plant", "rails", "--rule", "optimal")),
+    ("rails, the example config's chain",
+     ("design", "--plant", "rails", "--rule", "optimal", "--input-lag-ms", "2.8", "--prediction",
+      "on", "--band", "0.03", "2", "--chain-hf-gain", "20")),
+    ("hexapod, the example config's prefilter",
+     ("design", "--plant", "hexapod", "--axis", "hex_x", "--rule", "optimal", "--peak-db", "6",
+      "--hf-gain", "7", "--step-rise-s", "0.4", "--prediction-order", "40",
+      "--prediction-pole-hz", "1", "--input-lag-ms", "2.8", "--input-band-hz", "64")),
+)
+"""The commands timed (``motcomp ... --json --quiet``): config/motcomp.toml's designs."""
+
+
+def run_design(tree: Path, args: tuple[str, ...]) -> tuple[float, float]:
+    """Wall and CPU seconds of one ``motcomp`` run from checkout ``tree``."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    p = subprocess.run([sys.executable, "-m", "motcomp", *args, "--json", "--quiet"], cwd=tree,
+                       env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if p.returncode != 0:
+        raise SystemExit(f"{tree}: motcomp {' '.join(args)} failed: {p.stderr.strip()}")
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, cpu
+
+
+def design_times(repeats: int, baseline: Path | None, label: str) -> list[str]:
+    """The design-time table: medians over ``repeats`` runs (interleaved with ``baseline``)."""
+    trees = [("this checkout", ROOT)] + ([(label, baseline)] if baseline else [])
+    lines = ["### Design time", "",
+             f"`motcomp design ... --json --quiet`, {repeats} runs of each; medians (CPU: user "
+             "+ system of the process, which the host's load changes little; wall: what the "
+             "user waits, which it changes a lot)"
+             + (f"; {label} interleaved with this checkout's runs" if baseline else "") + ".",
+             "",
+             "| design | " + " | ".join(f"{name}: CPU, wall (s)" for name, _ in trees)
+             + " | load average |", "|---|" + "---|" * len(trees) + "---|"]
+    for label, args in DESIGNS:
+        runs: dict[str, list[tuple[float, float]]] = {name: [] for name, _ in trees}
+        loads = []
+        for _ in range(repeats):
+            for name, tree in trees:
+                loads.append(os.getloadavg()[0])
+                runs[name].append(run_design(tree, args))
+                print(f"{label}, {name}: wall {runs[name][-1][0]:.1f} s, CPU "
+                      f"{runs[name][-1][1]:.1f} s", flush=True)
+        cells = [f"{statistics.median(c for _, c in runs[name]):.1f}, "
+                 f"{statistics.median(w for w, _ in runs[name]):.1f}" for name, _ in trees]
+        lines.append(f"| {label} | " + " | ".join(cells)
+                     + f" | {min(loads):.1f}-{max(loads):.1f} |")
+    return [*lines, ""]
+
+
 def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--repeats", type=int, default=3, help="runs of each timed design")
+    ap.add_argument("--baseline", type=Path, help="another checkout to time beside this one")
+    ap.add_argument("--baseline-label", default="baseline", help="its name in the table")
+    args = ap.parse_args()
     rails = RAILS.model
     lines: list[str] = [f"Machine: {machine()}.", "",
                         "`python tools/bench_optimal.py`; all designs at 1 kHz unless stated, "
@@ -68,6 +138,7 @@ def main() -> int:
                         "Ms <= 4 (docs/TUNING.md).", ""]
 
     # --- rails nominal ----------------------------------------------------------------------
+    optimise(rails)  # once untimed: the first call imports SciPy's optimiser
     nominal, t_nom = timed("rails nominal", optimise, rails)
     plain, t_plain = timed("rails plain", optimise, rails, setpoint_weights=False)
     loose = Constraints(command_excess_db=1.0)
@@ -196,6 +267,7 @@ def main() -> int:
                   f"{ev.uncorrected_gain_error_db:.2f} dB.", "",
               "Report of `motcomp design --plant hexapod --rule optimal`:", "",
               *[f"> {w}" for w in hex_design.warnings], ""]
+    lines += design_times(args.repeats, args.baseline, args.baseline_label)
     write_section("optimal", "\n".join(lines))
     print(f"wrote the optimal section of {DOC} and {FIGURE}")
     return 0

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import shutil
 import sys
 import tempfile
@@ -24,8 +25,8 @@ from motcomp.design.predictor import DEFAULT_ORDER, DEFAULT_POLE_HZ, PredictionO
 from motcomp.design.report import DESIGN_RULES, OPTIMAL
 from motcomp.design.timedomain import limits_for
 from motcomp.errors import ConfigError
-from motcomp.presets import DEFAULT_AXIS, PlantSource, plant_source
-from motcomp.progress import Progress
+from motcomp.presets import DEFAULT_AXIS, PlantSource, list_presets, plant_source
+from motcomp.progress import Progress, ProgressCallback
 
 ORDER = 10
 
@@ -172,7 +173,19 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _source(args: argparse.Namespace) -> PlantSource:
-    return plant_source(args.plant, args.model, args.axis)
+    """The plant of ``--plant`` or ``--model``.
+
+    Raises
+    ------
+    ConfigError
+        Also when ``--plant`` is given a model spec (``p1d:K=1,...``), naming ``--model``.
+    """
+    plant = args.plant
+    if plant and Path(plant).suffix != ".toml" and re.match(r"^[A-Za-z0-9]+:", plant):
+        presets = ", ".join(list_presets())
+        raise ConfigError(f"--plant {plant!r}: --plant takes a preset name ({presets}) or a "
+                          f".toml file; a model spec goes with --model: --model {plant}")
+    return plant_source(plant, args.model, args.axis)
 
 
 def _internal(args: argparse.Namespace) -> P1D | None:
@@ -202,14 +215,14 @@ def _prediction(args: argparse.Namespace, default: str) -> PredictionOptions:
 
 
 @contextmanager
-def _progress(args: argparse.Namespace, label: str
-              ) -> Iterator[Callable[[int, int, str], None] | None]:
-    """A progress callback drawing on stderr (nothing with --quiet or when not optimising)."""
+def _progress(args: argparse.Namespace, label: str) -> Iterator[ProgressCallback | None]:
+    """A progress callback drawing on stderr (nothing with --quiet or when not optimising):
+    the share done, the stage and what it is doing."""
     if args.quiet or getattr(args, "rule", OPTIMAL) != OPTIMAL:
         yield None
         return
-    with Progress(label, total=1.0) as bar:
-        def update(done: int, total: int, note: str) -> None:
+    with Progress(label, total=1.0, counts=False) as bar:
+        def update(done: float, total: float, note: str) -> None:
             bar.total = max(float(total), 1e-12)
             bar.update(done, note)
 

@@ -40,13 +40,16 @@ Solution method
 The frequency responses of all members are computed on a fixed grid by
 :class:`~motcomp.design.fastloop.LoopGrid` (vectorised; finite-difference Jacobians are one
 batched call; the poles are batched eigenvalues of companion matrices).  The minimax is solved
-in epigraph form (minimise ``t`` subject to ``-t <= tau(f_i) <= t``, grouped in small frequency
-blocks) with SLSQP, in log coordinates for kp, ki, kd, tf, from a fixed sequence of starts: the
-best point of a fixed-seed Sobol sample of the gain space, the ZN, CC, AMIGO and SIMC gains,
-then the second-best sample; the search stops once two starts agree.  The same inputs always
-give the same gains.  Every candidate is re-checked on dense grids
+in epigraph form (minimise ``t`` subject to ``-t <= tau(f_i) <= t``) with SLSQP, each bound on
+the grid taken as the smooth soft minimum of small frequency blocks (:class:`_Problem`), in log
+coordinates for kp, ki, kd, tf and the reference path's gains ``kp b``, ``kd c``.  The starts
+are fixed -- the best point of a deterministic (Halton) sample of the gain space, the ZN, CC,
+AMIGO and SIMC gains, the second-best sample --, every one is solved on a ten times softer
+problem, then refined, and the best is kept: the same inputs give gains within
+:data:`GAIN_RTOL` on any machine.  Every candidate is re-checked on dense grids
 (:func:`motcomp.design.frequency.evaluate` for the nominal plant, poles included); a peak or
 command bound that the fixed grid missed by a little is tightened and the design re-solved.
+docs/TUNING.md ("How it is solved") has the reasons and the figures.
 
 No harm
 -------
@@ -70,11 +73,13 @@ import numpy as np
 from motcomp.core.models import OE, P1D, ProcessModel, p1d_coefficients
 from motcomp.core.pid import PIDGains
 from motcomp.core.tuning import RULES, tune
+from motcomp.design.blas import with_one_blas_thread
 from motcomp.design.fastloop import LoopGrid
 from motcomp.design.frequency import HF_FROM_HZ, Evaluation, evaluate
 from motcomp.errors import ConfigError
 
 __all__ = [
+    "GAIN_RTOL",
     "Constraints",
     "MemberResult",
     "OptimalDesign",
@@ -339,12 +344,49 @@ def command_excess_db(gains: PIDGains, model: P1D, rate_hz: float,
 
 # --- the optimisation problem ---------------------------------------------------------------
 
+SOFT_DELAY_MS = 0.01
+"""Largest amount by which a soft block minimum of delay rows (ms) lies below the hard one."""
+SOFT_DB = 0.01
+"""The same for the rows in dB (peak, in-band gain error, command excess)."""
+SOFT_REL = 1e-3
+"""The same for the relative rows (command gain, HF command gain, sensitivity)."""
+WEIGHT_MIN = 1e-3
+"""Smallest setpoint weight searched (the reference gains are log coordinates)."""
+MAX_ITER = 300
+"""SLSQP iterations per start (the smooth problem converges in 10-100)."""
+COARSE_SOFTNESS = 10.0
+"""Each start is first solved with the soft minima this many times softer (0.1 ms, 0.1 dB,
+1 %): a smoother problem, with fewer local optima for the starts to end in; then refined."""
+START_TIE_MS = 1e-4
+"""Starts whose objectives differ by less than this are equivalent: the first in the fixed
+order of starts is kept."""
+GAIN_RTOL = 1e-4
+"""What "the same design" means: the same problem, on any x86-64 CPU, BLAS and thread count,
+gives gains within this relative tolerance of each other (measured across BLAS threads, a
+1e-12 change of the starts or of the model and another summation order: 1e-7;
+tests/test_optimal_determinism.py)."""
+
+
 class _Problem:
-    """Variables ``x = [ln kp, ln ki, ln kd, ln tf, (b, c,) t_ms]`` and the constraint vector."""
+    """The smooth problem SLSQP solves, in the variables ``y = [ln kp, ln ki, ln kd, ln tf,
+    (ln kp b, ln kd c,) t_ms]``.
+
+    The reference path's gains ``kp b`` and ``kd c`` are variables of their own: the command
+    depends on them far more than on the split of each between the paths, and in these
+    coordinates the set of near-optimal gains is a straight valley (``kd`` shrinking, ``kd c``
+    fixed) that ends on the bound ``c <= WEIGHT_MAX``, a linear constraint.  Every bound on a
+    frequency grid becomes one constraint per small block of frequencies, the block's soft
+    minimum (:func:`_softmin`): smooth, and below the block's minimum by at most
+    :data:`SOFT_DELAY_MS`, :data:`SOFT_DB` or :data:`SOFT_REL`, so each bound is met with that
+    margin on the grid.  A smooth problem has one optimum where the hard minimax has a ragged
+    floor of near-equal corners: every start that converges reaches the same gains.
+    """
 
     def __init__(self, grid: LoopGrid, c: Constraints, weights: bool,
-                 peak_db: float, floor_ms: np.ndarray, gain_limit_db: float) -> None:
+                 peak_db: float, floor_ms: np.ndarray, gain_limit_db: float,
+                 softness: float = 1.0) -> None:
         self.grid = grid
+        self.soft = (SOFT_DELAY_MS * softness, SOFT_DB * softness, SOFT_REL * softness)
         self.c = c
         self.weights = weights
         self.peak_db = peak_db
@@ -355,58 +397,73 @@ class _Problem:
         self.hf = grid.f >= c.hf_from_hz
         self._value_key: bytes | None = None
         self._value = np.zeros(0)
-        self._n_delay_rows = grid.p.shape[0] * 2 * _blocks(grid.f_band.size, 3)
+        self._band_blocks = _blocks(grid.f_band.size, 3)
+        self._n_delay_rows = grid.p.shape[0] * 2 * self._band_blocks
         model = grid.model
         self._model_coef = p1d_coefficients(model, grid.h)
         K = abs(model.K)
         h = grid.h
-        self.bounds = [
+        gain_bounds = [
             (math.log(1e-3 / K), math.log(1e3 / K)),
             (math.log(1e-2 / K), math.log(1e5 / K)),
             (math.log(1e-7 / K), math.log(10.0 / K)),
             (math.log(0.1 * h), math.log(1.0)),
-        ] + ([(0.0, WEIGHT_MAX), (0.0, WEIGHT_MAX)] if weights else []) + [(0.0, 1e4)]
+        ]
+        if weights:  # ln kp b and ln kd c; their ratio to kp, kd is a linear constraint
+            w_lo, w_hi = math.log(WEIGHT_MIN), math.log(WEIGHT_MAX)
+            gain_bounds += [(gain_bounds[0][0] + w_lo, gain_bounds[0][1] + w_hi),
+                            (gain_bounds[2][0] + w_lo, gain_bounds[2][1] + w_hi)]
+        self.bounds = [*gain_bounds, (0.0, 1e4)]
+        self._lo = np.array([b[0] for b in self.bounds])
+        self._hi = np.array([b[1] for b in self.bounds])
 
-    def gains(self, x: np.ndarray) -> PIDGains:
-        g = np.exp(np.asarray(x[:4], dtype=float))
-        b, c = (float(x[4]), float(x[5])) if self.weights else (1.0, 1.0)
+    def gains(self, y: np.ndarray) -> PIDGains:
+        g = np.exp(np.asarray(y[:4], dtype=float))
+        b = c = 1.0
+        if self.weights:
+            b = min(max(math.exp(float(y[4]) - float(y[0])), 0.0), WEIGHT_MAX)
+            c = min(max(math.exp(float(y[5]) - float(y[2])), 0.0), WEIGHT_MAX)
         return PIDGains(float(g[0]), float(g[1]), float(g[2]), float(g[3]), b, c)
 
     def x_of(self, g: PIDGains, t_ms: float) -> np.ndarray:
         head = [math.log(g.kp), math.log(g.ki), math.log(g.kd), math.log(g.tf)]
         if self.weights:
-            head += [g.b, g.c]
-        x = np.array([*head, t_ms])
-        lo = np.array([b[0] for b in self.bounds])
-        hi = np.array([b[1] for b in self.bounds])
-        return np.clip(x, lo, hi)
+            b = min(max(g.b, WEIGHT_MIN), WEIGHT_MAX)
+            c = min(max(g.c, WEIGHT_MIN), WEIGHT_MAX)
+            head += [head[0] + math.log(b), head[2] + math.log(c)]
+        return np.clip(np.array([*head, t_ms]), self._lo, self._hi)
 
-    def _batch(self, X: np.ndarray) -> np.ndarray:
-        """Constraint vectors (>= 0 when satisfied) of the rows of ``X``."""
-        G = np.exp(X[:, :4])
-        if self.weights:
-            b, c = X[:, 4], X[:, 5]
-        else:
-            b = c = np.ones(X.shape[0])
+    def _weights_of(self, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if not self.weights:
+            ones = np.ones(Y.shape[0])
+            return ones, ones
+        # not clipped: SLSQP's finite differences must see the weights move at their bounds
+        return np.exp(Y[:, 4] - Y[:, 0]), np.exp(Y[:, 5] - Y[:, 2])
+
+    def _batch(self, Y: np.ndarray) -> np.ndarray:
+        """Constraint vectors (>= 0 when satisfied) of the rows of ``Y``."""
+        G = np.exp(Y[:, :4])
+        b, c = self._weights_of(Y)
         r = self.grid(G[:, 0], G[:, 1], G[:, 2], G[:, 3], b, c)
-        t = X[:, -1][None, :, None]
+        t = Y[:, -1][None, :, None]
         tau = r.delay_s * 1e3  # (m, k, nb)
-        k = X.shape[0]
-        nb = self.grid.f_band.size
+        k = Y.shape[0]
         band = self.grid.band
-        dly = _blockmin(np.concatenate([t + self.floor_ms - tau, t + self.floor_ms + tau],
-                                       axis=-1), 2 * _blocks(nb, 3))
+        nbl = self._band_blocks
+        soft_ms, soft_db, soft_rel = self.soft
+        dly = np.concatenate([_softmin(t + self.floor_ms - tau, nbl, soft_ms),
+                              _softmin(t + self.floor_ms + tau, nbl, soft_ms)], axis=-1)
+        gain = r.gain_db[0][:, band]
         parts = [
             np.moveaxis(dly, 1, 0).reshape(k, -1),
-            np.moveaxis(_blockmin(self.peak_db - r.gain_db[:, :, self.hi], 40), 1, 0
+            np.moveaxis(_softmin(self.peak_db - r.gain_db[:, :, self.hi], 40, soft_db), 1, 0
                         ).reshape(k, -1),
-            _blockmin(np.concatenate([self.gain_limit_db - r.gain_db[0][:, band],
-                                      self.gain_limit_db + r.gain_db[0][:, band]], axis=-1),
-                      2 * _blocks(nb, 3)),
-            _blockmin(self.c.command_excess_db - r.excess_db, _blocks(nb, 3)),
-            _blockmin(1.0 - r.command / self.c.max_command_gain, 40),
-            _blockmin(1.0 - r.command[:, self.hf] / self.c.hf_gain, 40),
-            _blockmin(1.0 - r.sensitivity / self.c.max_sensitivity, 40),
+            _softmin(self.gain_limit_db - gain, nbl, soft_db),
+            _softmin(self.gain_limit_db + gain, nbl, soft_db),
+            _softmin(self.c.command_excess_db - r.excess_db, nbl, soft_db),
+            _softmin(1.0 - r.command / self.c.max_command_gain, 40, soft_rel),
+            _softmin(1.0 - r.command[:, self.hf] / self.c.hf_gain, 40, soft_rel),
+            _softmin(1.0 - r.sensitivity / self.c.max_sensitivity, 40, soft_rel),
         ]
         rho = self.pole_modulus(G[:, 0], G[:, 1], G[:, 2], G[:, 3])[:, None]
         parts.append(100.0 * (1.0 - POLE_MARGIN - rho))
@@ -473,7 +530,7 @@ class _Problem:
         r = self.grid(g.kp, g.ki, g.kd, g.tf, g.b, g.c)
         return float(np.max(r.max_delay_ms()[:, 0] - self.floor_ms[:, 0, 0]))
 
-    def solve(self, start: PIDGains, maxiter: int = 100) -> tuple[PIDGains, int, int]:
+    def solve(self, start: PIDGains, maxiter: int = MAX_ITER) -> tuple[PIDGains, int, int]:
         from scipy.optimize import minimize  # the offline stack is imported lazily
 
         t0 = max(self.objective_ms(start), 0.0) + 1.0
@@ -481,10 +538,20 @@ class _Problem:
         n = x0.size
         grad = np.zeros(n)
         grad[-1] = 1.0
+        constraints: list[dict[str, Any]] = [
+            {"type": "ineq", "fun": self.cons, "jac": self.cons_jac}]
+        if self.weights:  # WEIGHT_MIN <= b, c <= WEIGHT_MAX
+            lin = np.zeros((4, n))
+            lin[0, [0, 4]] = (1.0, -1.0)
+            lin[1, [0, 4]] = (-1.0, 1.0)
+            lin[2, [2, 5]] = (1.0, -1.0)
+            lin[3, [2, 5]] = (-1.0, 1.0)
+            floor = np.array([-math.log(WEIGHT_MAX), math.log(WEIGHT_MIN)] * 2)
+            constraints.append({"type": "ineq", "fun": lambda x: lin @ x - floor,
+                                "jac": lambda x: lin})
         res = minimize(lambda x: float(x[-1]), x0, jac=lambda x: grad, method="SLSQP",
-                       bounds=self.bounds,
-                       constraints=[{"type": "ineq", "fun": self.cons, "jac": self.cons_jac}],
-                       options={"maxiter": maxiter, "ftol": 1e-8})
+                       bounds=self.bounds, constraints=constraints,
+                       options={"maxiter": maxiter, "ftol": 1e-10})
         return self.gains(res.x), int(res.status), int(res.nit)
 
 
@@ -503,13 +570,23 @@ def _blocks(n: int, size: int) -> int:
     return max(1, n // size)
 
 
-def _blockmin(a: np.ndarray, nblocks: int) -> np.ndarray:
-    """Minimum over ``nblocks`` contiguous blocks of the last axis (fewer, piecewise-smooth
-    constraints for SLSQP: the fixed grid is dense enough that a block's minimum is where the
-    bound binds)."""
+def _softmin(a: np.ndarray, nblocks: int, tol: float) -> np.ndarray:
+    """Soft minimum over ``nblocks`` contiguous blocks of the last axis (a short last block is
+    padded with its last value): ``m - ln(sum exp(-beta (a - m)))/beta`` with ``m`` the block's
+    minimum and ``beta = ln(size)/tol``, which lies in ``[m - tol, m]``.  Smooth where the hard
+    minimum has a corner at every change of the binding frequency; the fixed grid is dense
+    enough that a block's minimum is where the bound binds."""
     n = a.shape[-1]
-    starts = np.linspace(0, n, min(nblocks, n) + 1).astype(int)[:-1]
-    return np.asarray(np.minimum.reduceat(a, starts, axis=-1))
+    nb = min(nblocks, n)
+    size = -(-n // nb)
+    if nb * size > n:
+        a = np.concatenate([a, np.repeat(a[..., -1:], nb * size - n, axis=-1)], axis=-1)
+    blocks = a.reshape(*a.shape[:-1], nb, size)
+    m = blocks.min(axis=-1)
+    if size == 1:
+        return np.asarray(m)
+    beta = math.log(size) / tol
+    return np.asarray(m - np.log(np.sum(np.exp(-beta * (blocks - m[..., None])), axis=-1)) / beta)
 
 
 def _rule_starts(model: P1D) -> list[tuple[str, PIDGains]]:
@@ -527,12 +604,30 @@ def _rule_starts(model: P1D) -> list[tuple[str, PIDGains]]:
 
 
 SCREEN_POINTS = 1024
-"""Size of the deterministic (Sobol, fixed seed) screening sample of the gain space."""
+"""Size of each of the two deterministic (Halton) screening samples of the gain space."""
+_PRIMES = (2, 3, 5, 7, 11, 13)
+
+
+def _halton(n: int, dim: int, shift: float) -> np.ndarray:
+    """``(n, dim)`` points of the Halton sequence (bases 2, 3, 5, ...; from index 1), rotated by
+    ``shift`` times the golden ratio's fraction in every coordinate: the same numbers on every
+    machine (integer digit arithmetic, exact binary fractions)."""
+    out = np.zeros((n, dim))
+    idx = np.arange(1, n + 1)
+    for j, base in enumerate(_PRIMES[:dim]):
+        k = idx.copy()
+        scale = 1.0
+        while np.any(k):
+            scale /= base
+            out[:, j] += (k % base) * scale
+            k //= base
+    rotation = shift * 0.6180339887498949 * np.arange(1, dim + 1)
+    return np.asarray(np.mod(out + rotation, 1.0))
 
 
 def _screen(problem: _Problem, n_best: int = 2) -> list[tuple[str, PIDGains]]:
-    """The best points of a fixed Sobol sample of the gain space, scored on the nominal plant
-    as residual delay + 10 ms per unit of constraint violation (unstable points excluded).
+    """The best points of a fixed sample of the gain space, scored on the nominal plant as
+    residual delay + 10 ms per unit of constraint violation (unstable points excluded).
 
     Two boxes, scaled by the model (``s = (0.5 + Tp1/Td)/K``):
 
@@ -545,15 +640,13 @@ def _screen(problem: _Problem, n_best: int = 2) -> list[tuple[str, PIDGains]]:
       reference gain ``kp b in [0.01, 3] s`` and ``c in [0, 5]``.  A bounded command gain
       above the band (``hf_command_gain``) puts the optimum there.
     """
-    from scipy.stats import qmc
-
     model = problem.grid.model
     L = max(model.Td, 5.0 * problem.grid.h)
     T = model.Tp1
     h = problem.grid.h
     scale = (0.5 + T / L) / model.K
     dim = 6 if problem.weights else 4
-    u = qmc.Sobol(d=dim, scramble=True, seed=12345).random(SCREEN_POINTS)
+    u = _halton(SCREEN_POINTS, dim, 1.0)
 
     def logu(col: np.ndarray, lo: float, hi: float) -> np.ndarray:
         return np.asarray(np.exp(math.log(lo) + col * (math.log(hi) - math.log(lo))))
@@ -567,7 +660,7 @@ def _screen(problem: _Problem, n_best: int = 2) -> list[tuple[str, PIDGains]]:
     b = 5.0 * u[:, 4] if problem.weights else np.ones(kp.size)
     cw = 5.0 * u[:, 5] if problem.weights else np.ones(kp.size)
     if problem.weights:
-        w = qmc.Sobol(d=dim, scramble=True, seed=54321).random(SCREEN_POINTS)
+        w = _halton(SCREEN_POINTS, dim, 2.0)
         kp2 = logu(w[:, 0], 0.003, 30.0) * scale
         kp = np.concatenate([kp, kp2])
         ki = np.concatenate([ki, logu(w[:, 1], 0.1, 100.0) * scale / L])
@@ -575,14 +668,16 @@ def _screen(problem: _Problem, n_best: int = 2) -> list[tuple[str, PIDGains]]:
         tf = np.concatenate([tf, logu(w[:, 3], 0.1 * h, 2.0 * L)])
         b = np.concatenate([b, np.minimum(logu(w[:, 4], 0.01, 3.0) * scale / kp2, WEIGHT_MAX)])
         cw = np.concatenate([cw, 5.0 * w[:, 5]])
-    lo = np.array([bd[0] for bd in problem.bounds[:4]])
-    hi = np.array([bd[1] for bd in problem.bounds[:4]])
-    logs = np.clip(np.log(np.stack([kp, ki, kd, tf], axis=1)), lo, hi)
-    cols = [logs] + ([np.stack([b, cw], axis=1)] if problem.weights else [])
-    X = np.concatenate([*cols, np.zeros((kp.size, 1))], axis=1)
+    logs = np.log(np.stack([kp, ki, kd, tf], axis=1))
+    cols = [logs]
+    if problem.weights:
+        weights = np.clip(np.stack([b, cw], axis=1), WEIGHT_MIN, WEIGHT_MAX)
+        cols.append(logs[:, [0, 2]] + np.log(weights))
+    Y = np.clip(np.concatenate([*cols, np.zeros((kp.size, 1))], axis=1), problem._lo,
+                problem._hi)
     scores = np.empty(kp.size)
     for i in range(0, kp.size, 128):
-        V = problem._batch(X[i:i + 128])
+        V = problem._batch(Y[i:i + 128])
         t_need = -np.min(V[:, : problem._n_delay_rows], axis=1)  # delay rows are t - |tau|
         rest = V[:, problem._n_delay_rows:]
         violation = np.sum(np.clip(-rest, 0.0, None), axis=1)
@@ -593,7 +688,7 @@ def _screen(problem: _Problem, n_best: int = 2) -> list[tuple[str, PIDGains]]:
     out: list[tuple[str, PIDGains]] = []
     for j in order[:n_best]:
         if np.isfinite(scores[j]):
-            out.append((f"screen{len(out) + 1}", problem.gains(X[j])))
+            out.append((f"screen{len(out) + 1}", problem.gains(Y[j])))
     return out
 
 
@@ -629,6 +724,7 @@ def _check(gains: PIDGains, model: P1D, dense: LoopGrid, c: Constraints, rate_hz
     return nominal, worst, violations, over
 
 
+@with_one_blas_thread
 def optimise(plant: ProcessModel, model: P1D | None = None, rate_hz: float = 1000.0,
              constraints: Constraints | None = None, uncertainty: Uncertainty | None = None,
              setpoint_weights: bool = True, min_gain_ms: float = 5.0,
@@ -652,7 +748,8 @@ def optimise(plant: ProcessModel, model: P1D | None = None, rate_hz: float = 100
     min_gain_ms
         Recommend bypass if the design gains less than this over the uncompensated platform.
     progress
-        Called as ``progress(done, total, note)`` after each start.
+        Called as ``progress(done, total, note)`` after the screening, each start and the
+        refinement.
 
     Raises
     ------
@@ -680,26 +777,36 @@ def optimise(plant: ProcessModel, model: P1D | None = None, rate_hz: float = 100
 
     dense = LoopGrid(internal, plants, rate_hz, c.band_hz, n_band=400, n_high=4000)
     screen_problem = _Problem(LoopGrid(internal, plants[:1], rate_hz, c.band_hz),
-                              c, setpoint_weights, c.peak_db, np.zeros(1), gain_limit)
+                              c, setpoint_weights, c.peak_db, np.zeros(1), gain_limit,
+                              COARSE_SOFTNESS)
+    rules = _rule_starts(internal)
+    total = 2 + len(rules) + 2  # screening, the starts, the final check
     if progress is not None:
-        progress(0, 1, "screening")
+        progress(0, total, "screening the gain space")
     screened = _screen(screen_problem)
-    starts = screened[:1] + _rule_starts(internal) + screened[1:]
-    total = len(starts)
+    starts = screened[:1] + rules + screened[1:]
+    total = 2 + len(starts)
+    if progress is not None:
+        progress(1, total, f"screened; {len(starts)} starts")
+    # every start (none is skipped on what an earlier one found, so that the result does not
+    # hang on the order in which near-equal starts finish) solved on the coarse problem, whose
+    # smoother floor has fewer local optima, then refined on the sharp one
+    coarse = _Problem(grid, c, setpoint_weights, c.peak_db, floor_ms, gain_limit,
+                      COARSE_SOFTNESS)
     records: list[dict[str, Any]] = []
-    best: tuple[tuple[int, float, float], PIDGains, Evaluation, list[str]] | None = None
+    best: tuple[int, float, PIDGains, Evaluation, list[str]] | None = None
     for i, (name, g0) in enumerate(starts):
-        g = g0
+        g, _, _ = coarse.solve(g0)
         target = c
-        status = nit = 0
-        for _ in range(3):  # re-solve with tightened bounds if the fixed grid missed a peak
+        for _ in range(3):
             problem = _Problem(grid, target, setpoint_weights, target.peak_db, floor_ms,
                                gain_limit)
             g, status, nit = problem.solve(g)
             nominal, objective, violations, over = _check(g, internal, dense, c, rate_hz,
                                                           gain_limit, c.peak_db)
-            # a small excess is the fixed grid missing a sharp peak; a large one is a start
-            # that did not converge, which tightening would not help
+            # a small excess is the fixed grid missing a sharp peak: that bound is tightened
+            # and the start solved again; a large one is a start that did not converge, which
+            # tightening would not help
             missed_peak = 0.02 < over["peak_db"] < 0.5
             missed_cmd = 2e-3 < over["max_command_gain"] < 0.05
             missed_hf = 2e-3 < over["hf_command_gain"] < 0.05
@@ -714,16 +821,19 @@ def optimise(plant: ProcessModel, model: P1D | None = None, rate_hz: float = 100
                 / (1.0 + missed_hf * (over["hf_command_gain"] + 1e-3)))
         records.append({"start": name, "status": status, "iterations": nit,
                         "objective_ms": objective, "feasible": not violations})
-        key = (len(violations), round(objective, 6), round(nominal.peak_gain_db, 6))
-        if best is None or key < best[0]:
-            best = (key, g, nominal, violations)
+        # fewest violations, then the least objective, the earlier among equivalent ones
+        if best is None or len(violations) < best[0] or (
+                len(violations) == best[0] and objective < best[1] - START_TIE_MS):
+            best = (len(violations), objective, g, nominal, violations)
         if progress is not None:
-            progress(i + 1, total, f"{name}: {objective:.2f} ms")
-        agree = [r["objective_ms"] for r in records if r["feasible"]]
-        if len(agree) >= 2 and abs(agree[-1] - min(agree)) < 0.01 and not violations:
-            break  # two starts reached the same optimum: stop (the order of starts is fixed)
+            progress(1 + i + 1, total, f"start {i + 1} of {len(starts)} ({name}): "
+                     f"{objective:.2f} ms{', bounds not met' if violations else ''}; best "
+                     f"{best[1]:.2f} ms")
     assert best is not None
-    _, gains, nominal, violations = best
+    _, objective, g, nominal, violations = best
+    if progress is not None:
+        progress(total, total, f"best: {objective:.2f} ms")
+    gains = g
     gain_ms = uncomp_ms - nominal.max_residual_delay_ms
     worse = (nominal.max_residual_delay_ms > uncomp_ms
              or nominal.gain_error_db > max(gain_limit, nominal.uncorrected_gain_error_db))

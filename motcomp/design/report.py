@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -46,6 +45,7 @@ from motcomp.design.timedomain import (
     swept_sine,
 )
 from motcomp.errors import ConfigError
+from motcomp.progress import ProgressCallback, Stages
 
 __all__ = ["DESIGN_RULES", "OPTIMAL", "config_fragment", "design_report", "evaluation_report",
            "fragment_markdown", "markdown", "write_figures"]
@@ -83,7 +83,7 @@ DESIGN_RULES: tuple[str, ...] = (*RULES, OPTIMAL)
 def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
                   filter_n: float = 10.0, gains: PIDGains | None = None,
                   model: P1D | None = None, options: opt.OptimalOptions | None = None,
-                  progress: Callable[[int, int, str], None] | None = None,
+                  progress: ProgressCallback | None = None,
                   input_lag_s: float = 0.0,
                   prediction: PredictionOptions | None = None,
                   input_band_hz: float = 0.0) -> dict[str, Any]:
@@ -132,18 +132,27 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
     if gains is None and rule == OPTIMAL:
         o = options or opt.OptimalOptions()
         band = o.constraints.band_hz
+        with_prediction = prediction is not None and prediction.mode != "off"
+        stages = Stages(progress, [("optimising the PID", STAGE_PID)]
+                        + ([("designing the prefilter", STAGE_PREFILTER)] if with_prediction
+                           else []) + [("checking the design", STAGE_CHECK)])
         design = opt.optimise(plant, internal, rate_hz, o.constraints, o.uncertainty,
-                              o.setpoint_weights, o.min_gain_ms, progress)
+                              o.setpoint_weights, o.min_gain_ms,
+                              stages.start("optimising the PID"))
         gains = design.gains
         warnings = list(design.warnings)
         std = gains.to_standard()
         if prediction is not None and prediction.mode != "off":
-            pred, chosen = _predict(plant, internal, rate_hz, design, o, prediction)
+            pred, chosen = _predict(plant, internal, rate_hz, design, o, prediction, stages)
             if chosen is not None:
-                new_gains, params = chosen
-                if new_gains is not None and new_gains != gains:
-                    gains = new_gains
+                pid, params = chosen
+                if pid is not None and pid.gains != gains:  # a PID re-optimised for the chain
+                    # the chain was designed for a compensated axis: it stays one
+                    design = replace(pid, recommend_bypass=design.recommend_bypass)
+                    gains = pid.gains
+                    warnings = list(pid.warnings)
                     std = gains.to_standard()
+        stages.start("checking the design")
     elif gains is None:
         tuning = tune(rule, internal, filter_n=filter_n)
         gains = tuning.gains
@@ -199,6 +208,10 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
         out["plant"] = _model_json(platform)
         out["plant_spec"] = platform.spec()
     out["model_spec"] = internal.spec()
+    out["band_hz"] = list(band)
+    out["chain"] = _chain_text(params is not None, bypass)
+    out["ms_bound"] = (design.constraints if design is not None
+                       else opt.Constraints()).max_sensitivity
     out["input_lag_ms"] = input_lag_s * 1e3
     out["input_playback_lag_ms"] = playback_lag_s * 1e3
     out["input_band_hz"] = input_band_hz
@@ -212,14 +225,39 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
     return out
 
 
+def _chain_text(prefilter: bool, bypass: bool) -> str:
+    """What ``corrected`` describes: the deployed chain, or the PID a bypass leaves unused."""
+    if prefilter:
+        return "the prefilter alone (PID bypassed)" if bypass else "the prefilter, then the PID"
+    return "the PID (not deployed: bypass recommended)" if bypass else "the PID"
+
+
+def _ms_text(ms: float, bound: float) -> str:
+    """``Ms`` with its bound, flagged when at (to the shown digits) or beyond it."""
+    if ms > bound + 0.005:
+        return f"{ms:.2f} -- BEYOND its bound {bound:g}"
+    if ms >= bound - 0.005:
+        return f"{ms:.2f} -- AT its bound {bound:g} (the bound limits the design)"
+    return f"{ms:.2f} (bound {bound:g})"
+
+
 PID_HF_LADDER = (10.0, 4.0)
 """HF command-gain bounds the PID is re-optimised for when the prefilter goes in series with
 it (``--prediction on`` on a compensated axis): the prefilter then supplies the lead."""
 
 
+DEFAULT_CHECK_S = 6.0
+"""Step simulations of the ``prediction_off`` column last this long (``check_chain``'s default)."""
+STAGE_PID = 1.0
+"""Estimated weight of one PID optimisation in the progress of a design (a prefilter's design
+weighs :data:`STAGE_PREFILTER`, the final checks :data:`STAGE_CHECK`)."""
+STAGE_PREFILTER = 1.5
+STAGE_CHECK = 0.3
+
+
 def _predict(plant: ProcessModel, internal: P1D, rate_hz: float, design: opt.OptimalDesign,
-             o: opt.OptimalOptions, p: PredictionOptions
-             ) -> tuple[dict[str, Any], tuple[PIDGains | None, Any] | None]:
+             o: opt.OptimalOptions, p: PredictionOptions, stages: Stages
+             ) -> tuple[dict[str, Any], tuple[opt.OptimalDesign | None, Any] | None]:
     """The prefilter for an optimised design, and whether it is used.
 
     Bypassed axis (the optimiser's recommendation): the prefilter alone, least worst delay.
@@ -229,9 +267,10 @@ def _predict(plant: ProcessModel, internal: P1D, rate_hz: float, design: opt.Opt
     with the least total command gain above ``hf_from_hz``; the quietest chain is kept.  With
     ``p.chain_hf_gain``, each is followed instead by the prefilter of least worst delay with the
     chain's command gain above ``hf_from_hz`` within that bound (the prefilter alone on a
-    bypassed axis), and the chain of least worst delay is kept.
+    bypassed axis), and the chain of least worst delay is kept; a chain that cannot beat the
+    best so far is dropped after one LP (its search stops at the best worst delay).
     ``auto`` uses the prefilter where it gains ``o.min_gain_ms`` of worst delay.  Returns the
-    report block and ``(gains or None, PredictorParams)`` if used.
+    report block and ``(the PID's design or None, PredictorParams)`` if used.
     """
     c = design.constraints
     bounds = PredictorBounds.from_constraints(c)
@@ -240,38 +279,63 @@ def _predict(plant: ProcessModel, internal: P1D, rate_hz: float, design: opt.Opt
         bounds = replace(bounds, hf_command_gain=chain_hf)
     ev = design.evaluation
     bypass = design.recommend_bypass
-    base_series = None if bypass else (design.gains, internal)
     baseline = ev.uncorrected_max_delay_ms if bypass else ev.max_residual_delay_ms
 
-    def run(series: tuple[PIDGains, P1D] | None, max_delay_ms: float | None = None
-            ) -> PredictorDesign:
+    def run(series: tuple[PIDGains, P1D] | None, stage: str, max_delay_ms: float | None = None,
+            limit_ms: float | None = None, hint_ms: float | None = None) -> PredictorDesign:
         return design_predictor(plant, rate_hz, series=series, constraints=bounds,
                                 order=p.order, pole_hz=p.pole_hz, step_rise_s=p.step_rise_s,
-                                overshoot=p.overshoot, max_delay_ms=max_delay_ms)
+                                overshoot=p.overshoot, max_delay_ms=max_delay_ms,
+                                delay_limit_ms=limit_ms, delay_hint_ms=hint_ms,
+                                progress=stages.start(stage))
 
     block: dict[str, Any] = {"mode": p.mode, "used": False, "series": "bypass" if bypass
                              else "pid", "baseline_delay_ms": baseline}
-    candidates: list[tuple[PIDGains | None, float | None, PredictorDesign]] = []
+    candidates: list[tuple[opt.OptimalDesign | None, float | None, PredictorDesign]] = []
     try:
         if bypass:
-            candidates.append((None, None, run(None)))
+            stages.plan([("designing the prefilter alone (axis bypassed)", STAGE_PREFILTER),
+                         ("checking the design", STAGE_CHECK)])
+            candidates.append((None, None, run(None, "designing the prefilter alone "
+                                                     "(axis bypassed)")))
         elif p.mode == "auto":
             if baseline < o.min_gain_ms:
                 block["note"] = (f"the optimal PID leaves {baseline:.2f} ms, less than the "
                                  f"{o.min_gain_ms:g} ms a prefilter must gain: not designed")
                 return block, None
-            candidates.append((design.gains, None, run((design.gains, internal))))
+            stages.plan([("designing the prefilter after the PID", STAGE_PREFILTER),
+                         ("checking the design", STAGE_CHECK)])
+            candidates.append((design, None, run((design.gains, internal),
+                                                 "designing the prefilter after the PID")))
         else:
             hfs: list[float | None] = [None] + [h for h in PID_HF_LADDER if h < c.hf_gain]
+            plan: list[tuple[str, float]] = []
             for hf in hfs:
-                g = design.gains if hf is None else opt.optimise(
+                which = "the optimal PID" if hf is None else f"the PID for HF <= {hf:g}"
+                if hf is not None:
+                    plan.append((f"optimising {which}", STAGE_PID))
+                plan.append((f"designing the prefilter after {which}", STAGE_PREFILTER))
+            stages.plan([*plan, ("checking the design", STAGE_CHECK)])
+            best_ms: float | None = None
+            for hf in hfs:
+                which = "the optimal PID" if hf is None else f"the PID for HF <= {hf:g}"
+                pid_design = design if hf is None else opt.optimise(
                     plant, internal, rate_hz, replace(c, hf_command_gain=hf), None,
-                    o.setpoint_weights, o.min_gain_ms).gains
+                    o.setpoint_weights, o.min_gain_ms, stages.start(f"optimising {which}"))
+                series = (pid_design.gains, internal)
                 try:
-                    candidates.append((g, hf, run((g, internal),
-                                                  baseline if chain_hf is None else None)))
+                    if chain_hf is None:
+                        d = run(series, f"designing the prefilter after {which}",
+                                max_delay_ms=baseline)
+                    else:
+                        d = run(series, f"designing the prefilter after {which}",
+                                limit_ms=best_ms,
+                                hint_ms=pid_design.evaluation.max_residual_delay_ms)
                 except ConfigError:
                     continue
+                candidates.append((pid_design, hf, d))
+                if chain_hf is not None:
+                    best_ms = min(d.worst_delay_ms, best_ms if best_ms is not None else math.inf)
             if not candidates:
                 raise ConfigError(
                     f"prediction: no prefilter in series with the PID holds {baseline:.2f} ms "
@@ -284,27 +348,31 @@ def _predict(plant: ProcessModel, internal: P1D, rate_hz: float, design: opt.Opt
         block["note"] = str(exc)
         return block, None
     if chain_hf is None:  # the quietest of the chains holding the PID's delay
-        gains, hf, best = min(candidates, key=lambda t: (round(t[2].check.hf_command_gain, 6),
-                                                         t[2].worst_delay_ms))
+        pid, hf, best = min(candidates, key=lambda t: (round(t[2].check.hf_command_gain, 6),
+                                                       t[2].worst_delay_ms))
     else:  # the least delay within the chain's bound
-        gains, hf, best = min(candidates, key=lambda t: (round(t[2].worst_delay_ms, 3),
-                                                         t[2].check.hf_command_gain))
-    without = check_chain(plant, rate_hz, base_series, None, bounds, p.step_rise_s)
+        pid, hf, best = min(candidates, key=lambda t: (round(t[2].worst_delay_ms, 3),
+                                                       t[2].check.hf_command_gain))
     gain_ms = baseline - best.worst_delay_ms
     used = p.mode == "on" or gain_ms >= o.min_gain_ms
+    # what --prediction off deploys: the optimal PID alone (the platform alone if bypassed)
+    off = best.without if hf is None else check_chain(
+        plant, rate_hz, None if bypass else (design.gains, internal), None, bounds,
+        p.step_rise_s, DEFAULT_CHECK_S)
     block.update({
         "used": used,
         "pid_hf_bound": hf,
         "chain_hf_bound": chain_hf,
         "gain_ms": gain_ms,
         "design": best.summary(),
-        "without": without.as_dict(),
+        "without": best.without.as_dict(),  # the chain's own PID (or the platform) alone
         "with": best.check.as_dict(),
+        "prediction_off": off.as_dict(),
     })
     if not used:
         block["note"] = (f"the prefilter gains {gain_ms:.2f} ms of worst delay, less than "
                          f"{o.min_gain_ms:g} ms: not used (--prediction on forces it)")
-    return block, ((gains, best.params) if used else None)
+    return block, ((pid, best.params) if used else None)
 
 
 def _toml_value(value: Any) -> str:
@@ -418,7 +486,7 @@ def evaluation_report(plant: ProcessModel, rule: str, limits: AxisLimits, rate_h
                       filter_n: float = 10.0, gains: PIDGains | None = None,
                       model: P1D | None = None, sweep_amplitude: float | None = None,
                       options: opt.OptimalOptions | None = None,
-                      progress: Callable[[int, int, str], None] | None = None,
+                      progress: ProgressCallback | None = None,
                       input_lag_s: float = 0.0, input_band_hz: float = 0.0,
                       ) -> tuple[dict[str, Any], dict[str, SimulationResult]]:
     """Design report plus time-domain runs on a 0.1-3 Hz swept sine and on the slalom (the
@@ -465,27 +533,45 @@ def markdown(report: dict[str, Any]) -> str:
     weights = f", b = {g['b']:.6g}, c = {g['c']:.6g}" if (g["b"], g["c"]) != (1.0, 1.0) else ""
     lines += ["", f"Gains (parallel): kp = {g['kp']:.6g}, ki_per_s = {g['ki_per_s']:.6g} 1/s, "
               f"kd_s = {g['kd_s']:.6g} s, tf_s = {g['tf_s']:.6g} s{weights}", ""]
+    lo, hi = report.get("band_hz", [0.1, 2.0])
+    chain = report.get("chain", "the PID")
+    lag = report.get("input_lag_ms") or 0.0
+    if lag:
+        band_delay = report.get("input_band_delay_ms") or 0.0
+        parts = [f"{report.get('input_playback_lag_ms', lag):.2f} ms of playback"]
+        if band_delay:
+            parts.append(f"{band_delay:.2f} ms of the {report['input_band_hz']:g} Hz band limit")
+        lines += [f"Input: played back {lag:.2f} ms behind its newest sample "
+                  f"({' + '.join(parts)}), a delay the design cancels with the platform's.", ""]
     lines += ["| phase delay (ms) | " + " | ".join(f"{k} Hz" for k in
                                                   report["uncorrected"]["phase_delay_ms"]) + " |",
               "|---|" + "---|" * len(report["uncorrected"]["phase_delay_ms"])]
-    for label in ("uncorrected", "corrected"):
-        block = report[label]
+    for label, key in (("uncorrected", "uncorrected"), (f"corrected: {chain}", "corrected")):
+        block = report[key]
         lines.append(f"| {label} | " + " | ".join(f"{v:.1f}" for v in
                                                   block["phase_delay_ms"].values()) + " |")
     c = report["corrected"]
+    what = "input lag, " if lag else ""
+    what += {"the prefilter, then the PID": "prefilter, PID",
+             "the prefilter alone (PID bypassed)": "prefilter"}.get(chain, "PID")
     lines += [
+        "",
+        f"## Corrected: {chain}",
+        "",
+        f"Everything from the reference to the platform's motion ({what}, platform model); "
+        "the delays are phase delays, a lead counting as much as a lag.",
         "",
         "| metric | value |",
         "|---|---|",
-        f"| max residual phase delay 0.1-2 Hz | {c['max_residual_delay_ms']:.2f} ms "
-        f"(at {c['max_residual_delay_hz']:.2f} Hz) |",
+        f"| worst residual phase delay {lo:g}-{hi:g} Hz ({what}, platform) | "
+        f"{c['max_residual_delay_ms']:.2f} ms (at {c['max_residual_delay_hz']:.2f} Hz) |",
         f"| in-band gain error | {c['gain_error_db']:.2f} dB |",
         f"| peak gain | {c['peak_gain_db']:+.2f} dB at {c['peak_gain_hz']:.1f} Hz |",
-        f"| peak command amplification |C/(1+CM)| | {c['peak_command_gain']:.1f} at "
+        f"| peak command amplification abs(u/r) | {c['peak_command_gain']:.1f} at "
         f"{c['peak_command_gain_hz']:.1f} Hz |",
         f"| command amplification at and above {c['hf_from_hz']:g} Hz | "
         f"{c['hf_command_gain']:.1f} |",
-        f"| Ms | {c['ms']:.2f} |",
+        f"| Ms (internal loop) | {_ms_text(c['ms'], report.get('ms_bound', 4.0))} |",
         f"| discrete internal loop | {'stable' if c['stable'] else 'UNSTABLE'} "
         f"(max pole modulus {c['max_pole_modulus']:.4f}) |",
     ]
@@ -544,10 +630,16 @@ def prediction_markdown(block: dict[str, Any]) -> list[str]:
     if block.get("chain_hf_bound") is not None:
         series += (f"; least worst delay with the chain's command gain <= "
                    f"{block['chain_hf_bound']:g} above the band")
+    alone = "the PID alone" if block["series"] == "pid" else "the platform alone"
+    columns = [(alone, block["without"]), ("with the prefilter", block["with"])]
+    if block.get("pid_hf_bound") is not None and "prediction_off" in block:
+        columns.insert(0, ("the optimal PID alone (--prediction off)", block["prediction_off"]))
+        columns[1] = (f"the chain's PID alone (<= {block['pid_hf_bound']:g} above the band)",
+                      block["without"])
     lines += [f"{d['order']} Laguerre functions, pole {p['pole_hz']:g} Hz, {series}; "
               f"used: **{'yes' if block['used'] else 'no'}**.", "",
-              "| metric | without | with |", "|---|---|---|"]
-    wo, wi = block["without"], block["with"]
+              "| metric | " + " | ".join(name for name, _ in columns) + " |",
+              "|---|" + "---|" * len(columns)]
     rows = [("worst phase delay in band", "max_delay_ms", "{:.2f} ms"),
             ("in-band gain error", "gain_error_db", "{:.2f} dB"),
             ("peak gain", "peak_gain_db", "{:+.2f} dB"),
@@ -557,7 +649,9 @@ def prediction_markdown(block: dict[str, Any]) -> list[str]:
         rows.append((f"{d['step_rise_s']:g} s min-jerk step: overshoot",
                      "design_step_overshoot", "{:.1%}"))
     for label, key, fmt in rows:
-        lines.append(f"| {label} | {fmt.format(wo[key])} | {fmt.format(wi[key])} |")
+        lines.append(f"| {label} | " + " | ".join(
+            "-" if values.get(key) is None else fmt.format(values[key])
+            for _, values in columns) + " |")
     if block.get("note"):
         lines += ["", block["note"]]
     return lines
@@ -565,24 +659,47 @@ def prediction_markdown(block: dict[str, Any]) -> list[str]:
 
 def optimal_markdown(block: dict[str, Any]) -> list[str]:
     """Lines describing the ``optimal`` block of a design report: bounds against values, the
-    recommendation and, for a robust design, the member table."""
+    recommendation and, for a robust design, the member table.  The block describes the PID
+    alone (before any prefilter), with the input's lag and the platform model."""
     c, v = block["constraints"], block["values"]
     lo, hi = c["band_hz"]
     kind = "setpoint weights b, c" if block["setpoint_weights"] else "plain PID"
+    hf_bound = c.get("hf_command_gain")
+    for_chain = ""
+    if hf_bound is not None and hf_bound < c["max_command_gain"]:
+        for_chain = f", command gain <= {hf_bound:g} from {c['hf_from_hz']:g} Hz"
+
+    def status(value: float, bound: float, hair: float) -> str:
+        return "AT the bound" if value >= bound - hair else ""
+
     lines = [
-        "", f"## Optimised tuning ({kind}{', robust' if 'robust' in block else ''})", "",
-        "| quantity | bound | value |", "|---|---|---|",
-        f"| max residual phase delay {lo:g}-{hi:g} Hz | minimised | "
-        f"{v['max_residual_delay_ms']:.2f} ms |",
+        "", f"## Optimised PID ({kind}{', robust' if 'robust' in block else ''}{for_chain})",
+        "",
+        "The PID alone, as the optimiser designed it: the input lag and the platform model "
+        "included, no prefilter.", "",
+        "| quantity | bound | value | note |", "|---|---|---|---|",
+        f"| worst residual phase delay {lo:g}-{hi:g} Hz, the PID alone | minimised | "
+        f"{v['max_residual_delay_ms']:.2f} ms | |",
         f"| peak gain of the delivered response | {c['peak_db']:g} dB | "
-        f"{v['peak_gain_db']:+.2f} dB |",
-        f"| in-band gain error | {c['gain_error_db']:g} dB | {v['gain_error_db']:.2f} dB |",
+        f"{v['peak_gain_db']:+.2f} dB | {status(v['peak_gain_db'], c['peak_db'], 0.02)} |",
+        f"| in-band gain error | {c['gain_error_db']:g} dB | {v['gain_error_db']:.2f} dB | "
+        f"{status(v['gain_error_db'], c['gain_error_db'], 0.02)} |",
         f"| command over the exact inverse, in band | {c['command_excess_db']:+g} dB | "
-        f"{v['command_excess_db']:+.2f} dB |",
-        f"| command amplification max abs(F) | {c['max_command_gain']:g} | "
-        f"{v['peak_command_gain']:.1f} |",
-        f"| max sensitivity Ms | {c['max_sensitivity']:g} | {v['ms']:.2f} |",
-        f"| largest pole modulus (discrete loop) | < 1 | {v['max_pole_modulus']:.5f} |",
+        f"{v['command_excess_db']:+.2f} dB | "
+        f"{status(v['command_excess_db'], c['command_excess_db'], 0.02)} |",
+        f"| command amplification max abs(u/r) | {c['max_command_gain']:g} | "
+        f"{v['peak_command_gain']:.1f} | "
+        f"{status(v['peak_command_gain'], c['max_command_gain'], 0.1)} |",
+    ]
+    if for_chain:
+        lines.append(f"| command amplification from {c['hf_from_hz']:g} Hz | {hf_bound:g} | "
+                     f"{v['hf_command_gain']:.1f} | "
+                     f"{status(v['hf_command_gain'], hf_bound or 0.0, 0.05)} |")
+    ms_flag = ("BEYOND the bound" if v["ms"] > c["max_sensitivity"] + 0.005
+               else status(v["ms"], c["max_sensitivity"], 0.005))
+    lines += [
+        f"| max sensitivity Ms | {c['max_sensitivity']:g} | {v['ms']:.2f} | {ms_flag} |",
+        f"| largest pole modulus (discrete loop) | < 1 | {v['max_pole_modulus']:.5f} | |",
         "",
         f"Uncompensated: {block['uncompensated_delay_ms']:.1f} ms; gain "
         f"{block['best_gain_ms']:.1f} ms. Recommendation: **{block['recommendation']}**"
