@@ -421,6 +421,44 @@ def test_a_busy_sender_is_on_time_from_the_first_second_and_after_a_resume(tmp_p
                 f"{label}, {a:g}-{b:g} s after the blend: {f}; {describe(fig)}")
 
 
+@pytest.mark.slow
+def test_a_forged_t_is_rejected_and_moves_nothing(tmp_path: Path) -> None:
+    """While the grid sender drives the slalom, a peer that reads its frames publishes frames
+    with the live sender's next ``seq`` and a forged ``t`` (``2**64 - 1`` as an integer, 1e300,
+    an hour ahead): each is rejected (``jump``, or ``old`` / ``duplicate`` where the live frame
+    with that ``seq`` came first), the service's outputs never leave the slalom's range, and
+    the live sender is never locked out."""
+    log_dir = tmp_path / "forged"
+    log_dir.mkdir()
+    forged: list[float | int] = [2**64 - 1, 1e300, 3600.0]
+    with rig(log_dir) as (endpoint, session, rec, codes):
+        sender = subprocess.Popen(
+            [sys.executable, str(ROOT / "tools" / "wire_senders.py"), "--kind", "grid",
+             "--duration", "8", "--seed", str(SEED), "--json", "-e", endpoint],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        pub = session.declare_publisher("sim/motion/setpoint")
+        time.sleep(4.0)  # past the start-up
+        sent = 0
+        for value in forged * 5:
+            last = next(f for _, f in reversed(rec.decoded("sim/motion/setpoint"))
+                        if f["pos"].get("rails_y") != 2.0)  # the live sender's newest
+            t = value if value != 3600.0 else last["t"] + 3600.0
+            pub.put(msgpack.packb({"seq": last["seq"] + 1, "t": t, "pos": {"rails_y": 2.0}}))
+            sent += 1
+            time.sleep(0.2)
+        status = query_status(session) or {}
+        sender.communicate(timeout=30)
+        pub.undeclare()
+    frames = status["frames"]
+    by = frames["rejected_by_reason"]
+    assert frames["rejected"] == sent, frames
+    assert by["jump"] >= sent // 2 and by["jump"] + by["old"] + by["duplicate"] == sent, by
+    assert codes == {"service": 0, "hil": 0}, codes
+    out = [f["pos"]["rails_y"] for _, f in rec.decoded("platform/setpoint")]
+    assert max(map(abs, out)) < 0.45, max(map(abs, out))  # the slalom: 0.4 m
+    assert status["stale_episodes"] <= 1, status["stale_episodes"]  # the live sender went on
+
+
 def load_senders() -> Any:
     """tools/wire_senders.py as a module (tools/ is not a package)."""
     if "wire_senders" not in sys.modules:
