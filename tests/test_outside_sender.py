@@ -424,10 +424,10 @@ def test_a_busy_sender_is_on_time_from_the_first_second_and_after_a_resume(tmp_p
 @pytest.mark.slow
 def test_a_forged_t_is_rejected_and_moves_nothing(tmp_path: Path) -> None:
     """While the grid sender drives the slalom, a peer that reads its frames publishes frames
-    with the live sender's next ``seq`` and a forged ``t`` (``2**64 - 1`` as an integer, 1e300,
-    an hour ahead): each is rejected (``jump``, or ``old`` / ``duplicate`` where the live frame
-    with that ``seq`` came first), the service's outputs never leave the slalom's range, and
-    the live sender is never locked out."""
+    with a ``seq`` ahead of the live sender's and a forged ``t`` (``2**64 - 1`` as an integer,
+    1e300, an hour ahead): each is rejected (``jump``, or ``old`` where the live sender got
+    there first), the service's outputs never leave the slalom's range, and the live sender is
+    never locked out."""
     log_dir = tmp_path / "forged"
     log_dir.mkdir()
     forged: list[float | int] = [2**64 - 1, 1e300, 3600.0]
@@ -443,7 +443,8 @@ def test_a_forged_t_is_rejected_and_moves_nothing(tmp_path: Path) -> None:
             last = next(f for _, f in reversed(rec.decoded("sim/motion/setpoint"))
                         if f["pos"].get("rails_y") != 2.0)  # the live sender's newest
             t = value if value != 3600.0 else last["t"] + 3600.0
-            pub.put(msgpack.packb({"seq": last["seq"] + 1, "t": t, "pos": {"rails_y": 2.0}}))
+            # a seq the live sender has not reached yet: the frame is judged on its t
+            pub.put(msgpack.packb({"seq": last["seq"] + 50, "t": t, "pos": {"rails_y": 2.0}}))
             sent += 1
             time.sleep(0.2)
         status = query_status(session) or {}

@@ -46,6 +46,9 @@ TRUTH_MS = (21.5, 190.0)
 DRIFT_MS = 10.0
 WINDOW_S = 15.0
 """The example config's supervision.window_s."""
+LAG_MS = 1.7
+"""The example config's input.playback_lag_s, which a design for a model identified through
+the stack cancels (docs/SUPERVISION.md)."""
 SETTLED_SE_MS = 0.4
 """The residual delay's standard error of the estimate a retune is taken from."""
 
@@ -118,7 +121,8 @@ class Watch:
                 seen.setdefault(r["to_t"], r)
         return list(seen.values())
 
-    def errors_ms(self, phase: str, td_ms: float, since: float = 0.0) -> list[float]:
+    def errors_ms(self, phase: str, td_ms: float, since: float = 0.0, model: Any = None
+                  ) -> list[float]:
         """Residual delay of the informative windows ending after ``since`` (epoch s) minus the
         truth's against ``model`` at the window's frequency plus the stack's share
         (docs/SUPERVISION.md): the platform's setpoint age (the median: the stalls that
@@ -128,7 +132,7 @@ class Watch:
         for r in self.windows(phase):
             if (r["informative"] and r["to_t"] >= since and r["age_ms"] is not None
                     and r["phase_ms"] is not None):
-                d, _ = mismatch(truth(td_ms), self.model, r["at_hz"])
+                d, _ = mismatch(truth(td_ms), model or self.model, r["at_hz"])
                 share = r["age_ms"] - r["phase_ms"] + 1.0
                 out.append(r["residual_ms"] - (d * 1e3 + share))
         return out
@@ -192,7 +196,8 @@ def test_an_outside_platform_off_its_model_is_seen_retuned_and_its_drift_seen(
                         assert "forced" not in fragment.read_text()
                         design = tmp_path / "design.toml"
                         p = cli("design", "--plant", str(fragment), "--rule", "optimal",
-                                "--out", str(design), "--quiet")
+                                "--input-lag-ms", f"{LAG_MS:g}", "--out", str(design),
+                                "--quiet")
                         assert p.returncode == 0, p.stderr
                         site_config(site, fragment, design)
                         p = cli("config", "check", str(site))
@@ -245,13 +250,18 @@ def test_an_outside_platform_off_its_model_is_seen_retuned_and_its_drift_seen(
                         late.append(("after the drift, the estimate within 1 ms of the truth "
                                      "plus the stack's share", bool(errs)
                                      and float(np.median(np.abs(errs))) <= 1.0, errs))
-                    errs = watch.errors_ms("off", TRUTH_MS[0])
+                    errs = watch.errors_ms("off", TRUTH_MS[0], model=MODEL)  # before the retune
                     late.append(("the estimate within 1 ms of the truth plus the stack's share",
                                  bool(errs) and float(np.median(np.abs(errs))) <= 1.0, errs))
+                    # the windows once the first holds its data (those filling up at the start
+                    # say so: "... paired with outputs (needs ...)")
                     off = watch.windows("off")
-                    judged = [r for r in off if r["informative"]]
+                    full = off[next((k for k, r in enumerate(off)
+                                     if "paired with outputs (needs" not in r["reason"]),
+                                    len(off)):]
+                    judged = [r for r in full if r["informative"]]
                     late.append(("at least half the windows informative",
-                                 2 * len(judged) >= len(off) > 0,
+                                 2 * len(judged) >= len(full) > 0,
                                  [(r["informative"], r["reason"]) for r in off]))
                 svc.terminate()
                 assert svc.wait(timeout=30) == 0
