@@ -17,12 +17,11 @@ Modes (all times from the loop's clock, passed in)::
     always       the reference lies within ``[reach_lo, reach_hi]`` per axis (the range of
                  accepted input); a non-finite value keeps the previous reference
 
-Ramps are minimum-jerk, blends minimum-snap (:mod:`motcomp.core.minjerk`: the compensator
-turns a blend's jerk steps into steps of its command's acceleration).  A blend fades out the
+Blends and ramps are minimum-jerk (:mod:`motcomp.core.minjerk`).  A blend fades out the
 difference between the held reference (or the ramp it interrupts) and the live input, in
 position *and* velocity at its start, ``live + w (g + r (t - t0))``: it leaves the held path with
-its position and velocity and meets the live one with its position, velocity, acceleration and
-jerk (a difference of position alone would hand the live input's velocity to the reference at the
+its position and velocity and meets the live one with its position, velocity and acceleration
+(a difference of position alone would hand the live input's velocity to the reference at the
 blend's first tick: a step the compensator kicks on); it lasts ``startup_s``/``rejoin_s``, or
 longer per axis where its gap and velocity change need more than a quarter of the axis'
 acceleration limit (``blend_acc``: the compensator multiplies the reference's acceleration
@@ -66,14 +65,7 @@ from mypy_extensions import mypyc_attr
 
 from motcomp.core.bandlimit import BandLimit, BandLimitParams
 from motcomp.core.interp import Curve, Transition
-from motcomp.core.minjerk import (
-    MIN_SNAP_ACC,
-    MIN_SNAP_MERGE,
-    PEAK_SPEED_FACTOR,
-    min_jerk_rate,
-    min_jerk_weight,
-    min_snap_weight,
-)
+from motcomp.core.minjerk import PEAK_SPEED_FACTOR, min_jerk_rate, min_jerk_weight
 from motcomp.core.native import frozen_reduce
 from motcomp.core.playback import Playback, min_transit
 from motcomp.core.timeline import Timeline
@@ -96,11 +88,11 @@ set by :func:`motcomp.config.tick_params`): the compensator multiplies the refer
 acceleration in the band by up to its peak gain (+8 dB, 2.5x), and the live motion has its own,
 so that the limiter need not cut a blend (the rails' slalom rejoined over 0.5 s at full speed:
 the limiter acted for 1.2 s, the platform 40 ms ahead of the motion for a second after)."""
-BAND_SETTLE_DELAYS = 4.0
-"""After a restart the playback counts as playing (a blend may start) once the band limit has
-run this many of its delays: seeded at rest, it follows a moving input only after a transient
-(its output lags by the delay times the speed: 5.5 mm at 0.78 m/s through 48 Hz), which a blend
-started earlier would take for part of the gap."""
+MIN_JERK_ACC = 10.0 / math.sqrt(3.0)
+"""Peak acceleration of a minimum-jerk move of ``D`` over ``T``: ``MIN_JERK_ACC D / T^2``."""
+MIN_JERK_MERGE = 2.0 * PEAK_SPEED_FACTOR
+"""A blend ``held w + live (1 - w)`` merges velocities differing by ``dv`` with an acceleration
+of at most ``2 |w'| dv``, ``MIN_JERK_MERGE dv / T``."""
 GAP_BLEND_PERIODS = 10.0
 GAP_BLEND_S = 0.2
 """After an extrapolation, the difference to the samples fades out over about this many input
@@ -206,8 +198,6 @@ class ReferenceShaper:
         self._ma_len = 0.0  # its length (ticks)
         self._ma_delay_s = 0.0
         self._band = BandLimit(n)
-        self._band_s = 0.0  # time the band limit has run since it was seeded
-        self._live_hist: list[tuple[float, list[float]]] = []  # smooth: the last 3 live values
         self._lin_t = [0.0] * n  # linear: sender time of each axis' last value, its slope,
         self._lin_slope = [0.0] * n
         self._lin_period = [0.0] * n  # the average interval between its frames,
@@ -365,8 +355,6 @@ class ReferenceShaper:
             for r in self._rings:
                 r.clear()
             self._band.reset()
-            self._band_s = 0.0
-            self._live_hist = []
             for c in self.curves:
                 c.clear()
         interval = (t - t_prev) / samples if t_prev is not None and not rejoin \
@@ -413,9 +401,8 @@ class ReferenceShaper:
         else:
             ref = self._live_now(p, now)
             mode = ""
-            if self._blend_pending and p.reconstruction == "smooth" and self._blend_s > 0.0 \
-                    and (not self._playing or len(self._live_hist) < 3):  # the blend waits for
-                # the playback and three ticks of it (its motion: a few ticks)
+            if self._blend_pending and p.reconstruction == "smooth" and not self._playing \
+                    and self._blend_s > 0.0:  # the blend waits for the playback (a few ticks)
                 ref = (self._blend_move.at(now)[0] if self._blend_move is not None
                        else self.ref[:])
                 mode = "rejoin"
@@ -427,7 +414,7 @@ class ReferenceShaper:
                 el = now - self._blend_t0
                 for i, (d, g, r) in enumerate(zip(self._blend_each, self._blend_gap,
                                                   self._blend_rate, strict=True)):
-                    w = min_snap_weight(el / d) if d > 0.0 else 0.0
+                    w = min_jerk_weight(el / d) if d > 0.0 else 0.0
                     if w != 0.0:
                         done = False
                         ref[i] += (g + r * el) * w
@@ -444,45 +431,28 @@ class ReferenceShaper:
 
     def _blend_start(self, p: ShaperParams, live: list[float], now: float) -> None:
         """A blend from the reference held (or ramping) to ``live``: each axis' difference
-        ``g + r (t - t0)`` (position and velocity at the start: the ramp's, analytic, less the
-        live values', from their last three ticks) fades out through the minimum-snap weight,
-        over ``_blend_s`` or longer where that would need more than ``blend_acc``:
-        ``7.513 |g| / T^2 + 5.811 |r| / T`` (``MIN_SNAP_ACC``, ``MIN_SNAP_MERGE``), solved for
+        ``g + r (t - t0)`` (position and velocity at the start) fades out through the
+        minimum-jerk weight, over ``_blend_s`` or longer where that would need more than
+        ``blend_acc``: peak acceleration at most ``5.774 |g| / T^2 + 3.75 |r| / T``, solved for
         ``T`` (none if ``_blend_s`` is 0)."""
         self._blend_t0 = now
         move, self._blend_move = self._blend_move, None
         held, held_v = (move.at(now)[0], move.rate(now)) if move is not None \
             else (self.ref, [0.0] * self.n)
-        live_v = self._live_rate()
         base = self._blend_s
         gaps, rates, each = [], [], []
         for i, (x, h, c) in enumerate(zip(live, held, self.curves, strict=True)):
-            lv = live_v[i] if live_v else (c.slope if c.knots else 0.0)
-            g, r = h - x, held_v[i] - lv
+            g, r = h - x, held_v[i] - (c.slope if c.knots else 0.0)
             gaps.append(g)
             rates.append(r)
             a = p.blend_acc[i] if p.blend_acc else 0.0
             if base <= 0.0 or a <= 0.0 or not p.driven[i] or (g == 0.0 and r == 0.0):
                 each.append(base)
                 continue
-            k1, k0 = MIN_SNAP_ACC * abs(g), MIN_SNAP_MERGE * abs(r)
+            k1, k0 = MIN_JERK_ACC * abs(g), MIN_JERK_MERGE * abs(r)
             # k1 x^2 + k0 x - a = 0 in x = 1/T: its positive root
             each.append(max(base, (k0 + math.sqrt(k0 * k0 + 4.0 * k1 * a)) / (2.0 * a)))
         self._blend_gap, self._blend_rate, self._blend_each = gaps, rates, each
-
-    def _live_rate(self) -> list[float]:
-        """The live values' velocity at the newest of their last three ticks (``smooth``, after
-        the band limit: what the reference follows), by differences; empty where there are not
-        three."""
-        hist = self._live_hist
-        if len(hist) < 3:
-            return []
-        (t0, x0), (t1, x1), (t2, x2) = hist[-3], hist[-2], hist[-1]
-        d0, d1 = t1 - t0, t2 - t1
-        if d0 <= 0.0 or d1 <= 0.0:
-            return []
-        return [(x - y) / d1 + ((x - y) / d1 - (y - z) / d0) * d1 / (d0 + d1)
-                for z, y, x in zip(x0, x1, x2, strict=True)]
 
     def _live_now(self, p: ShaperParams, now: float) -> list[float]:
         """The live values at this tick: reconstructed as ``p.reconstruction`` says."""
@@ -493,8 +463,6 @@ class ReferenceShaper:
         pb = self.playback
         if p.reconstruction != "smooth" or not pb.ready():
             self._band.reset()
-            self._band_s = 0.0
-            self._live_hist = []
             self._at = None
             self._playing = False
             self.played = self.live[:]
@@ -518,24 +486,16 @@ class ReferenceShaper:
                 playing = playing and (len(h) > 1 and tau >= h[1].t)
             else:
                 out.append(self.live[i])
-        if playing and not self._playing:  # (before the second sample: its first knot has no
-            # slope yet, the curve starts flat), and once the band limit follows the input
-            band_s = max((b.delay_s for b in p.band if b is not None), default=0.0)
-            self._playing = self._band_s >= BAND_SETTLE_DELAYS * band_s
+        self._playing = self._playing or playing  # (before the second sample: its first
+        # knot has no slope yet, the curve starts flat)
         self.played = out[:]
         length = q / p.tick_s
         if abs(length - self._ma_len) > MA_HYSTERESIS * max(self._ma_len, 1.0):
             self._ma_len = length  # only a real change of the input's rate moves it
         out = self._average(out, p.tick_s, self._ma_len)
-        if p.band:
-            out = self._band.step(p.band, out)
-            self._band_s += dt
-        if self._playing:  # the playback's own start is not the motion
-            hist = self._live_hist
-            hist.append((now, out[:]))
-            if len(hist) > 3:
-                del hist[0]
-        return out
+        if not p.band:
+            return out
+        return self._band.step(p.band, out)
 
     def _average(self, x: list[float], tick_s: float, length: float) -> list[float]:
         """Moving average of each axis over the last ``length`` ticks (fractional: the oldest
