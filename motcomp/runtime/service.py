@@ -232,7 +232,10 @@ class Service:
         """The ticks run on the loop's own clock (:meth:`_loop`): input frames are stamped with
         the instant they were taken; with an instant given by a caller (:meth:`attach`), with it."""
         self._admin_q: queue.Queue[tuple[str, Any] | None] = queue.Queue(ADMIN_QUEUE)
-        self._status_cache: tuple[float, bytes] | None = None
+        # the packed status: (admin generation, built at, bytes); a cache built before the
+        # newest admin change is stale whatever its age
+        self._status_cache: tuple[int, float, bytes] | None = None
+        self._admin_gen = 0
 
     @staticmethod
     def _confine(path: Path | None) -> Confinement | None:
@@ -562,11 +565,12 @@ class Service:
                 if kind == "sighup":
                     if not self.stop_event.is_set():
                         self.reload()
+                    self._admin_gen += 1
                 else:
                     self._serve_admin(obj)
             except Exception as exc:  # never let a request stop the worker
                 log.error("admin request failed: %r", exc)
-            self._status_cache = None
+                self._admin_gen += 1
 
     def _serve_admin(self, query: Any) -> None:
         key = str(query.key_expr)
@@ -579,6 +583,7 @@ class Service:
                 result = self.admin(name, body)
             except Exception as exc:  # never let a request stop the worker
                 result = {"ok": False, "error": f"internal error: {type(exc).__name__}"}
+        self._admin_gen += 1  # before the answer: a status asked after it shows the change
         _answer(query, key, result)
 
     def admin(self, name: str, body: bytes) -> dict[str, Any]:
@@ -739,8 +744,9 @@ class Service:
         structure half rebuilt (a prediction reconfigured by a swap) raises, and is tried again
         (three times, 1 ms apart), then the previous status is served, or a minimal one."""
         cached = self._status_cache
-        if cached is not None and now - cached[0] <= max_age_s:
-            return cached[1]
+        gen = self._admin_gen  # read before the status: a change after it makes this stale
+        if cached is not None and cached[0] == gen and now - cached[1] <= max_age_s:
+            return cached[2]
         error: Exception | None = None
         for _ in range(3):
             try:
@@ -749,11 +755,11 @@ class Service:
                 error = exc
                 time.sleep(0.001)
                 continue
-            self._status_cache = (now, data)
+            self._status_cache = (gen, now, data)
             return data
         log.warning("status failed three times: %r", error)
         if cached is not None:
-            return cached[1]
+            return cached[2]
         return msgpack.packb({"t": time.time(), "version": __version__, "mode": self.state.mode,
                               "ticks": self.state.ticks, "error": f"status failed: {error!r}"})
 
