@@ -1,4 +1,5 @@
-"""The minimum-jerk (quintic) blend, the one shape of every fade, ramp and blend in motcomp.
+"""The minimum-jerk (quintic) move, the shape of every fade and ramp in motcomp (the blends into
+live input need one more order: :mod:`motcomp.core.blend`).
 
 ``s(x) = 10 x^3 - 15 x^4 + 6 x^5`` goes from 0 to 1 over ``x`` in [0, 1] with zero velocity
 *and* acceleration at both ends, so a compensator that amplifies high frequencies sees no step
@@ -12,7 +13,8 @@ from typing import Any, overload
 
 from numpy.typing import NDArray
 
-__all__ = ["PEAK_SPEED_FACTOR", "min_jerk", "min_jerk_rate", "min_jerk_weight"]
+__all__ = ["PEAK_SPEED_FACTOR", "min_jerk", "min_jerk_derivatives", "min_jerk_rate",
+           "min_jerk_weight"]
 
 PEAK_SPEED_FACTOR = 1.875
 """Peak of ``ds/dx``: a minimum-jerk move of ``distance`` over ``T`` peaks at 1.875 distance/T."""
@@ -30,6 +32,13 @@ def min_jerk(x: Any) -> Any:
 def min_jerk_rate(x: float) -> float:
     """``d/dx`` of :func:`min_jerk`: ``30 x^2 (1 - x)^2``."""
     return 30.0 * x * x * (1.0 - x) ** 2
+
+
+def min_jerk_derivatives(x: float) -> tuple[float, float, float]:
+    """The first three derivatives of :func:`min_jerk` at ``x``: ``30 x^2 (1 - x)^2``,
+    ``60 x (1 - x) (1 - 2 x)``, ``60 (1 - 6 x + 6 x^2)``."""
+    return (30.0 * x * x * (1.0 - x) ** 2, 60.0 * x * (1.0 - x) * (1.0 - 2.0 * x),
+            60.0 * (1.0 - 6.0 * x + 6.0 * x * x))
 
 
 def min_jerk_weight(progress: float) -> float:

@@ -36,7 +36,7 @@ from typing import Any
 __all__ = ["ACTIVE", "COMPILED_MODULES", "PURE_ENV", "RECORD", "check_build", "choose",
            "frozen_reduce", "import_all", "since_start", "source_hashes", "status", "verdict"]
 
-COMPILED_MODULES = ("axes", "bandlimit", "compensator", "envelope", "interp", "minjerk",
+COMPILED_MODULES = ("axes", "bandlimit", "blend", "compensator", "envelope", "interp", "minjerk",
                     "playback", "predictor", "saturation", "shaper", "tick", "timeline")
 """Modules of ``motcomp.core`` compiled (the tick and all it calls per sample)."""
 PURE_ENV = "MOTCOMP_PURE_PYTHON"

@@ -17,15 +17,18 @@ Modes (all times from the loop's clock, passed in)::
     always       the reference lies within ``[reach_lo, reach_hi]`` per axis (the range of
                  accepted input); a non-finite value keeps the previous reference
 
-Blends and ramps are minimum-jerk (:mod:`motcomp.core.minjerk`).  A blend fades out the
-difference between the held reference (or the ramp it interrupts) and the live input, in
-position *and* velocity at its start, ``live + w (g + r (t - t0))``: it leaves the held path with
-its position and velocity and meets the live one with its position, velocity and acceleration
-(a difference of position alone would hand the live input's velocity to the reference at the
-blend's first tick: a step the compensator kicks on); it lasts ``startup_s``/``rejoin_s``, or
-longer per axis where its gap and velocity change need more than a quarter of the axis'
-acceleration limit (``blend_acc``: the compensator multiplies the reference's acceleration
-by its in-band gain).  Undriven axes stay at neutral.
+Ramps are minimum-jerk (:mod:`motcomp.core.minjerk`).  A blend (:mod:`motcomp.core.blend`)
+adds to the live input the difference of the held reference (or the ramp it interrupts) to it,
+in position, velocity, acceleration and jerk, faded out to zero in all four: the reference
+leaves the held path and meets the live one with no step in any of them (the compensator turns
+a jerk step into a step of its command's acceleration).  It starts once the live input is what
+the reference will follow: the playback past its second sample, the moving average full and the
+band limit :data:`BAND_SETTLE_DELAYS` of its delays past its seeding (seeded at rest, it follows
+a moving input only after a transient), and :data:`FIT_S` more for the live input's motion (a
+least-squares cubic); the held reference stays until then.  It lasts ``startup_s``/``rejoin_s``,
+or longer per axis where its gap and velocity change need more than a quarter of the axis'
+acceleration limit (``blend_acc``: the compensator multiplies the reference's acceleration by
+its in-band gain).  Undriven axes stay at neutral.
 
 Input reconstruction ``smooth`` (the default): the input *played back on the sender's timeline, a
 little behind its newest sample*, interpolated between samples already received.  Three parts,
@@ -55,7 +58,6 @@ last value (for tests of the rest of the chain).
 
 from __future__ import annotations
 
-import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -64,8 +66,9 @@ from typing import Any
 from mypy_extensions import mypyc_attr
 
 from motcomp.core.bandlimit import BandLimit, BandLimitParams
+from motcomp.core.blend import blend_coefficients, blend_duration, horner, local_cubic
 from motcomp.core.interp import Curve, Transition
-from motcomp.core.minjerk import PEAK_SPEED_FACTOR, min_jerk_rate, min_jerk_weight
+from motcomp.core.minjerk import PEAK_SPEED_FACTOR, min_jerk_derivatives, min_jerk_weight
 from motcomp.core.native import frozen_reduce
 from motcomp.core.playback import Playback, min_transit
 from motcomp.core.timeline import Timeline
@@ -88,11 +91,13 @@ set by :func:`motcomp.config.tick_params`): the compensator multiplies the refer
 acceleration in the band by up to its peak gain (+8 dB, 2.5x), and the live motion has its own,
 so that the limiter need not cut a blend (the rails' slalom rejoined over 0.5 s at full speed:
 the limiter acted for 1.2 s, the platform 40 ms ahead of the motion for a second after)."""
-MIN_JERK_ACC = 10.0 / math.sqrt(3.0)
-"""Peak acceleration of a minimum-jerk move of ``D`` over ``T``: ``MIN_JERK_ACC D / T^2``."""
-MIN_JERK_MERGE = 2.0 * PEAK_SPEED_FACTOR
-"""A blend ``held w + live (1 - w)`` merges velocities differing by ``dv`` with an acceleration
-of at most ``2 |w'| dv``, ``MIN_JERK_MERGE dv / T``."""
+BAND_SETTLE_DELAYS = 4.0
+"""A blend starts once the band limit has run this many of its delays since it was seeded at
+rest: before, its output lags a moving input by a transient (5.5 mm at 0.78 m/s through 48 Hz)
+that a blend would take for part of the gap and its motion for the input's."""
+FIT_S = 0.02
+"""... and once the live input has run this long more: its velocity, acceleration and jerk at
+the blend's start are those of the least-squares cubic through these ticks."""
 GAP_BLEND_PERIODS = 10.0
 GAP_BLEND_S = 0.2
 """After an extrapolation, the difference to the samples fades out over about this many input
@@ -159,12 +164,16 @@ class _Move:
         self.duration = [max(PEAK_SPEED_FACTOR * abs(e - s) / v, min_s) if v > 0 else min_s
                          for s, e, v in zip(start, end, speed, strict=True)]
 
-    def rate(self, t: float) -> list[float]:
-        """Each axis' velocity at ``t``."""
+    def derivatives(self, t: float) -> list[tuple[float, float, float]]:
+        """Each axis' velocity, acceleration and jerk at ``t``."""
         out = []
         for s, e, d in zip(self.start, self.end, self.duration, strict=True):
             x = (t - self.t0) / d
-            out.append((e - s) * min_jerk_rate(x) / d if 0.0 < x < 1.0 else 0.0)
+            if 0.0 < x < 1.0:
+                v, a, j = min_jerk_derivatives(x)
+                out.append(((e - s) * v / d, (e - s) * a / (d * d), (e - s) * j / (d * d * d)))
+            else:
+                out.append((0.0, 0.0, 0.0))
         return out
 
     def at(self, t: float) -> tuple[list[float], bool]:
@@ -210,10 +219,11 @@ class ReferenceShaper:
         self._blend_t0 = 0.0
         self._blend_s = 0.0
         self._blend_each: list[float] = []  # each axis' blend duration
-        self._blend_gap: list[float] | None = None  # held - live at the blend's start, and
-        self._blend_rate: list[float] = []  # its rate: the difference the blend fades out
+        self._blend_poly: list[list[float]] | None = None  # each axis' difference faded out
         self._blend_move: _Move | None = None  # the ramp to neutral a rejoin interrupts
         self._blend_pending = False
+        self._run_s = 0.0  # smooth: time the moving average and band limit ran since a reset
+        self._live_hist: list[tuple[float, list[float]]] = []  # the live input since settled
         self._stale_since: float | None = None
         self._move: _Move | None = None
         self.parking = False
@@ -243,7 +253,7 @@ class ReferenceShaper:
     @property
     def blend_s(self) -> float:
         """The blend in progress (or pending): its longest axis' duration (s)."""
-        return max(self._blend_each) if self._blend_gap is not None and self._blend_each \
+        return max(self._blend_each) if self._blend_poly is not None and self._blend_each \
             else self._blend_s
 
     @property
@@ -283,7 +293,7 @@ class ReferenceShaper:
             self._stale_since = None
             self._blend_move, self._move = self._move, None
             self._blend_s = p.startup_s if first else p.rejoin_s
-            self._blend_gap = None
+            self._blend_poly = None
             self._blend_pending = True  # from the reference the next tick plays back
         self.last_input_s = now
 
@@ -355,6 +365,7 @@ class ReferenceShaper:
             for r in self._rings:
                 r.clear()
             self._band.reset()
+            self._run_s = 0.0
             for c in self.curves:
                 c.clear()
         interval = (t - t_prev) / samples if t_prev is not None and not rejoin \
@@ -372,7 +383,7 @@ class ReferenceShaper:
         if self.parking:
             return
         self.parking = True
-        self._blend_gap = self._blend_move = None
+        self._blend_poly = self._blend_move = None
         self._blend_pending = False
         self._move = _Move(now, self.ref, [0.0] * self.n, p.ramp_speed)
 
@@ -391,7 +402,7 @@ class ReferenceShaper:
             if self._stale_since is None:
                 self._stale_since = now
                 self.stale_episodes += 1
-                self._blend_gap = self._blend_move = None
+                self._blend_poly = self._blend_move = None
                 self._blend_pending = False
             if now - self._stale_since < p.hold_s:
                 return self.ref, mode
@@ -401,25 +412,24 @@ class ReferenceShaper:
         else:
             ref = self._live_now(p, now)
             mode = ""
-            if self._blend_pending and p.reconstruction == "smooth" and not self._playing \
-                    and self._blend_s > 0.0:  # the blend waits for the playback (a few ticks)
+            if self._blend_pending and p.reconstruction == "smooth" and self._blend_s > 0.0 \
+                    and not self._live_known(p, now, ref):  # the blend waits (module docstring)
                 ref = (self._blend_move.at(now)[0] if self._blend_move is not None
                        else self.ref[:])
                 mode = "rejoin"
             elif self._blend_pending:  # the blend starts where the reference is
                 self._blend_pending = False
                 self._blend_start(p, ref, now)
-            if self._blend_gap is not None:
+            if self._blend_poly is not None:
                 done = True
                 el = now - self._blend_t0
-                for i, (d, g, r) in enumerate(zip(self._blend_each, self._blend_gap,
-                                                  self._blend_rate, strict=True)):
-                    w = min_jerk_weight(el / d) if d > 0.0 else 0.0
-                    if w != 0.0:
+                for i, (d, c) in enumerate(zip(self._blend_each, self._blend_poly,
+                                               strict=True)):
+                    if el < d:
                         done = False
-                        ref[i] += (g + r * el) * w
+                        ref[i] += horner(c, el / d)
                 if done:
-                    self._blend_gap = None
+                    self._blend_poly = None
                 else:
                     mode = "rejoin"
         prev = self.ref
@@ -429,30 +439,49 @@ class ReferenceShaper:
         self.ref = ref
         return ref, mode
 
+    def _live_known(self, p: ShaperParams, now: float, live: list[float]) -> bool:
+        """``smooth``: whether the live input has run long enough for a blend to start (module
+        docstring); keeps its values from the moment it settled."""
+        hist = self._live_hist
+        if not self._playing:
+            hist.clear()
+            return False
+        band_s = max((b.delay_s for b in p.band if b is not None), default=0.0)
+        ma_s = self._ma_len * p.tick_s if self._ma_len >= MA_MIN_TICKS else 0.0
+        if self._run_s < BAND_SETTLE_DELAYS * band_s + ma_s:
+            hist.clear()
+            return False
+        hist.append((now, live[:]))
+        return len(hist) >= 4 and now - hist[0][0] >= FIT_S
+
     def _blend_start(self, p: ShaperParams, live: list[float], now: float) -> None:
-        """A blend from the reference held (or ramping) to ``live``: each axis' difference
-        ``g + r (t - t0)`` (position and velocity at the start) fades out through the
-        minimum-jerk weight, over ``_blend_s`` or longer where that would need more than
-        ``blend_acc``: peak acceleration at most ``5.774 |g| / T^2 + 3.75 |r| / T``, solved for
-        ``T`` (none if ``_blend_s`` is 0)."""
+        """A blend from the reference held (or ramping) to ``live`` (:mod:`motcomp.core.blend`):
+        the held path's position and motion (a ramp's, or at rest) less the live one's (the
+        least-squares cubic through its ticks since it settled, ``smooth``; else its line),
+        over ``_blend_s`` or longer where that would need more than ``blend_acc``."""
         self._blend_t0 = now
         move, self._blend_move = self._blend_move, None
-        held, held_v = (move.at(now)[0], move.rate(now)) if move is not None \
-            else (self.ref, [0.0] * self.n)
+        rest = (0.0, 0.0, 0.0)
+        held, held_d = (move.at(now)[0], move.derivatives(now)) if move is not None \
+            else (self.ref, [rest] * self.n)
+        live_d: list[tuple[float, float, float]] | None = None
+        hist = self._live_hist
+        if p.reconstruction == "smooth" and hist:
+            live_d = local_cubic([t for t, _ in hist], [x for _, x in hist], now)
+        elif p.reconstruction == "linear":
+            live_d = [(v, 0.0, 0.0) for v in self._lin_slope]
+        hist.clear()
         base = self._blend_s
-        gaps, rates, each = [], [], []
-        for i, (x, h, c) in enumerate(zip(live, held, self.curves, strict=True)):
-            g, r = h - x, held_v[i] - (c.slope if c.knots else 0.0)
-            gaps.append(g)
-            rates.append(r)
-            a = p.blend_acc[i] if p.blend_acc else 0.0
-            if base <= 0.0 or a <= 0.0 or not p.driven[i] or (g == 0.0 and r == 0.0):
-                each.append(base)
-                continue
-            k1, k0 = MIN_JERK_ACC * abs(g), MIN_JERK_MERGE * abs(r)
-            # k1 x^2 + k0 x - a = 0 in x = 1/T: its positive root
-            each.append(max(base, (k0 + math.sqrt(k0 * k0 + 4.0 * k1 * a)) / (2.0 * a)))
-        self._blend_gap, self._blend_rate, self._blend_each = gaps, rates, each
+        polys, each = [], []
+        for i, (x, h) in enumerate(zip(live, held, strict=True)):
+            hv, ha, hj = held_d[i]
+            lv, la, lj = live_d[i] if live_d is not None else rest
+            g, r = h - x, hv - lv
+            a = p.blend_acc[i] if p.blend_acc and p.driven[i] and base > 0.0 else 0.0
+            d = blend_duration(g, r, a, base)
+            each.append(d)
+            polys.append(blend_coefficients(g, r, ha - la, hj - lj, d) if d > 0.0 else [])
+        self._blend_poly, self._blend_each = polys, each
 
     def _live_now(self, p: ShaperParams, now: float) -> list[float]:
         """The live values at this tick: reconstructed as ``p.reconstruction`` says."""
@@ -463,6 +492,7 @@ class ReferenceShaper:
         pb = self.playback
         if p.reconstruction != "smooth" or not pb.ready():
             self._band.reset()
+            self._run_s = 0.0
             self._at = None
             self._playing = False
             self.played = self.live[:]
@@ -493,6 +523,7 @@ class ReferenceShaper:
         if abs(length - self._ma_len) > MA_HYSTERESIS * max(self._ma_len, 1.0):
             self._ma_len = length  # only a real change of the input's rate moves it
         out = self._average(out, p.tick_s, self._ma_len)
+        self._run_s += dt
         if not p.band:
             return out
         return self._band.step(p.band, out)

@@ -1,0 +1,168 @@
+"""The blend from a held path to a live one, continuous to the jerk at both ends.
+
+A blend adds to the live path ``x(t)`` a difference ``e(t)`` that starts as the held path's
+difference to it -- in position ``g``, velocity ``r``, acceleration ``a`` and jerk ``j`` -- and
+ends at zero in all four, over ``T`` (``s = (t - t0) / T`` in [0, 1])::
+
+    e = g B0(s) + r T B1(s) + a T^2 B2(s) + j T^3 B3(s)
+
+with ``B_k^(m)(0) = 1 if m == k else 0`` and ``B_k^(m)(1) = 0`` for ``m`` = 0..3.  The reference
+``x + e`` leaves the held path and meets the live one with no step in position, velocity,
+acceleration or jerk: the pseudo open-loop compensator's command carries about ``Tp1`` times the
+reference's jerk, so a jerk step at a blend's end is a step of the command's acceleration (the
+quintic blends this replaces: 3-4 m/s^2 on the rails after every start and resume).
+
+``B2 = s^2/2 (1-s)^4 (1+4s)`` and ``B3 = s^3/6 (1-s)^4`` are the septic Hermite basis.  ``B0``
+and ``B1`` are the septic Hermite basis plus ``s^4 (1-s)^4 Q_k(s)`` (which keeps the end
+conditions): ``Q_k`` minimises ``max |B''| + 0.1 max |B'''|`` (a linear programme on a grid,
+docs/TUNING.md "Blends"), for a shorter blend within the same acceleration and a smaller
+excursion: peak ``|B0''|`` 6.29 (7.51 for the septic alone), ``|B1''|`` 3.49 (5.03; the quintic
+``s (1 - m(s))`` of the blends before: 4.62), ``max |B1|`` 0.227.
+
+:func:`blend_duration` is the shortest ``T`` no shorter than asked for which the position and
+velocity terms need at most a given acceleration; the acceleration and jerk terms only carry
+the held path's own over to the live one's.  :func:`local_cubic` estimates the live path's
+velocity, acceleration and jerk from its last ticks.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+__all__ = ["BLEND_ACC_PEAK", "BLEND_MERGE_PEAK", "blend_coefficients", "blend_duration",
+           "horner", "local_cubic"]
+
+
+def _mul(a: Sequence[float], b: Sequence[float]) -> list[float]:
+    out = [0.0] * (len(a) + len(b) - 1)
+    for i, x in enumerate(a):
+        for k, y in enumerate(b):
+            out[i + k] += x * y
+    return out
+
+
+def _add(a: Sequence[float], b: Sequence[float]) -> list[float]:
+    n = max(len(a), len(b))
+    return [(a[i] if i < len(a) else 0.0) + (b[i] if i < len(b) else 0.0) for i in range(n)]
+
+
+def _der(c: Sequence[float]) -> list[float]:
+    return [k * c[k] for k in range(1, len(c))] or [0.0]
+
+
+_EDGE = _mul(_mul(_mul([0.0, 1.0], [0.0, 1.0]), _mul([0.0, 1.0], [0.0, 1.0])),
+             _mul(_mul([1.0, -1.0], [1.0, -1.0]), _mul([1.0, -1.0], [1.0, -1.0])))
+"""``s^4 (1 - s)^4``: zero to the third derivative at both ends."""
+_Q0 = (-53.5, 254.3, -442.2, 294.8)
+_Q1 = (-25.4, 87.6, -40.5, -23.3, 27.9)
+B0: tuple[float, ...] = tuple(_add([1.0, 0.0, 0.0, 0.0, -35.0, 84.0, -70.0, 20.0],
+                                   _mul(_EDGE, _Q0)))
+B1: tuple[float, ...] = tuple(_add([0.0, 1.0, 0.0, 0.0, -20.0, 45.0, -36.0, 10.0],
+                                   _mul(_EDGE, _Q1)))
+B2: tuple[float, ...] = (0.0, 0.0, 0.5, 0.0, -5.0, 10.0, -7.5, 2.0)
+B3: tuple[float, ...] = (0.0, 0.0, 0.0, 1.0 / 6.0, -2.0 / 3.0, 1.0, -2.0 / 3.0, 1.0 / 6.0)
+"""The blend's basis, coefficients of ``s^0, s^1, ...`` (module docstring)."""
+
+GRID = 64
+""":func:`blend_duration` checks the acceleration at ``GRID + 1`` points of the blend."""
+_ACC0 = _der(_der(B0))
+_ACC1 = _der(_der(B1))
+
+
+def horner(c: Sequence[float], s: float) -> float:
+    """The polynomial with coefficients ``c`` (of ``s^0, s^1, ...``) at ``s``."""
+    out = 0.0
+    for k in range(len(c) - 1, -1, -1):
+        out = out * s + c[k]
+    return out
+
+
+_GRID_ACC = tuple((horner(_ACC0, k / GRID), horner(_ACC1, k / GRID)) for k in range(GRID + 1))
+BLEND_ACC_PEAK = max(abs(a0) for a0, _ in _GRID_ACC)
+"""``max |B0''|`` on the grid (6.29): a gap ``g`` blended over ``T`` takes at most about
+``BLEND_ACC_PEAK |g| / T^2`` of acceleration."""
+BLEND_MERGE_PEAK = max(abs(a1) for _, a1 in _GRID_ACC)
+"""``max |B1''|`` on the grid (3.49): a velocity difference ``r``: ``BLEND_MERGE_PEAK |r| / T``."""
+
+
+def blend_duration(g: float, r: float, acc: float, base: float) -> float:
+    """The shortest ``T >= base`` over which the gap ``g`` and velocity difference ``r`` blend
+    out (``g B0 + r T B1``) with an acceleration of at most ``acc`` at each of the ``GRID + 1``
+    points checked (``base`` if ``acc <= 0``)."""
+    if acc <= 0.0 or (g == 0.0 and r == 0.0):
+        return base
+    t = base
+    for a0, a1 in _GRID_ACC:
+        # |g a0 + r a1 T| <= acc T^2: beyond the larger root of acc T^2 -+ (r a1 T + g a0)
+        for b, c in ((r * a1, g * a0), (-r * a1, -g * a0)):
+            disc = b * b + 4.0 * acc * c
+            if disc > 0.0:
+                t = max(t, (b + math.sqrt(disc)) / (2.0 * acc))
+    return t
+
+
+def blend_coefficients(g: float, r: float, a: float, j: float, duration: float
+                       ) -> list[float]:
+    """The coefficients (of ``s^0, s^1, ...``, ``s = (t - t0) / duration``) of the difference
+    that starts as ``(g, r, a, j)`` (position, velocity, acceleration, jerk) and ends at zero
+    to the jerk at ``s = 1``."""
+    t = duration
+    out = [0.0] * max(len(B0), len(B1), len(B2), len(B3))
+    for basis, w in ((B0, g), (B1, r * t), (B2, a * t * t), (B3, j * t * t * t)):
+        for k, c in enumerate(basis):
+            out[k] += w * c
+    return out
+
+
+def local_cubic(times: Sequence[float], values: Sequence[Sequence[float]], at: float
+                ) -> list[tuple[float, float, float]] | None:
+    """The velocity, acceleration and jerk at ``at`` of the least-squares cubic through each
+    column of ``values`` (one row of columns per instant of ``times``), or None if ``times``
+    do not span four distinct instants."""
+    n = len(times)
+    if n < 4:
+        return None
+    span = max(abs(t - at) for t in times)
+    if not span > 0.0:
+        return None
+    # normal equations in u = (t - at) / span, for the coefficients of 1, u, u^2, u^3
+    m = [[0.0] * 4 for _ in range(4)]
+    us = [(t - at) / span for t in times]
+    for u in us:
+        p = [1.0, u, u * u, u * u * u]
+        for i in range(4):
+            for k in range(4):
+                m[i][k] += p[i] * p[k]
+    inv = _inverse4(m)
+    if inv is None:
+        return None
+    out = []
+    for col in range(len(values[0])):
+        rhs = [0.0] * 4
+        for u, row in zip(us, values, strict=True):
+            x = row[col]
+            rhs[0] += x
+            rhs[1] += x * u
+            rhs[2] += x * u * u
+            rhs[3] += x * u * u * u
+        c = [sum(inv[i][k] * rhs[k] for k in range(4)) for i in range(4)]
+        out.append((c[1] / span, 2.0 * c[2] / (span * span), 6.0 * c[3] / (span * span * span)))
+    return out
+
+
+def _inverse4(m: list[list[float]]) -> list[list[float]] | None:
+    """Gauss-Jordan with partial pivoting; None if singular."""
+    a = [row[:] + [1.0 if i == k else 0.0 for k in range(4)] for i, row in enumerate(m)]
+    for col in range(4):
+        piv = max(range(col, 4), key=lambda i: abs(a[i][col]))
+        if abs(a[piv][col]) < 1e-12:
+            return None
+        a[col], a[piv] = a[piv], a[col]
+        d = a[col][col]
+        a[col] = [x / d for x in a[col]]
+        for i in range(4):
+            if i != col and a[i][col] != 0.0:
+                f = a[i][col]
+                a[i] = [x - f * y for x, y in zip(a[i], a[col], strict=True)]
+    return [row[4:] for row in a]
