@@ -38,7 +38,7 @@ def derivs(c: tuple[float, ...] | list[float] | np.ndarray, s: float | np.ndarra
     return np.asarray(npp.polyval(s, npp.polyder(c_arr, m) if m else c_arr))
 
 
-@pytest.mark.parametrize("k, basis", enumerate((B0, B1, B2, B3)))
+@pytest.mark.parametrize("k, basis", list(enumerate((B0, B1, B2, B3))))
 def test_the_basis_starts_as_its_unit_and_ends_at_zero_to_the_jerk(k: int,
                                                                    basis: tuple[float, ...]
                                                                    ) -> None:
