@@ -41,6 +41,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from motcomp.core.axes import AXES
 from motcomp.core.bandlimit import BAND_HZ_DEFAULT, band_limit_params
+from motcomp.core.blend import BLEND_ACC_SHARE
 from motcomp.core.compensator import Compensator
 from motcomp.core.envelope import EnvelopeParams
 from motcomp.core.loop import stability
@@ -48,7 +49,7 @@ from motcomp.core.models import P1D, ProcessModel, parse_model
 from motcomp.core.pid import PIDGains
 from motcomp.core.predictor import MonitorParams, PredictorParams
 from motcomp.core.saturation import AxisLimits
-from motcomp.core.shaper import BLEND_ACC_SHARE, ShaperParams
+from motcomp.core.shaper import ShaperParams
 from motcomp.core.tick import TickParams, TickState
 from motcomp.core.tuning import RULES, tune
 from motcomp.errors import ConfigError

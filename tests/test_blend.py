@@ -88,6 +88,40 @@ def test_the_duration_is_the_shortest_within_the_acceleration() -> None:
     assert blend_duration(0.0, 0.75, 1.5, 0.0) == pytest.approx(BLEND_MERGE_PEAK * 0.75 / 1.5)
 
 
+def peak_with_jerk(g: float, r: float, t: float, lead: float) -> float:
+    acc = g * derivs(B0, S, 2) + r * t * derivs(B1, S, 2)
+    jerk = g * derivs(B0, S, 3) + r * t * derivs(B1, S, 3)
+    return float(np.max(np.abs(acc) / t**2 + lead * np.abs(jerk) / t**3))
+
+
+def test_the_duration_with_a_lead_counts_the_jerk() -> None:
+    """What a compensator passes on of the jerk (``lead`` times it): the shortest duration whose
+    acceleration plus ``lead`` times the jerk stays within the bound, on a fine grid."""
+    rng = np.random.default_rng(11)
+    for _ in range(60):
+        g, r = rng.normal(0.0, 0.1), rng.normal(0.0, 0.3)
+        acc, lead = rng.uniform(0.5, 3.0), rng.uniform(0.05, 0.3)
+        t = blend_duration(g, r, acc, 0.1, lead)
+        assert t >= blend_duration(g, r, acc, 0.1)
+        assert peak_with_jerk(g, r, t, lead) <= acc * 1.01
+        if t > 0.1:
+            assert peak_with_jerk(g, r, 0.98 * t, lead) > acc
+
+
+def test_the_carried_over_acceleration_and_jerk_are_clipped() -> None:
+    """An estimate's error (a jerk of 1e5 m/s^3: a 1 mm step through the band limit) cannot
+    swing a blend: with an acceleration budget each carried-over term takes at most twice it."""
+    acc, t = 1.5, 2.0
+    wild = blend_coefficients(0.0, 0.0, 50.0, 1e5, t, acc)
+    tame = blend_coefficients(0.0, 0.0, 2.0 * acc, 2.0 * acc / (0.0404 * t), t)
+    assert np.max(np.abs(derivs(wild, S, 0))) == pytest.approx(
+        np.max(np.abs(derivs(tame, S, 0))), rel=1e-2)
+    assert np.max(np.abs(derivs(wild, S, 2))) / t**2 <= 4.0 * acc * 1.01
+    # within the budget nothing is clipped
+    assert blend_coefficients(0.1, 0.2, 1.0, 0.5, t, acc) == blend_coefficients(
+        0.1, 0.2, 1.0, 0.5, t)
+
+
 def test_the_coefficients_start_as_the_difference_and_end_at_zero() -> None:
     g, r, a, j, t = 0.2, -0.6, 1.3, -4.0, 1.7
     c = blend_coefficients(g, r, a, j, t)

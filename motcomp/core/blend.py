@@ -30,8 +30,18 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-__all__ = ["BLEND_ACC_PEAK", "BLEND_MERGE_PEAK", "blend_coefficients", "blend_duration",
+__all__ = ["BLEND_ACC_PEAK", "BLEND_ACC_SHARE", "BLEND_MERGE_PEAK", "blend_coefficients",
+           "blend_duration",
            "horner", "local_cubic"]
+
+
+BLEND_ACC_SHARE = 0.25
+"""A blend may take this share of an axis' acceleration limit (the shaper's, as
+``ShaperParams.blend_acc`` set by :func:`motcomp.config.tick_params`; the compensator's when it
+resumes): the compensator multiplies the reference's acceleration in the band by up to its peak
+gain (+8 dB, 2.5x), and the live motion has its own, so that the limiter need not cut a blend
+(the rails' slalom rejoined over 0.5 s at full speed: the limiter acted for 1.2 s, the platform
+40 ms ahead of the motion for a second after)."""
 
 
 def _mul(a: Sequence[float], b: Sequence[float]) -> list[float]:
@@ -78,36 +88,73 @@ def horner(c: Sequence[float], s: float) -> float:
     return out
 
 
-_GRID_ACC = tuple((horner(_ACC0, k / GRID), horner(_ACC1, k / GRID)) for k in range(GRID + 1))
-BLEND_ACC_PEAK = max(abs(a0) for a0, _ in _GRID_ACC)
+_BASES = (B0, B1, B2, B3)
+_GRID_ACC = tuple(tuple(horner(_der(_der(c)), k / GRID) for c in _BASES)
+                  for k in range(GRID + 1))
+_GRID_JERK = tuple(tuple(horner(_der(_der(_der(c))), k / GRID) for c in _BASES)
+                   for k in range(GRID + 1))
+"""Per point of the grid, the second and third derivatives of each basis function."""
+BLEND_ACC_PEAK = max(abs(row[0]) for row in _GRID_ACC)
 """``max |B0''|`` on the grid (6.29): a gap ``g`` blended over ``T`` takes at most about
 ``BLEND_ACC_PEAK |g| / T^2`` of acceleration."""
-BLEND_MERGE_PEAK = max(abs(a1) for _, a1 in _GRID_ACC)
+BLEND_MERGE_PEAK = max(abs(row[1]) for row in _GRID_ACC)
 """``max |B1''|`` on the grid (3.49): a velocity difference ``r``: ``BLEND_MERGE_PEAK |r| / T``."""
+B3_ACC_PEAK = max(abs(row[3]) for row in _GRID_ACC)
+"""``max |B3''|`` on the grid (0.040)."""
 
 
-def blend_duration(g: float, r: float, acc: float, base: float) -> float:
+def blend_duration(g: float, r: float, acc: float, base: float, lead: float = 0.0) -> float:
     """The shortest ``T >= base`` over which the gap ``g`` and velocity difference ``r`` blend
-    out (``g B0 + r T B1``) with an acceleration of at most ``acc`` at each of the ``GRID + 1``
-    points checked (``base`` if ``acc <= 0``)."""
+    out (``g B0 + r T B1``) with an acceleration plus ``lead`` times the jerk of at most ``acc``
+    at each of the ``GRID + 1`` points checked (``base`` if ``acc <= 0``).  ``lead`` (s): what a
+    compensator multiplies the jerk by (about its model's ``Tp1 + Td``)."""
     if acc <= 0.0 or (g == 0.0 and r == 0.0):
         return base
     t = base
-    for a0, a1 in _GRID_ACC:
+    for row in _GRID_ACC:
+        a0, a1 = row[0], row[1]
         # |g a0 + r a1 T| <= acc T^2: beyond the larger root of acc T^2 -+ (r a1 T + g a0)
-        for b, c in ((r * a1, g * a0), (-r * a1, -g * a0)):
-            disc = b * b + 4.0 * acc * c
+        for bb, cc in ((r * a1, g * a0), (-r * a1, -g * a0)):
+            disc = bb * bb + 4.0 * acc * cc
             if disc > 0.0:
-                t = max(t, (b + math.sqrt(disc)) / (2.0 * acc))
-    return t
+                t = max(t, (bb + math.sqrt(disc)) / (2.0 * acc))
+    if lead <= 0.0 or _peak(g, r, t, lead) <= acc:
+        return t
+    lo, hi = t, 2.0 * t
+    while _peak(g, r, hi, lead) > acc:  # both terms fall as T grows
+        lo, hi = hi, 2.0 * hi
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        if _peak(g, r, mid, lead) > acc:
+            lo = mid
+        else:
+            hi = mid
+    return hi
 
 
-def blend_coefficients(g: float, r: float, a: float, j: float, duration: float
-                       ) -> list[float]:
+def _peak(g: float, r: float, t: float, lead: float) -> float:
+    """The largest ``|acceleration| + lead |jerk|`` of ``g B0 + r T B1`` over ``t`` on the
+    grid."""
+    w1 = r * t
+    out = 0.0
+    for p, q in zip(_GRID_ACC, _GRID_JERK, strict=True):
+        out = max(out, abs(g * p[0] + w1 * p[1]) / (t * t)
+                  + lead * abs(g * q[0] + w1 * q[1]) / (t * t * t))
+    return out
+
+
+def blend_coefficients(g: float, r: float, a: float, j: float, duration: float,
+                       acc: float = 0.0) -> list[float]:
     """The coefficients (of ``s^0, s^1, ...``, ``s = (t - t0) / duration``) of the difference
     that starts as ``(g, r, a, j)`` (position, velocity, acceleration, jerk) and ends at zero
-    to the jerk at ``s = 1``."""
+    to the jerk at ``s = 1``.  With ``acc > 0`` the acceleration and jerk carried over are
+    clipped so that neither term takes more than ``2 acc`` (an estimate's error cannot swing
+    the blend: the jerk term's excursion grows as ``j T^3``)."""
     t = duration
+    if acc > 0.0:
+        a = min(max(a, -2.0 * acc), 2.0 * acc)
+        jmax = 2.0 * acc / (B3_ACC_PEAK * t) if t > 0.0 else 0.0
+        j = min(max(j, -jmax), jmax)
     out = [0.0] * max(len(B0), len(B1), len(B2), len(B3))
     for basis, w in ((B0, g), (B1, r * t), (B2, a * t * t), (B3, j * t * t * t)):
         for k, c in enumerate(basis):

@@ -73,7 +73,7 @@ from motcomp.core.native import frozen_reduce
 from motcomp.core.playback import Playback, min_transit
 from motcomp.core.timeline import Timeline
 
-__all__ = ["BLEND_ACC_SHARE", "LINEAR_OFFSET_LEAK", "ReferenceShaper", "ShaperParams"]
+__all__ = ["LINEAR_OFFSET_LEAK", "ReferenceShaper", "ShaperParams"]
 
 LINEAR_OFFSET_LEAK = 0.05
 """``linear``: upward drift (s per s) allowed to its clock offset (smallest transit)."""
@@ -85,12 +85,6 @@ MA_MIN_TICKS = 2.0
 MA_HYSTERESIS = 0.02
 """The moving average's length follows the period only when it moved by more than this
 fraction (a length that flickers would warp time)."""
-BLEND_ACC_SHARE = 0.25
-"""A blend may take this share of an axis' acceleration limit (``ShaperParams.blend_acc``,
-set by :func:`motcomp.config.tick_params`): the compensator multiplies the reference's
-acceleration in the band by up to its peak gain (+8 dB, 2.5x), and the live motion has its own,
-so that the limiter need not cut a blend (the rails' slalom rejoined over 0.5 s at full speed:
-the limiter acted for 1.2 s, the platform 40 ms ahead of the motion for a second after)."""
 BAND_SETTLE_DELAYS = 4.0
 """A blend starts once the band limit has run this many of its delays since it was seeded at
 rest: before, its output lags a moving input by a transient (5.5 mm at 0.78 m/s through 48 Hz)
@@ -480,7 +474,7 @@ class ReferenceShaper:
             a = p.blend_acc[i] if p.blend_acc and p.driven[i] and base > 0.0 else 0.0
             d = blend_duration(g, r, a, base)
             each.append(d)
-            polys.append(blend_coefficients(g, r, ha - la, hj - lj, d) if d > 0.0 else [])
+            polys.append(blend_coefficients(g, r, ha - la, hj - lj, d, a) if d > 0.0 else [])
         self._blend_poly, self._blend_each = polys, each
 
     def _live_now(self, p: ShaperParams, now: float) -> list[float]:
