@@ -15,14 +15,16 @@ quintic blends this replaces: 3-4 m/s^2 on the rails after every start and resum
 ``B2 = s^2/2 (1-s)^4 (1+4s)`` and ``B3 = s^3/6 (1-s)^4`` are the septic Hermite basis.  ``B0``
 and ``B1`` are the septic Hermite basis plus ``s^4 (1-s)^4 Q_k(s)`` (which keeps the end
 conditions): ``Q_k`` minimises ``max |B''| + 0.1 max |B'''|`` (a linear programme on a grid,
-docs/TUNING.md "Blends"), for a shorter blend within the same acceleration and a smaller
-excursion: peak ``|B0''|`` 6.29 (7.51 for the septic alone), ``|B1''|`` 3.49 (5.03; the quintic
+docs/TUNING.md, "Blends into live input"), for a shorter blend within the same acceleration
+and a smaller excursion: peak ``|B0''|`` 6.29 (7.51 for the septic alone), ``|B1''|`` 3.49 (5.03; the quintic
 ``s (1 - m(s))`` of the blends before: 4.62), ``max |B1|`` 0.227.
 
 :func:`blend_duration` is the shortest ``T`` no shorter than asked for which the position and
-velocity terms need at most a given acceleration; the acceleration and jerk terms only carry
-the held path's own over to the live one's.  :func:`local_cubic` estimates the live path's
-velocity, acceleration and jerk from its last ticks.
+velocity terms need at most a given acceleration (plus, for a blend a compensator follows, its
+lead times their jerk); the acceleration and jerk terms only carry the held path's own over to
+the live one's, clipped by :func:`blend_coefficients` so that an estimate's error cannot swing
+the blend.  :func:`local_cubic` estimates the live path's velocity, acceleration and jerk from
+its last ticks.
 """
 
 from __future__ import annotations
@@ -30,9 +32,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-__all__ = ["BLEND_ACC_PEAK", "BLEND_ACC_SHARE", "BLEND_MERGE_PEAK", "blend_coefficients",
-           "blend_duration",
-           "horner", "local_cubic"]
+__all__ = ["B3_ACC_PEAK", "BLEND_ACC_PEAK", "BLEND_ACC_SHARE", "BLEND_MERGE_PEAK",
+           "blend_coefficients", "blend_duration", "horner", "local_cubic"]
 
 
 BLEND_ACC_SHARE = 0.25
