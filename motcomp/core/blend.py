@@ -16,8 +16,8 @@ quintic blends this replaces: 3-4 m/s^2 on the rails after every start and resum
 and ``B1`` are the septic Hermite basis plus ``s^4 (1-s)^4 Q_k(s)`` (which keeps the end
 conditions): ``Q_k`` minimises ``max |B''| + 0.1 max |B'''|`` (a linear programme on a grid,
 docs/TUNING.md, "Blends into live input"), for a shorter blend within the same acceleration
-and a smaller excursion: peak ``|B0''|`` 6.29 (7.51 for the septic alone), ``|B1''|`` 3.49 (5.03; the quintic
-``s (1 - m(s))`` of the blends before: 4.62), ``max |B1|`` 0.227.
+and a smaller excursion: peak ``|B0''|`` 6.29 (7.51 for the septic alone), ``|B1''|`` 3.49
+(5.03; the quintic ``s (1 - m(s))`` of the blends before: 4.62), ``max |B1|`` 0.227.
 
 :func:`blend_duration` is the shortest ``T`` no shorter than asked for which the position and
 velocity terms need at most a given acceleration (plus, for a blend a compensator follows, its
