@@ -1,7 +1,8 @@
-"""Compensation resuming while the platform moves (:mod:`motcomp.core.compensator`, "Not
-compensating"): after a bypass and after an input loss, on the demo's rails (config/demo.toml)
-driven through the rails' slalom -- the command never chatters at its acceleration limit, it
-goes on from where it was, and it meets the compensated command of a run that never stopped."""
+"""Compensation handed over while the platform moves (:mod:`motcomp.core.compensator`, "Not
+compensating"): switched off and back on, and resumed after an input loss, on the demo's rails
+(config/demo.toml) driven through the rails' slalom -- the command never chatters at its
+acceleration limit, it goes on from where it was, and it meets the compensated command of a run
+that never stopped."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ import pytest
 
 from motcomp.config import load_config, new_tick, resolve_axes
 from motcomp.core.axes import AXIS_INDEX
+from motcomp.core.tick import step
+from motcomp.io.wire import encode_input
 from motcomp.sim.ideal import ideal_run
 
 DEMO = Path(__file__).resolve().parents[1] / "config" / "demo.toml"
@@ -25,9 +28,9 @@ def slalom(k: int, phase: float = 0.0) -> float:
     return 0.4 * float(np.sin(2.0 * np.pi * 0.31 * t + phase)) * min(t, 1.0)
 
 
-def drive(off_at: int | None, ticks: int = 9000) -> np.ndarray:
-    """rails_y's command through the slalom, compensation off from tick 2000 to ``off_at``
-    (None: never off)."""
+def drive(off_at: int | None, ticks: int = 9000, on_at: int = 2000) -> np.ndarray:
+    """rails_y's command through the slalom, compensation off from tick ``on_at`` to
+    ``off_at`` (None: never off)."""
     cfg = load_config(DEMO)
     _, state = new_tick(cfg, resolve_axes(cfg))
     comp = state.comp
@@ -35,8 +38,8 @@ def drive(off_at: int | None, ticks: int = 9000) -> np.ndarray:
     bypass = [False] * comp.n
     u = []
     for k in range(ticks):
-        if off_at is not None and k in (2000, off_at):
-            bypass[Y] = k == 2000
+        if off_at is not None and k in (on_at, off_at):
+            bypass[Y] = k == on_at
             comp.set_bypass(bypass)
         ref = [0.0] * comp.n
         ref[Y] = slalom(k)
@@ -58,6 +61,20 @@ def test_compensation_switched_back_on_while_moving_takes_over_smoothly(off_at: 
     always = drive(None)
     late = slice(off_at + 3000, off_at + 3500)
     assert np.max(np.abs(u[late] - always[late])) < 5e-4, np.max(np.abs(u[late] - always[late]))
+
+
+@pytest.mark.parametrize("on_at", [2000, 2400, 2800, 3200, 3600])
+def test_compensation_switched_off_while_moving_hands_over_smoothly(on_at: int) -> None:
+    """Bypass on at a moment of the slalom: the command blends from the compensated path to the
+    reference, never at its acceleration limit, its acceleration changing by at most
+    0.1 m/s^2 a tick (an offset of position alone faded out: 2-67 ticks at the limit, steps of
+    7-11 m/s^2), and it is the reference 3 s later."""
+    u = drive(on_at + 5000, on_at=on_at)
+    acc = np.diff(u, 2) * 1e6
+    seg = acc[on_at - 5:on_at + 3000]
+    assert np.sum(np.abs(seg) > A_MAX - 0.1) == 0, np.sum(np.abs(seg) > A_MAX - 0.1)
+    assert np.max(np.abs(np.diff(seg))) < 0.1, np.max(np.abs(np.diff(seg)))
+    assert u[on_at + 3000] == pytest.approx(slalom(on_at + 3000), abs=1e-9)
 
 
 def rejoin(phase: float) -> np.ndarray:
@@ -84,3 +101,35 @@ def test_a_rejoin_during_the_ramp_to_neutral_resumes_compensation_smoothly() -> 
         at_limit.append(n)
         clean += n == 0 and float(np.max(np.abs(np.diff(acc[5:])))) < 0.7
     assert clean >= 25 and max(at_limit) <= 150, (clean, at_limit)
+
+
+def resume_at_limit(phase: float, two: bool) -> int:
+    """Ticks of rails_y's command at its acceleration limit in the 3 s after a 1 s input loss
+    of a 1 kHz slalom through the demo's tick, the first frame after the loss taken alone or
+    with the next one in the same tick (``two``)."""
+    cfg = load_config(DEMO)
+    params, state = new_tick(cfg, resolve_axes(cfg))
+    held: list[bytes] = []
+    u = []
+    for k in range(7000):
+        t = k / 1000.0
+        payload: bytes | list[bytes] | None = None
+        if not 3000 <= k < 4000:
+            frame = encode_input(k, 1.7e9 + t, {"rails_y": 0.4 * float(np.sin(
+                2.0 * np.pi * 0.3 * t + phase))})
+            if two and k == 4000:
+                held.append(frame)
+            else:
+                payload = [*held, frame] if held else frame
+                held = []
+        u.append(step(state, params, k * 1_000_000 + 300_000, payload).u[Y])
+    acc = np.diff(np.array(u), 2) * 1e6
+    return int(np.sum(np.abs(acc[3995:7000]) > A_MAX - 0.1))
+
+
+def test_two_frames_in_the_first_tick_after_a_loss_resume_as_one() -> None:
+    """Two frames landing in the first tick after an input loss (a sender's stall, a busy
+    host): the blend waits for the band limit as after one (it counted the loss itself as time
+    the band limit had run: 570-980 ticks at the limit against 0)."""
+    for phase in (0.0, 2.0, 3.0, 4.0, 5.0):
+        assert resume_at_limit(phase, True) == resume_at_limit(phase, False) == 0, phase

@@ -83,9 +83,10 @@ Rules for edge cases
   integrator is re-seeded so that the raw output at the last sample is unchanged under the new
   parameters (bumpless).
 * Bypass (compensation off) per axis (:meth:`set_bypass`): the output becomes the reference,
-  reached through a minimum-jerk fade of the offset over ``fade_s``; while bypassed the PID
-  tracks the output (its integrator is re-seeded every sample so that ``v = u``), so switching
-  back on starts from the command being sent: bumpless both ways.
+  reached by a blend from the path of the commands sent (position, velocity and acceleration
+  matched, :mod:`motcomp.core.blend`) over ``fade_s`` or longer within a quarter of ``a_max``
+  (an offset of position alone faded out left the compensated command's velocity behind: a
+  step the limiter chased at its acceleration limit for about 0.25 s); switching back on: below.
 * Input loss (:meth:`open_window`, the tick's rule: :mod:`motcomp.core.tick`): each axis is held
   in a window, the hull of its command, its braking point ``u + v |v| / (2 a_max)`` and the
   reference (widened by later references, :meth:`widen_window`), by the limiter itself: the
@@ -121,7 +122,6 @@ from numpy.typing import ArrayLike
 from motcomp.core.blend import BLEND_ACC_SHARE, blend_coefficients, blend_duration, horner
 from motcomp.core.loop import stability
 from motcomp.core.lti import FloatArray
-from motcomp.core.minjerk import min_jerk
 from motcomp.core.models import P1D, p1d_coefficients
 from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import (
@@ -161,8 +161,6 @@ class CompensatorState:
     """(n, 5): per axis, the limiter's :data:`~motcomp.core.saturation.Track`."""
     raw: FloatArray
     bypass: np.ndarray
-    fade_offset: FloatArray
-    fade_progress: FloatArray
 
 
 @mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
@@ -226,8 +224,7 @@ class Compensator:
         self._limits = limits
         zeros = [0.0] * n
         (self._r, self._u, self._v, self._xc, self._xm, self._y_last, self._deriv, self._dr,
-         self._raw, self._fade_offset, self._fade_progress, self._integral) = (
-            [0.0] * n for _ in range(12))
+         self._raw, self._integral) = ([0.0] * n for _ in range(10))
         self._dy = [0.0] * n
         self._given = [[0.0] * n for _ in range(3)]  # the references given 1, 2, 3 steps back
         self._hand = [0] * n  # per axis: 0 compensating, 1 to resume at the next step, 2 resuming
@@ -430,7 +427,6 @@ class Compensator:
         if not (math.isfinite(fade_s) and fade_s >= 0):
             raise ConfigError(f"bypass fade time must be finite and >= 0 s, got {fade_s!r}")
         self.fade_s = float(fade_s)
-        self._fade_step = self.dt_s / fade_s if fade_s > 0 else 1.0
 
     def set_bypass(self, bypass: ArrayLike) -> None:
         """Turn compensation off (True) or on (False) per axis, bumplessly."""
@@ -439,11 +435,7 @@ class Compensator:
             if new[i] == bool(self._bypass[i]):
                 continue
             if new[i]:
-                # offset between the command now and the plain reference, faded out over fade_s
-                # (minimum-jerk: no velocity or acceleration step at either end)
-                self._fade_offset[i] = self._u[i] - self._given[0][i]
-                self._fade_progress[i] = 0.0
-                self._hand[i] = 0
+                self._hand[i] = 3  # the command blends to the reference from the next step
             elif self._window[i] is None:
                 self._hand[i] = 1
         self._bypass[:] = new
@@ -459,8 +451,7 @@ class Compensator:
         zeros = [0.0] * n
         for buf, values in ((self._r, p), (self._u, p), (self._v, zeros), (self._xc, xc),
                             (self._xm, xc), (self._y_last, xc), (self._deriv, zeros),
-                            (self._raw, p), (self._fade_offset, zeros),
-                            (self._fade_progress, [1.0] * n), (self._integral, zeros),
+                            (self._raw, p), (self._integral, zeros),
                             (self.deviation, zeros)):
             buf[:] = values
         self._dr[:] = zeros
@@ -498,8 +489,6 @@ class Compensator:
             u=np.array(self._u), v=np.array(self._v),
             tracker=np.array(self._track), raw=np.array(self._raw),
             bypass=np.array(self._bypass, dtype=bool),
-            fade_offset=np.array(self._fade_offset),
-            fade_progress=np.array(self._fade_progress),
         )
 
     @property
@@ -558,6 +547,9 @@ class Compensator:
             hand = self._hand[i]
             if plain:
                 rl = xms[i]  # not compensating: the PID runs on the mirror's path
+                if hand == 3 and bypass[i]:
+                    self._fade_start(i, k, r, lim)
+                    hand = 4
             elif hand == 0:
                 rl = r
             else:
@@ -583,12 +575,14 @@ class Compensator:
             ds[i] = d
             v = kp * (b * rl - y) + ints[i] + d  # error = reference - model_output, in b r - y
             if bypass[i]:
-                progress = self._fade_progress[i]  # fade progress, 0 -> 1
-                if progress < 1.0:  # minimum-jerk fade: no acceleration step at either end
-                    target = r + self._fade_offset[i] * (1.0 - min_jerk(progress))
-                    self._fade_progress[i] = min(progress + self._fade_step, 1.0)
-                else:
-                    target = r
+                target = r
+                if hand == 4:  # the command blends from its path to the reference
+                    el = k - self._hand_k[i]
+                    n_cmd = self._hand_len[i][1]
+                    if el < n_cmd:
+                        target = r + horner(self._hand_cmd[i], el / n_cmd)
+                    if el + 1 >= n_cmd:
+                        hand = 0
             elif win is not None:
                 target = r  # input lost: the shaper's hold and ramp, not compensated
             elif hand == 0:
@@ -638,6 +632,29 @@ class Compensator:
                 (2.0 * x0 - 5.0 * x1 + 4.0 * x2 - x3) / (h * h),
                 (x0 - 3.0 * x1 + 3.0 * x2 - x3) / (h * h * h))
 
+    def _given_path(self, i: int, r: float) -> tuple[float, float, float, float]:
+        """The reference's position, velocity, acceleration and jerk now (``r``, and the last
+        three given), by the cubic through them."""
+        h = self.dt_s
+        r1, r2, r3 = self._given[0][i], self._given[1][i], self._given[2][i]
+        return (r, (11.0 * r - 18.0 * r1 + 9.0 * r2 - 2.0 * r3) / (6.0 * h),
+                (2.0 * r - 5.0 * r1 + 4.0 * r2 - r3) / (h * h),
+                (r - 3.0 * r1 + 3.0 * r2 - r3) / (h * h * h))
+
+    def _fade_start(self, i: int, k: int, r: float, lim: tuple[float, ...]) -> None:
+        """Axis ``i`` enters bypass at step ``k``: its command blends from the path of the
+        commands sent to the reference (``r`` and the last three given), position, velocity
+        and acceleration matched, over ``fade_s`` or longer within a quarter of ``a_max``."""
+        u0, u1, u2, _ = self._path(self._hist_m, i, k, None)
+        r0, r1, r2, _ = self._given_path(i, r)
+        acc = BLEND_ACC_SHARE * 0.5 * lim[7]
+        dur = blend_duration(u0 - r0, u1 - r1, acc, self.fade_s)
+        steps = max(round(dur / self.dt_s), 1)
+        self._hand_k[i] = k
+        self._hand_len[i][1] = steps
+        self._hand_cmd[i] = blend_coefficients(u0 - r0, u1 - r1, u2 - r2, 0.0,
+                                               steps * self.dt_s, acc)
+
     def _resume_ref(self, i: int, k: int, r: float, lim: tuple[float, ...]) -> None:
         """Compensation resumes on axis ``i`` at step ``k``: the PID's reference blends from the
         mirror's path (its next outputs, from the commands in its delay line) to the reference's
@@ -653,13 +670,11 @@ class Compensator:
             h1 = hms[base + (j1 & mask)] if j1 < k else last
             ys.append(phi * ys[-1] + g0 * h0 + g1 * h1)
         y0, y1, y2, y3 = ys
-        r0, r1, r2, r3 = r, self._given[0][i], self._given[1][i], self._given[2][i]
-        g = y0 - r0
-        dv = ((-11.0 * y0 + 18.0 * y1 - 9.0 * y2 + 2.0 * y3)
-              - (11.0 * r0 - 18.0 * r1 + 9.0 * r2 - 2.0 * r3)) / (6.0 * h)
-        da = ((2.0 * y0 - 5.0 * y1 + 4.0 * y2 - y3)
-              - (2.0 * r0 - 5.0 * r1 + 4.0 * r2 - r3)) / (h * h)
-        dj = ((-y0 + 3.0 * y1 - 3.0 * y2 + y3) - (r0 - 3.0 * r1 + 3.0 * r2 - r3)) / (h * h * h)
+        _, rv, ra, rj = self._given_path(i, r)
+        g = y0 - r
+        dv = (-11.0 * y0 + 18.0 * y1 - 9.0 * y2 + 2.0 * y3) / (6.0 * h) - rv
+        da = (2.0 * y0 - 5.0 * y1 + 4.0 * y2 - y3) / (h * h) - ra
+        dj = (-y0 + 3.0 * y1 - 3.0 * y2 + y3) / (h * h * h) - rj
         model = self._models[i]
         acc = BLEND_ACC_SHARE * 0.5 * lim[7]
         dur = blend_duration(g, dv, acc, self.fade_s, model.Tp1 + model.Td)

@@ -360,6 +360,7 @@ class ReferenceShaper:
                 r.clear()
             self._band.reset()
             self._run_s = 0.0
+            self._at = None  # the reconstruction's clock restarts with it (not from before)
             for c in self.curves:
                 c.clear()
         interval = (t - t_prev) / samples if t_prev is not None and not rejoin \
