@@ -20,11 +20,10 @@ and a smaller excursion: peak ``|B0''|`` 6.29 (7.51 for the septic alone), ``|B1
 (5.03; the quintic ``s (1 - m(s))`` of the blends before: 4.62), ``max |B1|`` 0.227.
 
 :func:`blend_duration` is the shortest ``T`` no shorter than asked for which the position and
-velocity terms need at most a given acceleration (plus, for a blend a compensator follows, its
-lead times their jerk); the acceleration and jerk terms only carry the held path's own over to
-the live one's, clipped by :func:`blend_coefficients` so that an estimate's error cannot swing
-the blend.  :func:`local_cubic` estimates the live path's velocity, acceleration and jerk from
-its last ticks.
+velocity terms need at most a given acceleration; the acceleration and jerk terms only carry
+the held path's own over to the live one's, clipped by :func:`blend_coefficients` so that an
+estimate's error cannot swing the blend.  :func:`local_cubic` estimates the live path's
+velocity, acceleration and jerk from its last ticks.
 """
 
 from __future__ import annotations
@@ -37,12 +36,11 @@ __all__ = ["B3_ACC_PEAK", "BLEND_ACC_PEAK", "BLEND_ACC_SHARE", "BLEND_MERGE_PEAK
 
 
 BLEND_ACC_SHARE = 0.25
-"""A blend may take this share of an axis' acceleration limit (the shaper's, as
-``ShaperParams.blend_acc`` set by :func:`motcomp.config.tick_params`; the compensator's when it
-resumes): the compensator multiplies the reference's acceleration in the band by up to its peak
-gain (+8 dB, 2.5x), and the live motion has its own, so that the limiter need not cut a blend
-(the rails' slalom rejoined over 0.5 s at full speed: the limiter acted for 1.2 s, the platform
-40 ms ahead of the motion for a second after)."""
+"""A blend may take this share of an axis' acceleration limit (``ShaperParams.blend_acc``, set
+by :func:`motcomp.config.tick_params`): the compensator multiplies the reference's acceleration
+in the band by up to its peak gain (+8 dB, 2.5x), and the live motion has its own, so that the
+limiter need not cut a blend (the rails' slalom rejoined over 0.5 s at full speed: the limiter
+acted for 1.2 s, the platform 40 ms ahead of the motion for a second after)."""
 
 
 def _mul(a: Sequence[float], b: Sequence[float]) -> list[float]:
@@ -92,9 +90,7 @@ def horner(c: Sequence[float], s: float) -> float:
 _BASES = (B0, B1, B2, B3)
 _GRID_ACC = tuple(tuple(horner(_der(_der(c)), k / GRID) for c in _BASES)
                   for k in range(GRID + 1))
-_GRID_JERK = tuple(tuple(horner(_der(_der(_der(c))), k / GRID) for c in _BASES)
-                   for k in range(GRID + 1))
-"""Per point of the grid, the second and third derivatives of each basis function."""
+"""Per point of the grid, the second derivative of each basis function."""
 BLEND_ACC_PEAK = max(abs(row[0]) for row in _GRID_ACC)
 """``max |B0''|`` on the grid (6.29): a gap ``g`` blended over ``T`` takes at most about
 ``BLEND_ACC_PEAK |g| / T^2`` of acceleration."""
@@ -104,11 +100,10 @@ B3_ACC_PEAK = max(abs(row[3]) for row in _GRID_ACC)
 """``max |B3''|`` on the grid (0.040)."""
 
 
-def blend_duration(g: float, r: float, acc: float, base: float, lead: float = 0.0) -> float:
+def blend_duration(g: float, r: float, acc: float, base: float) -> float:
     """The shortest ``T >= base`` over which the gap ``g`` and velocity difference ``r`` blend
-    out (``g B0 + r T B1``) with an acceleration plus ``lead`` times the jerk of at most ``acc``
-    at each of the ``GRID + 1`` points checked (``base`` if ``acc <= 0``).  ``lead`` (s): what a
-    compensator multiplies the jerk by (about its model's ``Tp1 + Td``)."""
+    out (``g B0 + r T B1``) with an acceleration of at most ``acc`` at each of the ``GRID + 1``
+    points checked (``base`` if ``acc <= 0``)."""
     if acc <= 0.0 or (g == 0.0 and r == 0.0):
         return base
     t = base
@@ -119,29 +114,7 @@ def blend_duration(g: float, r: float, acc: float, base: float, lead: float = 0.
             disc = bb * bb + 4.0 * acc * cc
             if disc > 0.0:
                 t = max(t, (bb + math.sqrt(disc)) / (2.0 * acc))
-    if lead <= 0.0 or _peak(g, r, t, lead) <= acc:
-        return t
-    lo, hi = t, 2.0 * t
-    while _peak(g, r, hi, lead) > acc:  # both terms fall as T grows
-        lo, hi = hi, 2.0 * hi
-    for _ in range(30):
-        mid = 0.5 * (lo + hi)
-        if _peak(g, r, mid, lead) > acc:
-            lo = mid
-        else:
-            hi = mid
-    return hi
-
-
-def _peak(g: float, r: float, t: float, lead: float) -> float:
-    """The largest ``|acceleration| + lead |jerk|`` of ``g B0 + r T B1`` over ``t`` on the
-    grid."""
-    w1 = r * t
-    out = 0.0
-    for p, q in zip(_GRID_ACC, _GRID_JERK, strict=True):
-        out = max(out, abs(g * p[0] + w1 * p[1]) / (t * t)
-                  + lead * abs(g * q[0] + w1 * q[1]) / (t * t * t))
-    return out
+    return t
 
 
 def blend_coefficients(g: float, r: float, a: float, j: float, duration: float,

@@ -83,10 +83,9 @@ Rules for edge cases
   integrator is re-seeded so that the raw output at the last sample is unchanged under the new
   parameters (bumpless).
 * Bypass (compensation off) per axis (:meth:`set_bypass`): the output becomes the reference,
-  reached by a blend from the path of the commands sent (position, velocity and acceleration
-  matched, :mod:`motcomp.core.blend`) over ``fade_s`` or longer within a quarter of ``a_max``
-  (an offset of position alone faded out left the compensated command's velocity behind: a
-  step the limiter chased at its acceleration limit for about 0.25 s); switching back on: below.
+  reached through a minimum-jerk fade of the offset over ``fade_s``; while bypassed the PID
+  tracks the output (its integrator is re-seeded every sample so that ``v = u``), so switching
+  back on starts from the command being sent: bumpless both ways.
 * Input loss (:meth:`open_window`, the tick's rule: :mod:`motcomp.core.tick`): each axis is held
   in a window, the hull of its command, its braking point ``u + v |v| / (2 a_max)`` and the
   reference (widened by later references, :meth:`widen_window`), by the limiter itself: the
@@ -94,18 +93,9 @@ Rules for edge cases
   limit, so that the limiter's braking condition, which keeps the end of the range, keeps the
   window's edge.  The braking point is reachable from ``(u, v)`` at ``a_max`` (the exact
   discrete distance is ``v^2/(2 a_max) - a_max h^2/2`` at most, :mod:`motcomp.core.saturation`),
-  so the command never goes beyond it.  Meanwhile the target is the reference (the PID runs on
-  as in bypass, below); :meth:`close_window` switches compensation back on.
-* Not compensating (bypass, a window), the PID runs on with the mirror ``y_m`` as its reference:
-  the path of the command being sent, whose compensated command is about that command.  When
-  compensation resumes on an axis, its reference blends from the mirror's path to the reference
-  (position, velocity, acceleration and jerk matched at both ends) and its command from the
-  command being sent to the PID's output (position, velocity and acceleration: the limiter's
-  switches make the command's jerk a train of steps), by :mod:`motcomp.core.blend`, over
-  ``fade_s`` or longer within a quarter of ``a_max`` (the reference's counting ``Tp1 + Td``
-  times its jerk, which the PID passes on).  Resumed on the reference itself the PID would
-  start from the platform's whole lag as an error: 6.5 cm at 0.3 m/s on the rails, its output
-  diving 25 cm in 60 ms, the command chattering at its acceleration limit for 0.7 s.
+  so the command never goes beyond it.  Meanwhile the target is the reference and the PID
+  tracks the command as in bypass; :meth:`close_window` switches compensation back on from the
+  command being sent, bumplessly.
 """
 
 from __future__ import annotations
@@ -119,9 +109,9 @@ import numpy as np
 from mypy_extensions import mypyc_attr
 from numpy.typing import ArrayLike
 
-from motcomp.core.blend import BLEND_ACC_SHARE, blend_coefficients, blend_duration, horner
 from motcomp.core.loop import stability
 from motcomp.core.lti import FloatArray
+from motcomp.core.minjerk import min_jerk
 from motcomp.core.models import P1D, p1d_coefficients
 from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import (
@@ -161,6 +151,8 @@ class CompensatorState:
     """(n, 5): per axis, the limiter's :data:`~motcomp.core.saturation.Track`."""
     raw: FloatArray
     bypass: np.ndarray
+    fade_offset: FloatArray
+    fade_progress: FloatArray
 
 
 @mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
@@ -224,14 +216,9 @@ class Compensator:
         self._limits = limits
         zeros = [0.0] * n
         (self._r, self._u, self._v, self._xc, self._xm, self._y_last, self._deriv, self._dr,
-         self._raw, self._integral) = ([0.0] * n for _ in range(10))
+         self._raw, self._fade_offset, self._fade_progress, self._integral) = (
+            [0.0] * n for _ in range(12))
         self._dy = [0.0] * n
-        self._given = [[0.0] * n for _ in range(3)]  # the references given 1, 2, 3 steps back
-        self._hand = [0] * n  # per axis: 0 compensating, 1 to resume at the next step, 2 resuming
-        self._hand_k = [0] * n  # the step it resumed at
-        self._hand_ref: list[list[float]] = [[] for _ in range(n)]  # the blends (module
-        self._hand_cmd: list[list[float]] = [[] for _ in range(n)]  # docstring), and their
-        self._hand_len = [[1, 1] for _ in range(n)]  # lengths (steps)
         self.deviation = [0.0] * n
         """Per axis, emitted command minus its target at the last step (0 when feasible)."""
         self._track: list[Track] = [at_rest(0.0)] * n  # the limiter's view of its target
@@ -313,11 +300,8 @@ class Compensator:
                     self._set_window(i, min(r, win[2]), max(r, win[3]))
 
     def close_window(self) -> None:
-        """The input is live again: every axis back to its limits and its compensation (resumed
-        by a blend, as after a bypass: module docstring)."""
-        for i, w in enumerate(self._window):
-            if w is not None and not self._bypass[i]:
-                self._hand[i] = 1
+        """The input is live again: every axis back to its limits and its compensation (the
+        PID starts from the command being sent, as after a bypass)."""
         self._window[:] = [None] * self.n
 
     def _set_window(self, i: int, lo: float, hi: float) -> None:
@@ -427,6 +411,7 @@ class Compensator:
         if not (math.isfinite(fade_s) and fade_s >= 0):
             raise ConfigError(f"bypass fade time must be finite and >= 0 s, got {fade_s!r}")
         self.fade_s = float(fade_s)
+        self._fade_step = self.dt_s / fade_s if fade_s > 0 else 1.0
 
     def set_bypass(self, bypass: ArrayLike) -> None:
         """Turn compensation off (True) or on (False) per axis, bumplessly."""
@@ -435,9 +420,10 @@ class Compensator:
             if new[i] == bool(self._bypass[i]):
                 continue
             if new[i]:
-                self._hand[i] = 3  # the command blends to the reference from the next step
-            elif self._window[i] is None:
-                self._hand[i] = 1
+                # offset between the command now and the plain reference, faded out over fade_s
+                # (minimum-jerk: no velocity or acceleration step at either end)
+                self._fade_offset[i] = self._u[i] - self._r[i]
+                self._fade_progress[i] = 0.0
         self._bypass[:] = new
 
     # --- state --------------------------------------------------------------------------------
@@ -451,14 +437,12 @@ class Compensator:
         zeros = [0.0] * n
         for buf, values in ((self._r, p), (self._u, p), (self._v, zeros), (self._xc, xc),
                             (self._xm, xc), (self._y_last, xc), (self._deriv, zeros),
-                            (self._raw, p), (self._integral, zeros),
+                            (self._raw, p), (self._fade_offset, zeros),
+                            (self._fade_progress, [1.0] * n), (self._integral, zeros),
                             (self.deviation, zeros)):
             buf[:] = values
         self._dr[:] = zeros
         self._dy[:] = zeros
-        for g in self._given:
-            g[:] = p
-        self._hand[:] = [0] * n
         self._track[:] = [at_rest(pi) for pi in p]
         self._window[:] = [None] * n
         hist = [x for pi in p for x in [pi] * self._hist_len]
@@ -489,6 +473,8 @@ class Compensator:
             u=np.array(self._u), v=np.array(self._v),
             tracker=np.array(self._track), raw=np.array(self._raw),
             bypass=np.array(self._bypass, dtype=bool),
+            fade_offset=np.array(self._fade_offset),
+            fade_progress=np.array(self._fade_progress),
         )
 
     @property
@@ -530,77 +516,48 @@ class Compensator:
         flags = [0] * self.n
         dev = self.deviation
         windows = self._window
-        given1, given2, given3 = self._given
         for i, ((kp, kih, ad, q, kd, b, c), (phi, g0, g1, off0, off1), lim) in enumerate(zip(
                 self._gain_p, self._model_p, self._lim, strict=True)):
             win = windows[i]
             if win is not None:
                 lim = win
             r = ref[i]
-            r_prev = given1[i]
+            r_prev = rr[i]
             if isfinite(r):
+                rr[i] = r
                 fl = 0
             else:
                 r = r_prev
                 fl = NONFINITE
-            plain = bypass[i] or win is not None
-            hand = self._hand[i]
-            if plain:
-                rl = xms[i]  # not compensating: the PID runs on the mirror's path
-                if hand == 3 and bypass[i]:
-                    self._fade_start(i, k, r, lim)
-                    hand = 4
-            elif hand == 0:
-                rl = r
-            else:
-                if hand == 1:
-                    self._resume_ref(i, k, r, lim)
-                    hand = 2
-                rl = r
-                el = k - self._hand_k[i]
-                n_ref = self._hand_len[i][0]
-                if el < n_ref:
-                    rl = r + horner(self._hand_ref[i], el / n_ref)
-            given3[i] = given2[i]
-            given2[i] = r_prev
-            given1[i] = r
             y = xcs[i]  # y_m + y_aw = M v
-            dr = ad * drs[i] + q * (rl - rr[i])
-            rr[i] = rl
+            dr = ad * drs[i] + q * (r - r_prev)
             dy = ad * dys[i] + q * (y - ys[i])
             drs[i] = dr
             dys[i] = dy
             ys[i] = y
             d = kd * (c * dr - dy)
             ds[i] = d
-            v = kp * (b * rl - y) + ints[i] + d  # error = reference - model_output, in b r - y
+            v = kp * (b * r - y) + ints[i] + d  # error = reference - model_output, in b r - y
             if bypass[i]:
-                target = r
-                if hand == 4:  # the command blends from its path to the reference
-                    el = k - self._hand_k[i]
-                    n_cmd = self._hand_len[i][1]
-                    if el < n_cmd:
-                        target = r + horner(self._hand_cmd[i], el / n_cmd)
-                    if el + 1 >= n_cmd:
-                        hand = 0
+                progress = self._fade_progress[i]  # fade progress, 0 -> 1
+                if progress < 1.0:  # minimum-jerk fade: no acceleration step at either end
+                    target = r + self._fade_offset[i] * (1.0 - min_jerk(progress))
+                    self._fade_progress[i] = min(progress + self._fade_step, 1.0)
+                else:
+                    target = r
             elif win is not None:
                 target = r  # input lost: the shaper's hold and ramp, not compensated
-            elif hand == 0:
-                target = v
             else:
-                el = k - self._hand_k[i]
-                if el == 0:
-                    self._resume_cmd(i, k, v, lim)
-                n_cmd = self._hand_len[i][1]
-                target = v + horner(self._hand_cmd[i], el / n_cmd) if el < n_cmd else v
-                if el + 1 >= max(n_cmd, self._hand_len[i][0]):
-                    hand = 0
-            self._hand[i] = hand
+                target = v
             u, vs[i], trk[i], sat = limit_axis(target, us[i], vs[i], trk[i], lim)
             us[i] = u
             dev[i] = u - target
+            if bypass[i] or win is not None:
+                # tracking: the PID's raw output follows the command being sent
+                ints[i] += u - v
+                v = u
             raws[i] = v
-            ints[i] += kih * (rl - y)
+            ints[i] += kih * (r - y)
             base = i * hist_len
             slot = base + (k & mask)
             slot0 = base + ((k + off0) & mask)
@@ -614,87 +571,6 @@ class Compensator:
         self._k = k + 1
         self.flags = flags
         return out
-
-    def _path(self, hist: list[float], i: int, k: int, now: float | None
-              ) -> tuple[float, float, float, float]:
-        """Position, velocity, acceleration and jerk at step ``k`` of axis ``i``'s values in the
-        delay line ``hist`` (steps ``k - 4 .. k - 1``; with ``now``, the value at ``k``: steps
-        ``k - 3 .. k``), by the cubic through four of them."""
-        base, mask, h = i * self._hist_len, self._mask, self.dt_s
-        if now is None:
-            x4, x3, x2, x1 = (hist[base + ((k - m) & mask)] for m in (4, 3, 2, 1))
-            # the cubic through steps -4..-1, at step 0
-            x0 = 4.0 * x1 - 6.0 * x2 + 4.0 * x3 - x4
-        else:
-            x3, x2, x1 = (hist[base + ((k - m) & mask)] for m in (3, 2, 1))
-            x0 = now
-        return (x0, (11.0 * x0 - 18.0 * x1 + 9.0 * x2 - 2.0 * x3) / (6.0 * h),
-                (2.0 * x0 - 5.0 * x1 + 4.0 * x2 - x3) / (h * h),
-                (x0 - 3.0 * x1 + 3.0 * x2 - x3) / (h * h * h))
-
-    def _given_path(self, i: int, r: float) -> tuple[float, float, float, float]:
-        """The reference's position, velocity, acceleration and jerk now (``r``, and the last
-        three given), by the cubic through them."""
-        h = self.dt_s
-        r1, r2, r3 = self._given[0][i], self._given[1][i], self._given[2][i]
-        return (r, (11.0 * r - 18.0 * r1 + 9.0 * r2 - 2.0 * r3) / (6.0 * h),
-                (2.0 * r - 5.0 * r1 + 4.0 * r2 - r3) / (h * h),
-                (r - 3.0 * r1 + 3.0 * r2 - r3) / (h * h * h))
-
-    def _fade_start(self, i: int, k: int, r: float, lim: tuple[float, ...]) -> None:
-        """Axis ``i`` enters bypass at step ``k``: its command blends from the path of the
-        commands sent to the reference (``r`` and the last three given), position, velocity
-        and acceleration matched, over ``fade_s`` or longer within a quarter of ``a_max``."""
-        u0, u1, u2, _ = self._path(self._hist_m, i, k, None)
-        r0, r1, r2, _ = self._given_path(i, r)
-        acc = BLEND_ACC_SHARE * 0.5 * lim[7]
-        dur = blend_duration(u0 - r0, u1 - r1, acc, self.fade_s)
-        steps = max(round(dur / self.dt_s), 1)
-        self._hand_k[i] = k
-        self._hand_len[i][1] = steps
-        self._hand_cmd[i] = blend_coefficients(u0 - r0, u1 - r1, u2 - r2, 0.0,
-                                               steps * self.dt_s, acc)
-
-    def _resume_ref(self, i: int, k: int, r: float, lim: tuple[float, ...]) -> None:
-        """Compensation resumes on axis ``i`` at step ``k``: the PID's reference blends from the
-        mirror's path (its next outputs, from the commands in its delay line) to the reference's
-        (``r`` and the last three given)."""
-        h = self.dt_s
-        phi, g0, g1, off0, off1 = self._model_p[i]
-        base, mask, hms = i * self._hist_len, self._mask, self._hist_m
-        last = hms[base + ((k - 1) & mask)]
-        ys = [self._xm[i]]
-        for m in range(1, 4):  # the mirror's outputs to come
-            j0, j1 = k + m - 1 + off0, k + m - 1 + off1
-            h0 = hms[base + (j0 & mask)] if j0 < k else last
-            h1 = hms[base + (j1 & mask)] if j1 < k else last
-            ys.append(phi * ys[-1] + g0 * h0 + g1 * h1)
-        y0, y1, y2, y3 = ys
-        _, rv, ra, rj = self._given_path(i, r)
-        g = y0 - r
-        dv = (-11.0 * y0 + 18.0 * y1 - 9.0 * y2 + 2.0 * y3) / (6.0 * h) - rv
-        da = (2.0 * y0 - 5.0 * y1 + 4.0 * y2 - y3) / (h * h) - ra
-        dj = (-y0 + 3.0 * y1 - 3.0 * y2 + y3) / (h * h * h) - rj
-        model = self._models[i]
-        acc = BLEND_ACC_SHARE * 0.5 * lim[7]
-        dur = blend_duration(g, dv, acc, self.fade_s, model.Tp1 + model.Td)
-        steps = max(round(dur / h), 1)
-        self._hand_k[i] = k
-        self._hand_len[i][0] = steps
-        self._hand_ref[i] = blend_coefficients(g, dv, da, dj, steps * h, acc)
-
-    def _resume_cmd(self, i: int, k: int, v: float, lim: tuple[float, ...]) -> None:
-        """... and the command blends from the path of the commands sent to the PID's output
-        (``v`` now and the last three)."""
-        h = self.dt_s
-        u0, u1, u2, _ = self._path(self._hist_m, i, k, None)
-        v0, v1, v2, _ = self._path(self._hist_c, i, k, v)
-        acc = BLEND_ACC_SHARE * 0.5 * lim[7]
-        dur = blend_duration(u0 - v0, u1 - v1, acc, self.fade_s)
-        steps = max(round(dur / h), 1)
-        self._hand_len[i][1] = steps
-        # the command's jerk is not matched: the limiter's switches make it a train of steps
-        self._hand_cmd[i] = blend_coefficients(u0 - v0, u1 - v1, u2 - v2, 0.0, steps * h, acc)
 
     def run(self, references: ArrayLike) -> tuple[FloatArray, np.ndarray]:
         """Step through a ``(samples, n)`` array of references; return commands and flags."""
