@@ -31,6 +31,9 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import numpy as np
+from numpy.polynomial import polynomial as npp
+
 __all__ = ["B3_ACC_PEAK", "BLEND_ACC_PEAK", "BLEND_ACC_SHARE", "BLEND_MERGE_PEAK",
            "blend_coefficients", "blend_duration", "horner", "local_cubic"]
 
@@ -141,49 +144,10 @@ def local_cubic(times: Sequence[float], values: Sequence[Sequence[float]], at: f
     """The velocity, acceleration and jerk at ``at`` of the least-squares cubic through each
     column of ``values`` (one row of columns per instant of ``times``), or None if ``times``
     do not span four distinct instants."""
-    n = len(times)
-    if n < 4:
+    if len(set(times)) < 4:
         return None
-    span = max(abs(t - at) for t in times)
-    if not span > 0.0:
-        return None
-    # normal equations in u = (t - at) / span, for the coefficients of 1, u, u^2, u^3
-    m = [[0.0] * 4 for _ in range(4)]
-    us = [(t - at) / span for t in times]
-    for u in us:
-        p = [1.0, u, u * u, u * u * u]
-        for i in range(4):
-            for k in range(4):
-                m[i][k] += p[i] * p[k]
-    inv = _inverse4(m)
-    if inv is None:
-        return None
-    out = []
-    for col in range(len(values[0])):
-        rhs = [0.0] * 4
-        for u, row in zip(us, values, strict=True):
-            x = row[col]
-            rhs[0] += x
-            rhs[1] += x * u
-            rhs[2] += x * u * u
-            rhs[3] += x * u * u * u
-        c = [sum(inv[i][k] * rhs[k] for k in range(4)) for i in range(4)]
-        out.append((c[1] / span, 2.0 * c[2] / (span * span), 6.0 * c[3] / (span * span * span)))
-    return out
-
-
-def _inverse4(m: list[list[float]]) -> list[list[float]] | None:
-    """Gauss-Jordan with partial pivoting; None if singular."""
-    a = [row[:] + [1.0 if i == k else 0.0 for k in range(4)] for i, row in enumerate(m)]
-    for col in range(4):
-        piv = max(range(col, 4), key=lambda i: abs(a[i][col]))
-        if abs(a[piv][col]) < 1e-12:
-            return None
-        a[col], a[piv] = a[piv], a[col]
-        d = a[col][col]
-        a[col] = [x / d for x in a[col]]
-        for i in range(4):
-            if i != col and a[i][col] != 0.0:
-                f = a[i][col]
-                a[i] = [x - f * y for x, y in zip(a[i], a[col], strict=True)]
-    return [row[4:] for row in a]
+    t = np.asarray(times, dtype=float) - at
+    span = float(np.max(np.abs(t)))
+    c = npp.polyfit(t / span, np.asarray(values, dtype=float), 3)  # (4, columns), in t / span
+    return [(float(c1) / span, 2.0 * float(c2) / span**2, 6.0 * float(c3) / span**3)
+            for c1, c2, c3 in zip(c[1], c[2], c[3], strict=True)]

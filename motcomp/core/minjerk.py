@@ -37,7 +37,7 @@ def min_jerk_rate(x: float) -> float:
 def min_jerk_derivatives(x: float) -> tuple[float, float, float]:
     """The first three derivatives of :func:`min_jerk` at ``x``: ``30 x^2 (1 - x)^2``,
     ``60 x (1 - x) (1 - 2 x)``, ``60 (1 - 6 x + 6 x^2)``."""
-    return (30.0 * x * x * (1.0 - x) ** 2, 60.0 * x * (1.0 - x) * (1.0 - 2.0 * x),
+    return (min_jerk_rate(x), 60.0 * x * (1.0 - x) * (1.0 - 2.0 * x),
             60.0 * (1.0 - 6.0 * x + 6.0 * x * x))
 
 
