@@ -11,7 +11,15 @@ import pytest
 
 from motcomp.core.axes import AXIS_INDEX
 from motcomp.core.interp import fade_transition
-from motcomp.core.playback import OFFSET_LEAK, SETTLE_S, STALL_PERIODS, Playback
+from motcomp.core.playback import (
+    BIN_S,
+    MAX_DRIFT,
+    OFFSET_BINS,
+    SETTLE_S,
+    STALL_PERIODS,
+    Playback,
+    median_slope,
+)
 from motcomp.core.shaper import ReferenceShaper, ShaperParams
 
 Y = AXIS_INDEX["rails_y"]
@@ -23,18 +31,59 @@ def _params(**kw: object) -> ShaperParams:
                         reach_hi=(10.0,) * 8, playback_lag_s=LAG, **kw)  # type: ignore[arg-type]
 
 
-def test_the_offset_is_the_smallest_transit_and_rises_only_at_the_leak() -> None:
+def test_the_offset_is_the_smallest_transit_while_the_clocks_agree() -> None:
+    """The smallest transit of the window, whatever came since: a prompt frame is held for the
+    whole window (OFFSET_BINS bins), and only then is the next smallest the offset."""
     pb = Playback()
     transits = [0.004, 0.0021, 0.0035, 0.0020, 0.0050]
     for k, tr in enumerate(transits):
         pb.on_sample(k * 1e-3, k * 1e-3 + tr, 1e-3 if k else 0.0, 1e-3)
-    # the smallest (the fourth), leaking since it was taken
-    assert pb.offset == pytest.approx(0.0020 + OFFSET_LEAK * (0.004 + 0.005 - 0.003 - 0.002),
-                                      abs=1e-15)
-    # nothing faster for 2 s: it may rise by the leak only, to the transit seen
-    for k in range(5, 2005):
-        pb.on_sample(k * 1e-3, k * 1e-3 + 0.0100, 1e-3, 1e-3)
-    assert pb.offset == pytest.approx(0.0020 + OFFSET_LEAK * (2.004 + 0.010 - 0.005), abs=1e-12)
+    assert pb.offset == 0.0020
+    # 2 s of frames 0.1-0.2 ms slower (the ticks that take them): the prompt one still holds
+    rng = np.random.default_rng(5)
+    k = 5
+    while k * 1e-3 < 2.0:
+        pb.on_sample(k * 1e-3, k * 1e-3 + 0.0021 + rng.uniform(0.0, 1e-4), 1e-3, 1e-3)
+        k += 1
+        assert pb.drift < 5e-6 and 0.0020 <= pb.offset < 0.0020 + 1e-5
+    # once it has left the window (the bins after it), the smallest of the rest
+    while k * 1e-3 < (OFFSET_BINS + 3) * BIN_S:
+        pb.on_sample(k * 1e-3, k * 1e-3 + 0.0021 + rng.uniform(0.0, 1e-4), 1e-3, 1e-3)
+        k += 1
+    assert 0.0021 < pb.offset < 0.0021 + 1e-5
+    assert pb.drift < 5e-6
+
+
+@pytest.mark.parametrize("drift", [0.0, 3e-4, 1e-3, 2e-3])
+def test_a_drifting_clock_leaks_the_offset_at_its_drift(drift: float) -> None:
+    """Transits rising at ``drift`` s per s (a sender clock that slow), each frame up to a
+    period late to its tick: the offset follows the rise (the drift read within 5 %, up to
+    MAX_DRIFT), within 0.15 ms of the smallest transit possible (the drift's error over the
+    window), and never lies above the newest frame's transit."""
+    rng = np.random.default_rng(9)
+    pb = Playback()
+    for k in range(20000):
+        now = k * 1e-3
+        true = 3e-4 + drift * now
+        transit = true + rng.uniform(0.0, 1e-3)
+        pb.on_sample(now - transit, now, 1e-3 if k else 0.0, 1e-3)
+        assert pb.offset is not None and pb.offset <= transit + 1e-12
+        if now <= 5.0:
+            continue
+        if drift > MAX_DRIFT:
+            assert pb.drift == MAX_DRIFT
+        elif drift == 0.0:
+            assert pb.drift < 5e-6 and 0.0 <= pb.offset - true < 1e-5
+        else:
+            assert pb.drift == pytest.approx(drift, rel=0.05)
+            assert -1.5e-4 < pb.offset - true < 2e-5
+
+
+def test_the_median_slope_is_a_closed_form() -> None:
+    x = [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+    y = [1.0, 9.0, 1.5, 2.5, -7.0, 3.0]  # medians 1.5 and 2.5 at 1 and 4
+    assert median_slope(x, y) == pytest.approx(1.0 / 3.0)
+    assert median_slope([0.0], [1.0]) == 0.0 and median_slope([1.0, 1.0], [0.0, 2.0]) == 0.0
 
 
 def test_frames_taken_by_a_late_tick_never_lower_the_offset() -> None:

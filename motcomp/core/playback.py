@@ -7,10 +7,18 @@ Fed each accepted sample's instant ``t`` on the sender's timeline and the loop i
 drained its input), :class:`Playback` gives, per tick at ``now``, the playback delay ``D``: the
 reference is the input at the sender instant ``now - D`` (plus the configured lead)::
 
-    offset   loop clock - sender clock: the smallest transit ``arrived - t`` seen, rising at
-             most OFFSET_LEAK s per s so that a drifting clock is followed.  Every ``arrived``
-             is an upper bound of the frame's landing, so no late tick can pull it below the
-             truth (it only lowers on a frame taken promptly)
+    offset   loop clock - sender clock: the smallest transit ``arrived - t`` of the last
+             OFFSET_BINS bins of BIN_S of arrivals, each leaking upwards since it was taken
+             at the drift (below).  Every ``arrived`` is an upper bound of the frame's
+             landing, so no late tick can pull it below the truth (it only lowers on a frame
+             taken promptly).  Frames are taken at ticks: a transit is the landing's plus up to
+             a period of waiting, and a frame that lands just before its tick reads a period
+             "faster" than the others.  Such a frame sets the offset for the whole window (a
+             fixed leak made the offset climb by up to a period between two of them and drop
+             back at the next: the playback instant swung by hundreds of microseconds)
+    drift    how fast the transits rise (s per s, within [0, MAX_DRIFT]; 0 before DRIFT_BINS
+             bins): between the medians of the two halves of the bins' smallest transits,
+             against the medians of their instants (a few prompt frames move neither)
     need     the lag the samples' spacing needs to be interpolated: the SPACING_QUANTILE
              quantile of the last SPACING_WINDOW intervals per seq step (0 before one);
              intervals longer than STALL_PERIODS periods are stalls, left to the extrapolation
@@ -32,16 +40,24 @@ Nothing here reads a clock.
 
 from __future__ import annotations
 
+import math
 from bisect import bisect_left, insort
 
 from mypy_extensions import mypyc_attr
 
 from motcomp.core.interp import Transition
 
-__all__ = ["OFFSET_LEAK", "SETTLE_S", "Playback", "min_transit"]
+__all__ = ["BIN_S", "DRIFT_BINS", "MAX_DRIFT", "OFFSET_BINS", "SETTLE_S", "Playback",
+           "median_slope", "min_transit"]
 
-OFFSET_LEAK = 1e-3
-"""Upward drift (s per s) allowed to the smallest transit: 1000 ppm of clock drift."""
+BIN_S = 0.1
+OFFSET_BINS = 100
+"""The offset and the drift are read over the smallest transit of each BIN_S of arrivals, the
+last OFFSET_BINS bins (10 s) and the current one."""
+MAX_DRIFT = 1e-3
+"""The drift followed, at most (s per s): 1000 ppm of clock drift."""
+DRIFT_BINS = 20
+"""The drift is read once this many bins (2 s) are complete (0 before)."""
 SPACING_WINDOW = 64
 SPACING_QUANTILE = 0.9
 STALL_PERIODS = 4.0
@@ -50,6 +66,23 @@ stalls (longer than four periods) left out."""
 SETTLE_S = 1.0
 """The playback delay's triple pole settles a change of its target within 6 % in this time
 (its pole at 6 / SETTLE_S)."""
+
+
+def _median(v: list[float]) -> float:
+    w = sorted(v)
+    n = len(w)
+    return w[n // 2] if n % 2 else 0.5 * (w[n // 2 - 1] + w[n // 2])
+
+
+def median_slope(x: list[float], y: list[float]) -> float:
+    """The slope between the medians of the two halves of the points ``(x[k], y[k])`` (``x``
+    rising; the middle point of an odd count in neither): 0 for fewer than two points or no
+    spread in ``x``."""
+    half = len(x) // 2
+    if half < 1:
+        return 0.0
+    dx = _median(x[-half:]) - _median(x[:half])
+    return (_median(y[-half:]) - _median(y[:half])) / dx if dx > 0.0 else 0.0
 
 
 def min_transit(offset: float | None, offset_at: float, transit: float, now: float,
@@ -66,8 +99,14 @@ class Playback:
 
     def __init__(self) -> None:
         self.offset: float | None = None
-        """Loop clock minus sender clock (s): the smallest transit, leaking upwards."""
-        self._offset_at = 0.0
+        """Loop clock minus sender clock (s): the smallest transit, leaking at the drift."""
+        self.drift = 0.0
+        """How fast the smallest transit rises (s per s; module docstring)."""
+        self._bin_at: list[float] = []  # each bin's smallest transit: its arrival, oldest first,
+        self._bin_tr: list[float] = []  # and the transit (the current bin last)
+        self._bin_end = 0.0  # the current bin's end (arrival instant)
+        self._floor = 0.0  # the completed bins' smallest transit less the drift's line, at 0
+        self._origin = 0.0  # the arrival instant the bins are counted from
         self._ring: list[float] = []  # the last intervals, oldest first
         self._sorted: list[float] = []  # the same, sorted
         self.delay: float | None = None
@@ -80,6 +119,10 @@ class Playback:
     def restart(self) -> None:
         """A new timeline: forget the offset, the spacing and the delay."""
         self.offset = None
+        self.drift = 0.0
+        self._bin_at = []
+        self._bin_tr = []
+        self._floor = 0.0
         self._ring = []
         self._sorted = []
         self.delay = None
@@ -88,15 +131,39 @@ class Playback:
     def on_sample(self, t: float, arrived: float, interval: float, period: float) -> None:
         """A sample at sender instant ``t`` taken at loop instant ``arrived``; ``interval`` is
         its distance to the previous sample per seq step (0: none, a restart)."""
-        self.offset = min_transit(self.offset, self._offset_at, arrived - t, arrived,
-                                  OFFSET_LEAK)
-        self._offset_at = arrived
+        self._offset_at(arrived, arrived - t)
         if interval > 0.0 and (period <= 0.0 or interval <= STALL_PERIODS * period):
             ring, srt = self._ring, self._sorted
             ring.append(interval)
             insort(srt, interval)
             if len(ring) > SPACING_WINDOW:
                 del srt[bisect_left(srt, ring.pop(0))]
+
+    def _offset_at(self, arrived: float, transit: float) -> None:
+        """The bins, at a new bin the drift and the completed bins' floor, and the offset."""
+        at, tr = self._bin_at, self._bin_tr
+        if not tr:
+            self._origin = arrived
+        x = arrived - self._origin
+        if not tr or arrived >= self._bin_end:
+            at.append(x)
+            tr.append(transit)
+            self._bin_end = arrived + BIN_S
+            if len(tr) > OFFSET_BINS + 1:
+                del at[0]
+                del tr[0]
+            done = len(tr) - 1
+            drift = (min(max(median_slope(at[:done], tr[:done]), 0.0), MAX_DRIFT)
+                     if done >= DRIFT_BINS else 0.0)
+            floor = math.inf
+            for k in range(done):
+                floor = min(floor, tr[k] - drift * at[k])
+            self.drift, self._floor = drift, floor
+        elif transit - self.drift * x < tr[-1] - self.drift * at[-1]:
+            at[-1] = x
+            tr[-1] = transit
+        drift = self.drift
+        self.offset = min(self._floor, tr[-1] - drift * at[-1]) + drift * x
 
     @property
     def need(self) -> float:
