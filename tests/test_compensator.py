@@ -13,6 +13,7 @@ from scipy.signal import lfilter
 from motcomp.core.axes import AXES
 from motcomp.core.compensator import NONFINITE, Compensator
 from motcomp.core.loop import pid_tf, stability
+from motcomp.core.minjerk import min_jerk
 from motcomp.core.models import P1D, p1d_coefficients, simulate_axis
 from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import AxisLimits
@@ -290,9 +291,42 @@ def test_bumpless_bypass_on_and_off() -> None:
     normal = np.max(d[2000:2990])
     assert d[2999] <= 2 * normal and d[5999] <= 2 * normal
     check_sequence(out_a, 0.0, _rails_limits(), 1e-3)
-    # once the fade (0.5 s) and the limiter's catch-up are over (about 2 s here: the fade plus
-    # the reference ask more than the 6 m/s^2 available), bypass sends the reference itself
+    # once the switch's blend is over, bypass sends the reference itself
     np.testing.assert_array_equal(out_a[5200:5990], r[5200:5990])
+
+
+@pytest.mark.parametrize("rule", ["zn", "amigo"])
+@pytest.mark.parametrize("switch_s", [3.0, 3.5, 4.1, 4.6, 5.2])
+def test_switching_compensation_blends_the_command_alone(rule: str, switch_s: float) -> None:
+    """Bypass on at ``switch_s`` into a slalom (once the compensated start is over), off again
+    2.5 s later, the rails at full speed:
+    the PID runs on all along, so once the blend back has ended the command is the never
+    bypassed compensator's, bit for bit, and in bypass the reference, bit for bit; meanwhile
+    the command never meets its acceleration limit and its acceleration changes by less than
+    0.2 m/s^2 a tick (each switch used to hold it at the limit, 2-67 ticks switching off and
+    680-900 switching on, with steps of 7-12 m/s^2 a tick)."""
+    t = np.arange(11000) / 1000.0
+    r = 0.4 * np.sin(2 * np.pi * 0.31 * t) * min_jerk(np.minimum(t / 2.0, 1.0))
+    gains = [tune(rule, RAILS).gains]
+    ref_c = Compensator([RAILS], gains, _rails_limits(), 1000.0)
+    c = Compensator([RAILS], gains, _rails_limits(), 1000.0)
+    on, off = round(switch_s * 1000), round((switch_s + 2.5) * 1000)
+    never, out = [], []
+    for k, x in enumerate(r):
+        if k == on:
+            c.set_bypass([True])
+        if k == off:
+            c.set_bypass([False])
+        never.append(ref_c.step([x])[0])
+        out.append(c.step([x])[0])
+    u, u0 = np.array(out), np.array(never)
+    np.testing.assert_array_equal(u[:on], u0[:on])
+    acc = np.diff(u[on - 5:], 2) * 1e6
+    assert np.abs(acc).max() < 0.9 * 6.0
+    assert np.abs(np.diff(acc)).max() < 0.2
+    np.testing.assert_array_equal(u[off + 2000:], u0[off + 2000:])
+    np.testing.assert_array_equal(u[on + 2000:off], r[on + 2000:off])
+    assert np.abs(np.diff(u0[on:], 2) * 1e6).max() < 0.9 * 6.0  # the compensated path's
 
 
 def test_eight_axes_are_independent() -> None:

@@ -34,7 +34,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.polynomial import polynomial as npp
 
-__all__ = ["B3_ACC_PEAK", "BLEND_ACC_PEAK", "BLEND_ACC_SHARE", "BLEND_MERGE_PEAK",
+__all__ = ["B3_ACC_PEAK", "BLEND_ACC_PEAK", "BLEND_ACC_SHARE", "BLEND_MERGE_PEAK", "BLEND_TERMS",
            "blend_coefficients", "blend_duration", "horner", "local_cubic"]
 
 
@@ -91,6 +91,8 @@ def horner(c: Sequence[float], s: float) -> float:
 
 
 _BASES = (B0, B1, B2, B3)
+BLEND_TERMS = max(len(c) for c in _BASES)
+"""How many coefficients :func:`blend_coefficients` gives."""
 _GRID_ACC = tuple(tuple(horner(_der(_der(c)), k / GRID) for c in _BASES)
                   for k in range(GRID + 1))
 """Per point of the grid, the second derivative of each basis function."""
@@ -132,7 +134,7 @@ def blend_coefficients(g: float, r: float, a: float, j: float, duration: float,
         a = min(max(a, -2.0 * acc), 2.0 * acc)
         jmax = 2.0 * acc / (B3_ACC_PEAK * t) if t > 0.0 else 0.0
         j = min(max(j, -jmax), jmax)
-    out = [0.0] * max(len(B0), len(B1), len(B2), len(B3))
+    out = [0.0] * BLEND_TERMS
     for basis, w in ((B0, g), (B1, r * t), (B2, a * t * t), (B3, j * t * t * t)):
         for k, c in enumerate(basis):
             out[k] += w * c

@@ -82,10 +82,18 @@ Rules for edge cases
 * Gain or model change (:meth:`set_gains`, :meth:`set_models`, :meth:`reconfigure`): the
   integrator is re-seeded so that the raw output at the last sample is unchanged under the new
   parameters (bumpless).
-* Bypass (compensation off) per axis (:meth:`set_bypass`): the output becomes the reference,
-  reached through a minimum-jerk fade of the offset over ``fade_s``; while bypassed the PID
-  tracks the output (its integrator is re-seeded every sample so that ``v = u``), so switching
-  back on starts from the command being sent: bumpless both ways.
+* Bypass (compensation off) per axis (:meth:`set_bypass`): the PID always runs on, closed
+  around its internal model as when compensating (its output ``v`` depends on the reference
+  alone: the compensated path, whatever is sent), and the command's target is the blend
+  ``r + w (v - r)`` of the reference and that path, ``w`` = 1 compensating, 0 bypassed.  A
+  switch moves ``w`` to its end along a minimum-jerk weight, and blends out the command's
+  own difference to that target at the switch, in position and velocity (a limiter that was
+  acting, a window's speed cap: :mod:`motcomp.core.blend`, continuous to the jerk), over
+  ``fade_s`` or longer: long enough that each takes at most :data:`BLEND_ACC_SHARE` of the
+  axis' acceleration limit (the weight's for ``|v - r|`` at the switch).  Both paths are smooth
+  and the weights are, so the command is, and it lies between the two paths but for the
+  difference blended out: bumpless both ways, whatever the motion (docs/TUNING.md, "Switching
+  compensation on and off").
 * Input loss (:meth:`open_window`, the tick's rule: :mod:`motcomp.core.tick`): each axis is held
   in a window, the hull of its command, its braking point ``u + v |v| / (2 a_max)`` and the
   reference (widened by later references, :meth:`widen_window`), by the limiter itself: the
@@ -93,9 +101,9 @@ Rules for edge cases
   limit, so that the limiter's braking condition, which keeps the end of the range, keeps the
   window's edge.  The braking point is reachable from ``(u, v)`` at ``a_max`` (the exact
   discrete distance is ``v^2/(2 a_max) - a_max h^2/2`` at most, :mod:`motcomp.core.saturation`),
-  so the command never goes beyond it.  Meanwhile the target is the reference and the PID
-  tracks the command as in bypass; :meth:`close_window` switches compensation back on from the
-  command being sent, bumplessly.
+  so the command never goes beyond it.  Meanwhile the target is the reference (``w`` = 0 at
+  once; the PID runs on, as in bypass); :meth:`close_window` switches compensation back on as
+  a switch out of bypass does.
 """
 
 from __future__ import annotations
@@ -109,9 +117,16 @@ import numpy as np
 from mypy_extensions import mypyc_attr
 from numpy.typing import ArrayLike
 
+from motcomp.core.blend import (
+    BLEND_ACC_SHARE,
+    BLEND_TERMS,
+    blend_coefficients,
+    blend_duration,
+    horner,
+)
 from motcomp.core.loop import stability
 from motcomp.core.lti import FloatArray
-from motcomp.core.minjerk import min_jerk
+from motcomp.core.minjerk import PEAK_ACC_FACTOR, min_jerk
 from motcomp.core.models import P1D, p1d_coefficients
 from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import (
@@ -151,8 +166,17 @@ class CompensatorState:
     """(n, 5): per axis, the limiter's :data:`~motcomp.core.saturation.Track`."""
     raw: FloatArray
     bypass: np.ndarray
-    fade_offset: FloatArray
-    fade_progress: FloatArray
+    weight: FloatArray
+    """Per axis, the weight of the compensated path in the command's target (module docstring)."""
+    weight_from: FloatArray
+    weight_to: FloatArray
+    weight_progress: FloatArray
+    weight_step: FloatArray
+    target: FloatArray
+    """Per axis, the last two targets before the difference blended out (previous first)."""
+    blend: FloatArray
+    """(n, BLEND_TERMS): per axis, the coefficients of the difference being blended out
+    (:mod:`motcomp.core.blend`; used while ``weight_progress`` < 1)."""
 
 
 @mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
@@ -216,8 +240,15 @@ class Compensator:
         self._limits = limits
         zeros = [0.0] * n
         (self._r, self._u, self._v, self._xc, self._xm, self._y_last, self._deriv, self._dr,
-         self._raw, self._fade_offset, self._fade_progress, self._integral) = (
-            [0.0] * n for _ in range(12))
+         self._raw, self._integral) = ([0.0] * n for _ in range(10))
+        self._w = [1.0] * n  # the compensated path's weight in the target, its blend's ends,
+        self._w_from = [1.0] * n
+        self._w_to = [1.0] * n
+        self._w_progress = [1.0] * n  # progress (0 -> 1; 1: none) and its step per sample
+        self._w_step = [1.0] * n
+        self._tgt = [0.0] * n  # the last target before the difference blended out,
+        self._tgt_prev = [0.0] * n  # the one before
+        self._e = [[0.0] * BLEND_TERMS for _ in range(n)]  # the difference blended out
         self._dy = [0.0] * n
         self.deviation = [0.0] * n
         """Per axis, emitted command minus its target at the last step (0 when feasible)."""
@@ -273,7 +304,7 @@ class Compensator:
         """The input is lost: hold each of ``axes`` within the hull of its command ``u``, its
         braking point ``u + v |v| / (2 a_max)`` (``v`` the command's velocity) and
         ``reference``, at no more than ``speed`` (the ramp's peak speed) once it has braked to
-        it, its target the reference itself (the PID tracks the command, as in bypass).
+        it, its target the reference itself (the PID runs on, as in bypass).
 
         The limiter brakes at the braking point as at an end stop: it lies within the reach of
         braking at ``a_max`` from ``(u, v)`` (:mod:`motcomp.core.saturation`), so the command
@@ -283,6 +314,7 @@ class Compensator:
         for i, on in enumerate(axes):
             if not on:
                 continue
+            self._weight_at(i, 0.0)
             u, v, lim = self._u[i], self._v[i], self._lim[i]
             stop = u + v * abs(v) * lim[8]  # lim[8] = 1 / (2 a_max)
             r = reference[i]
@@ -300,9 +332,13 @@ class Compensator:
                     self._set_window(i, min(r, win[2]), max(r, win[3]))
 
     def close_window(self) -> None:
-        """The input is live again: every axis back to its limits and its compensation (the
-        PID starts from the command being sent, as after a bypass)."""
-        self._window[:] = [None] * self.n
+        """The input is live again: every axis back to its limits, and the compensated ones
+        to their compensation as out of a bypass (module docstring)."""
+        for i in range(self.n):
+            if self._window[i] is not None:
+                self._window[i] = None
+                if not self._bypass[i]:
+                    self._blend_to(i, 1.0)
 
     def _set_window(self, i: int, lo: float, hi: float) -> None:
         lim = self._lim[i]
@@ -407,24 +443,45 @@ class Compensator:
         self._limits = limits
 
     def set_fade(self, fade_s: float) -> None:
-        """Duration of the fade when an axis enters bypass (s, >= 0)."""
+        """Shortest duration of a switch between compensation and bypass (s, >= 0)."""
         if not (math.isfinite(fade_s) and fade_s >= 0):
             raise ConfigError(f"bypass fade time must be finite and >= 0 s, got {fade_s!r}")
         self.fade_s = float(fade_s)
-        self._fade_step = self.dt_s / fade_s if fade_s > 0 else 1.0
 
     def set_bypass(self, bypass: ArrayLike) -> None:
-        """Turn compensation off (True) or on (False) per axis, bumplessly."""
+        """Turn compensation off (True) or on (False) per axis, bumplessly (a blend of the
+        command's target between the reference and the compensated path, module docstring)."""
         new = np.array(bypass, dtype=bool).reshape(self.n).tolist()
         for i in range(self.n):
             if new[i] == bool(self._bypass[i]):
                 continue
-            if new[i]:
-                # offset between the command now and the plain reference, faded out over fade_s
-                # (minimum-jerk: no velocity or acceleration step at either end)
-                self._fade_offset[i] = self._u[i] - self._r[i]
-                self._fade_progress[i] = 0.0
+            if self._window[i] is None:
+                self._blend_to(i, 0.0 if new[i] else 1.0)
         self._bypass[:] = new
+
+    def _blend_to(self, i: int, end: float) -> None:
+        """Start moving axis ``i``'s weight from where it is to ``end``, and blending out the
+        command's difference to its target (module docstring)."""
+        share = BLEND_ACC_SHARE * float(self._limits.a_max[i])
+        g = self._u[i] - self._tgt[i]
+        rate = self._v[i] - (self._tgt[i] - self._tgt_prev[i]) * self.rate_hz
+        length = max(math.sqrt(PEAK_ACC_FACTOR * abs(self._raw[i] - self._r[i]) / share),
+                     blend_duration(g, rate, share, self.fade_s))
+        step = self.dt_s / length if length > 0.0 else 1.0
+        if step >= 1.0:
+            self._weight_at(i, end)
+            return
+        self._w_from[i] = self._w[i]
+        self._w_to[i] = end
+        self._w_progress[i] = step  # s = 0 at the last step, where g and rate were read
+        self._w_step[i] = step
+        self._e[i] = blend_coefficients(g, rate, 0.0, 0.0, length)
+
+    def _weight_at(self, i: int, w: float) -> None:
+        """Axis ``i``'s weight at ``w`` at once, no blend."""
+        self._w[i] = self._w_from[i] = self._w_to[i] = w
+        self._w_progress[i] = 1.0
+        self._e[i] = [0.0] * BLEND_TERMS
 
     # --- state --------------------------------------------------------------------------------
     def reset(self, position: ArrayLike) -> None:
@@ -437,10 +494,13 @@ class Compensator:
         zeros = [0.0] * n
         for buf, values in ((self._r, p), (self._u, p), (self._v, zeros), (self._xc, xc),
                             (self._xm, xc), (self._y_last, xc), (self._deriv, zeros),
-                            (self._raw, p), (self._fade_offset, zeros),
-                            (self._fade_progress, [1.0] * n), (self._integral, zeros),
+                            (self._raw, p), (self._integral, zeros),
                             (self.deviation, zeros)):
             buf[:] = values
+        for i in range(n):
+            self._weight_at(i, 0.0 if self._bypass[i] else 1.0)
+        self._tgt[:] = p
+        self._tgt_prev[:] = p
         self._dr[:] = zeros
         self._dy[:] = zeros
         self._track[:] = [at_rest(pi) for pi in p]
@@ -473,8 +533,11 @@ class Compensator:
             u=np.array(self._u), v=np.array(self._v),
             tracker=np.array(self._track), raw=np.array(self._raw),
             bypass=np.array(self._bypass, dtype=bool),
-            fade_offset=np.array(self._fade_offset),
-            fade_progress=np.array(self._fade_progress),
+            weight=np.array(self._w), weight_from=np.array(self._w_from),
+            weight_to=np.array(self._w_to), weight_progress=np.array(self._w_progress),
+            weight_step=np.array(self._w_step),
+            target=np.array([self._tgt_prev, self._tgt]),
+            blend=np.array(self._e),
         )
 
     @property
@@ -511,7 +574,9 @@ class Compensator:
                                                 self._integral, self._deriv, self._dr, self._dy)
         us, vs, trk, raws = self._u, self._v, self._track, self._raw
         hcs, hms, hist_len = self._hist_c, self._hist_m, self._hist_len
-        bypass = self._bypass
+        ws, wf, wt, wp, wstep = (self._w, self._w_from, self._w_to, self._w_progress,
+                                 self._w_step)
+        tgs, tps, es = self._tgt, self._tgt_prev, self._e
         out = [0.0] * self.n
         flags = [0] * self.n
         dev = self.deviation
@@ -538,24 +603,27 @@ class Compensator:
             d = kd * (c * dr - dy)
             ds[i] = d
             v = kp * (b * r - y) + ints[i] + d  # error = reference - model_output, in b r - y
-            if bypass[i]:
-                progress = self._fade_progress[i]  # fade progress, 0 -> 1
-                if progress < 1.0:  # minimum-jerk fade: no acceleration step at either end
-                    target = r + self._fade_offset[i] * (1.0 - min_jerk(progress))
-                    self._fade_progress[i] = min(progress + self._fade_step, 1.0)
-                else:
-                    target = r
-            elif win is not None:
+            e = 0.0
+            if win is not None:
                 target = r  # input lost: the shaper's hold and ramp, not compensated
             else:
-                target = v
+                progress = wp[i]
+                if progress < 1.0:  # a switch (module docstring)
+                    w0 = wf[i]
+                    w = w0 + (wt[i] - w0) * min_jerk(progress)
+                    e = horner(es[i], progress)
+                    progress += wstep[i]
+                    wp[i] = min(progress, 1.0)
+                    ws[i] = w if progress < 1.0 else wt[i]
+                else:
+                    w = ws[i]
+                target = v if w >= 1.0 else r if w <= 0.0 else r + w * (v - r)
+            tps[i] = tgs[i]
+            tgs[i] = target
+            target += e
             u, vs[i], trk[i], sat = limit_axis(target, us[i], vs[i], trk[i], lim)
             us[i] = u
             dev[i] = u - target
-            if bypass[i] or win is not None:
-                # tracking: the PID's raw output follows the command being sent
-                ints[i] += u - v
-                v = u
             raws[i] = v
             ints[i] += kih * (r - y)
             base = i * hist_len

@@ -13,11 +13,13 @@ from typing import Any, overload
 
 from numpy.typing import NDArray
 
-__all__ = ["PEAK_SPEED_FACTOR", "min_jerk", "min_jerk_derivatives", "min_jerk_rate",
-           "min_jerk_weight"]
+__all__ = ["PEAK_ACC_FACTOR", "PEAK_SPEED_FACTOR", "min_jerk", "min_jerk_derivatives",
+           "min_jerk_rate", "min_jerk_weight"]
 
 PEAK_SPEED_FACTOR = 1.875
 """Peak of ``ds/dx``: a minimum-jerk move of ``distance`` over ``T`` peaks at 1.875 distance/T."""
+PEAK_ACC_FACTOR = 10.0 / 3.0 ** 0.5
+"""Peak of ``|d2s/dx2|`` (at ``x = (3 -+ sqrt 3) / 6``): 5.77 distance/T^2."""
 
 
 @overload

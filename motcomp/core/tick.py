@@ -69,13 +69,14 @@ Rules for edge cases
   <motcomp.core.compensator.Compensator.open_window>`): the hull of its command ``p``, its
   braking point ``p + v |v| / (2 a_max)`` (``v`` the command's velocity) and the reference,
   widened by each later reference (the ramp to neutral is never blocked); its limiter brakes at
-  the window's edge as at an end stop, its target is the shaper's reference (the PID tracks
-  the command, as in bypass; the prefilter runs on, unused) and, once braked, its speed is at
+  the window's edge as at an end stop, its target is the shaper's reference (the PID runs on,
+  unused, as in bypass; the prefilter too) and, once braked, its speed is at
   most the ramp's (``ramp_speed``).  So no axis, compensated, predicted or bypassed, travels
   beyond ``v^2 / (2 a_max)`` in the direction of its velocity at the loss (plus rounding), it
   only returns towards the held reference during the hold, and it ramps to neutral at the
   ramp's speed (tests/test_input_loss.py).  The window is removed when the input is live again
-  (``rejoin`` starts from the command being sent, bumplessly).
+  (``rejoin``: compensation switches back on as out of a bypass, from the command being sent:
+  :class:`~motcomp.core.compensator.Compensator`).
 * Envelope: every command of the compensator (catch-up steps included) goes through the
   envelope guard (:mod:`motcomp.core.envelope`, ``TickParams.envelope``, built from the
   config's hardware envelope by :func:`motcomp.config.tick_params`), a no-op while the limiter
