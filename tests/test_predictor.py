@@ -544,3 +544,25 @@ def test_states_decaying_at_rest_never_become_subnormal() -> None:
     assert smallest >= tiny, smallest  # (TINY_STATE, then 0)
     assert tiny < TINY_STATE
     assert not np.any(pred._x[:, :-1]), "still decaying after 80 000 steps"
+
+
+def test_a_switch_off_fades_the_prediction_over_fade_in_s() -> None:
+    """``wanted`` False (compensation switched off): held off like ``live`` False, no fallback
+    counted, but the prediction fades out over ``fade_in_s`` (continuous in position and
+    velocity at that pace), not over the fallback's ``fade_out_s``."""
+    n, k0 = 3500, 2000
+    x = sine(0.3, n)
+    pred = Prediction([P], MON, RATE)
+    out, w = np.empty(n), np.empty(n)
+    for k in range(n):
+        out[k] = pred.step([float(x[k])], True, k < k0)[0]
+        w[k] = pred.weight[0]
+    fade = round(MON.fade_in_s * RATE)
+    assert MON.fade_in_s > 2 * MON.fade_out_s
+    assert w[k0 - 1] == 1.0 and 0.4 < w[k0 + fade // 2] < 0.6 and w[k0 + fade] == 0.0
+    assert pred.fallbacks == [0] and pred.predicting() == [False]
+    np.testing.assert_array_equal(out[k0 + fade:], x[k0 + fade:])
+    y = prefilter(P, x)
+    sl = slice(k0 - 1, k0 + fade + 2)
+    assert np.all(np.abs(np.diff(out[sl])) <= blend_bound(x[sl], y[sl] - x[sl], w[sl],
+                                                          MON.fade_in_s))

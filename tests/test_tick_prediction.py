@@ -314,3 +314,29 @@ def test_a_reload_with_new_coefficients_does_not_jump(change: bool) -> None:
         assert np.max(np.abs(u[-500:] - ref[-500:])) > 1e-4  # the new filter is in use
     else:
         np.testing.assert_array_equal(u, ref)
+
+
+@pytest.mark.parametrize("switch_s", [6.0, 6.4, 6.8, 7.2, 7.6])
+def test_switching_compensation_while_moving_leaves_the_limiter_idle(switch_s: float) -> None:
+    """The example config's rails (prefilter and PID in series) on a 0.4 m slalom at full
+    speed: ``set_bypass`` on at ``switch_s``, off 3 s later.  Both switches blend the prediction
+    and the command over half a second or more: the command's acceleration never meets the
+    6 m/s^2 limit and changes by less than 0.2 m/s^2 a tick (switched off, the prediction used
+    to fade out in 20 ms: 93-292 ticks at the limit, steps of 12 m/s^2)."""
+    cfg = parse_config(read_toml(EXAMPLE))
+    params, state = new_tick(cfg, resolve_axes(cfg))
+    y = AXES.index("rails_y")
+    on, off = round(switch_s / H), round((switch_s + 3.0) / H)
+    u = []
+    for k in range(off + 2500):
+        t = k * H
+        if k == on:
+            set_bypass(state, [a == y for a in range(len(AXES))])
+        if k == off:
+            set_bypass(state, [False] * len(AXES))
+        value = 0.4 * math.sin(2 * math.pi * 0.3 * t) * min(t / 2.0, 1.0)
+        out = step(state, params, 10**9 + k * MS, encode_input(k, t, {"rails_y": value}))
+        u.append(out.u[y])
+    acc = np.diff(np.array(u[on - 5:]), 2) / H**2
+    assert np.abs(acc).max() < 0.9 * 6.0
+    assert np.abs(np.diff(acc)).max() < 0.2

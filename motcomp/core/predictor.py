@@ -34,8 +34,11 @@ Band monitor and fallback (the rule; docs/PREDICTION.md has the why and the meas
     ratio   = env_hi / (env_lo + floor)
     ratio > fallback_ratio                         -> fallback (w fades to 0 over fade_out_s)
     ratio < resume_ratio for resume_after_s        -> predict  (w fades to 1 over fade_in_s)
-    the caller's ``live`` False (the shaper's mode, a switch-off) -> held off (no fallback
-                                                                   counted or flagged)
+    the caller's ``live`` False (the shaper's mode)  -> held off (no fallback counted or
+                                                       flagged; w fades to 0 over fade_out_s)
+    the caller's ``wanted`` False (a switch-off)     -> held off, w fading over fade_in_s: no
+                                                       alarm, and the compensator blends its
+                                                       own switch over as long or longer
 
 ``r' = r + w (r_pred - r)``; ``w`` moves along the minimum-jerk blend from wherever it is, so
 the switch is continuous in position and velocity both ways.  The filter runs in fallback too,
@@ -396,11 +399,12 @@ class Prediction:
             out[i] = ref[i] + self._w[j] * (self._pred[j] - ref[i]) + off
         return out
 
-    def step(self, reference: Sequence[float], live: bool | Sequence[bool] = True
-             ) -> list[float]:
+    def step(self, reference: Sequence[float], live: bool | Sequence[bool] = True,
+             wanted: bool | Sequence[bool] = True) -> list[float]:
         """Advance one sample with ``reference`` (``n`` values); return the reference to
         compensate.  ``live`` (one for all axes, or per axis) False forces the fallback: the
-        reference is a hold, ramp or blend of the shaper's, or prediction is switched off."""
+        reference is a hold, ramp or blend of the shaper's (``fade_out_s``).  ``wanted`` False
+        likewise, over ``fade_in_s``: prediction is switched off (module docstring)."""
         if not self.idx:
             return list(reference)
         mon = self.monitor
@@ -449,7 +453,9 @@ class Prediction:
             judged = ratio
             if self._settle:
                 judged = 0.0
-            on = live if isinstance(live, bool) else bool(live[i])
+            up = live if isinstance(live, bool) else bool(live[i])
+            asked = wanted if isinstance(wanted, bool) else bool(wanted[i])
+            on = up and asked
             calm[j] = calm[j] + dt if (on and judged < rs_ratio) else 0.0
             if not on or judged > fb_ratio:
                 want = 0.0
@@ -469,7 +475,8 @@ class Prediction:
                 prog[j] = 0.0
                 target[j] = want
             if prog[j] < 1.0:
-                prog[j] = min(prog[j] + (inc_in if target[j] > 0.5 else inc_out), 1.0)
+                quick = target[j] < 0.5 and (asked or not up)  # a fallback, the input lost
+                prog[j] = min(prog[j] + (inc_out if quick else inc_in), 1.0)
                 w[j] = w0[j] + (target[j] - w0[j]) * min_jerk(prog[j])
             o = 0.0
             if off_p[j] < 1.0:

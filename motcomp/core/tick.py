@@ -413,7 +413,7 @@ def _predicted(state: TickState, ref: list[float], mode: str) -> list[float]:
     if not pred.idx:
         return ref
     # as wanted while the input is live or blending into it; held off on its loss
-    out = pred.step(ref, state._pred_wanted if not mode or mode == "rejoin" else False)
+    out = pred.step(ref, not mode or mode == "rejoin", state._pred_wanted)
     return ref if state._windowed else out  # input lost: the plain reference (module docstring)
 
 
