@@ -252,3 +252,23 @@ def test_the_input_back_mid_hold_or_mid_ramp_is_taken_up_within_the_limits(gap_s
     for i in (RY, RX, HZ):
         check_sequence(u[:, i], 0.0, state.comp.limits, H, i)
     assert np.max(np.abs(u[-500:] - np.array(ref_outs[-500:]))) < 2e-3
+
+
+def test_a_short_loss_never_carries_the_command_beyond_the_compensated_motion() -> None:
+    """A sender stalling 62 ms in mid-slalom (the input stale for 12 ms), at 14 phases, the
+    example config: the command's difference to its target when the window closes is blended
+    out within half the acceleration limit, so it never travels beyond the compensated slalom's
+    own range (0.425 m here; carried over a quarter of the limit it reached 0.66 m)."""
+    cfg = parse_config(read_toml(EXAMPLE))
+    y = AXES.index("rails_y")
+    for start in np.arange(6.0, 9.3, 0.25):
+        params, state = new_tick(cfg)
+        u = []
+        for k in range(round((start + 3.0) * 1000)):
+            t = k / 1000.0
+            frame = None
+            if not start <= t < start + 0.062:
+                value = 0.4 * math.sin(2 * math.pi * 0.3 * t) * min(t / 2.0, 1.0)
+                frame = encode_input(k, t, {"rails_y": value})
+            u.append(step(state, params, 10**9 + k * MS, frame).u[y])
+        assert max(abs(x) for x in u[round(start * 1000):]) < 0.44, start
