@@ -200,3 +200,17 @@ def test_a_slow_sender_is_played_behind_its_spacing() -> None:
             sh.on_input(p, {Y: 0.1 * math.sin(k * 1e-3)}, now, 1e-3 * k)
         sh.reference(p, now)
     assert sh.lag_s == pytest.approx(0.010 + 0.0045, abs=1e-9)
+
+
+def test_estimated_instants_leak_the_offset_at_the_most_drift_followed() -> None:
+    """Frames without ``t``: the instants are the timeline's estimate, moved by each correction
+    of its fit, so a low transit is not held for the window: the offset rises from it at
+    MAX_DRIFT, as far as the transits since allow."""
+    pb = Playback()
+    pb.on_sample(0.0, 0.0005, 0.0, 1e-3, stamped=False)  # one frame 1.5 ms "early"
+    for k in range(1, 3001):
+        now = k * 1e-3
+        pb.on_sample(now - 0.002, now, 1e-3, 1e-3, stamped=False)
+        assert pb.drift == MAX_DRIFT
+        assert pb.offset == pytest.approx(min(0.0005 + MAX_DRIFT * (now - 0.0005), 0.002),
+                                          abs=1e-12)

@@ -18,7 +18,11 @@ reference is the input at the sender instant ``now - D`` (plus the configured le
              back at the next: the playback instant swung by hundreds of microseconds)
     drift    how fast the transits rise (s per s, within [0, MAX_DRIFT]; 0 before DRIFT_BINS
              bins): between the medians of the two halves of the bins' smallest transits,
-             against the medians of their instants (a few prompt frames move neither)
+             against the medians of their instants (a few prompt frames move neither).  For
+             frames without ``t`` MAX_DRIFT: their instants are the timeline's estimate from
+             the arrivals, moved by each correction of its fit (hundreds of ppm, both ways),
+             and a smallest transit held for the window put the playback up to 6 ms ahead of
+             the samples
     need     the lag the samples' spacing needs to be interpolated: the SPACING_QUANTILE
              quantile of the last SPACING_WINDOW intervals per seq step (0 before one);
              intervals longer than STALL_PERIODS periods are stalls, left to the extrapolation
@@ -128,10 +132,12 @@ class Playback:
         self.delay = None
         self._at = None
 
-    def on_sample(self, t: float, arrived: float, interval: float, period: float) -> None:
+    def on_sample(self, t: float, arrived: float, interval: float, period: float,
+                  stamped: bool = True) -> None:
         """A sample at sender instant ``t`` taken at loop instant ``arrived``; ``interval`` is
-        its distance to the previous sample per seq step (0: none, a restart)."""
-        self._offset_at(arrived, arrived - t)
+        its distance to the previous sample per seq step (0: none, a restart); ``stamped``:
+        ``t`` is the sender's own (not the timeline's estimate)."""
+        self._offset_at(arrived, arrived - t, stamped)
         if interval > 0.0 and (period <= 0.0 or interval <= STALL_PERIODS * period):
             ring, srt = self._ring, self._sorted
             ring.append(interval)
@@ -139,7 +145,7 @@ class Playback:
             if len(ring) > SPACING_WINDOW:
                 del srt[bisect_left(srt, ring.pop(0))]
 
-    def _offset_at(self, arrived: float, transit: float) -> None:
+    def _offset_at(self, arrived: float, transit: float, stamped: bool) -> None:
         """The bins, at a new bin the drift and the completed bins' floor, and the offset."""
         at, tr = self._bin_at, self._bin_tr
         if not tr:
@@ -153,7 +159,8 @@ class Playback:
                 del at[0]
                 del tr[0]
             done = len(tr) - 1
-            drift = (min(max(median_slope(at[:done], tr[:done]), 0.0), MAX_DRIFT)
+            drift = (MAX_DRIFT if not stamped else
+                     min(max(median_slope(at[:done], tr[:done]), 0.0), MAX_DRIFT)
                      if done >= DRIFT_BINS else 0.0)
             floor = math.inf
             for k in range(done):

@@ -365,7 +365,7 @@ class ReferenceShaper:
                 c.clear()
         interval = (t - t_prev) / samples if t_prev is not None and not rejoin \
             and t > t_prev else 0.0
-        pb.on_sample(t, arrived, interval, tl.period)
+        pb.on_sample(t, arrived, interval, tl.period, tl.stamped)
         driven, live, curves = p.driven, self.live, self.curves
         min_dt = p.min_dt_s
         for i, v in pos.items():
