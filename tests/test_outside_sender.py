@@ -79,7 +79,7 @@ seconds the ideal run's command, a pure sine, reads next to nothing above 5 Hz (
 15 s; 2e-3 over the 0.6-1 s stretches a busy host's missed ticks leave), so that a ratio alone
 would judge the live path against rounding.  0.1 mm/s^2 is a twentieth of what the playback
 instant's swing put there (1-4 mm/s^2: docs/TUNING.md, "Input reconstruction"); the live path
-now adds 0.03-0.05 mm/s^2."""
+now adds 0.04-0.06 mm/s^2."""
 HOST_STALL_MS = 20.0
 """A mid-run input loss is the host's (not judged) only if its bare clock stalled this long."""
 MAX_SKIPPED_SHARE = 0.05  # a sender skipping more is not the 1 kHz sender the test means
