@@ -126,7 +126,7 @@ from motcomp.core.blend import (
 )
 from motcomp.core.loop import stability
 from motcomp.core.lti import FloatArray
-from motcomp.core.minjerk import PEAK_ACC_FACTOR, min_jerk
+from motcomp.core.minjerk import PEAK_ACC_FACTOR, min_jerk_between
 from motcomp.core.models import P1D, p1d_coefficients
 from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import (
@@ -628,8 +628,7 @@ class Compensator:
             else:
                 progress = wp[i]
                 if progress < 1.0:  # a switch (module docstring)
-                    w0 = wf[i]
-                    w = w0 + (wt[i] - w0) * min_jerk(progress)
+                    w = min_jerk_between(wf[i], wt[i], progress)
                     progress += wstep[i]
                     wp[i] = min(progress, 1.0)
                     ws[i] = w if progress < 1.0 else wt[i]

@@ -13,8 +13,8 @@ from typing import Any, overload
 
 from numpy.typing import NDArray
 
-__all__ = ["PEAK_ACC_FACTOR", "PEAK_SPEED_FACTOR", "min_jerk", "min_jerk_derivatives",
-           "min_jerk_rate", "min_jerk_weight"]
+__all__ = ["PEAK_ACC_FACTOR", "PEAK_SPEED_FACTOR", "min_jerk", "min_jerk_between",
+           "min_jerk_derivatives", "min_jerk_rate", "min_jerk_weight"]
 
 PEAK_SPEED_FACTOR = 1.875
 """Peak of ``ds/dx``: a minimum-jerk move of ``distance`` over ``T`` peaks at 1.875 distance/T."""
@@ -41,6 +41,12 @@ def min_jerk_derivatives(x: float) -> tuple[float, float, float]:
     ``60 x (1 - x) (1 - 2 x)``, ``60 (1 - 6 x + 6 x^2)``."""
     return (min_jerk_rate(x), 60.0 * x * (1.0 - x) * (1.0 - 2.0 * x),
             60.0 * (1.0 - 6.0 * x + 6.0 * x * x))
+
+
+def min_jerk_between(start: float, end: float, progress: float) -> float:
+    """From ``start`` to ``end`` along :func:`min_jerk` at ``progress`` (in [0, 1]): a weight
+    moved without a step of its rate or acceleration."""
+    return start + (end - start) * min_jerk(progress)
 
 
 def min_jerk_weight(progress: float) -> float:

@@ -63,7 +63,7 @@ from mypy_extensions import mypyc_attr
 from numpy.typing import ArrayLike
 
 from motcomp.core.lti import ComplexArray, FloatArray
-from motcomp.core.minjerk import min_jerk, min_jerk_weight
+from motcomp.core.minjerk import min_jerk_between, min_jerk_weight
 from motcomp.core.native import frozen_reduce
 from motcomp.errors import ConfigError
 
@@ -477,7 +477,7 @@ class Prediction:
             if prog[j] < 1.0:
                 quick = target[j] < 0.5 and (asked or not up)  # a fallback, the input lost
                 prog[j] = min(prog[j] + (inc_out if quick else inc_in), 1.0)
-                w[j] = w0[j] + (target[j] - w0[j]) * min_jerk(prog[j])
+                w[j] = min_jerk_between(w0[j], target[j], prog[j])
             o = 0.0
             if off_p[j] < 1.0:
                 off_p[j] = min(off_p[j] + inc_in, 1.0)
