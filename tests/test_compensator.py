@@ -11,9 +11,9 @@ from hypothesis import strategies as st
 from scipy.signal import lfilter
 
 from motcomp.core.axes import AXES
-from motcomp.core.compensator import NONFINITE, Compensator
+from motcomp.core.compensator import NONFINITE, Compensator, weight_duration
 from motcomp.core.loop import pid_tf, stability
-from motcomp.core.minjerk import min_jerk
+from motcomp.core.minjerk import PEAK_ACC_FACTOR, PEAK_DEPART_FACTOR, min_jerk
 from motcomp.core.models import P1D, p1d_coefficients, simulate_axis
 from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import AxisLimits
@@ -340,3 +340,44 @@ def test_eight_axes_are_independent() -> None:
         single = Compensator([RAILS], gains[:1], AxisLimits.uniform(1, 2.6, 2.0, 6.0), 1000.0)
         np.testing.assert_array_equal(single.run(refs[:, i:i + 1])[0][:, 0], out[:, i])
     assert len(AXES) == 8
+
+
+@pytest.mark.parametrize("stop_s", [3.0, 3.4, 3.8, 4.2])
+def test_an_input_loss_starts_the_pid_over_at_rest_at_the_held_reference(stop_s: float) -> None:
+    """The input lost mid-slalom (the window opened on the held reference, which then stays):
+    the PID's output is the held reference from the first tick on, so that the compensated
+    path the command returns to is the one of the reference since the loss, not the PID's
+    response to the step the hold made of the motion (that swung by 40-130 mm, at tens of
+    m/s^2, and leaked through the weight when the input came back)."""
+    t = np.arange(round(stop_s * 1000)) / 1000.0
+    r = 0.4 * np.sin(2 * np.pi * 0.31 * t) * min_jerk(np.minimum(t / 2.0, 1.0))
+    c = Compensator([RAILS], [tune("zn", RAILS).gains], _rails_limits(), 1000.0)
+    for x in r:
+        c.step([x])
+    held = float(r[-1])
+    c.open_window([True], [held], [0.5])
+    raw = []
+    for _ in range(300):
+        c.step([held])
+        raw.append(float(c.raw_output[0]))
+    assert np.abs(np.array(raw) - held).max() <= 1e-12
+
+
+@pytest.mark.parametrize(("gap", "rate", "acc"), [(0.01, 0.0, 1.5), (0.0, 0.2, 1.5),
+                                                  (-0.05, 0.3, 1.5), (0.002, -0.7, 3.0)])
+def test_weight_duration_bounds_the_acceleration_the_weight_adds(gap: float, rate: float,
+                                                                 acc: float) -> None:
+    """A minimum-jerk weight over :func:`weight_duration` moving a target from a path to one
+    ``gap`` away and departing at ``rate``: the acceleration it adds, ``(w (gap + rate t))''``
+    on a fine grid, stays within ``acc``, and reaches it for either alone (the bound sums
+    the two peaks); the duration solves its closed form; paths that meet at rest: 0."""
+    T = weight_duration(gap, rate, acc)
+    assert PEAK_ACC_FACTOR * abs(gap) / T**2 + PEAK_DEPART_FACTOR * abs(rate) / T \
+        == pytest.approx(acc, rel=1e-12)
+    s = np.linspace(0.0, 1.0, 20001)
+    w = np.polynomial.Polynomial([0, 0, 0, 10, -15, 6])  # minimum-jerk weight in s
+    d = np.polynomial.Polynomial([gap, rate * T])  # the paths' difference, in s
+    added = (w * d).deriv(2)(s) / T**2
+    assert np.abs(added).max() <= acc
+    assert np.abs(added).max() > (0.999 if gap == 0.0 or rate == 0.0 else 0.5) * acc
+    assert weight_duration(0.0, 0.0, acc) == 0.0

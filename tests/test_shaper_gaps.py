@@ -183,3 +183,30 @@ def test_sender_stalls_do_not_become_centimetre_transients() -> None:
     # stopping after 1.5 input periods (the bound before) let the same stalls cost 21 mm
     stopped, _ = compensated_rails_y(True, 0.0015)
     assert np.abs(stopped - smooth)[ok].max() > 3 * worst
+
+
+@pytest.mark.parametrize("held", [0.044, -0.6])
+def test_the_ramp_to_neutral_keeps_the_blend_budget_and_the_ramp_speed(held: float) -> None:
+    """Input lost at a standstill ``held`` m from neutral: after ``hold_s`` the reference ramps
+    to neutral with its acceleration within ``blend_acc`` and its speed within ``ramp_speed``
+    (a minimum-jerk move of ``d`` over ``T`` peaks at ``5.77 d / T^2`` and ``1.875 d / T``); a
+    short ramp sized by its speed alone took 0.165 s for 0.044 m, 9.3 m/s^2 where the rails'
+    limit is 6."""
+    shp = ReferenceShaper(N)
+    sp = ShaperParams(driven=(True,) * N, ramp_speed=(0.5,) * N, reach_lo=(-REACH,) * N,
+                      reach_hi=(REACH,) * N, hold_s=0.5, startup_s=0.0, reconstruction="linear",
+                      blend_acc=(1.5,) * N)
+    ref = []
+    for k in range(3500):
+        now = k * 1e-3
+        if now < 0.5:
+            shp.on_input(sp, {Y: held}, now, now)
+        ref.append(shp.reference(sp, now)[0][Y])
+    r = np.array(ref)
+    assert r[1000] == held and r[-1] == 0.0  # held for hold_s, then at neutral
+    acc = np.diff(r, 2) * 1e6
+    vel = np.diff(r) * 1e3
+    assert np.abs(acc).max() <= 1.5 * (1 + 1e-6)
+    assert np.abs(vel).max() <= 0.5 * (1 + 1e-6)
+    # the shortest such move: one of the two bounds is met (to the grid's resolution)
+    assert max(np.abs(acc).max() / 1.5, np.abs(vel).max() / 0.5) > 0.99

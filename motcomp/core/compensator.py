@@ -85,15 +85,15 @@ Rules for edge cases
 * Bypass (compensation off) per axis (:meth:`set_bypass`): the PID always runs on, closed
   around its internal model as when compensating (its output ``v`` depends on the reference
   alone: the compensated path, whatever is sent), and the command's target is the blend
-  ``r + w (v - r)`` of the reference and that path, ``w`` = 1 compensating, 0 bypassed.  A
-  switch moves ``w`` to its end along a minimum-jerk weight over ``fade_s`` or longer, so that
-  ``|v - r|`` at the switch takes at most :data:`BLEND_ACC_SHARE` of the axis' acceleration
-  limit; and it blends out the command's own difference to that target at the switch, in
-  position and velocity (a limiter that was acting, a window's speed cap), over the shortest
-  time within :data:`DIFFERENCE_ACC_SHARE` of the limit (:mod:`motcomp.core.blend`, continuous
-  to the jerk).  The weight is smooth and so is the compensated path of a smooth reference:
-  the command lies between the two paths but for the difference blended out, bumpless both
-  ways (docs/TUNING.md, "Switching compensation on and off").
+  ``r + w (v - r)`` of the reference and that path, ``w`` = 1 compensating, 0 bypassed.  A switch
+  moves ``w`` to its end along a minimum-jerk weight over ``fade_s`` or longer, so that the gap ``v - r`` at the
+  switch and its rate take at most :data:`BLEND_ACC_SHARE` of the axis' acceleration limit
+  (:func:`weight_duration`); and it blends out the command's own difference to that target at the
+  switch, in position and velocity (a limiter that was acting, a window's speed cap), over the
+  shortest time within :data:`DIFFERENCE_ACC_SHARE` of the limit (:mod:`motcomp.core.blend`,
+  continuous to the jerk).  The weight is smooth and so is the compensated path of a smooth
+  reference: the command lies between the two paths but for the difference blended out, bumpless
+  both ways (docs/TUNING.md, "Switching compensation on and off").
 * Input loss (:meth:`open_window`, the tick's rule: :mod:`motcomp.core.tick`): each axis is held
   in a window, the hull of its command, its braking point ``u + v |v| / (2 a_max)`` and the
   reference (widened by later references, :meth:`widen_window`), by the limiter itself: the
@@ -102,8 +102,13 @@ Rules for edge cases
   window's edge.  The braking point is reachable from ``(u, v)`` at ``a_max`` (the exact
   discrete distance is ``v^2/(2 a_max) - a_max h^2/2`` at most, :mod:`motcomp.core.saturation`),
   so the command never goes beyond it.  Meanwhile the target is the reference (``w`` = 0 at
-  once; the PID runs on, as in bypass); :meth:`close_window` switches compensation back on as
-  a switch out of bypass does.
+  once), and the PID starts over at rest at the held reference (its output is that reference
+  while it holds: the compensated path of the reference from the loss on, not its response to
+  the step the hold makes of a moving reference, which rang for 0.2 s at tens of m/s^2 and
+  leaked through the weight at the rejoin).  :meth:`close_window` switches compensation back on
+  as a switch out of bypass does, but with no ``fade_s`` floor: within the hold the two paths
+  meet at rest and the switch is immediate; during the ramp to neutral the weight moves as
+  fast as their gap and its rate allow (docs/TUNING.md, "Switching compensation on and off").
 """
 
 from __future__ import annotations
@@ -126,7 +131,7 @@ from motcomp.core.blend import (
 )
 from motcomp.core.loop import stability
 from motcomp.core.lti import FloatArray
-from motcomp.core.minjerk import PEAK_ACC_FACTOR, min_jerk_between
+from motcomp.core.minjerk import PEAK_ACC_FACTOR, PEAK_DEPART_FACTOR, min_jerk_between
 from motcomp.core.models import P1D, p1d_coefficients
 from motcomp.core.pid import PIDGains
 from motcomp.core.saturation import (
@@ -145,10 +150,23 @@ most this share of the axis' acceleration limit, over the shortest blend within 
 docstring): a velocity difference ``dv`` travels about ``0.8 dv^2 / (share a_max)`` on (a quarter
 carried a 0.7 m/s difference 0.3 m beyond a 0.4 m slalom after a 62 ms input loss)."""
 
-__all__ = ["DIFFERENCE_ACC_SHARE", "NONFINITE", "Compensator", "CompensatorState"]
+__all__ = ["DIFFERENCE_ACC_SHARE", "NONFINITE", "Compensator", "CompensatorState",
+           "weight_duration"]
 
 NONFINITE = 8
 """Flag bit: the reference was not finite and the last finite one was held."""
+
+
+def weight_duration(gap: float, rate: float, acc: float) -> float:
+    """The shortest ``T`` over which a minimum-jerk weight, moving a target from one path to
+    another that lies ``gap`` away and departs at ``rate``, adds at most ``acc`` to the
+    target's acceleration: ``PEAK_ACC_FACTOR |gap| / T^2 + PEAK_DEPART_FACTOR |rate| / T``
+    (the peaks of ``(w gap)''`` and ``(w rate t)''``, summed; 0 for two paths that meet at
+    rest)."""
+    if acc <= 0.0:
+        return 0.0
+    b = PEAK_DEPART_FACTOR * abs(rate)
+    return (b + math.sqrt(b * b + 4.0 * acc * PEAK_ACC_FACTOR * abs(gap))) / (2.0 * acc)
 
 
 @mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
@@ -248,7 +266,7 @@ class Compensator:
         self._limits = limits
         zeros = [0.0] * n
         (self._r, self._u, self._v, self._xc, self._xm, self._y_last, self._deriv, self._dr,
-         self._raw, self._integral) = ([0.0] * n for _ in range(10))
+         self._raw, self._integral, self._r_prev) = ([0.0] * n for _ in range(11))
         self._w = [1.0] * n  # the compensated path's weight in the target, its blend's ends,
         self._w_from = [1.0] * n
         self._w_to = [1.0] * n
@@ -320,11 +338,14 @@ class Compensator:
         braking at ``a_max`` from ``(u, v)`` (:mod:`motcomp.core.saturation`), so the command
         never travels further in the direction of its velocity; a speed above ``speed`` is
         braked at ``a_max`` (the acceleration limit wins).  Kept until :meth:`close_window`;
-        :meth:`widen_window` lets the reference through."""
+        :meth:`widen_window` lets the reference through.  The PID starts over at rest at
+        ``reference`` (:meth:`_pid_at_rest`): its path is the compensated path of the reference
+        from the loss on, not of the step the hold made of it."""
         for i, on in enumerate(axes):
             if not on:
                 continue
             self._weight_at(i, 0.0)
+            self._pid_at_rest(i, reference[i])
             u, v, lim = self._u[i], self._v[i], self._lim[i]
             stop = u + v * abs(v) * lim[8]  # lim[8] = 1 / (2 a_max)
             r = reference[i]
@@ -343,12 +364,13 @@ class Compensator:
 
     def close_window(self) -> None:
         """The input is live again: every axis back to its limits, and the compensated ones
-        to their compensation as out of a bypass (module docstring)."""
+        to their compensation as out of a bypass, over the shortest weight blend their gap and
+        its rate allow (no ``fade_s`` floor; module docstring)."""
         for i in range(self.n):
             if self._window[i] is not None:
                 self._window[i] = None
                 if not self._bypass[i]:
-                    self._blend_to(i, 1.0)
+                    self._blend_to(i, 1.0, 0.0)
 
     def _set_window(self, i: int, lo: float, hi: float) -> None:
         lim = self._lim[i]
@@ -466,16 +488,20 @@ class Compensator:
             if new[i] == bool(self._bypass[i]):
                 continue
             if self._window[i] is None:
-                self._blend_to(i, 0.0 if new[i] else 1.0)
+                self._blend_to(i, 0.0 if new[i] else 1.0, self.fade_s)
         self._bypass[:] = new
 
-    def _blend_to(self, i: int, end: float) -> None:
-        """Start moving axis ``i``'s weight from where it is to ``end``, and blending out the
-        command's difference to its target (module docstring)."""
+    def _blend_to(self, i: int, end: float, shortest: float) -> None:
+        """Start moving axis ``i``'s weight from where it is to ``end`` over ``shortest`` or
+        longer (:func:`weight_duration`), and blending out the command's difference to its
+        target (module docstring)."""
         a_max = float(self._limits.a_max[i])
-        share = BLEND_ACC_SHARE * a_max
-        length = max(self.fade_s,
-                     math.sqrt(PEAK_ACC_FACTOR * abs(self._raw[i] - self._r[i]) / share))
+        k = self._k
+        v_prev = self._hist_c[i * self._hist_len + ((k - 2) & self._mask)] if k > 1 \
+            else self._raw[i]
+        gap = self._raw[i] - self._r[i]
+        rate = (gap - (v_prev - self._r_prev[i])) * self.rate_hz
+        length = max(shortest, weight_duration(gap, rate, BLEND_ACC_SHARE * a_max))
         step = self.dt_s / length if length > 0.0 else 1.0
         if step >= 1.0:
             self._weight_at(i, end)
@@ -507,26 +533,34 @@ class Compensator:
         p = check_position(self._limits, position).tolist()
         n = self.n
         self._k = 0
-        xc = [m.K * pi for m, pi in zip(self._models, p, strict=True)]
         zeros = [0.0] * n
-        for buf, values in ((self._r, p), (self._u, p), (self._v, zeros), (self._xc, xc),
-                            (self._xm, xc), (self._y_last, xc), (self._deriv, zeros),
-                            (self._raw, p), (self._integral, zeros),
-                            (self.deviation, zeros)):
+        for buf, values in ((self._u, p), (self._v, zeros), (self.deviation, zeros),
+                            (self._xm, [m.K * pi for m, pi in zip(self._models, p, strict=True)])):
             buf[:] = values
         for i in range(n):
             self._weight_at(i, 0.0 if self._bypass[i] else 1.0)
+            self._pid_at_rest(i, p[i])
         self._tgt[:] = p
         self._tgt_prev[:] = p
-        self._dr[:] = zeros
-        self._dy[:] = zeros
         self._track[:] = [at_rest(pi) for pi in p]
         self._window[:] = [None] * n
-        hist = [x for pi in p for x in [pi] * self._hist_len]
-        self._hist_c[:] = hist
-        self._hist_m[:] = hist
-        self._reseed(p)
+        self._hist_m[:] = [x for pi in p for x in [pi] * self._hist_len]
         self.flags = [0] * n
+
+    def _pid_at_rest(self, i: int, r: float) -> None:
+        """Axis ``i``'s PID and its internal model at rest at the reference ``r``: its next
+        output is ``r`` if the reference is (the platform mirror, the limiter and the weight
+        keep their state)."""
+        y = self._models[i].K * r
+        self._r[i] = self._r_prev[i] = r
+        self._xc[i] = self._y_last[i] = y
+        self._deriv[i] = self._dr[i] = self._dy[i] = 0.0
+        self._raw[i] = r
+        base = i * self._hist_len
+        for k in range(base, base + self._hist_len):
+            self._hist_c[k] = r
+        gp = self._gain_p[i]
+        self._integral[i] = r - gp[0] * (gp[5] * r - y)
 
     def _virtual_raw(self) -> list[float]:
         """``kp (b r - y) + I + D`` with the latest state (what :meth:`_reseed` preserves)."""
@@ -590,6 +624,7 @@ class Compensator:
         mask = self._mask
         rr, xcs, xms, ys, ints, ds, drs, dys = (self._r, self._xc, self._xm, self._y_last,
                                                 self._integral, self._deriv, self._dr, self._dy)
+        rps = self._r_prev
         us, vs, trk, raws = self._u, self._v, self._track, self._raw
         hcs, hms, hist_len = self._hist_c, self._hist_m, self._hist_len
         ws, wf, wt, wp, wstep = (self._w, self._w_from, self._w_to, self._w_progress,
@@ -607,6 +642,7 @@ class Compensator:
                 lim = win
             r = ref[i]
             r_prev = rr[i]
+            rps[i] = r_prev
             if isfinite(r):
                 rr[i] = r
                 fl = 0

@@ -13,13 +13,17 @@ from typing import Any, overload
 
 from numpy.typing import NDArray
 
-__all__ = ["PEAK_ACC_FACTOR", "PEAK_SPEED_FACTOR", "min_jerk", "min_jerk_between",
-           "min_jerk_derivatives", "min_jerk_rate", "min_jerk_weight"]
+__all__ = ["PEAK_ACC_FACTOR", "PEAK_DEPART_FACTOR", "PEAK_SPEED_FACTOR", "min_jerk",
+           "min_jerk_between", "min_jerk_derivatives", "min_jerk_rate", "min_jerk_weight"]
 
 PEAK_SPEED_FACTOR = 1.875
 """Peak of ``ds/dx``: a minimum-jerk move of ``distance`` over ``T`` peaks at 1.875 distance/T."""
 PEAK_ACC_FACTOR = 10.0 / 3.0 ** 0.5
 """Peak of ``|d2s/dx2|`` (at ``x = (3 -+ sqrt 3) / 6``): 5.77 distance/T^2."""
+_X_DEPART = (15.0 - 33.0 ** 0.5) / 24.0
+PEAK_DEPART_FACTOR = 120.0 * _X_DEPART**2 - 300.0 * _X_DEPART**3 + 180.0 * _X_DEPART**4
+"""Peak of ``|d2(x s)/dx2| = |120 x^2 - 300 x^3 + 180 x^4|`` (at ``x = (15 - sqrt 33) / 24``):
+a weight ``s`` moving onto a path that departs at ``rate`` adds up to 4.62 rate/T."""
 
 
 @overload

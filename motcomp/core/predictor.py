@@ -509,6 +509,17 @@ class Prediction:
             self.weight[i] = on
             self.ratio[i] = 0.0
 
+    def hold_off(self) -> None:
+        """Every predicted axis held off at once (weight 0, no fade): the input is lost and the
+        compensator takes the plain reference (:mod:`motcomp.core.tick`, "Input loss"); the
+        filters run on, and fade back in after the input returns (``fade_in_s``)."""
+        for j, i in enumerate(self.idx):
+            self._w[j] = self._w0[j] = self._target[j] = 0.0
+            self._progress[j] = 1.0
+            self._calm[j] = 0.0
+            self._fallen[j] = False
+            self.weight[i] = 0.0
+
     def fallen_back(self) -> list[bool]:
         """Per axis: the band monitor holds the prediction off (since it last fell back, until
         it resumes or the caller holds it off itself)."""

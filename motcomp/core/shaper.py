@@ -7,7 +7,8 @@ Modes (all times from the loop's clock, passed in)::
     live         the input reconstructed (below)
     no valid frame for stale_after_s
                  hold the reference for ``hold_s``, then move each axis to neutral  "stale"
-                 in a minimum-jerk ramp whose peak speed is ``ramp_speed`` (per axis);
+                 in a minimum-jerk ramp whose peak speed is ``ramp_speed`` and peak
+                 acceleration ``blend_acc`` (per axis, the shorter within both);
                  the command's own path to rest is the tick's rule
                  (:mod:`motcomp.core.tick`, "Input loss")
     frames again blend from the held/ramped reference to the live input over
@@ -58,6 +59,7 @@ last value (for tests of the rest of the chain).
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -68,7 +70,12 @@ from mypy_extensions import mypyc_attr
 from motcomp.core.bandlimit import BandLimit, BandLimitParams
 from motcomp.core.blend import blend_coefficients, blend_duration, horner, local_cubic
 from motcomp.core.interp import Curve, Transition
-from motcomp.core.minjerk import PEAK_SPEED_FACTOR, min_jerk_derivatives, min_jerk_weight
+from motcomp.core.minjerk import (
+    PEAK_ACC_FACTOR,
+    PEAK_SPEED_FACTOR,
+    min_jerk_derivatives,
+    min_jerk_weight,
+)
 from motcomp.core.native import frozen_reduce
 from motcomp.core.playback import Playback, min_transit
 from motcomp.core.timeline import Timeline
@@ -107,7 +114,8 @@ class ShaperParams:
 
     driven: tuple[bool, ...]
     ramp_speed: tuple[float, ...]
-    """Peak speed of the ramps to neutral (axis units/s)."""
+    """Peak speed of the ramps to neutral (axis units/s); their peak acceleration is
+    ``blend_acc``'s."""
     reach_lo: tuple[float, ...]
     reach_hi: tuple[float, ...]
     """The reference never leaves ``[reach_lo, reach_hi]``."""
@@ -129,9 +137,9 @@ class ShaperParams:
     band: tuple[BandLimitParams | None, ...] = ()
     """``smooth``: each axis' reference band limit (None, or an empty tuple: none)."""
     blend_acc: tuple[float, ...] = ()
-    """Per axis, the acceleration a start-up or rejoin blend may take (axis units/s^2): a
-    blend lasts ``startup_s``/``rejoin_s`` or longer, as its gap and velocity change need
-    (empty: no bound)."""
+    """Per axis, the acceleration a start-up or rejoin blend, or a ramp to neutral, may take
+    (axis units/s^2): a blend lasts ``startup_s``/``rejoin_s`` or longer, as its gap and
+    velocity change need (empty: no bound)."""
 
     def __post_init__(self) -> None:
         if not self.min_dt_s > 0:
@@ -148,15 +156,25 @@ class ShaperParams:
 
 @mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class _Move:
-    """Minimum-jerk moves from ``start`` to ``end`` per axis, each with its own duration."""
+    """Minimum-jerk moves from ``start`` to ``end`` per axis, each with its own duration: the
+    shortest (at least ``min_s``) whose peak speed is at most ``speed`` and, where ``acc`` gives
+    one, whose peak acceleration is at most ``acc``."""
 
     def __init__(self, t0: float, start: Sequence[float], end: Sequence[float],
-                 speed: Sequence[float], min_s: float = 0.05) -> None:
+                 speed: Sequence[float], acc: Sequence[float] = (),
+                 min_s: float = 0.05) -> None:
         self.t0 = t0
         self.start = list(start)
         self.end = list(end)
-        self.duration = [max(PEAK_SPEED_FACTOR * abs(e - s) / v, min_s) if v > 0 else min_s
-                         for s, e, v in zip(start, end, speed, strict=True)]
+        self.duration: list[float] = []
+        for i, (s, e, v) in enumerate(zip(start, end, speed, strict=True)):
+            d = min_s
+            if v > 0:
+                d = max(d, PEAK_SPEED_FACTOR * abs(e - s) / v)
+            a = acc[i] if i < len(acc) else 0.0
+            if a > 0:
+                d = max(d, math.sqrt(PEAK_ACC_FACTOR * abs(e - s) / a))
+            self.duration.append(d)
 
     def derivatives(self, t: float) -> list[tuple[float, float, float]]:
         """Each axis' velocity, acceleration and jerk at ``t``."""
@@ -380,7 +398,7 @@ class ReferenceShaper:
         self.parking = True
         self._blend_poly = self._blend_move = None
         self._blend_pending = False
-        self._move = _Move(now, self.ref, [0.0] * self.n, p.ramp_speed)
+        self._move = _Move(now, self.ref, [0.0] * self.n, p.ramp_speed, p.blend_acc)
 
     # --- the reference --------------------------------------------------------------------
     def reference(self, p: ShaperParams, now: float) -> tuple[list[float], str]:
@@ -402,7 +420,7 @@ class ReferenceShaper:
             if now - self._stale_since < p.hold_s:
                 return self.ref, mode
             if self._move is None:
-                self._move = _Move(now, self.ref, [0.0] * self.n, p.ramp_speed)
+                self._move = _Move(now, self.ref, [0.0] * self.n, p.ramp_speed, p.blend_acc)
             ref, _ = self._move.at(now)
         else:
             ref = self._live_now(p, now)
