@@ -82,12 +82,12 @@ Rules for edge cases
 * Gain or model change (:meth:`set_gains`, :meth:`set_models`, :meth:`reconfigure`): the
   integrator is re-seeded so that the raw output at the last sample is unchanged under the new
   parameters (bumpless).
-* Bypass (compensation off) per axis (:meth:`set_bypass`): the PID always runs on, closed
-  around its internal model as when compensating (its output ``v`` depends on the reference
-  alone: the compensated path, whatever is sent), and the command's target is the blend
-  ``r + w (v - r)`` of the reference and that path, ``w`` = 1 compensating, 0 bypassed.  A switch
-  moves ``w`` to its end along a minimum-jerk weight over ``fade_s`` or longer, so that the gap
-  ``v - r`` at the switch and its rate take at most :data:`BLEND_ACC_SHARE` of the axis' acceleration limit
+* Bypass (compensation off) per axis (:meth:`set_bypass`): the PID always runs on, closed around its
+  internal model as when compensating (its output ``v`` depends on the reference alone: the
+  compensated path, whatever is sent), and the command's target is the blend ``r + w (v - r)`` of
+  the reference and that path, ``w`` = 1 compensating, 0 bypassed.  A switch moves ``w`` to its end
+  along a minimum-jerk weight over ``fade_s`` or longer, so that the gap ``v - r`` at the switch and
+  its rate take at most :data:`BLEND_ACC_SHARE` of the axis' acceleration limit
   (:func:`weight_duration`); and it blends out the command's own difference to that target at the
   switch, in position and velocity (a limiter that was acting, a window's speed cap), over the
   shortest time within :data:`DIFFERENCE_ACC_SHARE` of the limit (:mod:`motcomp.core.blend`,
