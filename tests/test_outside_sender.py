@@ -56,7 +56,7 @@ import zenoh
 from conftest import ROOT, judge_realtime, motcomp_cmd, subprocess_env
 
 from motcomp.config import load_config
-from motcomp.core.quality import SineFit, command_quality_over, sine_delay
+from motcomp.core.quality import SineFit, command_quality_over, hf_within, sine_delay
 from motcomp.runtime.probe import HostClock, HostProbe
 from motcomp.sim.ideal import ideal_run
 
@@ -72,14 +72,9 @@ docs/TUNING.md "The chain's noise bound": measured 1.0-1.7 ms on the rails' slal
 1.2-2.1 ms on the hexapod's heave on a quiet host)."""
 MAX_SAT_SHARE = 0.005
 MAX_HF_RATIO = 2.0
-HF_RESOLUTION = 1e-4
-"""The command's HF acceleration at most MAX_HF_RATIO times the ideal run's over the same ticks
-(tools/bench_senders.py's target), plus HF_RESOLUTION (m/s^2).  Over a stretch of several
-seconds the ideal run's command, a pure sine, reads next to nothing above 5 Hz (1e-6 m/s^2 over
-15 s; 2e-3 over the 0.6-1 s stretches a busy host's missed ticks leave), so that a ratio alone
-would judge the live path against rounding.  0.1 mm/s^2 is a twentieth of what the playback
-instant's swing put there (1-4 mm/s^2: docs/TUNING.md, "Input reconstruction"); the live path
-now adds 0.04-0.06 mm/s^2."""
+"""The command's HF acceleration within MAX_HF_RATIO times the ideal run's over the same ticks
+(plus :data:`motcomp.core.quality.HF_RESOLUTION`: :func:`~motcomp.core.quality.hf_within`,
+tools/bench_senders.py's target); the live path adds 0.04-0.06 mm/s^2."""
 HOST_STALL_MS = 20.0
 """A mid-run input loss is the host's (not judged) only if its bare clock stalled this long."""
 MAX_SKIPPED_SHARE = 0.05  # a sender skipping more is not the 1 kHz sender the test means
@@ -360,8 +355,7 @@ def test_grid_sender_is_on_time(runs: Runs) -> None:
     check_run_is_sound(grid)
     assert follows_on_time(grid), describe(grid)
     assert grid.sat_share <= MAX_SAT_SHARE, describe(grid)
-    assert grid.hf_acc_rms <= MAX_HF_RATIO * grid.ideal_hf_acc_rms + HF_RESOLUTION, \
-        describe(grid)
+    assert hf_within(grid.hf_acc_rms, grid.ideal_hf_acc_rms, MAX_HF_RATIO), describe(grid)
 
 
 @pytest.mark.slow
@@ -371,8 +365,7 @@ def test_wallclock_sender_is_on_time_and_smooth(runs: Runs) -> None:
     check_run_is_sound(wall)
     assert follows_on_time(wall), describe(wall)
     assert wall.sat_share <= MAX_SAT_SHARE, describe(wall)
-    assert wall.hf_acc_rms <= MAX_HF_RATIO * wall.ideal_hf_acc_rms + HF_RESOLUTION, \
-        describe(wall)
+    assert hf_within(wall.hf_acc_rms, wall.ideal_hf_acc_rms, MAX_HF_RATIO), describe(wall)
 
 
 @pytest.mark.slow

@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 
 from motcomp.core.quality import (
+    HF_RESOLUTION,
     at_acc_limit,
     command_quality,
     command_quality_over,
     estimate_delay,
     hf_rms,
+    hf_within,
     sine_delay,
     stretches,
 )
@@ -143,3 +145,12 @@ def test_bad_input_is_a_clear_error() -> None:
     with pytest.raises(ConfigError, match="constant"):
         estimate_delay(np.zeros(100), np.ones(100), RATE)
     assert hf_rms(np.zeros(4), RATE) == 0.0
+
+
+def test_hf_within_is_the_ratio_plus_the_resolution() -> None:
+    """The one rule the outside-sender test and tools/bench_senders.py judge the command's HF
+    acceleration by: within ``ratio`` times the ideal run's, plus 0.1 mm/s^2."""
+    assert HF_RESOLUTION == 1e-4
+    assert hf_within(0.0, 0.0, 2.0) and hf_within(1e-4, 0.0, 2.0)
+    assert not hf_within(1.01e-4, 0.0, 2.0)
+    assert hf_within(2.1e-3, 1e-3, 2.0) and not hf_within(2.11e-3, 1e-3, 2.0)

@@ -42,6 +42,7 @@ __all__ = [
     "command_quality_over",
     "estimate_delay",
     "hf_rms",
+    "hf_within",
     "sine_delay",
     "stretches",
 ]
@@ -50,6 +51,11 @@ HF_ABOVE_HZ = 5.0
 """Default lower edge of the "high-frequency" band of the command's acceleration."""
 AT_LIMIT_FRACTION = 0.99
 """A tick is at the acceleration limit when its |acceleration| reaches this fraction of it."""
+HF_RESOLUTION = 1e-4
+"""What :func:`hf_within` allows beyond the ratio (m/s^2): over a stretch of several seconds an
+ideal run's command, a pure sine, reads next to nothing above 5 Hz (1e-6 m/s^2 over 15 s), so
+that a ratio alone would judge a live command against rounding; 0.1 mm/s^2 is a twentieth of
+what a swinging playback instant put there (docs/TUNING.md, "Input reconstruction")."""
 
 
 def estimate_delay(reference: ArrayLike, response: ArrayLike, rate_hz: float,
@@ -131,6 +137,12 @@ def sine_delay(t_s: ArrayLike, y: ArrayLike, t0_s: float, frequency_hz: float) -
     resid = v - basis @ coef
     return SineFit(float(math.hypot(coef[0], coef[1])), -math.atan2(coef[1], coef[0]) / w,
                    1.0 - float(resid.var()) / var)
+
+
+def hf_within(live: float, ideal: float, ratio: float) -> bool:
+    """Whether a command's HF acceleration RMS ``live`` is within ``ratio`` times the ideal
+    run's over the same ticks, ``ideal``, plus :data:`HF_RESOLUTION`."""
+    return live <= ratio * ideal + HF_RESOLUTION
 
 
 def hf_rms(x: ArrayLike, rate_hz: float, above_hz: float = HF_ABOVE_HZ) -> float:
