@@ -1094,6 +1094,8 @@ def tick_params(cfg: ServiceConfig, axes: ResolvedAxes) -> TickParams:
         max_extrapolation_s=cfg.input.max_extrapolation_s, lead_s=cfg.input.lead_s,
         playback_lag_s=cfg.input.playback_lag_s,
         blend_acc=tuple(BLEND_ACC_SHARE * float(a) for a in lim.a_max),
+        blend_jerk=tuple(BLEND_ACC_SHARE * float(a) / m.Tp1
+                         for a, m in zip(lim.a_max, axes.models, strict=True)),
         band=tuple(band_limit_params(hz, loop.rate_hz, _band_key(cfg.input, a)) if d else None
                    for a, hz, d in zip(AXES, cfg.input.bands_hz(), axes.driven, strict=True)))
     return TickParams(loop.rate_hz, shaper, cfg.status.saturation_tolerance,

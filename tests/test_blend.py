@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from numpy.polynomial import polynomial as npp
 
-from motcomp.config import load_config
+from motcomp.config import load_config, resolve_axes, tick_params
 from motcomp.core.bandlimit import band_limit_params
 from motcomp.core.blend import (
     B0,
@@ -20,9 +20,11 @@ from motcomp.core.blend import (
     B3,
     BLEND_ACC_PEAK,
     BLEND_MERGE_PEAK,
+    JERK_STRETCH,
     blend_coefficients,
     blend_duration,
     horner,
+    jerk_duration,
     local_cubic,
 )
 from motcomp.core.minjerk import min_jerk, min_jerk_derivatives
@@ -256,3 +258,36 @@ def test_two_frames_in_the_first_tick_after_a_loss_wait_as_one() -> None:
     assert band is not None
     assert abs(one - two) <= 2, (one, two)
     assert two * 1e-3 >= BAND_SETTLE_DELAYS * band.delay_s + FIT_S, two
+
+
+@pytest.mark.parametrize(("g", "r", "a"), [(-0.0209, -0.3673, -1.245), (-0.0417, -0.6822, -0.613),
+                                           (0.3, 0.0, 0.0), (0.0, 0.0, 2.0), (0.05, -0.4, 1.0)])
+def test_jerk_duration_is_the_shortest_step_within_the_jerk(g: float, r: float, a: float) -> None:
+    """The blend over :func:`jerk_duration`'s ``T`` (gap, velocity and acceleration terms; the
+    jerk term does not shrink with ``T``) keeps its jerk, the polynomial's third derivative on a
+    fine grid, within the bound (to the 65-point grid's resolution, 1 %), and one step shorter
+    does not; ``base`` when it already does; no bound: ``base``.  The first two cases are a
+    rejoin near the slalom's trough and one away from it (the rails, J = 8.1 m/s^3)."""
+    jerk, base = 8.06, 0.5
+    T = jerk_duration(g, r, a, jerk, base)
+    s = np.linspace(0.0, 1.0, 20001)
+
+    def peak(t: float) -> float:
+        e = np.polynomial.Polynomial(blend_coefficients(g, r, a, 0.0, t))
+        return float(np.abs(e.deriv(3)(s)).max()) / t**3
+
+    assert peak(T) <= 1.01 * jerk
+    assert base == T or peak(T / JERK_STRETCH) > 0.99 * jerk
+    assert jerk_duration(g, r, a, 0.0, base) == base
+
+
+def test_the_config_gives_each_axis_a_jerk_budget_from_its_model() -> None:
+    """``blend_jerk`` = the blend's acceleration budget over the model's lag ``Tp1``: the
+    compensated command carries about ``Tp1`` times the reference's jerk (the example's rails:
+    1.5 m/s^2 / 0.186 s = 8.1 m/s^3)."""
+    cfg = load_config(Path(__file__).resolve().parents[1] / "config" / "motcomp.toml")
+    axes = resolve_axes(cfg)
+    sp = tick_params(cfg, axes).shaper
+    for i, m in enumerate(axes.models):
+        assert sp.blend_jerk[i] == pytest.approx(sp.blend_acc[i] / m.Tp1, rel=1e-12)
+    assert sp.blend_jerk[1] == pytest.approx(1.5 / 0.1857683128, rel=1e-9)

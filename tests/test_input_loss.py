@@ -257,14 +257,16 @@ def test_the_input_back_mid_hold_or_mid_ramp_is_taken_up_within_the_limits(gap_s
 def test_a_short_loss_never_carries_the_command_beyond_the_compensated_motion() -> None:
     """A sender stalling 62 ms in mid-slalom (the input stale for 12 ms), at 14 phases, the
     example config: the command's difference to its target when the window closes is blended
-    out within half the acceleration limit, so it never travels beyond the compensated slalom's
-    own range (0.425 m here; carried over a quarter of the limit it reached 0.66 m).  The PID
-    and the prediction start over at the loss (at rest on the held reference, held off), so
-    that compensation comes back on the compensated path of the reference since the loss: at
-    12 of the 14 phases the command never meets its acceleration limit after the rejoin (before,
-    110-401 ticks at every phase: the PID's response to the hold leaked through the weight);
-    at the two left (6.0 and 7.5 s: 136 and 242 ticks) the compensated path of the shaper's own
-    blend into the slalom asks more (docs/TUNING.md, "Switching compensation on and off")."""
+    out within half the acceleration limit, so it stays within 20 mm of the compensated
+    slalom's own range (0.425 m here; 0.424-0.440 m measured, the most near a trough where the
+    rejoin's blend is lengthened for its jerk; carried over a quarter of the limit it reached
+    0.66 m).  The PID and the prediction start over at the loss (the PID at rest on the held
+    reference, the prediction held off), so that compensation comes back on the compensated
+    path of the reference since the loss, and the shaper's blend keeps its jerk within what the
+    compensated command can carry: at none of the 14 phases does the command meet its
+    acceleration limit after the rejoin (before, 110-401 ticks at every phase: the PID's
+    response to the hold leaked through the weight; with the PID restarted but the blend sized
+    for its acceleration alone, 136 and 242 ticks at two phases near a crest or a trough)."""
     cfg = parse_config(read_toml(EXAMPLE))
     y = AXES.index("rails_y")
     at_limit = []
@@ -283,9 +285,8 @@ def test_a_short_loss_never_carries_the_command_beyond_the_compensated_motion() 
             lost = lost or out.mode == "stale"
             if lost and out.mode != "stale" and not back:
                 back = k
-        assert max(abs(x) for x in u[round(start * 1000):]) < 0.44, start
+        assert max(abs(x) for x in u[round(start * 1000):]) < 0.425 + 0.02, start
         assert back, start
         acc = np.abs(np.diff(u[back - 2:], 2)) * 1e6
         at_limit.append(int(np.sum(acc >= 0.9999 * 6.0)))
-    assert sum(n > 0 for n in at_limit) <= 2, at_limit
-    assert max(at_limit) <= 300, at_limit
+    assert at_limit == [0] * len(at_limit), at_limit

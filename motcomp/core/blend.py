@@ -35,7 +35,7 @@ import numpy as np
 from numpy.polynomial import polynomial as npp
 
 __all__ = ["B3_ACC_PEAK", "BLEND_ACC_PEAK", "BLEND_ACC_SHARE", "BLEND_MERGE_PEAK", "BLEND_TERMS",
-           "blend_coefficients", "blend_duration", "horner", "local_cubic"]
+           "blend_coefficients", "blend_duration", "horner", "jerk_duration", "local_cubic"]
 
 
 BLEND_ACC_SHARE = 0.25
@@ -103,6 +103,13 @@ BLEND_MERGE_PEAK = max(abs(row[1]) for row in _GRID_ACC)
 """``max |B1''|`` on the grid (3.49): a velocity difference ``r``: ``BLEND_MERGE_PEAK |r| / T``."""
 B3_ACC_PEAK = max(abs(row[3]) for row in _GRID_ACC)
 """``max |B3''|`` on the grid (0.040)."""
+_GRID_JERK = tuple(tuple(horner(_der(_der(_der(c))), k / GRID) for c in _BASES[:3])
+                   for k in range(GRID + 1))
+"""Per point of the grid, the third derivative of ``B0``, ``B1`` and ``B2``."""
+JERK_STRETCH = 1.05
+""":func:`jerk_duration` lengthens a blend in steps of this factor."""
+JERK_LONGEST_S = 10.0
+""":func:`jerk_duration` never lengthens a blend beyond this (s)."""
 
 
 def blend_duration(g: float, r: float, acc: float, base: float) -> float:
@@ -120,6 +127,25 @@ def blend_duration(g: float, r: float, acc: float, base: float) -> float:
             if disc > 0.0:
                 t = max(t, (bb + math.sqrt(disc)) / (2.0 * acc))
     return t
+
+
+def jerk_duration(g: float, r: float, a: float, jerk: float, base: float) -> float:
+    """The shortest ``T >= base`` (in steps of :data:`JERK_STRETCH`, at most
+    :data:`JERK_LONGEST_S`) over which the gap ``g``, velocity difference ``r`` and acceleration
+    difference ``a`` blend out with a jerk of at most ``jerk``: ``|g B0^(3) / T^3 + r B1^(3) /
+    T^2 + a B2^(3) / T|`` at each of the ``GRID + 1`` points (``base`` if ``jerk <= 0``; the jerk
+    term's own ``j B3^(3)`` does not shrink with ``T``).  The pseudo open-loop compensator's
+    command carries about its model's lag times the reference's jerk (docs/TUNING.md, "Blends
+    into live input")."""
+    if jerk <= 0.0 or base <= 0.0:
+        return base
+    t = base
+    while t < JERK_LONGEST_S:
+        c0, c1, c2 = g / (t * t * t), r / (t * t), a / t
+        if all(abs(c0 * b0 + c1 * b1 + c2 * b2) <= jerk for b0, b1, b2 in _GRID_JERK):
+            return t
+        t *= JERK_STRETCH
+    return JERK_LONGEST_S
 
 
 def blend_coefficients(g: float, r: float, a: float, j: float, duration: float,

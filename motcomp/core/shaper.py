@@ -68,7 +68,13 @@ from typing import Any
 from mypy_extensions import mypyc_attr
 
 from motcomp.core.bandlimit import BandLimit, BandLimitParams
-from motcomp.core.blend import blend_coefficients, blend_duration, horner, local_cubic
+from motcomp.core.blend import (
+    blend_coefficients,
+    blend_duration,
+    horner,
+    jerk_duration,
+    local_cubic,
+)
 from motcomp.core.interp import Curve, Transition
 from motcomp.core.minjerk import (
     PEAK_ACC_FACTOR,
@@ -140,6 +146,10 @@ class ShaperParams:
     """Per axis, the acceleration a start-up or rejoin blend, or a ramp to neutral, may take
     (axis units/s^2): a blend lasts ``startup_s``/``rejoin_s`` or longer, as its gap and
     velocity change need (empty: no bound)."""
+    blend_jerk: tuple[float, ...] = ()
+    """Per axis, the jerk a start-up or rejoin blend may take (axis units/s^3): a blend lasts
+    longer where its gap, velocity and acceleration changes would need more (empty, or 0: no
+    bound)."""
 
     def __post_init__(self) -> None:
         if not self.min_dt_s > 0:
@@ -492,6 +502,11 @@ class ReferenceShaper:
             g, r = h - x, hv - lv
             a = p.blend_acc[i] if p.blend_acc and p.driven[i] and base > 0.0 else 0.0
             d = blend_duration(g, r, a, base)
+            if p.blend_jerk and p.driven[i] and d > 0.0:
+                da = ha - la
+                if a > 0.0:  # as blend_coefficients clips it
+                    da = min(max(da, -2.0 * a), 2.0 * a)
+                d = jerk_duration(g, r, da, p.blend_jerk[i], d)
             each.append(d)
             polys.append(blend_coefficients(g, r, ha - la, hj - lj, d, a) if d > 0.0 else [])
         self._blend_poly, self._blend_each = polys, each
