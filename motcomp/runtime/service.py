@@ -137,7 +137,7 @@ class ModeLog:
                         p.shaper.stale_after_s, state.received, state.rejected,
                         state.last_reject or "none", p.shaper.hold_s)
         elif mode == "rejoin":
-            log.info("input %s: blending to the live input over %.2f s",
+            log.info("input %s: blending to the live input over at least %.2f s",
                      "started" if self.mode == "startup" else "resumed", state.shaper.blend_s)
         elif mode == "parking":
             log.info("stop requested: parking (ramping every axis to neutral)")
