@@ -29,7 +29,9 @@ a moving input only after a transient), and :data:`FIT_S` more for the live inpu
 least-squares cubic); the held reference stays until then.  It lasts ``startup_s``/``rejoin_s``,
 or longer per axis where its gap and velocity change need more than a quarter of the axis'
 acceleration limit (``blend_acc``: the compensator multiplies the reference's acceleration by
-its in-band gain).  Undriven axes stay at neutral.
+its in-band gain), or its gap, velocity and acceleration changes more than its jerk budget
+(``blend_jerk``: ``blend_acc`` over the model's lag, which the compensator multiplies the
+jerk by).  Undriven axes stay at neutral.
 
 Input reconstruction ``smooth`` (the default): the input *played back on the sender's timeline, a
 little behind its newest sample*, interpolated between samples already received.  Three parts,
