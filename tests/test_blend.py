@@ -269,7 +269,7 @@ def test_jerk_duration_is_the_shortest_step_within_the_jerk(g: float, r: float, 
     does not; ``base`` when it already does; no bound: ``base``.  The first two cases are a
     rejoin near the slalom's trough and one away from it (the rails, J = 8.1 m/s^3)."""
     jerk, base = 8.06, 0.5
-    T = jerk_duration(g, r, a, jerk, base)
+    T = jerk_duration(g, r, a, 0.0, jerk, base)
     s = np.linspace(0.0, 1.0, 20001)
 
     def peak(t: float) -> float:
@@ -278,7 +278,7 @@ def test_jerk_duration_is_the_shortest_step_within_the_jerk(g: float, r: float, 
 
     assert peak(T) <= 1.01 * jerk
     assert base == T or peak(T / JERK_STRETCH) > 0.99 * jerk
-    assert jerk_duration(g, r, a, 0.0, base) == base
+    assert jerk_duration(g, r, a, 0.0, 0.0, base) == base
 
 
 def test_the_config_gives_each_axis_a_jerk_budget_from_its_model() -> None:

@@ -35,7 +35,8 @@ import numpy as np
 from numpy.polynomial import polynomial as npp
 
 __all__ = ["B3_ACC_PEAK", "BLEND_ACC_PEAK", "BLEND_ACC_SHARE", "BLEND_MERGE_PEAK", "BLEND_TERMS",
-           "blend_coefficients", "blend_duration", "horner", "jerk_duration", "local_cubic"]
+           "blend_coefficients", "blend_duration", "carried_acceleration", "horner",
+           "jerk_duration", "local_cubic"]
 
 
 BLEND_ACC_SHARE = 0.25
@@ -129,16 +130,24 @@ def blend_duration(g: float, r: float, acc: float, base: float) -> float:
     return t
 
 
-def jerk_duration(g: float, r: float, a: float, jerk: float, base: float) -> float:
+def carried_acceleration(a: float, acc: float) -> float:
+    """The acceleration difference ``a`` a blend carries over within the budget ``acc``:
+    clipped to ``2 acc`` (no clip for ``acc <= 0``)."""
+    return min(max(a, -2.0 * acc), 2.0 * acc) if acc > 0.0 else a
+
+
+def jerk_duration(g: float, r: float, a: float, acc: float, jerk: float, base: float) -> float:
     """The shortest ``T >= base`` (in steps of :data:`JERK_STRETCH`, at most
     :data:`JERK_LONGEST_S`) over which the gap ``g``, velocity difference ``r`` and acceleration
-    difference ``a`` blend out with a jerk of at most ``jerk``: ``|g B0^(3) / T^3 + r B1^(3) /
+    difference ``a`` (as :func:`carried_acceleration` carries it within ``acc``) blend out
+    with a jerk of at most ``jerk``: ``|g B0^(3) / T^3 + r B1^(3) /
     T^2 + a B2^(3) / T|`` at each of the ``GRID + 1`` points (``base`` if ``jerk <= 0``; the jerk
     term's own ``j B3^(3)`` does not shrink with ``T``).  The pseudo open-loop compensator's
     command carries about its model's lag times the reference's jerk (docs/TUNING.md, "Blends
     into live input")."""
     if jerk <= 0.0 or base <= 0.0:
         return base
+    a = carried_acceleration(a, acc)
     t = base
     while t < JERK_LONGEST_S:
         c0, c1, c2 = g / (t * t * t), r / (t * t), a / t
@@ -157,7 +166,7 @@ def blend_coefficients(g: float, r: float, a: float, j: float, duration: float,
     the blend: the jerk term's excursion grows as ``j T^3``)."""
     t = duration
     if acc > 0.0:
-        a = min(max(a, -2.0 * acc), 2.0 * acc)
+        a = carried_acceleration(a, acc)
         jmax = 2.0 * acc / (B3_ACC_PEAK * t) if t > 0.0 else 0.0
         j = min(max(j, -jmax), jmax)
     out = [0.0] * BLEND_TERMS

@@ -499,26 +499,26 @@ class Prediction:
         self._seed(r)
         self._settle = round(WARM_SETTLE_S / self.dt_s)
         for j, i in enumerate(self.idx):
-            on = 1.0 if predicting[i] else 0.0
-            self._w[j] = self._w0[j] = self._target[j] = on
-            self._progress[j] = 1.0
-            self._calm[j] = 0.0
+            self._weight_at(j, 1.0 if predicting[i] else 0.0)
             self._offset[j] = 0.0
             self._offset_progress[j] = 1.0
-            self._fallen[j] = False
-            self.weight[i] = on
             self.ratio[i] = 0.0
+
+    def _weight_at(self, j: int, on: float) -> None:
+        """Predicted axis ``j``'s weight at ``on`` at once, no fade, the monitor's calm time
+        and fallback cleared."""
+        self._w[j] = self._w0[j] = self._target[j] = on
+        self._progress[j] = 1.0
+        self._calm[j] = 0.0
+        self._fallen[j] = False
+        self.weight[self.idx[j]] = on
 
     def hold_off(self) -> None:
         """Every predicted axis held off at once (weight 0, no fade): the input is lost and the
         compensator takes the plain reference (:mod:`motcomp.core.tick`, "Input loss"); the
         filters run on, and fade back in after the input returns (``fade_in_s``)."""
-        for j, i in enumerate(self.idx):
-            self._w[j] = self._w0[j] = self._target[j] = 0.0
-            self._progress[j] = 1.0
-            self._calm[j] = 0.0
-            self._fallen[j] = False
-            self.weight[i] = 0.0
+        for j in range(len(self.idx)):
+            self._weight_at(j, 0.0)
 
     def fallen_back(self) -> list[bool]:
         """Per axis: the band monitor holds the prediction off (since it last fell back, until

@@ -505,10 +505,7 @@ class ReferenceShaper:
             a = p.blend_acc[i] if p.blend_acc and p.driven[i] and base > 0.0 else 0.0
             d = blend_duration(g, r, a, base)
             if p.blend_jerk and p.driven[i] and d > 0.0:
-                da = ha - la
-                if a > 0.0:  # as blend_coefficients clips it
-                    da = min(max(da, -2.0 * a), 2.0 * a)
-                d = jerk_duration(g, r, da, p.blend_jerk[i], d)
+                d = jerk_duration(g, r, ha - la, a, p.blend_jerk[i], d)
             each.append(d)
             polys.append(blend_coefficients(g, r, ha - la, hj - lj, d, a) if d > 0.0 else [])
         self._blend_poly, self._blend_each = polys, each
