@@ -156,7 +156,7 @@ def test_every_sender_class_reaches_the_grid_senders_floor(axis: str, bypass: bo
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("rate_hz", [1000.0, 250.0])
+@pytest.mark.parametrize("rate_hz", [1000.0, 250.0, 60.0])
 @pytest.mark.parametrize("axis", ["rails_y", "hex_z"])
 def test_values_on_a_grid_its_epoch_stamps_round_are_read_on_that_grid(axis: str,
                                                                        rate_hz: float) -> None:
@@ -167,7 +167,9 @@ def test_values_on_a_grid_its_epoch_stamps_round_are_read_on_that_grid(axis: str
     command is the exact-stamp sender's, within 2x above 5 Hz and 3x in jerk (float32 values
     as well: their own rounding is then what is left, bounded by the chain's designed figure,
     docs/WIRE.md).  A sender whose values are computed at the rounded stamps (``epoch``) keeps
-    its stamps as the instants, and is as exact."""
+    its stamps as the instants, and is as exact.  At 60 Hz a window of the evidence spans
+    0.12 s and float32's own rounding is half the stamps' on the rails: the values take about
+    6 s to decide there, most of this run, and that case is left out of the bound."""
     cfg = _cfg()
     for bypass in (False, True):
         _, hf0, jerk0 = _run(cfg, "grid", axis, bypass, rate_hz, _sine)
@@ -176,6 +178,8 @@ def test_values_on_a_grid_its_epoch_stamps_round_are_read_on_that_grid(axis: str
             assert share == 0.0
             assert hf <= 2.0 * hf0, (kind, bypass, hf, hf0)
             assert jerk <= 3.0 * jerk0, (kind, bypass, jerk, jerk0)
+        if rate_hz < 100.0:
+            continue  # float32 at 60 Hz: 5 s of 8 to decide (below)
         share, hf, jerk = _run(cfg, "float32_rounded", axis, bypass, rate_hz, _sine)
         floor = _run(cfg, "float32", axis, bypass, rate_hz, _sine)  # exact stamps
         assert share == 0.0

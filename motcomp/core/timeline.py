@@ -70,10 +70,18 @@ GRID_TRACK_ALPHA = 1e-3
 """The line's gains fall to this while the stamps lie on it within their resolution."""
 GRID_FOLLOW = 0.01
 """The instants read on the grid follow the line through this gain."""
+GRID_WINDOW = 7
+"""Frames in each window of that evidence (the middle one against the quintic through the
+others)."""
+GRID_OUTLIER = 2.0
+GRID_NOISE_ULPS = 4.0
+"""A window whose residual is more than GRID_OUTLIER times the rounding's share plus
+GRID_NOISE_ULPS of the value's own rounding (float32 or float64) is the motion's own shape (a
+step, a kink), which neither reading explains: it is left out of the evidence."""
 GRID_MIN_WEIGHT = 20.0
 """No decision on where a grid sender's values lie before this many windows' evidence."""
 GRID_GAIN = 1e-2
-"""Weight of each window of five frames in that evidence (about 100 windows)."""
+"""Weight of each window of GRID_WINDOW frames in that evidence (about 100 windows)."""
 GRID_SIGMAS = 3.0
 """The evidence must lie this many standard errors from the midway to change the decision."""
 
@@ -118,7 +126,7 @@ class Timeline:
         """``(instant, samples, restart)`` of a frame (module docstring): ``samples`` is the
         number of sender periods since the previous frame (``frames``, or more where samples
         were skipped), ``restart`` whether the timeline starts anew here.  ``curves`` are the
-        axes' samples so far (read only), ``pos`` is kept (up to five frames'); only the
+        axes' samples so far (read only), ``pos`` is kept (up to GRID_WINDOW frames'); only the
         ``driven`` axes' values count."""
         if t_sender is None and not restart:
             frames = self.count(pos, frames, curves, driven)
@@ -129,7 +137,7 @@ class Timeline:
             ring.clear()
         else:
             ring.append((self._grid_err, pos))
-            if len(ring) == 5:  # windows of five frames, each frame in one
+            if len(ring) == GRID_WINDOW:  # windows of seven frames, each frame in one
                 self._weigh_grid(driven)
                 ring.clear()
         self._arrived = arrived
@@ -308,24 +316,29 @@ class Timeline:
 
     # --- where a grid sender's values lie ---------------------------------------------------
     def _weigh_grid(self, driven: tuple[bool, ...]) -> None:
-        """Five consecutive frames on the grid, each stamp ``d`` off it within its resolution:
-        the middle value's residual from the cubic through the other four (uniform grid: exact
-        on cubics) is ``r ~ 0`` if the values lie on the grid, ``r ~ u = slope (d - the same
-        cubic's d)`` if they lie at the stamps.  ``alpha = sum r u / sum u u`` (recent windows,
+        """Seven consecutive frames on the grid, each stamp ``d`` off it within its resolution:
+        the middle value's residual from the quintic through the other six (uniform grid: exact
+        on quintics, so a smooth motion's own shape leaves ``h^6 x^(6) / 20`` of it, nothing
+        beside the rounding's ``slope x 0.1 us`` even at 50 Hz) is ``r ~ 0`` if the values lie
+        on the grid, ``r ~ u = slope (d - the same quintic's d)`` if they lie at the stamps.  ``alpha = sum r u / sum u u`` (recent windows,
         GRID_GAIN) decides, once it lies GRID_SIGMAS standard errors beyond 1/2; until then the
-        stamps are the instants."""
+        stamps are the instants.  Windows neither reading explains (GRID_OUTLIER) are left
+        out."""
         ring = self._grid_ring
-        (d0, p0), (d1, p1), (d2, p2), (d3, p3), (d4, p4) = ring[0], ring[1], ring[2], ring[3], \
-            ring[4]
-        big_d = d2 - (4.0 * (d1 + d3) - d0 - d4) / 6.0
+        d = [e for e, _ in ring]
+        big_d = d[3] - _quintic_mid(d[0], d[1], d[2], d[4], d[5], d[6])
         half_q = 0.5 / self.period
         ru = uu = rr = 0.0
-        for i, v2 in p2.items():
-            if not driven[i] or i not in p0 or i not in p1 or i not in p3 or i not in p4:
+        p3 = ring[3][1]
+        for i, v3 in p3.items():
+            if not driven[i]:
                 continue
-            v1, v3 = p1[i], p3[i]
-            r = v2 - (4.0 * (v1 + v3) - p0[i] - p4[i]) / 6.0
-            u = (v3 - v1) * half_q * big_d
+            vals = [p.get(i, math.nan) for _, p in ring]
+            r = v3 - _quintic_mid(vals[0], vals[1], vals[2], vals[4], vals[5], vals[6])
+            u = (vals[4] - vals[2]) * half_q * big_d
+            noise = GRID_NOISE_ULPS * (_float32_ulp(v3) or math.ulp(v3))
+            if not abs(r) <= GRID_OUTLIER * abs(u) + noise:
+                continue  # the motion's own shape (a step, a kink), or an axis not in each
             ru += r * u
             uu += u * u
             rr += r * r
@@ -344,6 +357,12 @@ class Timeline:
             self.at_stamps = False
         elif not self.at_stamps and a - GRID_SIGMAS * se > 0.5:
             self.at_stamps = True
+
+
+def _quintic_mid(f0: float, f1: float, f2: float, f4: float, f5: float, f6: float) -> float:
+    """The quintic through six equally spaced points at -3, -2, -1, 1, 2, 3 evaluated at 0 (exact
+    on quintics; off by ``h^6 f^(6) / 20`` on a smooth motion)."""
+    return (15.0 * (f2 + f4) - 6.0 * (f1 + f5) + (f0 + f6)) / 20.0
 
 
 def _float32_ulp(v: float) -> float:
