@@ -320,10 +320,10 @@ class Timeline:
         the middle value's residual from the quintic through the other six (uniform grid: exact
         on quintics, so a smooth motion's own shape leaves ``h^6 x^(6) / 20`` of it, nothing
         beside the rounding's ``slope x 0.1 us`` even at 50 Hz) is ``r ~ 0`` if the values lie
-        on the grid, ``r ~ u = slope (d - the same quintic's d)`` if they lie at the stamps.  ``alpha = sum r u / sum u u`` (recent windows,
-        GRID_GAIN) decides, once it lies GRID_SIGMAS standard errors beyond 1/2; until then the
-        stamps are the instants.  Windows neither reading explains (GRID_OUTLIER) are left
-        out."""
+        on the grid, ``r ~ u = slope (d - the same quintic's d)`` if they lie at the stamps.
+        ``alpha = sum r u / sum u u`` (recent windows, GRID_GAIN) decides, once it lies
+        GRID_SIGMAS standard errors beyond 1/2; until then the stamps are the instants.
+        Windows neither reading explains (GRID_OUTLIER) are left out."""
         ring = self._grid_ring
         d = [e for e, _ in ring]
         big_d = d[3] - _quintic_mid(d[0], d[1], d[2], d[4], d[5], d[6])
