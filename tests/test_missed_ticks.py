@@ -125,6 +125,41 @@ def test_a_stall_is_computed_as_if_every_deadline_had_ticked() -> None:
     assert MAX_CATCH_UP > 150
 
 
+@pytest.mark.parametrize("stamped", [False, True])
+def test_a_stall_of_the_loop_does_not_move_the_playback(stamped: bool) -> None:
+    """A 1 kHz sender (with ``t`` or without) whose frames land 0.3-0.9 ms late, the loop
+    stalled for 15 ms at a time: the frames that landed meanwhile are taken at the tick after
+    it, and none of them may say it landed before it did, so the playback's offset (the
+    smallest transit) and delay stay where they were.  A frame without ``t`` taken at a missed
+    deadline used to read as having landed up to the whole stall early: the playback then ran
+    up to 15 ms ahead of the samples for ten seconds."""
+    cfg = load_config(config_file("motcomp.toml"))
+    params, state = new_tick(cfg, resolve_axes(cfg))
+    rng = np.random.default_rng(5)
+    landed = [j + rng.uniform(0.3, 0.9) for j in range(9000)]  # ms
+    j = 0
+    offsets, delays = [], []
+    k = 0
+    while k < 9000:
+        stall = 15 if k % 1500 == 700 and k > 3000 else 0
+        k += stall
+        frames = []
+        while landed[j] <= k:
+            frames.append(encode_input(j, 1.7e9 + j * 1e-3 if stamped else None,
+                                       motion(j * 1e-3)))
+            j += 1
+        step(state, params, k * MS, frames, stall)
+        pb = state.shaper.playback
+        offsets.append(pb.offset)
+        delays.append(pb.delay)
+        k += 1
+    assert state.rejected == 0
+    settled = np.array(delays[2500:3000])  # before the first stall
+    after = np.array(delays[3000:])
+    assert np.all(after >= settled.min() - 1e-4), (settled.min(), after.min())
+    assert np.all(np.array(offsets[3000:]) >= min(offsets[2500:3000]) - 1e-4)
+
+
 def _sender(endpoint: str, stop: threading.Event) -> None:
     with open_session(ZenohEndpoints(connect=(endpoint,))) as session:
         pub = session.declare_publisher("sim/motion/setpoint")

@@ -321,12 +321,18 @@ class ReferenceShaper:
             self._blend_pending = True  # from the reference the next tick plays back
         self.last_input_s = now
 
+    def landing_known(self, t_sender: float | None) -> bool:
+        """Whether when a sample landed can be bounded from its ``t``: a stamped sample on a
+        stamped timeline whose smallest transit is known."""
+        return t_sender is not None and self.playback.offset is not None \
+            and self.timeline.stamped
+
     def landed_by(self, t_sender: float | None, now: float) -> bool:
         """Whether a stamped sample at ``t_sender`` had landed by the loop instant ``now`` at
-        the smallest transit seen (a frame without ``t``, or before a transit is known: yes):
-        which of the frames a tick after a stall takes is due at each deadline it missed."""
+        the smallest transit seen (where :meth:`landing_known` is not: yes): which of the frames
+        a tick after a stall takes is due at each deadline it missed."""
         off = self.playback.offset
-        if t_sender is None or off is None or not self.timeline.stamped:
+        if off is None or t_sender is None or not self.landing_known(t_sender):
             return True
         return t_sender - self.timeline.base() + off <= now + LANDED_SLACK_S
 

@@ -55,7 +55,9 @@ Rules for edge cases
   landed by (catch-up, below): the loop's stall is not an input loss.
 * Catch-up: when the caller missed deadlines (``skipped`` > 0, a stall of its thread), the
   frames that landed meanwhile are taken first (the shaper plays each sample at its own
-  instant, so the deadlines missed see the samples they would have seen), then the
+  instant, so the deadlines missed see the samples they would have seen; a stamped one at
+  the deadline its ``t`` says it had landed by, one without ``t`` timed by the instant it was
+  drained, never before it landed), then the
   compensator is stepped at the ``min(skipped, MAX_CATCH_UP)`` deadlines just before
   ``now_ns``, with the reference of each and no output, so that its discrete dynamics stay on
   the real time grid instead of seeing the reference jump several samples at once (their
@@ -308,7 +310,11 @@ def step(state: TickState, p: TickParams, now_ns: int,
         for j in range(min(skipped, MAX_CATCH_UP), 0, -1):
             d = (now_ns - j * period) / 1e9
             while k < len(parsed) and shaper.landed_by(parsed[k][1], d):
-                _take(state, p, d, d, parsed[k])  # at the deadline it had landed by
+                # at the deadline it had landed by; a frame whose landing its t cannot bound
+                # (no t, no transit known yet) is timed by the instant it was drained: never
+                # before it landed
+                item = parsed[k]
+                _take(state, p, d, d if shaper.landing_known(item[1]) else arrived, item)
                 k += 1
             r, m = shaper.reference(sp, d)
             if m or state._windowed:
