@@ -179,7 +179,7 @@ def test_values_on_a_grid_its_epoch_stamps_round_are_read_on_that_grid(axis: str
             assert hf <= 2.0 * hf0, (kind, bypass, hf, hf0)
             assert jerk <= 3.0 * jerk0, (kind, bypass, jerk, jerk0)
         if rate_hz < 100.0:
-            continue  # float32 at 60 Hz: 5 s of 8 to decide (below)
+            continue  # float32 at 60 Hz: about 6 s of the 8 to decide (docstring)
         share, hf, jerk = _run(cfg, "float32_rounded", axis, bypass, rate_hz, _sine)
         floor = _run(cfg, "float32", axis, bypass, rate_hz, _sine)  # exact stamps
         assert share == 0.0
