@@ -331,9 +331,10 @@ class ReferenceShaper:
         """Whether a stamped sample at ``t_sender`` had landed by the loop instant ``now`` at
         the smallest transit seen (where :meth:`landing_known` is not: yes): which of the frames
         a tick after a stall takes is due at each deadline it missed."""
-        off = self.playback.offset
-        if off is None or t_sender is None or not self.landing_known(t_sender):
+        if not self.landing_known(t_sender):
             return True
+        off = self.playback.offset
+        assert t_sender is not None and off is not None  # (landing_known)
         return t_sender - self.timeline.base() + off <= now + LANDED_SLACK_S
 
     def next_t_bound(self, p: ShaperParams, now: float, arrived: float
