@@ -11,7 +11,7 @@ import pytest
 
 from motcomp.config import ServiceConfig, load_config, new_tick, resolve_axes
 from motcomp.core.axes import AXIS_INDEX
-from motcomp.core.interp import Knot
+from motcomp.core.interp import ROUNDING_SLOPE, STENCIL_S, Curve, Knot, beyond_rounding
 from motcomp.core.interp import extrapolate as _extrapolate
 from motcomp.core.interp import knot as _knot
 from motcomp.core.interp import quintic as _quintic
@@ -284,6 +284,55 @@ def test_knots_are_exact_on_a_cubic_on_an_uneven_grid() -> None:
         assert knot.fields()[2:] == pytest.approx(_cubic(knot.t)[1:], rel=1e-6, abs=1e-6)
     assert h[1].m == pytest.approx((_cubic(ts[1])[0] - _cubic(0.0)[0]) / ts[1])  # a line
     assert (h[1].a, h[1].j) == (0.0, 0.0)
+
+
+def test_a_float32_values_slope_is_taken_over_the_stencils_spacing() -> None:
+    """A float32 value's derivatives come from samples at least STENCIL_S before it, its own
+    neighbour included (one period's difference would carry its rounding 5 times over at
+    1 kHz); a float64 value's from the sample just before it."""
+    dt = 2.0 ** -10  # 0.98 ms, exact: five steps are 4.9 ms, six 5.9
+    assert 5 * dt < STENCIL_S <= 6 * dt
+    for f32 in (True, False):
+        c = Curve()
+        for k in range(1025):
+            v = 0.31 + 0.2 * (k * dt) ** 2
+            c.add(k * dt, float(np.float32(v)) if f32 else v, 1e-4)
+        newest = c.knots[-1]
+        last = -7 if f32 else -2  # six steps back, or the one just before
+        picked = [c.knots[last - 12], c.knots[last - 6], c.knots[last]]
+        assert newest.fields() == _knot(picked, newest.t, newest.v).fields(), f32
+
+
+def test_a_slope_difference_within_the_values_rounding_steps_and_beyond_it_fades() -> None:
+    """beyond_rounding: ROUNDING_SLOPE ulps of the value (its float32 ulp where it is one) per
+    sample spacing are taken off a slope difference's size (closed form)."""
+    v32 = float(np.float32(0.3))  # in [0.25, 0.5): a float32 ulp of 2^-25
+    e = ROUNDING_SLOPE * 2.0 ** -25 / 1e-3
+    assert beyond_rounding(0.5 * e, v32, 1e-3) == 0.0
+    assert beyond_rounding(-0.9 * e, v32, 1e-3) == 0.0
+    assert beyond_rounding(3.0 * e, v32, 1e-3) == pytest.approx(2.0 * e, rel=1e-12)
+    assert beyond_rounding(-3.0 * e, v32, 1e-3) == pytest.approx(-2.0 * e, rel=1e-12)
+    v64 = 0.3 + 1e-9  # not a float32: its own ulp, 5.6e-17
+    assert beyond_rounding(1e-6, v64, 1e-3) == pytest.approx(1e-6 - ROUNDING_SLOPE
+                                                             * math.ulp(v64) / 1e-3, rel=1e-15)
+    assert beyond_rounding(1e-6, v32, 0.0) == 1e-6  # no spacing known: all of it fades
+
+
+def test_a_late_sample_never_steps_the_played_value() -> None:
+    """A float32 line (slope 0.2) bridged over a late sample: the played value's difference to
+    the extrapolation is faded, never stepped; a slope difference the values' rounding explains
+    (the sample on the line) is not faded, one beyond it (the sample 1 um off) is."""
+    phi = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)  # the fade held still: its start shows
+    for off, slope_faded in ((0.0, False), (1e-6, True)):
+        c = Curve()
+        for k in range(20):
+            c.add(k * 1e-3, float(np.float32(0.3 + 0.2 * k * 1e-3)), 1e-4)
+        c.at(0.0195, 0.01, phi, 0.2)  # extrapolating past the newest (0.019)
+        before = c.at(0.0205, 0.01, phi, 0.2)
+        c.add(0.020, float(np.float32(0.3 + 0.2 * 0.020 + off)), 1e-4)  # lands late
+        after = c.at(0.0205, 0.01, phi, 0.2)
+        assert after == pytest.approx(before, abs=1e-15) and c.fix is not None
+        assert (abs(c.fix[1]) > 1e-4) == slope_faded, (off, c.fix)
 
 
 def test_the_quintic_meets_each_sample_to_the_acceleration() -> None:

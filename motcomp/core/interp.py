@@ -14,9 +14,11 @@ Contract
   parabola reached there (no velocity step).
 * :class:`Curve` holds an axis' knots and plays them back at an instant: interpolated where
   samples lie on both sides, extrapolated beyond the newest; when a sample arrives under an
-  extrapolation, the difference in value and slope is added to a correction that fades out
-  through a critically damped triple pole (:func:`fade_transition`), so the played value stays
-  continuous to its acceleration.
+  extrapolation, the difference in value, and in slope beyond what the values' rounding
+  explains (:func:`beyond_rounding`), is added to a correction that fades out through a
+  critically damped triple pole (:func:`fade_transition`): the played value never steps, and
+  the samples' rounding is not integrated into a slow excursion (docs/WIRE.md, "Late
+  frames").
 
 Nothing here reads a clock or knows about frames, senders or modes.
 """
@@ -30,12 +32,15 @@ from mypy_extensions import mypyc_attr
 
 from motcomp.core.minjerk import min_jerk, min_jerk_rate
 
-__all__ = ["FIX_FLOOR", "HISTORY", "STENCIL_S", "Curve", "Knot", "Transition", "extrapolate",
-           "fade_transition", "hermite", "knot", "quintic", "segment", "stencil"]
+__all__ = ["FIX_FLOOR", "HISTORY", "ROUNDING_SLOPE", "STENCIL_S", "Curve", "Knot", "Transition",
+           "beyond_rounding", "extrapolate", "fade_transition", "float32_ulp", "hermite", "knot",
+           "quintic", "segment", "stencil"]
 
 STENCIL_S: Final = 5e-3
-"""A knot's derivatives are taken from samples at least this far apart: as exact on cubics,
-and a 1 kHz sender's value noise reaches the jerk over 100 times less than over one period."""
+"""A knot's derivatives are taken from samples at least this far apart (the sample itself from
+the one before it only where its value carries a float32's rounding): as exact on cubics, and
+a 1 kHz sender's value noise reaches the jerk over 100 times less than over one period, a
+float32's the slope 5 times less."""
 HISTORY = 64
 """Knots kept per axis before the one the playback is in (trimmed in batches once twice as
 many): a stencil (three knots 5 ms apart) never reaches further back."""
@@ -44,6 +49,9 @@ MAX_KNOTS = 4096
 FIX_POLE_FACTOR = 6.0
 """The correction's fade is a triple pole at ``-FIX_POLE_FACTOR / blend_s``: within 6 % of its
 start after ``blend_s``, 0.05 % after twice it."""
+ROUNDING_SLOPE: Final = 2.0
+"""A slope difference within this many ulps of the values per sample spacing is their rounding
+(the quintic's slope between two samples moves by up to 1.9 ulps per spacing with them)."""
 FIX_FLOOR = 1e-12
 """A correction below this (axis units, and its rate times the blend time) is dropped."""
 
@@ -74,21 +82,18 @@ class Knot:
         return f"Knot{self.fields()!r}"
 
 
-def stencil(h: list[Knot], end: int) -> list[Knot]:
-    """The (up to) three knots before ``h[end]`` (or before a new sample at ``end``) that its
-    derivatives are computed from: each at least :data:`STENCIL_S` before the next, going back
-    (the one just before a new sample whatever its time)."""
+def stencil(h: list[Knot], end: int, t: float, spaced: bool) -> list[Knot]:
+    """The (up to) three knots before ``h[end]`` (or before a new sample at ``end``), at ``t``,
+    that its derivatives are computed from: each at least :data:`STENCIL_S` before the next,
+    going back (the first knot if none is that far); the first one too where ``spaced`` (the
+    values carry a float32's rounding), else the knot just before whatever its time."""
     out: list[Knot] = []
-    if end == 0:
-        return out
-    newest = end >= len(h)
-    t_next = 0.0 if newest else h[end].t
+    t_next = t if spaced else math.inf
     j = end - 1
     while j >= 0 and len(out) < 3:
-        if newest or t_next - h[j].t >= STENCIL_S or j == 0:
+        if t_next - h[j].t >= STENCIL_S or j == 0:
             out.append(h[j])
             t_next = h[j].t
-            newest = False
         j -= 1
     out.reverse()
     return out
@@ -188,6 +193,23 @@ def extrapolate(src: Knot, tau: float, bound: float) -> tuple[float, float]:
     return value + r * (slope + 0.5 * acc * r), slope + acc * r
 
 
+def float32_ulp(v: float) -> float:
+    """The ulp of ``v`` as a float32 where ``v`` is one (a sender's float32 value), else 0."""
+    m, e = math.frexp(v)
+    m24 = m * 16777216.0
+    return math.ldexp(1.0, e - 24) if m24 == math.floor(m24) and v != 0.0 else 0.0
+
+
+def beyond_rounding(ds: float, v: float, spacing: float) -> float:
+    """The part of a slope difference ``ds`` beyond what the rounding of a sample ``v`` (its
+    float32 ulp where it is one, else its ulp) explains over the samples' ``spacing``:
+    :data:`ROUNDING_SLOPE` ulps per spacing taken off its size (0 within it)."""
+    if spacing <= 0.0:
+        return ds
+    e = ROUNDING_SLOPE * (float32_ulp(v) or math.ulp(v)) / spacing
+    return ds - e if ds > e else ds + e if ds < -e else 0.0
+
+
 def fade_transition(dt: float, blend_s: float) -> tuple[float, ...]:
     """``exp(A dt)`` (row-major 3x3) of a correction's (value, rate, acceleration) under a
     critically damped triple pole at ``-w``, ``w = FIX_POLE_FACTOR / blend_s``:
@@ -256,9 +278,9 @@ class Curve:
             h.clear()
             h.append(knot(h, t, v))
         elif t - h[-1].t < min_dt:
-            h[-1] = knot(stencil(h, len(h) - 1), h[-1].t, v)
+            h[-1] = knot(stencil(h, len(h) - 1, h[-1].t, float32_ulp(v) > 0.0), h[-1].t, v)
         else:
-            h.append(knot(stencil(h, len(h)), t, v))
+            h.append(knot(stencil(h, len(h), t, float32_ulp(v) > 0.0), t, v))
             if len(h) > MAX_KNOTS:  # never played back (no playback yet): the newest only
                 del h[:len(h) - HISTORY]
 
@@ -293,8 +315,10 @@ class Curve:
             xo, so = extrapolate(prev, tau, bound)  # the samples changed under it
             if fix is None:
                 self.fix = fix = [0.0, 0.0, 0.0]
-            fix[0] += xo - x  # continuous in position and velocity, added to what fades
-            fix[1] += so - xs
+            fix[0] += xo - x  # continuous in position, added to what fades
+            if len(h) > 1:
+                j = len(h) - 2 if src is not None else segment(h, tau)
+                fix[1] += beyond_rounding(so - xs, h[j + 1].v, h[j + 1].t - h[j].t)
         self.extra = src
         if fix is None:
             self.slope = xs

@@ -38,7 +38,7 @@ import math
 
 from mypy_extensions import mypyc_attr
 
-from motcomp.core.interp import Curve
+from motcomp.core.interp import Curve, float32_ulp
 
 __all__ = ["MAX_SKIP", "Timeline"]
 
@@ -282,7 +282,7 @@ class Timeline:
                 km, kn = h[-4], h[-5]
                 sm = (v0 - km.v) * q / (t0 - km.t)
                 c1, c0, cm = s1 - s0, s0 - sm, sm - (km.v - kn.v) * q / (km.t - kn.t)
-                floor = max(SKIP_NOISE, 4.0 * _float32_ulp(v))
+                floor = max(SKIP_NOISE, 4.0 * float32_ulp(v))
                 steady = (abs(c1) >= floor and abs(c1 - c0) <= SKIP_TOLERANCE * abs(c1)
                           and abs(c0 - cm) <= SKIP_TOLERANCE * abs(c1))
                 score = max(score, abs(c1))
@@ -336,7 +336,7 @@ class Timeline:
             vals = [p.get(i, math.nan) for _, p in ring]
             r = v3 - _quintic_mid(vals[0], vals[1], vals[2], vals[4], vals[5], vals[6])
             u = (vals[4] - vals[2]) * half_q * big_d
-            noise = GRID_NOISE_ULPS * (_float32_ulp(v3) or math.ulp(v3))
+            noise = GRID_NOISE_ULPS * (float32_ulp(v3) or math.ulp(v3))
             if not abs(r) <= GRID_OUTLIER * abs(u) + noise:
                 continue  # the motion's own shape (a step, a kink), or an axis not in each
             ru += r * u
@@ -363,10 +363,3 @@ def _quintic_mid(f0: float, f1: float, f2: float, f4: float, f5: float, f6: floa
     """The quintic through six equally spaced points at -3, -2, -1, 1, 2, 3 evaluated at 0 (exact
     on quintics; off by ``h^6 f^(6) / 20`` on a smooth motion)."""
     return (15.0 * (f2 + f4) - 6.0 * (f1 + f5) + (f0 + f6)) / 20.0
-
-
-def _float32_ulp(v: float) -> float:
-    """The ulp of ``v`` as a float32 where ``v`` is one (a sender's float32 value), else 0."""
-    m, e = math.frexp(v)
-    m24 = m * 16777216.0
-    return math.ldexp(1.0, e - 24) if m24 == math.floor(m24) and v != 0.0 else 0.0
