@@ -19,8 +19,9 @@ the ideal run has before its motion), on the axis the scenario moves:
 * HF acc RMS above 5 Hz and jerk RMS of the command over the stretches of consecutive ticks,
   each beside the ideal run's over the same stretches and their ratio; the ideal run:
   ``motcomp.sim.ideal.ideal_run`` of the same config and mode fed the motion function sampled
-  at the sender's rate, perfectly timed (what the live path adds; the ideal rows of the table:
-  at 1 kHz);
+  at the sender's rate and in its number format (float32 values rounded as the sender rounds
+  them: their noise is the design's noise figure, not the live path's doing), perfectly timed
+  (what the live path adds; the ideal rows of the table: float64 at 1 kHz);
 * missed deadlines (the output frames' ``t`` stepping by more than a period, and the service's
   own ``missed_ticks`` over the run), lost frames, the 1-minute load at the run's end.
 
@@ -123,6 +124,11 @@ class SenderClass:
         return ["--kind", self.kind, "--rate", f"{self.rate_hz:g}", *self.extra]
 
     @property
+    def floor(self) -> tuple[float, bool]:
+        """What the sender's ideal run shares with it: its rate, and float32 values."""
+        return self.rate_hz, self.kind == "float32"
+
+    @property
     def one_khz(self) -> bool:
         """Samples about every ms: the delay target applies (varstep: steps of 0.5-2 ms)."""
         return self.rate_hz == 1000.0
@@ -170,12 +176,14 @@ class Ideal:
 
 
 def ideal(cfg: ServiceConfig, scenario: str, duration_s: float, a_max: float,
-          truth: Any, rate_hz: float = IDEAL_RATE_HZ) -> Ideal:
+          truth: Any, rate_hz: float = IDEAL_RATE_HZ, float32: bool = False) -> Ideal:
     """The ideal run of ``scenario`` through the config of a mode, ``cfg``: the motion
-    sampled at ``rate_hz``, perfectly timed."""
+    sampled at ``rate_hz`` (rounded to float32 where ``float32``), perfectly timed."""
     signal, axis = SIGNALS[scenario]
     tau = np.arange(round(duration_s * rate_hz)) / rate_hz
     ref = np.array([signal(x) for x in tau])
+    if float32:
+        ref = ref.astype(np.float32).astype(float)
     run = ideal_run(cfg, {axis: ref}, rate_hz)  # (the mode's config: its bypass)
     u = run.u[axis]
     y = simulate_axis(truth, u, run.rate_hz)
@@ -366,7 +374,7 @@ def report(args: argparse.Namespace, runs: list[dict[str, Any]], ideals: list[di
                   "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for mode in args.modes:
             i = next((r for r in ideals if r["scenario"] == scenario and r["mode"] == mode
-                      and r["rate_hz"] == IDEAL_RATE_HZ), None)
+                      and r["rate_hz"] == IDEAL_RATE_HZ and not r["float32"]), None)
             if i is not None:
                 lines.append(
                     f"| ideal, 1 kHz | {mode} | {fmt(i['delay_ms'])} | - | {pct(i['at_limit'])}"
@@ -407,8 +415,9 @@ def report(args: argparse.Namespace, runs: list[dict[str, Any]], ideals: list[di
         f"{HF_ABOVE_HZ:g} Hz; *jerk RMS*: its third difference; both over the stretches of "
         "consecutive ticks (a missed deadline or a lost frame cuts a stretch, nothing is "
         "bridged), beside the ideal run's command (`motcomp.sim.ideal.ideal_run`, the same "
-        "config and mode, the motion function sampled at the sender's rate, perfectly timed: "
-        "what the live path adds to what the sender's rate itself costs) cut into the same "
+        "config and mode, the motion function sampled at the sender's rate and in its format "
+        "(float32 values rounded), perfectly timed: what the live path adds to what the "
+        "sender's rate and format themselves cost) cut into the same "
         "stretches; *ratio* = live / ideal.  *missed deadlines*: in the window, steps of "
         "the output frames' `t` by more than a period / over the whole run, the service's "
         "own `missed_ticks`.  *load*: the 1-minute load average at the run's end.  Targets "
@@ -559,19 +568,19 @@ def measure(args: argparse.Namespace, ap: argparse.ArgumentParser, cfg_path: Pat
     print(f"machine: {machine_line}", flush=True)
     t_start = time.monotonic()
     ideals: list[dict[str, Any]] = []
-    ideal_u: dict[tuple[str, str, float], np.ndarray] = {}
-    rates = sorted({CLASSES[name].rate_hz for name in args.kinds} | {IDEAL_RATE_HZ},
-                   reverse=True)
+    ideal_u: dict[tuple[str, str, tuple[float, bool]], np.ndarray] = {}
+    floors = sorted({CLASSES[name].floor for name in args.kinds} | {(IDEAL_RATE_HZ, False)},
+                    reverse=True)
     for scenario in args.scenarios:
         axis = SIGNALS[scenario][1]
         for mode in args.modes:
-            for rate in rates:  # each sender beside the ideal run at its own rate
+            for rate, f32 in floors:  # each sender beside the ideal run at its rate and format
                 i = ideal(load_config(configs[mode]), scenario, args.duration,
-                          a_max[scenario], truth[AXIS_INDEX[axis]], rate)
-                ideal_u[scenario, mode, rate] = i.u
+                          a_max[scenario], truth[AXIS_INDEX[axis]], rate, f32)
+                ideal_u[scenario, mode, (rate, f32)] = i.u
                 ideals.append({"scenario": scenario, "mode": mode, "axis": axis,
-                               "rate_hz": rate, **i.figures})
-                print(f"  ideal {scenario} {mode} {rate:g} Hz: delay "
+                               "rate_hz": rate, "float32": f32, **i.figures})
+                print(f"  ideal {scenario} {mode} {rate:g} Hz{' float32' if f32 else ''}: delay "
                       f"{fmt(i.figures['delay_ms'])} ms, at acc limit "
                       f"{pct(i.figures['at_limit'])} %, HF acc "
                       f"{fmt(i.figures['hf_acc_rms'], '.3g')}, jerk "
@@ -610,11 +619,11 @@ def measure(args: argparse.Namespace, ap: argparse.ArgumentParser, cfg_path: Pat
                                            "scenario": scenario, "axis": axis,
                                            "bypassed": bool(bypassed[mode][AXIS_INDEX[axis]])}
                     row.update(analyse(rec, cls, scenario, args.duration, a_max[scenario],
-                                       loop_hz, ideal_u[scenario, mode, cls.rate_hz]))
+                                       loop_hz, ideal_u[scenario, mode, cls.floor]))
                     row["targets"] = targets(row, cls, row["bypassed"])
                     if args.first:
                         row["first"] = first_seconds(rec, scenario, a_max[scenario], loop_hz,
-                                                     ideal_u[scenario, mode, cls.rate_hz],
+                                                     ideal_u[scenario, mode, cls.floor],
                                                      args.duration)
                     runs.append(row)
                     failed = [k for k, v in row["targets"].items() if v is False]
