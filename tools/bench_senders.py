@@ -160,6 +160,9 @@ FIRST_WINDOWS_S = ((0.0, 3.0), (3.0, 6.0), (6.0, 9.0))
 """... the delay fitted in each of these windows after the blend into the live input ends (the
 blend from neutral is not the driver's motion: it lasts ``loop.startup_s``/``rejoin_s``, or
 longer where the gap and the velocity to merge need it)."""
+MIN_WINDOW_S = 1.5
+"""... a window cut by the pause (a start blend longer than usual) shorter than this is not
+measured."""
 QUICK_KINDS = ["grid-1k", "wallclock", "no_t"]
 QUICK_SCENARIOS = ["slalom"]
 QUICK_DURATION_S = 8.0
@@ -294,14 +297,18 @@ def first_seconds(rec: Recording, scenario: str, a_max: float, loop_hz: float,
 
     out: dict[str, Any] = {}
     settled_from = None
+    paused = t0 + PAUSE_S[0] if resumed is not None else math.inf
     for label, start in (("start", t0), ("resume", resumed)):
         if start is None:
             continue
         end = blend_end(start)
-        windows = [delay(end + a, end + b) for a, b in FIRST_WINDOWS_S]
+        stop = paused if label == "start" else math.inf  # the start's windows end at the pause
+        windows = [delay(end + a, min(end + b, stop)) if min(end + b, stop) - (end + a)
+                   >= MIN_WINDOW_S else math.nan for a, b in FIRST_WINDOWS_S]
+        measured = [w for w in windows if not math.isnan(w)]
         out[label] = {"blend_s": end - start, "delays_ms": windows,
-                      "worst_ms": max(windows, key=abs),
-                      **quality(end, end + FIRST_WINDOWS_S[-1][1])}
+                      "worst_ms": max(measured, key=abs) if measured else math.nan,
+                      **quality(end, min(end + FIRST_WINDOWS_S[-1][1], stop))}
         settled_from = end + FIRST_WINDOWS_S[-1][1]
     if resumed is not None and settled_from is not None \
             and t0 + duration_s > settled_from + 2.0:
@@ -454,7 +461,9 @@ def first_report(args: argparse.Namespace, runs: list[dict[str, Any]], elapsed_s
         "or longer, as the gap and the velocity to merge need); delays of the feedback behind "
         "the sender's motion in the windows "
         f"{', '.join(f'{a:g}-{b:g} s' for a, b in FIRST_WINDOWS_S)} after each blend (the worst "
-        "of the three shown, then all three), and settled (from then to the end); the "
+        "of the three shown, then all three; the start's end at the pause, a window left "
+        f"shorter than {MIN_WINDOW_S:g} s by a long blend is not measured: nan), and settled "
+        "(from then to the end); the "
         "command's HF acceleration and jerk over those 9 s, and settled, as ratios to the "
         "ideal run's over the same stretches; the status' input lag at the end beside "
         "`input.playback_lag_s`.",
