@@ -303,19 +303,25 @@ def test_a_float32_values_slope_is_taken_over_the_stencils_spacing() -> None:
         assert newest.fields() == _knot(picked, newest.t, newest.v).fields(), f32
 
 
-def test_a_slope_difference_within_the_values_rounding_steps_and_beyond_it_fades() -> None:
-    """beyond_rounding: ROUNDING_SLOPE ulps of the value (its float32 ulp where it is one) per
-    sample spacing are taken off a slope difference's size (closed form)."""
+def test_a_slope_difference_within_the_samples_rounding_steps_and_beyond_it_fades() -> None:
+    """beyond_rounding: ROUNDING_SLOPE times the sample's rounding -- its value's ulp (float32's
+    where it is one) plus its slope times its stamp's resolution -- per sample spacing is
+    taken off a slope difference's size (closed form)."""
     v32 = float(np.float32(0.3))  # in [0.25, 0.5): a float32 ulp of 2^-25
     e = ROUNDING_SLOPE * 2.0 ** -25 / 1e-3
-    assert beyond_rounding(0.5 * e, v32, 1e-3) == 0.0
-    assert beyond_rounding(-0.9 * e, v32, 1e-3) == 0.0
-    assert beyond_rounding(3.0 * e, v32, 1e-3) == pytest.approx(2.0 * e, rel=1e-12)
-    assert beyond_rounding(-3.0 * e, v32, 1e-3) == pytest.approx(-2.0 * e, rel=1e-12)
+    assert beyond_rounding(0.5 * e, v32, 0.0, 0.0, 1e-3) == 0.0
+    assert beyond_rounding(-0.9 * e, v32, 0.0, 0.0, 1e-3) == 0.0
+    assert beyond_rounding(3.0 * e, v32, 0.0, 0.0, 1e-3) == pytest.approx(2.0 * e, rel=1e-12)
+    assert beyond_rounding(-3.0 * e, v32, 0.0, 0.0, 1e-3) == pytest.approx(-2.0 * e, rel=1e-12)
     v64 = 0.3 + 1e-9  # not a float32: its own ulp, 5.6e-17
-    assert beyond_rounding(1e-6, v64, 1e-3) == pytest.approx(1e-6 - ROUNDING_SLOPE
-                                                             * math.ulp(v64) / 1e-3, rel=1e-15)
-    assert beyond_rounding(1e-6, v32, 0.0) == 1e-6  # no spacing known: all of it fades
+    assert beyond_rounding(1e-6, v64, 0.0, 0.0, 1e-3) == pytest.approx(
+        1e-6 - ROUNDING_SLOPE * math.ulp(v64) / 1e-3, rel=1e-15)
+    # an epoch stamp (ulp 2.4e-7 s) on a sample moving at 0.5 m/s: 0.12 um more
+    t_res = math.ulp(1.8e9)
+    e64 = ROUNDING_SLOPE * (math.ulp(v64) + 0.5 * t_res) / 1e-3
+    assert beyond_rounding(0.9 * e64, v64, -0.5, t_res, 1e-3) == 0.0
+    assert beyond_rounding(2.0 * e64, v64, -0.5, t_res, 1e-3) == pytest.approx(e64, rel=1e-12)
+    assert beyond_rounding(1e-6, v32, 0.0, 0.0, 0.0) == 1e-6  # no spacing known: all fades
 
 
 def test_a_late_sample_never_steps_the_played_value() -> None:

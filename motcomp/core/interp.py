@@ -14,11 +14,11 @@ Contract
   parabola reached there (no velocity step).
 * :class:`Curve` holds an axis' knots and plays them back at an instant: interpolated where
   samples lie on both sides, extrapolated beyond the newest; when a sample arrives under an
-  extrapolation, the difference in value, and in slope beyond what the values' rounding
-  explains (:func:`beyond_rounding`), is added to a correction that fades out through a
-  critically damped triple pole (:func:`fade_transition`): the played value never steps, and
-  the samples' rounding is not integrated into a slow excursion (docs/WIRE.md, "Late
-  frames").
+  extrapolation, the difference in value, and in slope beyond what the samples' rounding (of
+  their values and their stamps) explains (:func:`beyond_rounding`), is added to a correction
+  that fades out through a critically damped triple pole (:func:`fade_transition`): the played
+  value never steps, and the samples' rounding is not integrated into a slow excursion
+  (docs/WIRE.md, "Late frames").
 
 Nothing here reads a clock or knows about frames, senders or modes.
 """
@@ -49,9 +49,10 @@ MAX_KNOTS = 4096
 FIX_POLE_FACTOR = 6.0
 """The correction's fade is a triple pole at ``-FIX_POLE_FACTOR / blend_s``: within 6 % of its
 start after ``blend_s``, 0.05 % after twice it."""
-ROUNDING_SLOPE: Final = 2.0
-"""A slope difference within this many ulps of the values per sample spacing is their rounding
-(the quintic's slope between two samples moves by up to 1.9 ulps per spacing with them)."""
+ROUNDING_SLOPE: Final = 4.0
+"""A slope difference within this many times a sample's rounding per sample spacing is that
+rounding (the quintic's slope between two samples moves by up to 1.9 times theirs per spacing,
+the extrapolation's about as much with the samples before)."""
 FIX_FLOOR = 1e-12
 """A correction below this (axis units, and its rate times the blend time) is dropped."""
 
@@ -200,13 +201,14 @@ def float32_ulp(v: float) -> float:
     return math.ldexp(1.0, e - 24) if m24 == math.floor(m24) and v != 0.0 else 0.0
 
 
-def beyond_rounding(ds: float, v: float, spacing: float) -> float:
-    """The part of a slope difference ``ds`` beyond what the rounding of a sample ``v`` (its
-    float32 ulp where it is one, else its ulp) explains over the samples' ``spacing``:
-    :data:`ROUNDING_SLOPE` ulps per spacing taken off its size (0 within it)."""
+def beyond_rounding(ds: float, v: float, slope: float, t_res: float, spacing: float) -> float:
+    """The part of a slope difference ``ds`` beyond what the rounding of a sample ``v`` explains
+    over the samples' ``spacing``: its value's (the float32 ulp where it is one, else its ulp)
+    and its stamp's (``slope`` times the stamp's resolution ``t_res``), :data:`ROUNDING_SLOPE`
+    times per spacing, taken off its size (0 within it)."""
     if spacing <= 0.0:
         return ds
-    e = ROUNDING_SLOPE * (float32_ulp(v) or math.ulp(v)) / spacing
+    e = ROUNDING_SLOPE * ((float32_ulp(v) or math.ulp(v)) + abs(slope) * t_res) / spacing
     return ds - e if ds > e else ds + e if ds < -e else 0.0
 
 
@@ -262,6 +264,8 @@ class Curve:
         """The correction (value, rate, acceleration) being faded out; None: none."""
         self.slope = 0.0
         """The curve's slope at the last instant played back."""
+        self.t_res = 0.0
+        """The newest sample's stamp resolution (s; 0: unstamped)."""
 
     def clear(self) -> None:
         self.knots = []
@@ -269,10 +273,12 @@ class Curve:
         self.fix = None
         self.slope = 0.0
 
-    def add(self, t: float, v: float, min_dt: float) -> None:
-        """A sample ``v`` at ``t``.  Closer than ``min_dt`` after the newest knot it replaces
-        it (the same sample again); before it, the history restarts at this sample.  Knots are
-        dropped only once the playback has passed them (:meth:`at`)."""
+    def add(self, t: float, v: float, min_dt: float, t_res: float = 0.0) -> None:
+        """A sample ``v`` at ``t``, stamped to ``t_res`` s (0: unstamped).  Closer than
+        ``min_dt`` after the newest knot it replaces it (the same sample again); before it, the
+        history restarts at this sample.  Knots are dropped only once the playback has passed
+        them (:meth:`at`)."""
+        self.t_res = t_res
         h = self.knots
         if not h or t < h[-1].t:
             h.clear()
@@ -318,7 +324,8 @@ class Curve:
             fix[0] += xo - x  # continuous in position, added to what fades
             if len(h) > 1:
                 j = len(h) - 2 if src is not None else segment(h, tau)
-                fix[1] += beyond_rounding(so - xs, h[j + 1].v, h[j + 1].t - h[j].t)
+                fix[1] += beyond_rounding(so - xs, h[j + 1].v, xs, self.t_res,
+                                          h[j + 1].t - h[j].t)
         self.extra = src
         if fix is None:
             self.slope = xs

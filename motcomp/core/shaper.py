@@ -405,10 +405,11 @@ class ReferenceShaper:
         pb.on_sample(t, arrived, interval, tl.period, tl.stamped)
         driven, live, curves = p.driven, self.live, self.curves
         min_dt = p.min_dt_s
+        t_res = math.ulp(t_sender) if t_sender is not None else 0.0
         for i, v in pos.items():
             if driven[i]:
                 live[i] = v
-                curves[i].add(t, v, min_dt)
+                curves[i].add(t, v, min_dt, t_res)
 
     def park(self, p: ShaperParams, now: float) -> None:
         """Stop requested: ramp to neutral, ignoring input from now on."""
