@@ -601,3 +601,41 @@ def test_a_lead_takes_the_lag_off_a_slow_sender(src_hz: float, lead_s: float) ->
     assert plain[0] - band.delay_s > 0.006 and abs(ahead[0] - band.delay_s) < 0.0015
     assert plain[0] - ahead[0] == pytest.approx(lead_s, abs=5e-4)
     assert share == 0.0 and hf <= 2.0 * _floor(_cfg("smooth"), "slalom", False)
+
+
+def test_the_start_blend_of_a_sender_without_t_waits_for_its_instants() -> None:
+    """A sender without ``t`` on a starved host: a 0.3 m, 0.31 Hz sine on rails_y from its
+    first frame (0.58 m/s), sent in bursts whenever the sender gets the CPU (every 2-8 ms).
+    The start blend waits until the instants' line spans UNSTAMPED_SETTLE_S, so it merges the
+    motion at its rate: the limiter never acts over the 6 s and the blend is over within 3 s of
+    the first frame (blending after 50 ms, as before: the limiter acted on 3362 ticks, the blend
+    lasted 3.4 s; in runs recorded on one core, 812-1590 ticks and 3.1-3.6 s)."""
+    cfg = _cfg("smooth")
+    params, state = new_tick(cfg, resolve_axes(cfg))
+    rng = np.random.default_rng(3)
+    n = 6000
+    arrive = np.empty(n)
+    k = 0
+    wake = 0.0
+    while k < n:  # the sender wakes every 5-25 ms and sends what is due
+        wake += rng.uniform(2e-3, 8e-3)
+        while k < n and k * 1e-3 <= wake:
+            arrive[k] = wake + rng.uniform(0.0, 3e-4)
+            k += 1
+    j, first, limited, blend_end = 0, None, 0, None
+    for tick in range(n):
+        now = tick * 1e-3
+        frames = []
+        while j < n and arrive[j] <= now:
+            x = 0.3 * math.sin(2.0 * math.pi * 0.31 * j * 1e-3)
+            frames.append(msgpack.packb({"seq": j, "pos": {"rails_y": x}}))
+            j += 1
+        out = step(state, params, 10**9 + tick * 1_000_000, frames or None)
+        if first is None and j:
+            first = now
+        limited += bool(out.limited[Y])
+        if first is not None and "rejoin" not in out.flags and blend_end is None \
+                and now - first > 0.1:
+            blend_end = now - first
+    assert limited == 0, (limited, blend_end)
+    assert blend_end is not None and blend_end <= 3.0, blend_end

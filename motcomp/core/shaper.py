@@ -23,9 +23,11 @@ adds to the live input the difference of the held reference (or the ramp it inte
 in position, velocity, acceleration and jerk, faded out to zero in all four: the reference
 leaves the held path and meets the live one with no step in any of them (the compensator turns
 a jerk step into a step of its command's acceleration).  It starts once the live input is what
-the reference will follow: the playback past its second sample, the moving average full and the
-band limit :data:`BAND_SETTLE_DELAYS` of its delays past its seeding (seeded at rest, it follows
-a moving input only after a transient), and :data:`FIT_S` more for the live input's motion (a
+the reference will follow: the playback past its second sample, the instants of a sender
+without ``t`` estimated over :data:`UNSTAMPED_SETTLE_S` of its frames (or played for
+:data:`UNSTAMPED_WAIT_S`), the moving average full and the band limit
+:data:`BAND_SETTLE_DELAYS` of its delays past its seeding (seeded at rest, it follows a moving
+input only after a transient), and :data:`FIT_S` more for the live input's motion (a
 least-squares cubic); the held reference stays until then.  It lasts ``startup_s``/``rejoin_s``,
 or longer per axis where its gap and velocity change need more than a quarter of the axis'
 acceleration limit (``blend_acc``: the compensator multiplies the reference's acceleration by
@@ -104,6 +106,14 @@ BAND_SETTLE_DELAYS = 4.0
 """A blend starts once the band limit has run this many of its delays since it was seeded at
 rest: before, its output lags a moving input by a transient (5.5 mm at 0.78 m/s through 48 Hz)
 that a blend would take for part of the gap and its motion for the input's."""
+UNSTAMPED_SETTLE_S = 0.3
+"""... and, for a sender without ``t``, once its instants' line spans this long: from fewer
+arrivals the estimated period is off by up to a few % on a starved host, and the blend merged a
+motion played that much too fast or slow (the limiter acting for a second, the blend stretched
+to 3.6 s, recorded on one core; docs/WIRE.md "Without t") ..."""
+UNSTAMPED_WAIT_S = 1.0
+"""... or once it has played this long (a line anchored anew again and again, by arrivals
+bunched beyond the 25 ms gate, never spans it)."""
 FIT_S = 0.02
 """... and once the live input has run this long more: its velocity, acceleration and jerk at
 the blend's start are those of the least-squares cubic through these ticks."""
@@ -476,7 +486,8 @@ class ReferenceShaper:
         """``smooth``: whether the live input has run long enough for a blend to start (module
         docstring); keeps its values from the moment it settled."""
         hist = self._live_hist
-        if not self._playing:
+        if not self._playing or (self.timeline.span() < UNSTAMPED_SETTLE_S
+                                 and self._run_s < UNSTAMPED_WAIT_S):
             hist.clear()
             return False
         band_s = max((b.delay_s for b in p.band if b is not None), default=0.0)

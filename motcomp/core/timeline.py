@@ -120,6 +120,11 @@ class Timeline:
         return self._t_base if self._t_base is not None else 0.0
 
     # --- the frame's instant --------------------------------------------------------------
+    def span(self) -> float:
+        """How long (s) the line through the instants of a sender without ``t`` has run since
+        it was anchored (its frames times the period); a stamping sender's: infinite."""
+        return math.inf if self._stamped else self._line_n * self.period
+
     def place(self, t_sender: float | None, frames: int, arrived: float, pos: dict[int, float],
               curves: list[Curve], restart: bool, driven: tuple[bool, ...], min_dt: float,
               stale_after_s: float) -> tuple[float, int, bool]:
