@@ -34,7 +34,7 @@ from motcomp.core.minjerk import min_jerk, min_jerk_rate
 
 __all__ = ["FIX_FLOOR", "HISTORY", "ROUNDING_SLOPE", "STENCIL_S", "Curve", "Knot", "Transition",
            "beyond_rounding", "extrapolate", "fade_transition", "float32_ulp", "hermite", "knot",
-           "quintic", "segment", "stencil"]
+           "quintic", "segment", "stencil", "value_ulp"]
 
 STENCIL_S: Final = 5e-3
 """A knot's derivatives are taken from samples at least this far apart (the sample itself from
@@ -201,6 +201,11 @@ def float32_ulp(v: float) -> float:
     return math.ldexp(1.0, e - 24) if m24 == math.floor(m24) and v != 0.0 else 0.0
 
 
+def value_ulp(v: float) -> float:
+    """A sender's value's rounding: its float32 ulp where it is a float32, else its ulp."""
+    return float32_ulp(v) or math.ulp(v)
+
+
 def beyond_rounding(ds: float, v: float, slope: float, t_res: float, spacing: float) -> float:
     """The part of a slope difference ``ds`` beyond what the rounding of a sample ``v`` explains
     over the samples' ``spacing``: its value's (the float32 ulp where it is one, else its ulp)
@@ -208,7 +213,7 @@ def beyond_rounding(ds: float, v: float, slope: float, t_res: float, spacing: fl
     times per spacing, taken off its size (0 within it)."""
     if spacing <= 0.0:
         return ds
-    e = ROUNDING_SLOPE * ((float32_ulp(v) or math.ulp(v)) + abs(slope) * t_res) / spacing
+    e = ROUNDING_SLOPE * (value_ulp(v) + abs(slope) * t_res) / spacing
     return ds - e if ds > e else ds + e if ds < -e else 0.0
 
 

@@ -38,7 +38,7 @@ import math
 
 from mypy_extensions import mypyc_attr
 
-from motcomp.core.interp import Curve, float32_ulp
+from motcomp.core.interp import Curve, float32_ulp, value_ulp
 
 __all__ = ["MAX_SKIP", "Timeline"]
 
@@ -341,7 +341,7 @@ class Timeline:
             vals = [p.get(i, math.nan) for _, p in ring]
             r = v3 - _quintic_mid(vals[0], vals[1], vals[2], vals[4], vals[5], vals[6])
             u = (vals[4] - vals[2]) * half_q * big_d
-            noise = GRID_NOISE_ULPS * (float32_ulp(v3) or math.ulp(v3))
+            noise = GRID_NOISE_ULPS * value_ulp(v3)
             if not abs(r) <= GRID_OUTLIER * abs(u) + noise:
                 continue  # the motion's own shape (a step, a kink), or an axis not in each
             ru += r * u
