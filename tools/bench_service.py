@@ -12,10 +12,14 @@ service's clock and with ``loop.sync_to_input`` (ticking on input arrival).
 Every service run is paired with a run of the loop's clock alone, as long and with the same loop
 settings (scheduling, slice, naps, spin; a process of its own, no work, no I/O, nothing else of
 the benchmark running), the two in alternating order: the clock's missed ticks are the stalls
-the machine imposes, and the ratio service / clock what the service adds (target <= 1.5).  Once
-per repeat, ``Service.tick`` with in-memory ports is timed in a process of its own, back to back
-and paced at 1 kHz as the loop waits.  Repeats are interleaved; the reading uses medians.
-Writes the "service" section of docs/BENCHMARKS.md.
+the machine imposes, and the ratio service / clock what the service adds (target <= 1.5).  Each
+pair also runs the *transport alone* (the loop's clock, taking the input and putting a fixed
+output on the service's ports, no tick) with the same publisher and receiver: its CPU share is
+what this host's clock and transport take by themselves, beside the service's (target <= 15 %
+of a core).  Once per repeat, ``Service.tick`` with in-memory ports is timed in a process of
+its own, back to back and paced at 1 kHz as the loop waits, and ``tick.step`` alone back to
+back on the same frames (target: ``Service.tick`` <= 1.3x ``tick.step``).  Repeats are
+interleaved; the reading uses medians.  Writes the "service" section of docs/BENCHMARKS.md.
 
 Scheduling modes: the example config as it is (normal scheduling, the loop thread's short slice
 ``loop.slice_us`` and naps of at most ``loop.sleep_max_us``); with ``--plain`` also the kernel's
@@ -55,8 +59,12 @@ SCHEDS = {  # scheduling mode -> [loop] settings over the example config
 }
 RATIO_MAX = 1.5
 """Target: missed ticks of the service / missed ticks of the clock alone."""
+SERVICE_TICK_MAX = 1.3
+"""Target: ``Service.tick`` / ``tick.step`` back to back (medians)."""
+CPU_MAX = 15.0
+"""Target: the service's CPU share at 1 kHz with 8 axes (% of one core)."""
 PAIR_OVERHEAD_S = 8.0
-"""About what a pair costs beyond its two runs (start-ups, parking, status queries)."""
+"""About what a pair costs beyond its three runs (start-ups, parking, status queries)."""
 
 
 # --- child processes --------------------------------------------------------------------------
@@ -101,6 +109,49 @@ def bare_clock(cfg_path: str, seconds: float) -> dict[str, Any]:
             "late_max": r.late_max_us}
 
 
+def transport_alone(cfg_path: str, port: int, seconds: float) -> dict[str, Any]:
+    """Child process: what the service's loop does without its tick -- the config's clock and
+    scheduling, taking the input frames (polling them in input-synchronous mode) and putting one
+    fixed output frame a tick on the service's ports, listening where the service listens: the
+    CPU that the clock and the transport take by themselves on this host."""
+    import threading
+
+    from motcomp.config import load_config
+    from motcomp.io.wire import encode_output
+    from motcomp.io.zenoh_io import ZenohSink, ZenohSource
+    from motcomp.runtime.clock import DeadlineClock
+
+    cfg = load_config(Path(cfg_path))
+    loop = cfg.loop
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    payload = encode_output(0, time.time(), 0, [0.0] * len(AXES), [])
+    result: dict[str, Any] = {}
+
+    def run(src: ZenohSource, sink: ZenohSink) -> None:
+        schedule_like_loop(loop)
+        clock = DeadlineClock(loop.rate_hz, loop.spin_us, sleep_max_us=loop.sleep_max_us)
+        end = time.monotonic() + seconds
+        while not stop.is_set() and time.monotonic() < end:
+            if loop.sync_to_input:
+                clock.wait_or_poll(lambda: bool(src.drain()), loop.poll_us)
+            else:
+                clock.wait()
+            src.drain()
+            sink.put(payload)
+        result["missed"] = clock.missed
+
+    with open_session(ZenohEndpoints(listen=(loopback(port),))) as session:
+        src = ZenohSource(session, cfg.input.key)
+        sink = ZenohSink(session, cfg.output.key)
+        thread = threading.Thread(target=run, args=(src, sink), name="loop")
+        thread.start()
+        thread.join()
+        src.close()
+        sink.close()
+    return result
+
+
 def tick_in_process(cfg_path: str, ticks: int) -> dict[str, list[float]]:
     """Child process: (p50, p99) us of ``Service.tick`` with in-memory ports (a valid 8-axis
     frame in every tick, the encoded output out; no transport), back to back and paced at the
@@ -109,6 +160,7 @@ def tick_in_process(cfg_path: str, ticks: int) -> dict[str, list[float]]:
     import gc
 
     from motcomp.config import load_config
+    from motcomp.core.tick import step
     from motcomp.io.memory import MemorySink, MemorySource
     from motcomp.io.wire import encode_input
     from motcomp.runtime.clock import DeadlineClock
@@ -146,6 +198,20 @@ def tick_in_process(cfg_path: str, ticks: int) -> dict[str, list[float]]:
         if svc.state.accepted != len(frames):
             raise SystemExit(f"the tick accepted {svc.state.accepted} of {len(frames)} frames")
         out[name] = [float(np.percentile(times, 50)) / 1e3, float(np.percentile(times, 99)) / 1e3]
+    # tick.step alone on the same frames, as Service.tick calls it (its state and parameters)
+    svc = Service(cfg, ZenohEndpoints())
+    gc.collect()
+    gc.freeze()
+    times = np.empty(ticks)
+    for k, frame in enumerate(frames):
+        t0 = perf()
+        step(svc.state, svc.params, k * period_ns, [frame], 0, k * period_ns)
+        if k >= settle:
+            times[k - settle] = perf() - t0
+    gc.unfreeze()
+    if svc.state.accepted != len(frames):
+        raise SystemExit(f"tick.step accepted {svc.state.accepted} of {len(frames)} frames")
+    out["step"] = [float(np.percentile(times, 50)) / 1e3, float(np.percentile(times, 99)) / 1e3]
     return out
 
 
@@ -277,6 +343,40 @@ def run_service(seconds: float, cfg: Path) -> dict[str, Any]:
     }
 
 
+def run_transport(seconds: float, cfg: Path) -> float:
+    """The CPU share (% of a core) of :func:`transport_alone` with ``cfg``, the publisher and
+    this process as receiver, counted as a service run counts it (from its first output, over
+    the publisher's run and the last half second)."""
+    p_svc = free_tcp_port()
+    env = child_env()
+    child = subprocess.Popen([sys.executable, __file__, "--transport", str(cfg), "--port",
+                              str(p_svc), "--seconds", str(seconds + 60)], env=env,
+                             stdout=subprocess.DEVNULL)
+    try:
+        with open_session(ZenohEndpoints(connect=(loopback(p_svc),))) as session:
+            arrived = [0]
+            sub = session.declare_subscriber(
+                "platform/setpoint", lambda _: arrived.__setitem__(0, arrived[0] + 1))
+            t_end = time.monotonic() + 30
+            while arrived[0] == 0:
+                if time.monotonic() > t_end or child.poll() is not None:
+                    raise SystemExit("the transport-alone run never sent an output")
+                time.sleep(0.05)
+            cpu0, _ = proc_cpu_rss(child.pid)
+            w0 = time.monotonic()
+            pub = subprocess.Popen([sys.executable, __file__, "--publisher", str(p_svc),
+                                    "--seconds", str(seconds)], env=env)
+            pub.wait()
+            time.sleep(0.5)
+            cpu1, _ = proc_cpu_rss(child.pid)
+            wall = time.monotonic() - w0
+            sub.undeclare()
+    finally:
+        child.send_signal(signal.SIGTERM)
+        child.wait(timeout=30)
+    return 100 * (cpu1 - cpu0) / wall
+
+
 def run_pair(seconds: float, sync: bool, sched: str, tmp: Path, spin_us: float | None,
              clock_first: bool) -> dict[str, Any]:
     """A service run and a clock-alone run of the same length and loop settings."""
@@ -289,6 +389,7 @@ def run_pair(seconds: float, sync: bool, sched: str, tmp: Path, spin_us: float |
                clock_missed_min=bare["missed"] * 60 / seconds, clock_late_p999=bare["late_p999"],
                clock_late_max=bare["late_max"], clock_realtime=bare["realtime"])
     row["ratio"] = ratio(row["missed_min"], row["clock_missed_min"])
+    row["transport_cpu"] = run_transport(seconds, cfg)
     return row
 
 
@@ -334,7 +435,8 @@ def targets(r: dict[str, Any]) -> list[tuple[str, float, float]]:
             ("lateness p99.9 <= 500 us", r["late_p999"], 500.0),
             (f"missed ticks <= {RATIO_MAX:g}x the clock's", r["ratio"], RATIO_MAX),
             (f"in->out p99 <= {r['period_ms'] + 0.5:g} ms", r["lat_p99"], r["period_ms"] + 0.5),
-            ("RSS <= 150 MB", r["rss"], 150.0)]
+            ("RSS <= 150 MB", r["rss"], 150.0),
+            (f"CPU <= {CPU_MAX:g} % of a core", r["cpu"], CPU_MAX)]
 
 
 def verdict(rows: list[dict[str, Any]]) -> str:
@@ -381,34 +483,44 @@ def report(args: argparse.Namespace, rows: list[dict[str, Any]],
         "output), *whole* the two together (percentiles of each series apart: they do not add "
         "up); latency = output received (stamped as zenoh delivers it) - input published "
         "(same clock); steal = the share of this virtual machine's CPU time the host took "
-        "during the run.",
+        "during the run; *CPU* the service process' share of one core (all its threads) from "
+        "its first output to the last, beside that of the *transport alone*: a process of its "
+        "own doing what the loop does without the tick (the same clock and scheduling, taking "
+        "the input frames and putting one fixed output frame a tick, listening where the "
+        "service listens; the same publisher and receiver), run after the service in each "
+        "pair: what this host's clock and transport cost by themselves.",
         "",
         "Per mode, medians over the runs; the missed-tick ratio is service / clock alone over "
         "the sums of the mode's pairs:",
         "",
         "| mode | runs | compute p50 / p99 (us) | lateness p99.9 (us) | missed per minute: "
-        "service / clock alone (ratio) | in->out p50 / p99 (ms) | CPU % | RSS (MB) | steal % |",
+        "service / clock alone (ratio) | in->out p50 / p99 (ms) | CPU %: service / transport "
+        "alone | RSS (MB) | steal % |",
         "|---|---|---|---|---|---|---|---|---|",
         *(f"| {mode_name(r)} | {r['runs']} | {r['compute_p50']:.0f} / {r['compute_p99']:.0f} "
           f"| {r['late_p999']:.0f} | {r['missed_min']:.1f} / {r['clock_missed_min']:.1f} "
           f"({fmt_ratio(r['ratio'])}) | {r['lat_p50']:.2f} / {r['lat_p99']:.2f} | "
-          f"{r['cpu']:.0f} | {r['rss']:.0f} | {r['steal']:.1f} |" for r in med),
+          f"{r['cpu']:.0f} / {r['transport_cpu']:.0f} | {r['rss']:.0f} | {r['steal']:.1f} |"
+          for r in med),
         "",
         "`Service.tick` in a process of its own with in-memory ports (a valid 8-axis frame in, "
         "the encoded output out; no transport), GC frozen as in the loop, p50 / p99 in us, "
         f"medians of {plural(len(ticks), 'run')} of {args.ticks} ticks each way:",
         "",
-        "| back to back | 1 kHz, waiting as the loop waits (its slice, naps and spin) |",
-        "|---|---|",
+        "| back to back | 1 kHz, waiting as the loop waits (its slice, naps and spin) | "
+        "`tick.step` alone back to back | `Service.tick` / `tick.step` (p50) |",
+        "|---|---|---|---|",
         f"| {tick['tight'][0]:.1f} / {tick['tight'][1]:.1f} | "
-        f"{tick['paced'][0]:.1f} / {tick['paced'][1]:.1f} |",
+        f"{tick['paced'][0]:.1f} / {tick['paced'][1]:.1f} | "
+        f"{tick['step'][0]:.1f} / {tick['step'][1]:.1f} | "
+        f"{tick['tight'][0] / tick['step'][0]:.2f} (target <= {SERVICE_TICK_MAX:g}) |",
         "",
         "Every run (clock alone: the paired run's missed ticks per minute and lateness):",
         "",
         "| mode | ticks | missed (start-up) | missed per minute: service / clock alone (ratio) "
         "| compute p50 / p99 (us) | io p50 / p99 (us) | whole tick p50 / p99 (us) "
         "| lateness p50 / p99 / p99.9 / max (us) | clock alone lateness p99.9 / max (us) "
-        "| in->out p50 / p99 (ms) | CPU % | RSS (MB) | steal % |",
+        "| in->out p50 / p99 (ms) | CPU %: service / transport alone | RSS (MB) | steal % |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
@@ -419,8 +531,8 @@ def report(args: argparse.Namespace, rows: list[dict[str, Any]],
             f"{r['io_p50']:.0f} / {r['io_p99']:.0f} | {r['tick_p50']:.0f} / {r['tick_p99']:.0f} "
             f"| {r['late_p50']:.0f} / {r['late_p99']:.0f} / {r['late_p999']:.0f} / "
             f"{r['late_max']:.0f} | {r['clock_late_p999']:.0f} / {r['clock_late_max']:.0f} | "
-            f"{r['lat_p50']:.2f} / {r['lat_p99']:.2f} | {r['cpu']:.0f} | {r['rss']:.0f} | "
-            f"{r['steal']:.1f} |")
+            f"{r['lat_p50']:.2f} / {r['lat_p99']:.2f} | {r['cpu']:.1f} / "
+            f"{r['transport_cpu']:.1f} | {r['rss']:.0f} | {r['steal']:.1f} |")
     own = next(r for r in med if not r["sync"])
     cold = tick["paced"][0] / tick["tight"][0]
     cold_text = " already: a thread that sleeps between ticks resumes on cold caches"
@@ -428,7 +540,8 @@ def report(args: argparse.Namespace, rows: list[dict[str, Any]],
         "",
         f"Targets (2-core machine, no real-time privileges): compute p99 <= 50 us, lateness "
         f"p99.9 <= 500 us, missed ticks <= {RATIO_MAX:g}x those of the clock alone in the same "
-        "mode, in->out p99 <= period + 0.5 ms (1.5 ms), RSS <= 150 MB.",
+        "mode, in->out p99 <= period + 0.5 ms (1.5 ms), RSS <= 150 MB, CPU <= "
+        f"{CPU_MAX:g} % of a core.",
         "",
         f"Reading ({'medians of each mode' if args.repeats > 1 else 'one run per mode'}): "
         f"{verdict(med)}  The service's compute p50 ({own['compute_p50']:.0f} us, "
@@ -436,6 +549,12 @@ def report(args: argparse.Namespace, rows: list[dict[str, Any]],
         f"to back in a process of its own; paced as the loop waits, that tick costs "
         f"{cold:.1f}x{cold_text if cold >= 1.5 else ''}.",
     ]
+    for r in med:
+        lines[-1] += (f"  {mode_name(r).capitalize()}: the transport alone takes "
+                      f"{r['transport_cpu']:.1f} % of a core ({r['transport_cpu'] / CPU_MAX:.0%} "
+                      f"of the {CPU_MAX:g} % target), the service {r['cpu']:.1f} % "
+                      f"({r['cpu'] / r['transport_cpu']:.2f}x the transport alone): its own "
+                      f"work adds {r['cpu'] - r['transport_cpu']:.1f} %.")
     steal = [r["steal"] for r in rows]
     if max(steal) > 1.0:
         lines[-1] += (f"  The host took {min(steal):.1f}-{max(steal):.1f} % of this virtual "
@@ -465,7 +584,12 @@ def main() -> None:
     ap.add_argument("--publisher", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--bare", help=argparse.SUPPRESS)
     ap.add_argument("--tick-child", help=argparse.SUPPRESS)
+    ap.add_argument("--transport", help=argparse.SUPPRESS)
+    ap.add_argument("--port", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.transport is not None:
+        print(json.dumps(transport_alone(args.transport, args.port, args.seconds)))
+        return
     if args.publisher:
         publisher(args.publisher, args.seconds)
         return
@@ -479,7 +603,7 @@ def main() -> None:
         args.seconds, args.repeats, args.ticks = 15.0, 1, 2000
     scheds = ["config"] + ["plain"] * args.plain + ["rt"] * args.rt
     pairs = args.repeats * len(scheds) * 2
-    estimate = pairs * (2 * args.seconds + PAIR_OVERHEAD_S) + args.repeats * (
+    estimate = pairs * (3 * args.seconds + PAIR_OVERHEAD_S) + args.repeats * (
         args.ticks / 1000 + 5)
     print(f"{pairs} paired runs of {args.seconds:g} s: about {estimate / 60:.0f} min",
           file=sys.stderr)
