@@ -46,3 +46,9 @@ def percentiles(values_us: list[float] | object, qs: tuple[float, ...] = (50, 99
 
     arr = np.asarray(values_us, dtype=float)
     return {q: float(np.percentile(arr, q)) for q in qs}
+
+
+def process_cpu_s(pid: int) -> float:
+    """CPU time (user + system, all threads) a running process has used so far (s)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")

@@ -59,13 +59,13 @@ import time
 import zlib
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import msgpack
 import numpy as np
-from _bench import machine, write_section
+from _bench import machine, process_cpu_s, write_section
 
 from motcomp.config import ServiceConfig, config_hash, load_config, read_toml, resolve_axes
 from motcomp.core.axes import AXES, AXIS_INDEX
@@ -270,6 +270,8 @@ class Recording:
     steal: float
     load: float
     """The 1-minute load average at the run's end."""
+    cpu: dict[str, float] = field(default_factory=dict)
+    """Each long-running process' share of one core over the run (%): ``service``, ``hil``."""
 
 
 class Bench:
@@ -373,6 +375,8 @@ class Bench:
         self.inputs.clear()
         before = self.status()
         host0 = cpu_times()
+        cpu0 = {k: process_cpu_s(p.pid) for k, p in self.procs.items()}
+        w0 = time.monotonic()
         log = self.logs / f"{self.label}-source.log"
         with log.open("ab") as err:
             src = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=err, env=child_env())
@@ -391,8 +395,10 @@ class Bench:
             raise SystemExit(f"{name} exited with {src.returncode}; see {log}")
         stats = json.loads(out.strip().splitlines()[-1])
         host = [b - a for a, b in zip(host0, cpu_times(), strict=True)]
+        wall = time.monotonic() - w0
+        cpu = {k: 100 * (process_cpu_s(p.pid) - cpu0[k]) / wall for k, p in self.procs.items()}
         return Recording(list(self.inputs), outputs, feedback, stats, before, self.status(),
-                         100 * host[7] / max(sum(host), 1), os.getloadavg()[0])
+                         100 * host[7] / max(sum(host), 1), os.getloadavg()[0], cpu)
 
 
 def cpu_times() -> list[int]:

@@ -251,6 +251,7 @@ def analyse(rec: Recording, cls: SenderClass, scenario: str, duration_s: float, 
                                    if late.size else {})},
         "steal_pct": rec.steal,
         "load": rec.load,
+        "cpu": rec.cpu,
     }
 
 
@@ -336,6 +337,17 @@ def verdict(ok: bool | None) -> str:
     return "-" if ok is None else "pass" if ok else "**FAIL**"
 
 
+def cpu_line(runs: list[dict[str, Any]]) -> str:
+    """The service's and the simulated platform's CPU over the runs, as one sentence."""
+    def share(name: str) -> str:
+        v = [r["cpu"][name] for r in runs if name in r.get("cpu", {})]
+        if not v:
+            return "not measured"
+        return f"{float(np.median(v)):.0f} % ({min(v):.0f}-{max(v):.0f})"
+    return (f"CPU over each run, share of one core, median (range): the service "
+            f"{share('service')}, the simulated platform (`motcomp hil`) {share('hil')}.")
+
+
 def report(args: argparse.Namespace, runs: list[dict[str, Any]], ideals: list[dict[str, Any]],
            elapsed_s: float, machine_line: str, load_end: tuple[float, ...], steal: float,
            cfg: ServiceConfig, code: str) -> str:
@@ -360,7 +372,7 @@ def report(args: argparse.Namespace, runs: list[dict[str, Any]], ideals: list[di
         f"{min(loads, default=math.nan):.1f}-{max(loads, default=math.nan):.1f} (median "
         f"{float(np.median(loads)) if loads else math.nan:.1f}; the benchmark itself keeps "
         f"three processes busy), at the end {load_end[0]:.2f}; the host's steal {steal:.1f} % "
-        "of the CPU time during the runs.",
+        f"of the CPU time during the runs.  {cpu_line(runs)}",
         "",
         f"`python tools/bench_senders.py{' ' + opts if opts else ''}` ({elapsed_s / 60:.1f} "
         f"min; config `{display_path(args.config)}` as it was at the start, hash "

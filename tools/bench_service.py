@@ -46,7 +46,7 @@ from typing import Any
 
 import msgpack
 import numpy as np
-from _bench import machine, write_section
+from _bench import machine, process_cpu_s, write_section
 
 from motcomp.core.axes import AXES
 from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loopback, open_session
@@ -218,9 +218,7 @@ def tick_in_process(cfg_path: str, ticks: int) -> dict[str, list[float]]:
 # --- this process -----------------------------------------------------------------------------
 def proc_cpu_rss(pid: int) -> tuple[float, float]:
     """(user+system CPU seconds, RSS MB) of a process."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    ticks = os.sysconf("SC_CLK_TCK")
-    cpu = (int(fields[11]) + int(fields[12])) / ticks
+    cpu = process_cpu_s(pid)
     rss = 0.0
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
