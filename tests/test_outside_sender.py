@@ -449,14 +449,16 @@ def test_a_forged_t_is_rejected_and_moves_nothing(tmp_path: Path) -> None:
     with a ``seq`` ahead of the live sender's and a forged ``t`` (``2**64 - 1`` as an integer,
     1e300, an hour ahead): each is rejected (``jump``, or ``old`` where the live sender got
     there first), the service's outputs never leave the slalom's range, and the live sender is
-    never locked out."""
+    never locked out.  The live sender plays longer than the forging takes on any host and is
+    stopped once the status is read, so every stale episode but the start's would be a lockout
+    (a sender that ended before the status was read would count one more)."""
     log_dir = tmp_path / "forged"
     log_dir.mkdir()
     forged: list[float | int] = [2**64 - 1, 1e300, 3600.0]
     with rig(log_dir) as (endpoint, session, rec, codes):
         sender = subprocess.Popen(
             [sys.executable, str(ROOT / "tools" / "wire_senders.py"), "--kind", "grid",
-             "--duration", "8", "--seed", str(SEED), "--json", "-e", endpoint],
+             "--duration", "60", "--seed", str(SEED), "--json", "-e", endpoint],
             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         pub = session.declare_publisher("sim/motion/setpoint")
         time.sleep(4.0)  # past the start-up
@@ -470,8 +472,11 @@ def test_a_forged_t_is_rejected_and_moves_nothing(tmp_path: Path) -> None:
             sent += 1
             time.sleep(0.2)
         status = query_status(session) or {}
+        live = sender.poll() is None
+        sender.terminate()
         sender.communicate(timeout=30)
         pub.undeclare()
+    assert live, "the live sender ended before the status was read"
     frames = status["frames"]
     by = frames["rejected_by_reason"]
     assert frames["rejected"] == sent, frames
