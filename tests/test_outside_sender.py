@@ -4,9 +4,9 @@ Real processes on loopback: ``motcomp run --config config/demo.toml`` listening 
 ``motcomp hil`` and ``tools/wire_senders.py`` connecting to it, and a zenoh session in this
 process recording ``sim/motion/setpoint``, ``platform/setpoint`` and ``platform/feedback``.  The
 sender plays the slalom on rails_y (0.4 m at 0.31 Hz, 1 kHz, 20 s), compensated (the demo
-config's default for the rails); and the heave on hex_z (5 cm at 0.5 Hz) through the
-hexapod's prediction.  Over the steady part of the run (from 4 s after the sender's
-first sample to 0.25 s before its last) the figures are:
+config's default for the rails), and in the same frames the heave on hex_z (5 cm at 0.5 Hz)
+through the hexapod's prediction; each is judged on its own axis.  Over the steady part of
+the run (from 4 s after the sender's first sample to 0.25 s before its last) the figures are:
 
 - apparent delay, reference -> platform feedback: least-squares fit of
   ``a sin(w tau) + b cos(w tau) + c + d tau`` (w = 2 pi f, tau = time since the sender's
@@ -255,11 +255,19 @@ def run_sender(kind: str, rate_hz: float, log_dir: Path, extra: tuple[str, ...] 
                duration_s: float = DURATION_S) -> Figures:
     """One run on fresh processes: the sender drives ``signal`` (tools/wire_senders.py's, on
     its axis) for ``duration_s``, then everything stops; ``keep`` receives the recording."""
+    return run_signals(kind, rate_hz, log_dir, (signal,), extra, keep, duration_s)[signal]
+
+
+def run_signals(kind: str, rate_hz: float, log_dir: Path, signals: tuple[str, ...],
+                extra: tuple[str, ...] = (), keep: list[Recording] | None = None,
+                duration_s: float = DURATION_S) -> dict[str, Figures]:
+    """:func:`run_sender` with several ``signals`` in the same frames, each on its own axis;
+    the figures of each."""
     log_dir.mkdir(parents=True, exist_ok=True)
     with HostProbe() as probe, rig(log_dir) as (endpoint, session, rec, codes):
         sender = subprocess.Popen(
             [sys.executable, str(ROOT / "tools" / "wire_senders.py"), "--kind", kind,
-             "--rate", str(rate_hz), "--signal", signal,
+             "--rate", str(rate_hz), *(a for name in signals for a in ("--signal", name)),
              "--duration", str(duration_s), "--seed", str(SEED), "--json", "-e", endpoint,
              *extra],
             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
@@ -279,21 +287,27 @@ def run_sender(kind: str, rate_hz: float, log_dir: Path, extra: tuple[str, ...] 
         time.sleep(0.3)  # the last outputs and feedback in flight
     if keep is not None:
         keep.append(rec)
-    return replace(figures(kind, rate_hz, signal, summary, rec, status, codes), host=probe.result)
+    return {name: replace(figures(kind, rate_hz, name, summary, rec, status, codes),
+                          host=probe.result) for name in signals}
+
+
+RUN_SIGNALS = ("slalom", "heave")
+"""What the module's runs send, in the same frames: the rails' slalom and the hexapod's heave."""
 
 
 class Runs:
-    """Each sender class run at most once per module."""
+    """Each sender class run at most once per module, with every signal of
+    :data:`RUN_SIGNALS`."""
 
     def __init__(self, log_dir: Path) -> None:
         self.log_dir = log_dir
-        self.done: dict[str, Figures] = {}
+        self.done: dict[str, dict[str, Figures]] = {}
 
     def get(self, kind: str, rate_hz: float = 1000.0, signal: str = "slalom") -> Figures:
-        name = f"{kind}@{rate_hz:g}-{signal}"
+        name = f"{kind}@{rate_hz:g}"
         if name not in self.done:
-            self.done[name] = run_sender(kind, rate_hz, self.log_dir / name, signal=signal)
-        return self.done[name]
+            self.done[name] = run_signals(kind, rate_hz, self.log_dir / name, RUN_SIGNALS)
+        return self.done[name][signal]
 
 
 @pytest.fixture(scope="module")

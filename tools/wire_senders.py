@@ -340,9 +340,12 @@ def cli(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--kind", choices=KINDS, default="grid")
     p.add_argument("--rate", type=float, default=1000.0, help="sample rate, Hz (not varstep)")
-    p.add_argument("--signal", choices=sorted(SIGNALS), default="slalom")
+    p.add_argument("--signal", action="append", choices=sorted(SIGNALS),
+                   help="motion to send, each on its own axis (repeatable: one frame carries "
+                        "them all; default: slalom)")
     p.add_argument("--axis", action="append", choices=AXES,
-                   help="axis driven by the signal (repeatable; default: the signal's own)")
+                   help="axis driven by the signal (repeatable, with one --signal; default: "
+                        "the signal's own)")
     p.add_argument("--duration", type=float, default=20.0, help="seconds of motion")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--seq-start", type=int, default=0)
@@ -364,8 +367,11 @@ def cli(argv: list[str] | None = None) -> int:
     z.add_argument("--scouting", action="store_true")
     a = p.parse_args(argv)
 
-    signal, default_axis = SIGNALS[a.signal]
-    motion = {axis: signal for axis in (a.axis or [default_axis])}
+    names = list(dict.fromkeys(a.signal or ["slalom"]))
+    if a.axis and len(names) > 1:
+        p.error("--axis goes with one --signal (several signals each drive their own axis)")
+    motion = ({axis: SIGNALS[names[0]][0] for axis in a.axis} if a.axis else
+              {SIGNALS[name][1]: SIGNALS[name][0] for name in names})
     try:
         stall_ms = a.stall_ms or (BUSY_STALL_MS if a.kind == "busy" else (50.0, 100.0))
         pause = None if a.pause_at is None else (a.pause_at, a.pause_for)
