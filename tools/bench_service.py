@@ -155,7 +155,8 @@ def transport_alone(cfg_path: str, port: int, seconds: float) -> dict[str, Any]:
 def tick_in_process(cfg_path: str, ticks: int) -> dict[str, list[float]]:
     """Child process: (p50, p99) us of ``Service.tick`` with in-memory ports (a valid 8-axis
     frame in every tick, the encoded output out; no transport), back to back and paced at the
-    config's rate as the loop waits (its scheduling, naps and spin); GC frozen as in the loop.
+    config's rate as the loop waits (its scheduling, naps and spin), and of ``tick.step`` alone
+    back to back on the same frames; GC frozen as in the loop.
     The tick instants are the ideal grid in both, so the two do the same work."""
     import gc
 
@@ -377,7 +378,8 @@ def run_transport(seconds: float, cfg: Path) -> float:
 
 def run_pair(seconds: float, sync: bool, sched: str, tmp: Path, spin_us: float | None,
              clock_first: bool) -> dict[str, Any]:
-    """A service run and a clock-alone run of the same length and loop settings."""
+    """A service run, a clock-alone run and a transport-alone run of the same length and loop
+    settings."""
     cfg = write_config(tmp, sched, sync, seconds, spin_us)
     bare = child_json("--bare", str(cfg), "--seconds", str(seconds)) if clock_first else None
     row = run_service(seconds, cfg)
