@@ -109,7 +109,7 @@ def bare_clock(cfg_path: str, seconds: float) -> dict[str, Any]:
             "late_max": r.late_max_us}
 
 
-def transport_alone(cfg_path: str, port: int, seconds: float) -> dict[str, Any]:
+def transport_alone(cfg_path: str, port: int, seconds: float) -> None:
     """Child process: what the service's loop does without its tick -- the config's clock and
     scheduling, taking the input frames (polling them in input-synchronous mode) and putting one
     fixed output frame a tick on the service's ports, listening where the service listens: the
@@ -126,7 +126,6 @@ def transport_alone(cfg_path: str, port: int, seconds: float) -> dict[str, Any]:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     payload = encode_output(0, time.time(), 0, [0.0] * len(AXES), [])
-    result: dict[str, Any] = {}
 
     def run(src: ZenohSource, sink: ZenohSink) -> None:
         schedule_like_loop(loop)
@@ -139,7 +138,6 @@ def transport_alone(cfg_path: str, port: int, seconds: float) -> dict[str, Any]:
                 clock.wait()
             src.drain()
             sink.put(payload)
-        result["missed"] = clock.missed
 
     with open_session(ZenohEndpoints(listen=(loopback(port),))) as session:
         src = ZenohSource(session, cfg.input.key)
@@ -149,7 +147,6 @@ def transport_alone(cfg_path: str, port: int, seconds: float) -> dict[str, Any]:
         thread.join()
         src.close()
         sink.close()
-    return result
 
 
 def tick_in_process(cfg_path: str, ticks: int) -> dict[str, list[float]]:
@@ -349,8 +346,7 @@ def run_transport(seconds: float, cfg: Path) -> float:
     p_svc = free_tcp_port()
     env = child_env()
     child = subprocess.Popen([sys.executable, __file__, "--transport", str(cfg), "--port",
-                              str(p_svc), "--seconds", str(seconds + 60)], env=env,
-                             stdout=subprocess.DEVNULL)
+                              str(p_svc), "--seconds", str(seconds + 60)], env=env)
     try:
         with open_session(ZenohEndpoints(connect=(loopback(p_svc),))) as session:
             arrived = [0]
@@ -361,13 +357,13 @@ def run_transport(seconds: float, cfg: Path) -> float:
                 if time.monotonic() > t_end or child.poll() is not None:
                     raise SystemExit("the transport-alone run never sent an output")
                 time.sleep(0.05)
-            cpu0, _ = proc_cpu_rss(child.pid)
+            cpu0 = process_cpu_s(child.pid)
             w0 = time.monotonic()
             pub = subprocess.Popen([sys.executable, __file__, "--publisher", str(p_svc),
                                     "--seconds", str(seconds)], env=env)
             pub.wait()
             time.sleep(0.5)
-            cpu1, _ = proc_cpu_rss(child.pid)
+            cpu1 = process_cpu_s(child.pid)
             wall = time.monotonic() - w0
             sub.undeclare()
     finally:
@@ -588,7 +584,7 @@ def main() -> None:
     ap.add_argument("--port", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.transport is not None:
-        print(json.dumps(transport_alone(args.transport, args.port, args.seconds)))
+        transport_alone(args.transport, args.port, args.seconds)
         return
     if args.publisher:
         publisher(args.publisher, args.seconds)
