@@ -5,12 +5,14 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from motcomp.core.models import P1D
-from motcomp.runtime.probe import HostClock
+from motcomp.runtime.probe import HostClock, loop_kept_from_cpu
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -45,14 +47,19 @@ def skip_if_starved(p: subprocess.CompletedProcess[str], what: str) -> None:
         pytest.skip(f"not judged ({what}): {p.stderr.strip().splitlines()[-1]}")
 
 
-def judge_realtime(clock: HostClock | None, what: str) -> None:
+def judge_realtime(clock: HostClock | None, what: str,
+                   status: Mapping[str, Any] | None = None) -> None:
     """Skip the rest of a real-time test as *not judged*, with the host's figures, when the host
-    itself could not hold the loop rate while it was measured (:class:`HostProbe` around the
-    measurement; never a wider bound: docs/TESTING.md)."""
+    itself could not hold the loop rate while it was measured: its bare clock (:class:`HostProbe`
+    around the measurement) missed too many deadlines, or the service's loop (its ``status`` at
+    the end, if given) missed too many waiting for a CPU that other threads held
+    (:func:`~motcomp.runtime.probe.loop_kept_from_cpu`).  Never a wider bound: docs/TESTING.md."""
     if clock is None:
         raise AssertionError("the host probe has no result: judge after its run")
     if not clock.holds():
         pytest.skip(f"not judged ({what}): {clock.describe()}")
+    if status is not None and (why := loop_kept_from_cpu(status)) is not None:
+        pytest.skip(f"not judged ({what}): {why}")
 
 
 def ran_in_plain_python(request: pytest.FixtureRequest) -> bool:

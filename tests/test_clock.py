@@ -128,3 +128,107 @@ def test_input_synchronous_wait_sleeps_in_poll_steps_then_spins(
     spin_at = arrive + 50_000 - 200_000
     assert all(t + n <= spin_at + 1_000 for t, n in naps)  # ... none into the last spin_us
     assert len(seen) > 100  # the spin polled at every clock read
+
+
+def test_missed_deadlines_are_split_by_the_thread_s_wait_for_a_cpu(fake: FakeTime) -> None:
+    waited = [0]
+    c = DeadlineClock(1000.0, spin_us=0.0, clock=fake.clock, run_delay=lambda: waited[0])
+    t0 = c.start_ns
+    c.wait()
+    assert c.missed_waiting == 0
+    # a 3.5 ms stall, 3.5 ms of it runnable but waiting for a CPU: the 2 periods missed are
+    # the host's
+    fake.ns += 3_500_000
+    waited[0] += 3_500_000
+    c.wait()
+    assert (c.missed, c.missed_waiting) == (2, 2)
+    c.wait()
+    # a 3.5 ms overrun of the loop's own (no wait): its 2 misses are its own
+    fake.ns += 3_500_000
+    c.wait()
+    assert (c.missed, c.missed_waiting) == (4, 2)
+    c.wait()
+    # 5.5 ms late, 2 ms of it waiting: a tick 3.5 ms late would have missed 2 of the 4
+    fake.ns += 5_500_000
+    waited[0] += 2_000_000
+    d, _ = c.wait()
+    assert (c.missed, c.missed_waiting) == (8, 4)
+    # a wait inside a period costs nothing, and is not carried to a later miss
+    waited[0] += 400_000
+    fake.ns += 400_000
+    c.wait()
+    fake.ns += 2_200_000  # 1.2 ms late, on its own work: 1 miss, its own
+    c.wait()
+    assert (c.missed, c.missed_waiting) == (9, 4)
+    assert d >= t0
+
+
+def test_the_thread_s_run_delay_is_read_where_the_kernel_keeps_it() -> None:
+    from motcomp.runtime.clock import run_delay_reader
+
+    read = run_delay_reader()
+    if read is None:
+        assert not clock_mod.os.path.exists("/proc/thread-self/schedstat")
+        assert DeadlineClock(1000.0).missed_waiting is None  # said unknown, not 0
+        return
+    a = read()
+    sum(range(200_000))
+    assert 0 <= a <= read()  # cumulative, nanoseconds
+    assert DeadlineClock(1000.0).missed_waiting == 0
+
+
+def _paced(work_us: int, hog: bool, seconds: float = 2.0) -> DeadlineClock:
+    """A 1 kHz loop doing ``work_us`` of busy work a tick in a thread of its own on one CPU,
+    beside a busy process on the same CPU if ``hog``."""
+    import os
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    cpu = min(os.sched_getaffinity(0))
+    busy = None
+    if hog:
+        busy = subprocess.Popen([sys.executable, "-c", "while True: pass"],
+                                preexec_fn=lambda: os.sched_setaffinity(0, {cpu}))
+        time.sleep(0.3)
+    clocks: list[DeadlineClock] = []
+
+    def loop() -> None:
+        os.sched_setaffinity(0, {cpu})  # this thread only
+        c = DeadlineClock(1000.0, 50.0)
+        clocks.append(c)
+        t_end = time.perf_counter_ns() + int(seconds * 1e9)
+        while c.wait()[1] < t_end:
+            t = time.perf_counter_ns() + work_us * 1000
+            while time.perf_counter_ns() < t:
+                pass
+
+    try:
+        th = threading.Thread(target=loop)
+        th.start()
+        th.join()
+    finally:
+        if busy is not None:
+            busy.kill()
+            busy.wait()
+    return clocks[0]
+
+
+@pytest.mark.skipif(not hasattr(clock_mod.os, "sched_setaffinity"), reason="Linux only")
+def test_on_a_real_cpu_a_hog_s_misses_are_the_host_s_and_an_overrun_s_the_loop_s() -> None:
+    from motcomp.runtime.clock import run_delay_reader
+
+    if run_delay_reader() is None:
+        pytest.skip("this kernel does not account a thread's run delay")
+    # 0.7 ms of work a period beside a busy process on the same CPU: a fair share of half the
+    # CPU cannot hold it; the loop waits for the CPU
+    shared = _paced(700, hog=True)
+    assert shared.missed >= 100, shared.missed
+    assert shared.missed_waiting is not None
+    assert shared.missed_waiting >= 0.75 * shared.missed, (shared.missed, shared.missed_waiting)
+    # 2.3 ms of work a period: every tick overruns by itself
+    alone = _paced(2300, hog=False)
+    assert alone.missed >= 500, alone.missed
+    assert alone.missed_waiting is not None
+    assert alone.missed_waiting <= 0.25 * alone.missed, (alone.missed, alone.missed_waiting)

@@ -65,7 +65,7 @@ def test_demo_reports_the_delay_gained(demo: DemoResult, host: HostClock | None)
     text = report(demo)
     assert all(code == 0 for code in demo.exit_codes.values()), text
     assert "Platform hard-limit violations: 0" in text
-    judge_realtime(host, "the delays of the demo")
+    judge_realtime(host, "the delays of the demo", demo.status)
     ms = {a: (d["off"] * 1e3, d["on"] * 1e3) for a, d in demo.delays.items()}
     off, on = ms["rails_y"]  # the slalom, as in the paper's Fig. 4
     # the platform's 196 ms behind the setpoints, and the band limit's 7.0 ms before it
@@ -91,7 +91,7 @@ def test_demo_records_the_command_and_sets_it_beside_the_floor(demo: DemoResult,
     for ph in PHASES:
         f = demo.frames[ph]
         assert f.recorded + f.lost + f.unsent == f.ticks, f
-    judge_realtime(host, "the command frames of the demo")
+    judge_realtime(host, "the command frames of the demo", demo.status)
     for ph in PHASES:
         f = demo.frames[ph]
         assert f.recorded >= MIN_RECORDED_SHARE * f.ticks, f
@@ -141,7 +141,7 @@ def test_demo_figure_shows_the_command(demo: DemoResult) -> None:
 
 def test_compensated_command_is_near_the_floor(demo: DemoResult, host: HostClock | None
                                                ) -> None:
-    judge_realtime(host, "the demo's compensated command")
+    judge_realtime(host, "the demo's compensated command", demo.status)
     text = report(demo)
     for axis in RAILS:
         c = demo.command[axis]["on"]

@@ -321,7 +321,7 @@ def check_run_is_sound(fig: Figures) -> None:
     assert fig.status["rate_hz"] == LOOP_RATE_HZ, fig.status["rate_hz"]
     assert fig.status["frames"]["rejected"] == 0, fig.status["frames"]
     assert fig.exit_codes == {"service": 0, "hil": 0}, fig.exit_codes
-    judge_realtime(fig.host, f"{fig.kind}@{fig.rate_hz:g}")
+    judge_realtime(fig.host, f"{fig.kind}@{fig.rate_hz:g}", fig.status)
     stale = fig.status["stale_episodes"] - 1  # the first: before the sender's first frame
     if stale > 0:
         # no frame for loop.stale_after_s (50 ms) in mid-run, none rejected.  Not judged only if
@@ -443,7 +443,7 @@ def test_a_busy_sender_is_on_time_from_the_first_second_and_after_a_resume(tmp_p
     assert fig.status and fig.status["frames"]["rejected"] == 0, (
         fig.status.get("frames"), fig.status.get("frames", {}).get("last_reject"))
     assert fig.exit_codes == {"service": 0, "hil": 0}, fig.exit_codes
-    judge_realtime(fig.host, "busy@1000")
+    judge_realtime(fig.host, "busy@1000", fig.status)
     t0 = float(fig.sender["t0_s"])
     resumed = fig.sender["resumed_s"]
     assert fig.sender["stalls"] >= 1 and fig.sender["paused"] > 0 and resumed is not None

@@ -6,7 +6,13 @@ import time
 
 import pytest
 
-from motcomp.runtime.probe import MAX_MISSED_SHARE, MAX_STALL_MS, HostClock, HostProbe
+from motcomp.runtime.probe import (
+    MAX_MISSED_SHARE,
+    MAX_STALL_MS,
+    HostClock,
+    HostProbe,
+    loop_kept_from_cpu,
+)
 from tests.conftest import judge_realtime
 
 
@@ -43,3 +49,31 @@ def test_not_judged_is_a_skip_with_the_host_figures() -> None:
     judge_realtime(HostClock(10_000, 0, 20.0, 40.0, 90.0), "x")  # judged: returns
     with pytest.raises(AssertionError):
         judge_realtime(None, "x")
+
+
+@pytest.mark.parametrize(("waiting", "missed", "kept"), [
+    (0, 0, False),
+    (round(MAX_MISSED_SHARE * 10_000), 800, False),  # at the bound: held
+    (round(MAX_MISSED_SHARE * 10_000) + 2, 800, True),
+    (100, 3000, False),  # misses of the loop's own are never the host's
+    (None, 3000, False),  # a kernel that does not say: the probe alone judges
+])
+def test_a_service_s_loop_kept_from_its_cpu_is_the_host_s_doing(
+        waiting: int | None, missed: int, kept: bool) -> None:
+    status = {"ticks": 10_000 - missed, "missed_ticks": missed, "missed_waiting_cpu": waiting}
+    why = loop_kept_from_cpu(status)
+    assert (why is not None) is kept
+    if kept:
+        assert f"missed {waiting} of 10000 deadlines" in str(why)
+        assert "waiting for a CPU" in str(why)
+        held = HostClock(10_000, 0, 20.0, 40.0, 90.0)
+        with pytest.raises(pytest.skip.Exception, match=r"not judged \(y\): the service's loop"):
+            judge_realtime(held, "y", status)
+    else:
+        judge_realtime(HostClock(10_000, 0, 20.0, 40.0, 90.0), "y", status)  # judged
+    # the same figures of the platform's own loop, in the status' platform block
+    platform = {"platform": {"received_t": 1.0, **status}, "ticks": 10_000, "missed_ticks": 0,
+                "missed_waiting_cpu": 0}
+    assert (loop_kept_from_cpu(platform) is not None) is kept
+    if kept:
+        assert "the platform's loop missed" in str(loop_kept_from_cpu(platform))

@@ -270,6 +270,7 @@ def test_an_outside_platform_off_its_model_is_seen_retuned_and_its_drift_seen(
             assert plat.wait(timeout=30) == 0
     for r in watch.rows:
         print({k: (round(v, 2) if isinstance(v, float) else v) for k, v in r.items()})
-    judge_realtime(probe.result, "the supervision's figures on the outside platform")
+    judge_realtime(probe.result, "the supervision's figures on the outside platform",
+                   watch.last)
     failed = [(what, data) for what, ok, data in late if not ok]
     assert not failed, failed

@@ -126,7 +126,7 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
         assert svc.wait(timeout=30) == 0
         hil.send_signal(signal.SIGTERM)
         assert hil.wait(timeout=30) == 0
-    judge_realtime(probe.result, "the identified delay and the compensated slalom")
+    judge_realtime(probe.result, "the identified delay and the compensated slalom", st)
     # the platform as the service's stamps see it: the drawn delay plus the transport and the
     # simulator's tick phase, which the simulator measures (each setpoint's age when applied)
     age = re.search(r"applied (\S+) ms after their t \(median",

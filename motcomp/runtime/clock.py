@@ -14,15 +14,26 @@ default) is given back to the host, and under load on the host it can come back 
 late; naps shorter than the window keep it, at a price: measured here, the clock alone at 1 kHz
 takes 2-4 % of a core in one sleep and 14-22 % in naps of 100 us (docs/BENCHMARKS.md).  Use
 naps where the host probe (:mod:`motcomp.runtime.probe`) shows such stalls.
+
+Each missed deadline is also attributed: the clock reads its thread's *run delay* (Linux
+``/proc/thread-self/schedstat``: the time the thread was runnable but waiting for a CPU) at
+every tick, and of the periods missed at a late tick it counts as *waiting for a CPU* those
+that this wait accounts for (:attr:`DeadlineClock.missed_waiting`).  A loop kept from its CPU by
+other threads is the host's doing; the other misses are the loop's own work, a lock it waited
+for, or the machine stopping it outright (a virtual CPU the hypervisor took: the host probe,
+:mod:`motcomp.runtime.probe`, sees those) -- docs/DEPLOYMENT.md, "Missed deadlines".
 """
 
 from __future__ import annotations
 
+import os
+import threading
 import time
+import weakref
 from collections.abc import Callable
 
 __all__ = ["DEGRADED_MISSED_SHARE", "INPUT_GRACE", "TIMER_SLACK_NS", "DeadlineClock",
-           "set_timer_slack"]
+           "run_delay_reader", "set_timer_slack"]
 
 TIMER_SLACK_NS = 1000
 """Timer slack of the thread that waits (ns): how late the kernel may end its sleeps."""
@@ -48,6 +59,27 @@ def set_timer_slack(ns: int) -> bool:
         return False
 
 
+def run_delay_reader() -> Callable[[], int] | None:
+    """A function returning the calling thread's run delay so far (ns: time runnable but not
+    running, ``/proc/thread-self/schedstat``'s second field), or None where the kernel does
+    not account it.  The file stays open until the function is collected."""
+    try:
+        fd = os.open(f"/proc/self/task/{threading.get_native_id()}/schedstat", os.O_RDONLY)
+    except OSError:
+        return None
+
+    def read() -> int:
+        return int(os.pread(fd, 64, 0).split()[1])
+
+    try:
+        read()
+    except (OSError, IndexError, ValueError):
+        os.close(fd)
+        return None
+    weakref.finalize(read, os.close, fd)
+    return read
+
+
 class DeadlineClock:
     """Paces a loop at ``rate_hz``.
 
@@ -56,11 +88,18 @@ class DeadlineClock:
     deadlines skipped just before the one returned (so the caller can account for them).  With
     ``poll`` (input-synchronous mode) the wait also ends early, at least half a period after the
     last tick, when ``poll()`` returns True; it is called every ``poll_us``.
+
+    :attr:`missed_waiting` is the part of :attr:`missed` that the thread's wait for a CPU
+    accounts for (None without ``run_delay``): at a tick ``L`` late after a wait ``W`` for a CPU
+    since the tick before, the periods that a tick ``L - W`` late would still have missed are
+    the loop's own, the others the host's.  ``run_delay`` (ns so far) is the waiting thread's;
+    by default the creating thread's (:func:`run_delay_reader`).
     """
 
     def __init__(self, rate_hz: float, spin_us: float = 50.0,
                  clock: Callable[[], int] = time.perf_counter_ns,
-                 sleep_max_us: float = 0.0) -> None:
+                 sleep_max_us: float = 0.0,
+                 run_delay: Callable[[], int] | None = None) -> None:
         set_timer_slack(TIMER_SLACK_NS)
         self.period_ns = round(1e9 / rate_hz)
         self.spin_ns = int(spin_us * 1000)
@@ -74,6 +113,9 @@ class DeadlineClock:
         self.ticks = 0
         self._last_tick_ns = self.start_ns
         self._grace_ns = 0
+        self._run_delay = run_delay or run_delay_reader()
+        self._waited_ns = self._run_delay() if self._run_delay else 0
+        self.missed_waiting: int | None = 0 if self._run_delay else None
 
     def wait(self) -> tuple[int, int]:
         clock = self._clock
@@ -123,9 +165,16 @@ class DeadlineClock:
         self.skipped = self._skip_next
         self._skip_next = 0
         nxt = deadline + self.period_ns
+        waited = 0
+        if self._run_delay is not None:
+            total = self._run_delay()
+            waited, self._waited_ns = total - self._waited_ns, total
         if now >= nxt:  # overran one or more whole periods: skip them, do not burst
             skipped = int((now - deadline) // self.period_ns)
             self.missed += skipped
+            if self.missed_waiting is not None:
+                own = max(0, int((now - deadline - waited) // self.period_ns))
+                self.missed_waiting += skipped - min(own, skipped)
             self._skip_next = skipped
             nxt = deadline + (skipped + 1) * self.period_ns
         self.next_ns = nxt

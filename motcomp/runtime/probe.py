@@ -21,14 +21,17 @@ import signal
 import subprocess
 import sys
 import threading
+from collections.abc import Mapping
 from dataclasses import dataclass
 from types import TracebackType
+from typing import Any
 
 import numpy as np
 
 from motcomp.errors import ServiceError
 
-__all__ = ["MAX_MISSED_SHARE", "MAX_STALL_MS", "HostClock", "HostProbe", "measure_clock"]
+__all__ = ["MAX_MISSED_SHARE", "MAX_STALL_MS", "HostClock", "HostProbe", "loop_kept_from_cpu",
+           "measure_clock"]
 
 MAX_MISSED_SHARE = 0.05
 """The host holds a 1 kHz loop if its bare clock missed at most this share of the deadlines
@@ -65,6 +68,30 @@ class HostClock:
                 f"{100 * MAX_MISSED_SHARE:g} %), lateness p99 {self.late_p99_us:.0f} us, "
                 f"p99.9 {self.late_p999_us:.0f} us, longest {self.late_max_us / 1e3:.1f} ms "
                 f"(<= {MAX_STALL_MS:g} ms)")
+
+
+def loop_kept_from_cpu(status: Mapping[str, Any]) -> str | None:
+    """Why the host did not hold the rate of a service's loop or of its platform's, from the
+    service's status (counts since start), or None if it held both or the status cannot tell:
+    the loop missed more than :data:`MAX_MISSED_SHARE` of its deadlines while it waited for a
+    CPU that other threads held (``missed_waiting_cpu``,
+    :attr:`motcomp.runtime.clock.DeadlineClock.missed_waiting`), or the platform's loop did
+    (the same figures in the status' ``platform`` block, where the platform reports them, as
+    ``motcomp hil`` does).
+
+    The bare clock of :class:`HostProbe` needs next to no CPU, so a scheduler that shares a
+    saturated CPU fairly still gives it its deadlines; a loop that needs a third of a CPU then
+    waits.  Misses of a loop's own (its work, a lock) do not count here."""
+    for who, counts in (("the service's loop", status),
+                        ("the platform's loop", status.get("platform") or {})):
+        waiting = counts.get("missed_waiting_cpu")
+        missed = int(counts.get("missed_ticks") or 0)
+        due = int(counts.get("ticks") or 0) + missed
+        if waiting is not None and due > 0 and waiting > MAX_MISSED_SHARE * due:
+            return (f"{who} missed {waiting:g} of {due} deadlines ({100 * waiting / due:.1f} %)"
+                    f" waiting for a CPU that other threads held (a host that holds the rate: "
+                    f"<= {100 * MAX_MISSED_SHARE:g} %; {missed} missed in all)")
+    return None
 
 
 class HostProbe:

@@ -99,7 +99,8 @@ validation, reference, compensator, saturation verdicts); ``late`` waking after 
 
 ENVELOPE_LOG_S = 10.0
 """The envelope guard's actions are logged (ERROR) at most this often, with their count."""
-PLATFORM_FIGURES = ("setpoint_age_ms", "setpoint_age_mean_ms", "ticks", "missed_ticks")
+PLATFORM_FIGURES = ("setpoint_age_ms", "setpoint_age_mean_ms", "ticks", "missed_ticks",
+                    "missed_waiting_cpu")
 """The numbers the service takes from the platform's status frames (docs/WIRE.md) ..."""
 MAX_PLATFORM_STATUS_BYTES = 65536
 """... of at most this size (a larger frame is not decoded)."""
@@ -209,8 +210,8 @@ class Service:
         self.config_id = config_hash(cfg)
         self.reloads: list[dict[str, Any]] = []
         self._deadlines: dict[str, Any] = {"window_s": DEADLINE_WINDOW_S, "due": 0, "missed": 0,
-                                           "share": 0.0, "degraded": False,
-                                           "windows_degraded": 0}
+                                           "missed_waiting_cpu": 0, "share": 0.0,
+                                           "degraded": False, "windows_degraded": 0}
         """The last closed window's deadlines (:meth:`_judge_deadlines`)."""
         self.rt_report = ""
         self._loop_error: BaseException | None = None
@@ -436,6 +437,7 @@ class Service:
             "sync_to_input": self.cfg.loop.sync_to_input,
             "ticks": st.ticks,
             "missed_ticks": clock.missed if clock else 0,
+            "missed_waiting_cpu": clock.missed_waiting if clock else 0,
             "deadlines": dict(self._deadlines),
             "loop": self.stats.snapshot(),
             "loop_window_s": self.cfg.status.window_s,
@@ -505,25 +507,33 @@ class Service:
         return {"feedback": {"key": self.cfg.feedback.key, **rep["feedback"]},
                 "quality": window, "axes_quality": rep["axes"]}
 
-    def _judge_deadlines(self, window: tuple[float, int, int], now: float
-                         ) -> tuple[float, int, int]:
+    def _judge_deadlines(self, window: tuple[float, int, int, int], now: float
+                         ) -> tuple[float, int, int, int]:
         """Close a deadline window: the status' ``deadlines`` block, and a WARNING when more
-        than :data:`~motcomp.runtime.clock.DEGRADED_MISSED_SHARE` of its deadlines were missed."""
-        t0, ticks0, missed0 = window
-        ticks, missed = self.state.ticks, self._clock.missed if self._clock else 0
+        than :data:`~motcomp.runtime.clock.DEGRADED_MISSED_SHARE` of its deadlines were missed,
+        saying how many of them the loop spent waiting for a CPU (the host's doing)."""
+        t0, ticks0, missed0, waiting0 = window
+        clock = self._clock
+        ticks, missed = self.state.ticks, clock.missed if clock else 0
+        waiting = (clock.missed_waiting or 0) if clock else 0
         due = (ticks - ticks0) + (missed - missed0)
         share = (missed - missed0) / due if due > 0 else 0.0
         degraded = share > DEGRADED_MISSED_SHARE
+        known = clock is not None and clock.missed_waiting is not None
         self._deadlines = {"window_s": round(now - t0, 3), "due": due,
-                           "missed": missed - missed0, "share": share, "degraded": degraded,
+                           "missed": missed - missed0,
+                           "missed_waiting_cpu": waiting - waiting0 if known else None,
+                           "share": share, "degraded": degraded,
                            "windows_degraded": self._deadlines.get("windows_degraded", 0)
                            + int(degraded)}
         if degraded:
-            log.warning("missed %d of %d deadlines over the last %.0f s (%.1f %%): the host "
+            why = (f", {waiting - waiting0} of them while the loop waited for a CPU that other "
+                   "threads held (docs/DEPLOYMENT.md, \"Missed deadlines\")" if known else "")
+            log.warning("missed %d of %d deadlines over the last %.0f s (%.1f %%)%s: the host "
                         "does not give the loop its CPU; delays, command smoothness and "
                         "identification are degraded until it does", missed - missed0, due,
-                        now - t0, 100 * share)
-        return now, ticks, missed
+                        now - t0, 100 * share, why)
+        return now, ticks, missed, waiting
 
     def tick_clock(self) -> dict[str, Any] | None:
         """How output ``t`` maps back to the loop's own tick instants (None before the loop
@@ -830,7 +840,7 @@ class Service:
         ready = False
         seen = ModeLog(self.state)
         clamps, clamps_logged = 0, -math.inf
-        window = (time.monotonic(), 0, 0)  # start, ticks and missed at its start
+        window = (time.monotonic(), 0, 0, 0)  # start, ticks, missed and waiting at its start
         while not self.loop_done.is_set():
             self.loop_done.wait(0.02)
             now = time.monotonic()

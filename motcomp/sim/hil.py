@@ -401,6 +401,7 @@ def _status(plat: HilPlatform, clock: DeadlineClock, receiver: Any) -> dict[str,
     sim = plat.sim
     out: dict[str, Any] = {
         "t": time.time(), "ticks": clock.ticks, "missed_ticks": clock.missed,
+        "missed_waiting_cpu": clock.missed_waiting,
         "caught_up": plat.caught_up, "frames": plat.frames, "bad_frames": plat.bad,
         "setpoint_age_ms": plat.setpoint_age_s * 1e3,
         "setpoint_age_mean_ms": plat.setpoint_age_mean_s * 1e3,
