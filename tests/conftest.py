@@ -36,7 +36,10 @@ def subprocess_env() -> dict[str, str]:
 
 
 STARVED = "of its deadlines while the data were recorded"
-"""What ``motcomp identify`` says when it refuses a fragment from a run the host starved."""
+"""What ``motcomp identify`` says when it refuses a fragment from a run the host starved ..."""
+DEGRADED = "while the data were recorded: the host took the loop's time"
+"""... and when it writes one with a warning: the service missed more than
+:data:`~motcomp.runtime.clock.DEGRADED_MISSED_SHARE` of its deadlines during the run."""
 
 
 def skip_if_starved(p: subprocess.CompletedProcess[str], what: str) -> None:
@@ -48,18 +51,24 @@ def skip_if_starved(p: subprocess.CompletedProcess[str], what: str) -> None:
 
 
 def judge_realtime(clock: HostClock | None, what: str,
-                   status: Mapping[str, Any] | None = None) -> None:
+                   status: Mapping[str, Any] | None = None,
+                   identify: subprocess.CompletedProcess[str] | None = None) -> None:
     """Skip the rest of a real-time test as *not judged*, with the host's figures, when the host
     itself could not hold the loop rate while it was measured: its bare clock (:class:`HostProbe`
-    around the measurement) missed too many deadlines, or the service's loop (its ``status`` at
-    the end, if given) missed too many waiting for a CPU that other threads held
-    (:func:`~motcomp.runtime.probe.loop_kept_from_cpu`).  Never a wider bound: docs/TESTING.md."""
+    around the measurement) missed too many deadlines; or the service's loop or its platform's
+    (the service's ``status`` at the end, if given) missed too many waiting for a CPU that other
+    threads held (:func:`~motcomp.runtime.probe.loop_kept_from_cpu`); or ``identify`` (its run,
+    if given) wrote its fragment warning that the fit carries the host's stalls.  Never a wider
+    bound: docs/TESTING.md."""
     if clock is None:
         raise AssertionError("the host probe has no result: judge after its run")
     if not clock.holds():
         pytest.skip(f"not judged ({what}): {clock.describe()}")
     if status is not None and (why := loop_kept_from_cpu(status)) is not None:
         pytest.skip(f"not judged ({what}): {why}")
+    if identify is not None and identify.returncode == 0 and DEGRADED in identify.stderr:
+        warned = next(ln for ln in identify.stderr.splitlines() if DEGRADED in ln)
+        pytest.skip(f"not judged ({what}): identify warned: {warned.strip()}")
 
 
 def ran_in_plain_python(request: pytest.FixtureRequest) -> bool:

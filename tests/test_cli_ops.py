@@ -278,6 +278,14 @@ def test_status_table_from_a_status_map() -> None:
     assert "{" not in text and "[" not in text  # no Python reprs
     assert "hash abc123  version 3  profile fast" in text
     assert "1000 Hz  ticks 1234  missed 2" in text
+    # of the missed deadlines, those the loop waited for a CPU, where the status says
+    st["missed_waiting_cpu"] = 1
+    st["deadlines"]["missed_waiting_cpu"] = 500
+    st["platform"]["missed_waiting_cpu"] = 0
+    text = format_status(st)
+    assert "1000 Hz  ticks 1234  missed 2 (1 waiting for a CPU)" in text
+    assert "deadlines   missed 512 (500 waiting for a CPU) of 10000 over the last 10 s" in text
+    assert "its loop missed 3 ticks (0 waiting for a CPU)" in text
     assert "received 100  accepted 97  rejected 3 (decode 1, range 2)  superseded 1" in text
     assert "now 0.00 s  total 1.50 s  episodes 2" in text
     rows = {ln.split()[0]: ln.split()[1:] for ln in text.splitlines()}

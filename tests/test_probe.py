@@ -77,3 +77,18 @@ def test_a_service_s_loop_kept_from_its_cpu_is_the_host_s_doing(
     assert (loop_kept_from_cpu(platform) is not None) is kept
     if kept:
         assert "the platform's loop missed" in str(loop_kept_from_cpu(platform))
+
+
+def test_an_identification_the_product_warned_about_is_not_judged() -> None:
+    import subprocess
+
+    held = HostClock(10_000, 0, 20.0, 40.0, 90.0)
+    warned = subprocess.CompletedProcess(
+        ["motcomp", "identify"], 0, "", "wrote x\nwarning: the service missed 300 of 10000 "
+        "deadlines (3.0 %) while the data were recorded: the host took the loop's time, and "
+        "the fitted delay and dynamics carry its stalls; identify again on a quiet host\n")
+    with pytest.raises(pytest.skip.Exception, match=r"not judged \(z\): identify warned: "
+                       r"warning: the service missed 300"):
+        judge_realtime(held, "z", None, warned)
+    clean = subprocess.CompletedProcess(["motcomp", "identify"], 0, "", "wrote x\n")
+    judge_realtime(held, "z", None, clean)  # judged

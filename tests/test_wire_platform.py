@@ -84,7 +84,7 @@ def test_the_workflow_by_hand_identifies_a_platform_written_from_the_contract(
             "--json", "--quiet", "--no-figures")
     skip_if_starved(p, "identification on a host that starved the service")
     assert p.returncode == 0, p.stderr[-3000:]
-    judge_realtime(probe.result, "the model identified from the contract's platform", st)
+    judge_realtime(probe.result, "the model identified from the contract's platform", st, p)
     rep = json.loads(p.stdout)
     assert rep["selected"] == "p1d", rep["reason"]
     fit = rep["models"]["p1d"]["params"]
