@@ -49,6 +49,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from motcomp.cli.admin import waiting_text
 from motcomp.config import ServiceConfig, load_config, resolve_axes
 from motcomp.core.axes import AXES, AXIS_INDEX, unit
 from motcomp.core.quality import (
@@ -586,10 +587,7 @@ def report(res: DemoResult) -> str:
                      "are taken over the stretches between them, live and ideal alike, the "
                      "acceleration-limit share leaves them out."),
               "", f"Service loop: {st.get('rate_hz', 0):g} Hz, {st.get('ticks', 0)} ticks, "
-                  f"{st.get('missed_ticks', 0)} missed"
-                  + (f" ({st['missed_waiting_cpu']} of them waiting for a CPU)"
-                     if st.get("missed_ticks") and st.get("missed_waiting_cpu") is not None
-                     else "") + "; tick compute p50 "
+                  f"{st.get('missed_ticks', 0)} missed{waiting_text(st)}; tick compute p50 "
                   f"{loop.get('compute_p50_us', nan):.0f} us, p99 "
                   f"{loop.get('compute_p99_us', nan):.0f} us (whole tick with zenoh's "
                   f"calls p99 {loop.get('tick_p99_us', nan):.0f} us); lateness p99.9 "

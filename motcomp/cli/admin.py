@@ -222,14 +222,14 @@ def platform_line(plat: dict[str, Any], now_t: float) -> str:
         if isinstance(age, int | float) and math.isfinite(age)
         else "reports no setpoint age")
     if isinstance(plat.get("missed_ticks"), int):
-        text += f"; its loop missed {plat['missed_ticks']} ticks" + _waiting(plat)
+        text += f"; its loop missed {plat['missed_ticks']} ticks" + waiting_text(plat)
     seen = plat.get("received_t")
     if isinstance(seen, int | float) and now_t - seen > 5.0:
         text += f" ({now_t - seen:.0f} s ago)"
     return text
 
 
-def _waiting(counts: dict[str, Any], missed: str = "missed_ticks") -> str:
+def waiting_text(counts: dict[str, Any], missed: str = "missed_ticks") -> str:
     """`` (N waiting for a CPU)``: of a loop's missed deadlines (``counts[missed]``), those it
     waited for a CPU (docs/DEPLOYMENT.md, "Missed deadlines"); empty if none were missed or the
     loop does not say."""
@@ -250,13 +250,13 @@ def format_status(st: dict[str, Any]) -> str:
         f"{st.get('profile') or 'none'}" + (f"  ({cfg['path']})" if cfg.get("path") else ""),
         f"service     motcomp {st.get('version', '?')}",
         f"loop        {st.get('rate_hz', 0):g} Hz  ticks {st.get('ticks', 0)}  missed "
-        f"{st.get('missed_ticks', 0)}" + _waiting(st)
+        f"{st.get('missed_ticks', 0)}" + waiting_text(st)
         + ("  (ticks on input)" if st.get("sync_to_input") else ""),
     ]
     dl = st.get("deadlines") or {}
     if dl.get("due"):
         share = 100 * float(dl.get("share", 0))
-        lines.append(f"deadlines   missed {dl.get('missed', 0)}{_waiting(dl, 'missed')} of "
+        lines.append(f"deadlines   missed {dl.get('missed', 0)}{waiting_text(dl, 'missed')} of "
                      f"{dl['due']} over the last {float(dl.get('window_s', 0)):.0f} s "
                      f"({share:.1f} %)"
                      + ("  DEGRADED: the host does not give the loop its CPU"
