@@ -57,7 +57,7 @@ def test_the_workflow_by_hand_identifies_a_platform_written_from_the_contract(
                          tmp_path / "svc.log") as svc:
                 p = cli("bypass", "on", "--axes", "rails_y", "-e", svc_ep, "--timeout", "20")
                 assert p.returncode == 0, p.stderr
-                p = cli("excite", "--axis", "rails_y", "--kind", "multisine", "--duration", "30",
+                p = cli("excite", "--axis", "rails_y", "--kind", "multisine", "--duration", "20",
                         "--out", str(tmp_path / "exc"))
                 assert p.returncode == 0, p.stderr
                 with process(["record", "-o", str(session), "-e", svc_ep, "-e", plat_ep],
@@ -77,7 +77,7 @@ def test_the_workflow_by_hand_identifies_a_platform_written_from_the_contract(
             plat.wait(timeout=20)
     assert plat.returncode == 0, plat_log.read_text()[-2000:]
     # the platform's frames as the service read them, and its own figure of the stack
-    assert st["feedback"]["received"] > 20_000 and st["feedback"]["bad"] == 0, st["feedback"]
+    assert st["feedback"]["received"] > 15_000 and st["feedback"]["bad"] == 0, st["feedback"]
     age_ms = st["platform"]["setpoint_age_ms"]
     assert 0.0 < age_ms < 5.0, st["platform"]
     p = cli("identify", str(session), "--axis", "rails_y", "--out", str(tmp_path / "ident"),
