@@ -56,7 +56,13 @@ import zenoh
 from conftest import ROOT, judge_realtime, motcomp_cmd, subprocess_env
 
 from motcomp.config import load_config
-from motcomp.core.quality import SineFit, command_quality_over, hf_within, sine_delay
+from motcomp.core.quality import (
+    HF_ABOVE_HZ,
+    SineFit,
+    command_quality_over,
+    hf_within,
+    sine_delay,
+)
 from motcomp.runtime.probe import HostClock, HostProbe
 from motcomp.sim.ideal import ideal_run
 
@@ -193,6 +199,9 @@ class Figures:
     exit_codes: dict[str, int]
     host: HostClock | None = None
     """The host's bare loop clock over the run (:class:`HostProbe`)."""
+    hf_peaks: str = ""
+    """Where the command's acceleration above 5 Hz departs most from the ideal run's (s after
+    the sender's ``t0``, mm/s^2): what a failed HF check is read by."""
 
 
 def figures(kind: str, rate_hz: float, signal: str, sender: dict[str, Any], rec: Recording,
@@ -214,6 +223,17 @@ def figures(kind: str, rate_hz: float, signal: str, sender: dict[str, Any], rec:
     ideal_u = ideal_command(signal)
     same = [slice(int(tick[p.start]), int(tick[p.stop - 1]) + 1) for p in parts]
     floor = command_quality_over(ideal_u, same, LOOP_RATE_HZ)
+    peaks = []
+    for part, at in zip(parts, same, strict=True):
+        if part.stop - part.start >= 8:
+            acc = np.diff(u[part] - ideal_u[at], 2) * LOOP_RATE_HZ ** 2
+            acc -= np.linspace(acc[0], acc[-1], acc.size)  # no step where the FFT wraps
+            spec = np.fft.rfft(acc)
+            spec[np.fft.rfftfreq(acc.size, 1.0 / LOOP_RATE_HZ) < HF_ABOVE_HZ] = 0.0
+            hp = np.fft.irfft(spec, acc.size)
+            k = int(np.argmax(np.abs(hp)))
+            peaks.append((abs(float(hp[k])), (at.start + k + 1) / LOOP_RATE_HZ))
+    hf_peaks = ", ".join(f"{s:.3f} s: {a * 1e3:.3f} mm/s^2" for a, s in sorted(peaks)[-3:])
 
     fb = rec.decoded("platform/feedback")
     fb_t = np.array([f["t"] for _, f in fb])
@@ -235,7 +255,7 @@ def figures(kind: str, rate_hz: float, signal: str, sender: dict[str, Any], rec:
         ideal_hf_acc_rms=floor.hf_acc_rms, ideal_jerk_rms=floor.jerk_rms,
         feedback=sine_delay(fb_at[keep], fb_y, t0, motion.frequency_hz),
         input=sine_delay(in_t[in_keep], in_y[in_keep], t0, motion.frequency_hz),
-        status=status, exit_codes=dict(codes))
+        status=status, exit_codes=dict(codes), hf_peaks=hf_peaks)
 
 
 @functools.cache
@@ -358,7 +378,8 @@ def describe(fig: Figures) -> str:
     return (f"{fig.kind}@{fig.rate_hz:g} {fig.signal}: feedback fit {fig.feedback}, "
             f"sat {100 * fig.sat_share:.2f} %, hf acc {fig.hf_acc_rms:.5f} m/s^2 (ideal "
             f"{fig.ideal_hf_acc_rms:.5f}), jerk {fig.jerk_rms:.2f} m/s^3 (ideal "
-            f"{fig.ideal_jerk_rms:.2f}), {fig.ticks_missing} ticks missing; "
+            f"{fig.ideal_jerk_rms:.2f}), {fig.ticks_missing} ticks missing; HF departing most "
+            f"from the ideal's at {fig.hf_peaks}; "
             f"sender {fig.sender}; service's figures {q}")
 
 
