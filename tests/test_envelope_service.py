@@ -86,6 +86,8 @@ def test_reloads_outside_the_envelope_are_refused(tmp_path: Path) -> None:
             time.sleep(4.0)
             target[0] = -3.5
             time.sleep(5.0)
+            target[0] = 0.0  # back home within the limits (2 m/s): SIGTERM's parking is short
+            time.sleep(2.5)
         finally:
             stop.set()
             feeder.join()
