@@ -1088,7 +1088,9 @@ def tick_params(cfg: ServiceConfig, axes: ResolvedAxes) -> TickParams:
     shaper = ShaperParams(
         driven=axes.driven, ramp_speed=tuple(loop.ramp_speed_fraction * float(v)
                                              for v in lim.v_max),
-        reach_lo=lo, reach_hi=hi, stale_after_s=loop.stale_after_s, hold_s=loop.hold_s,
+        reach_lo=lo, reach_hi=hi, home_lo=tuple(float(v) for v in lim.p_min),
+        home_hi=tuple(float(v) for v in lim.p_max), stale_after_s=loop.stale_after_s,
+        hold_s=loop.hold_s,
         rejoin_s=loop.rejoin_s, startup_s=loop.startup_s,
         reconstruction=cfg.input.reconstruction, tick_s=1.0 / loop.rate_hz,
         max_extrapolation_s=cfg.input.max_extrapolation_s, lead_s=cfg.input.lead_s,

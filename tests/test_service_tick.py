@@ -230,6 +230,48 @@ def test_the_rails_chain_settles_a_step_as_designed() -> None:
     assert abs(y[-1] - 0.5) < 1e-5
 
 
+@pytest.mark.parametrize("how", ["park", "stale"])
+def test_a_ramp_to_neutral_from_beyond_the_limits_starts_at_once(how: str) -> None:
+    """Input held beyond rails_y's limit (within the accepted reach, which the limiter holds
+    the command from): the ramp to neutral -- SIGTERM's parking, or an input loss after its
+    hold -- starts from the limit, not from the reference beyond it.  It takes the minimum-jerk
+    ramp from the limit at the configured peak speed, 1.875 * 2.6 m / (0.25 * 2 m/s) = 9.75 s
+    (from 3.85 m it took 14.4 s, the first 4.6 s with the platform held at its end: within
+    0.6 s of park_timeout_s), the command moving home from the first tick and within the
+    limits all along."""
+    svc, src, sink = make_service(hold_s=0.5)
+    p_max = svc.axes.limits.p_max[AXES.index("rails_y")]
+    ramp_s = 1.875 * p_max / (svc.cfg.loop.ramp_speed_fraction
+                           * svc.axes.limits.v_max[AXES.index("rails_y")])
+    assert ramp_s == pytest.approx(9.75)
+    k = 0
+    for k in range(6000):
+        src.push(encode_input(k, k / 1000, {"rails_y": 3.85}))
+        svc.tick(k * MS)
+    k0 = len(sink.payloads)
+    start = k + 1
+    if how == "park":
+        park(svc.state, svc.params, start * MS)
+    home = start + (0 if how == "park" else 500 + 50)  # stale: 50 ms unseen, then held 0.5 s
+    k = start
+    while not is_parked(svc.state) and k < start + 20000:
+        if how == "stale" and abs(decode_output(sink.payloads[-1])["pos"]["rails_y"]) < 1e-9:
+            break
+        svc.tick(k * MS)
+        k += 1
+    y = column(outputs(sink), "rails_y")
+    check_sequence(y, 0.0, _limits(svc, "rails_y"), 1e-3)
+    assert y[k0 - 1] == pytest.approx(p_max)  # held at the limit before
+    assert abs(y[-1]) < 1e-6
+    took_s = (k - home) / 1000
+    assert ramp_s - 0.05 <= took_s <= ramp_s + 0.3, took_s
+    # home from the first ticks, along the minimum-jerk ramp from the limit (24 mm along after
+    # 1 s; from 3.85 m the command stayed at the limit for 4.6 s)
+    tau = 1.0 / ramp_s
+    along = p_max * (10 * tau ** 3 - 15 * tau ** 4 + 6 * tau ** 5)
+    assert y[k0 + home - start + 1000] == pytest.approx(p_max - along, abs=3e-3)
+
+
 def test_parking_reaches_neutral_within_the_limits() -> None:
     svc, src, sink = make_service()
     for k in range(3000):

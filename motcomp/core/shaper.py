@@ -162,6 +162,12 @@ class ShaperParams:
     """Per axis, the jerk a start-up or rejoin blend may take (axis units/s^3): a blend lasts
     longer where its gap, velocity and acceleration changes would need more (empty, or 0: no
     bound)."""
+    home_lo: tuple[float, ...] = ()
+    home_hi: tuple[float, ...] = ()
+    """Per axis, the position limits (empty: none).  A ramp to neutral starts from the
+    reference brought within them: the command never goes beyond them, so a reference the
+    input left beyond (up to the reach) would only hold the platform at its end for the ramp's
+    first seconds (4.9 s of a rails' 14.6 s ramp from the reach)."""
 
     def __post_init__(self) -> None:
         if not self.min_dt_s > 0:
@@ -171,6 +177,9 @@ class ShaperParams:
         if not 0.0 <= self.playback_lag_s <= 0.1:
             raise ValueError(f"playback_lag_s must be within [0, 0.1] s, got "
                              f"{self.playback_lag_s!r}")
+        if len(self.home_lo) != len(self.home_hi):
+            raise ValueError(f"home_lo and home_hi must have one value per axis each, got "
+                             f"{len(self.home_lo)} and {len(self.home_hi)}")
         if self.reconstruction not in ("linear", "smooth", "hold"):
             raise ValueError(f"reconstruction must be linear, smooth or hold, got "
                              f"{self.reconstruction!r}")
@@ -428,7 +437,14 @@ class ReferenceShaper:
         self.parking = True
         self._blend_poly = self._blend_move = None
         self._blend_pending = False
-        self._move = _Move(now, self.ref, [0.0] * self.n, p.ramp_speed, p.blend_acc)
+        self._move = self._home(p, now)
+
+    def _home(self, p: ShaperParams, now: float) -> _Move:
+        """The ramp to neutral from ``now``, from the reference within ``home_lo``-``home_hi``."""
+        start = self.ref[:]
+        for i, (lo, hi) in enumerate(zip(p.home_lo, p.home_hi, strict=True)):
+            start[i] = min(max(start[i], lo), hi)
+        return _Move(now, start, [0.0] * self.n, p.ramp_speed, p.blend_acc)
 
     # --- the reference --------------------------------------------------------------------
     def reference(self, p: ShaperParams, now: float) -> tuple[list[float], str]:
@@ -450,7 +466,7 @@ class ReferenceShaper:
             if now - self._stale_since < p.hold_s:
                 return self.ref, mode
             if self._move is None:
-                self._move = _Move(now, self.ref, [0.0] * self.n, p.ramp_speed, p.blend_acc)
+                self._move = self._home(p, now)
             ref, _ = self._move.at(now)
         else:
             ref = self._live_now(p, now)
