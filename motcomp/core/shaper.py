@@ -164,10 +164,9 @@ class ShaperParams:
     bound)."""
     home_lo: tuple[float, ...] = ()
     home_hi: tuple[float, ...] = ()
-    """Per axis, the position limits (empty: none).  A ramp to neutral starts from the
-    reference brought within them: the command never goes beyond them, so a reference the
-    input left beyond (up to the reach) would only hold the platform at its end for the ramp's
-    first seconds (4.9 s of a rails' 14.6 s ramp from the reach)."""
+    """Per axis, the position limits (empty: none): a ramp to neutral starts from the
+    reference brought within them, where the command is (docs/DEPLOYMENT.md, "What happens
+    when the input stops")."""
 
     def __post_init__(self) -> None:
         if not self.min_dt_s > 0:
