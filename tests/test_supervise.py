@@ -184,6 +184,20 @@ def _fig(delay: float, se: float = 0.2, gain: float = 0.0, informative: bool = T
                          "identified": "K, Td, Tp1"}}
 
 
+def test_a_window_without_its_end_adds_no_time_to_the_blind_motion() -> None:
+    """A first estimate whose window has no end (``to_t`` None: the window not filled yet)
+    followed by uninformative ones 2 s apart on the epoch clock: the axis was blind for their
+    spacing, not for the epoch's seconds (it read "no window was judged in 1796001837 s of
+    motion" 3 s after a start)."""
+    j = DriftJudge(SupervisionConfig())
+    blind = {**_fig(0.0, informative=False), "reason": "1.1 s of feedback paired with outputs"}
+    assert j.update("rails_y", blind, None, 0.0) is None
+    t0 = 1.796e9
+    for k in range(5):
+        assert j.update("rails_y", blind, t0 + 2.0 * k, 2.0 * k) is None
+    assert j.axes["rails_y"].blind_s == pytest.approx(8.0)
+
+
 def test_an_alarm_needs_the_whole_hold_beyond_the_bound_with_confidence() -> None:
     cfg = SupervisionConfig(delay_bound_ms=2.5, hold_s=8.0)
     j = DriftJudge(cfg)

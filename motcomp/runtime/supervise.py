@@ -187,16 +187,18 @@ class DriftJudge:
         self.cfg = cfg
         self.axes: dict[str, _AxisState] = {}
 
-    def update(self, axis: str, fig: dict[str, Any], t: float, now: float) -> str | None:
-        """Judge one estimate of ``axis`` whose window ends at ``t`` (frame clock, s); returns
-        a WARNING text when an alarm starts, or is still on after :data:`ALARM_LOG_S`
-        (``now``: monotonic s), else None."""
+    def update(self, axis: str, fig: dict[str, Any], t: float | None, now: float
+               ) -> str | None:
+        """Judge one estimate of ``axis`` whose window ends at ``t`` (frame clock, s; None: a
+        window without its end, which adds no time); returns a WARNING text when an alarm
+        starts, or is still on after :data:`ALARM_LOG_S` (``now``: monotonic s), else None."""
         cfg = self.cfg
         st = self.axes.setdefault(axis, _AxisState())
         st.judged += 1
         st.last = fig
-        since = 0.0 if st.last_t is None else max(t - st.last_t, 0.0)
-        st.last_t = t
+        since = 0.0 if st.last_t is None or t is None else max(t - st.last_t, 0.0)
+        if t is not None:
+            st.last_t = t
         if not fig.get("informative"):
             reason = str(fig.get("reason") or "")
             if reason.startswith(("too little motion", "the command is constant")):
@@ -529,7 +531,8 @@ class Supervisor:
                     fig["informative"] = False
                     fig["reason"] = (f"the limiter acted on {100 * share:.0f} % of the ticks "
                                      f"(more than {100 * self.cfg.max_limited_share:g} %)")
-            text = self.judge.update(axis, fig, float(fig.get("to_t") or 0.0), now)
+            to_t = fig.get("to_t")
+            text = self.judge.update(axis, fig, None if to_t is None else float(to_t), now)
             if text is not None:
                 out.append(text)
         return out
