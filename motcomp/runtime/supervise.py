@@ -217,6 +217,9 @@ class DriftJudge:
         st.blind_s, st.unsupervised = 0.0, False
         st.blind.clear()
         st.last_reason.clear()
+        if st.last_t is None:  # informative, but nowhere in time yet: nothing to hold
+            return None
+        t = st.last_t
         delay, gain = fig["residual_delay_ms"], fig["gain_error"]
         z_delay = CONFIDENCE_Z * fig["residual_delay_se_ms"]
         z_gain = CONFIDENCE_Z * fig["gain_error_se"]
