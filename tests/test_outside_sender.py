@@ -56,13 +56,7 @@ import zenoh
 from conftest import ROOT, judge_realtime, motcomp_cmd, subprocess_env
 
 from motcomp.config import load_config
-from motcomp.core.quality import (
-    HF_ABOVE_HZ,
-    SineFit,
-    command_quality_over,
-    hf_within,
-    sine_delay,
-)
+from motcomp.core.quality import SineFit, above, command_quality_over, hf_within, sine_delay
 from motcomp.runtime.probe import HostClock, HostProbe
 from motcomp.sim.ideal import ideal_run
 
@@ -228,9 +222,7 @@ def figures(kind: str, rate_hz: float, signal: str, sender: dict[str, Any], rec:
         if part.stop - part.start >= 8:
             acc = np.diff(u[part] - ideal_u[at], 2) * LOOP_RATE_HZ ** 2
             acc -= np.linspace(acc[0], acc[-1], acc.size)  # no step where the FFT wraps
-            spec = np.fft.rfft(acc)
-            spec[np.fft.rfftfreq(acc.size, 1.0 / LOOP_RATE_HZ) < HF_ABOVE_HZ] = 0.0
-            hp = np.fft.irfft(spec, acc.size)
+            hp = above(acc, LOOP_RATE_HZ)
             k = int(np.argmax(np.abs(hp)))
             peaks.append((abs(float(hp[k])), (at.start + k + 1) / LOOP_RATE_HZ))
     hf_peaks = ", ".join(f"{s:.3f} s: {a * 1e3:.3f} mm/s^2" for a, s in sorted(peaks)[-3:])

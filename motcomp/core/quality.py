@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
+from motcomp.core.lti import FloatArray
 from motcomp.errors import ConfigError
 
 __all__ = [
@@ -145,6 +146,14 @@ def hf_within(live: float, ideal: float, ratio: float) -> bool:
     return live <= ratio * ideal + HF_RESOLUTION
 
 
+def above(x: np.ndarray, rate_hz: float, above_hz: float = HF_ABOVE_HZ) -> FloatArray:
+    """The part of the series ``x`` (sampled at ``rate_hz``) above ``above_hz``: its spectrum
+    with the lower lines zeroed, as is (the caller tapers the series)."""
+    spec = np.fft.rfft(x)
+    spec[np.fft.rfftfreq(x.size, 1.0 / rate_hz) < above_hz] = 0.0
+    return np.fft.irfft(spec, x.size)
+
+
 def hf_rms(x: ArrayLike, rate_hz: float, above_hz: float = HF_ABOVE_HZ) -> float:
     """RMS of the part of ``x`` above ``above_hz`` (Hann-tapered spectrum, module docstring);
     0 for fewer than 8 samples."""
@@ -153,9 +162,7 @@ def hf_rms(x: ArrayLike, rate_hz: float, above_hz: float = HF_ABOVE_HZ) -> float
     if n < 8:
         return 0.0
     w = np.hanning(n)
-    spec = np.fft.rfft((a - a.mean()) * w)
-    spec[np.fft.rfftfreq(n, 1.0 / rate_hz) < above_hz] = 0.0
-    hp = np.fft.irfft(spec, n)
+    hp = above((a - a.mean()) * w, rate_hz, above_hz)
     return float(math.sqrt(np.mean(hp * hp) / np.mean(w * w)))
 
 
