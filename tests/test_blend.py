@@ -6,6 +6,7 @@ neutral): continuous to the jerk, within their acceleration, no excursion beyond
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -23,12 +24,20 @@ from motcomp.core.blend import (
     JERK_STRETCH,
     blend_coefficients,
     blend_duration,
+    cubic_residual,
     horner,
     jerk_duration,
     local_cubic,
 )
 from motcomp.core.minjerk import min_jerk, min_jerk_derivatives
-from motcomp.core.shaper import BAND_SETTLE_DELAYS, FIT_S, ReferenceShaper, ShaperParams
+from motcomp.core.shaper import (
+    BAND_SETTLE_DELAYS,
+    FIT_S,
+    FIT_TOL,
+    FIT_WAIT_S,
+    ReferenceShaper,
+    ShaperParams,
+)
 from motcomp.sim.ideal import ideal_run
 
 S = np.linspace(0.0, 1.0, 20001)
@@ -126,6 +135,10 @@ def test_the_local_cubic_is_exact_on_a_cubic() -> None:
                                        strict=True):
         assert (v, a, j) == pytest.approx((v0, a0, j0), rel=1e-6, abs=1e-9)
     assert local_cubic([0.0, 0.001, 0.002], [[1.0]] * 3, 0.002) is None
+    # a cubic is its own least-squares cubic; a bend is not
+    assert cubic_residual(t.tolist(), x.tolist()) < 1e-12
+    bent = np.where(t < -0.015, 0.823 * t, -0.012345 + 0.775 * (t + 0.015))  # 48 mm/s less
+    assert cubic_residual(t.tolist(), bent[:, None].tolist()) > 1e-5
     assert local_cubic([0.0, 0.0, 0.001, 0.001], [[1.0]] * 4, 0.001) is None
 
 
@@ -206,6 +219,70 @@ def test_a_blend_into_a_moving_slalom_is_smooth_and_stays_within_the_motion(
     assert np.max(np.abs(ref)) < SLALOM_A + 0.25, np.max(np.abs(ref))
     # and once live, the slalom a band delay and the playback's lag behind
     assert np.max(np.abs(ref[blend[-1] + 100:] - live[blend[-1] + 100 - 9:-9])) < 2e-3
+
+
+def start_into_a_ramp(x: Any, ticks: int = 4000) -> tuple[int | None, np.ndarray, np.ndarray,
+                                                                 list[str]]:
+    """A start into ``x(k)`` (1 kHz samples with ``t``, 0.3 ms transit), the rails' budgets:
+    the tick the blend started, the reference and the input at each tick, and the modes."""
+    p = shaper_params(startup_s=1.0, rejoin_s=0.5, blend_jerk=(8.1,) * 8)
+    sh = ReferenceShaper(8)
+    start, refs, xs, modes = None, [], [], []
+    for k in range(ticks):
+        t = 1e-3 * k
+        sh.on_input(p, {Y: x(k)}, t + 3e-4, t)
+        ref, mode = sh.reference(p, t + 3e-4)
+        if start is None and k and not sh._blend_pending:
+            start = k
+        refs.append(ref[Y])
+        xs.append(x(k))
+        modes.append(mode)
+    return start, np.array(refs), np.array(xs), modes
+
+
+@pytest.mark.parametrize("bend_ms", [5, 11, 17, 23, 26, 29, 35])
+def test_a_live_input_that_bends_as_the_blend_would_start_is_not_misread(bend_ms: int) -> None:
+    """A start into a ramp whose slope drops from 0.823 to 0.775 m/s ``bend_ms`` before the
+    blend would start, as the live input's reconstruction did on one core: the cubic through
+    a window holding the bend reads an acceleration and a jerk the input does not have (3 m/s^2
+    and 373 m/s^3 there, and the blend carried them into a reference of -2.3 m on the rails for
+    a slalom within +-0.4 m; -1.7 m here).  The blend waits for a window the cubic explains
+    (FIT_TOL), at most FIT_WAIT_S: the reference never goes below the held neutral (by more
+    than the velocity merge's 0.02 mm, as without the bend) nor beyond the input, and is live
+    after the blend."""
+    plain, _, _, _ = start_into_a_ramp(lambda k: 0.823e-3 * k)
+    assert plain is not None
+    bend = plain - bend_ms
+
+    def x(k: int) -> float:
+        return 0.823e-3 * k if k < bend else 0.823e-3 * bend + 0.775e-3 * (k - bend)
+
+    start, ref, xs, modes = start_into_a_ramp(x)
+    assert start is not None and plain <= start <= plain + 2 * FIT_S * 1e3, (plain, start)
+    assert np.min(ref) > -5e-5, np.min(ref)
+    assert np.all(ref <= xs), np.max(ref - xs)
+    live = start + modes[start:].index("")
+    assert set(modes[live:]) == {""}
+
+
+def test_a_live_input_no_cubic_explains_starts_with_its_velocity_only() -> None:
+    """A ramp (0.8 m/s) with a 45 Hz ripple of 20 um, which the band limit passes in part: no
+    window of FIT_S is a cubic to within FIT_TOL, so the blend starts FIT_WAIT_S after the
+    first full window and carries the live input's velocity, not its acceleration or jerk
+    (the ripple's, read off a cubic, would be carried over seconds): the reference takes the
+    input's own acceleration at the start (the ripple's, about 1 m/s^2: it dips 0.6 mm below
+    the held neutral) and stays within the input's range, and the blend ends."""
+    def x(k: int) -> float:
+        return 0.8e-3 * k + 2e-5 * float(np.sin(2.0 * np.pi * 45.0 * k * 1e-3))
+
+    plain, _, _, _ = start_into_a_ramp(lambda k: 0.8e-3 * k)
+    start, ref, xs, modes = start_into_a_ramp(x)
+    assert plain is not None and start is not None
+    assert abs(start - (plain + FIT_WAIT_S * 1e3)) <= 2, (plain, start)
+    assert np.min(ref) > -1e-3, np.min(ref)
+    assert np.max(ref) <= np.max(xs), (np.max(ref), np.max(xs))
+    assert modes[-1] == ""
+    assert FIT_TOL < 1e-6
 
 
 @pytest.mark.parametrize("phase", [0.0, 0.6, 1.1, 1.7, 2.5, 3.0])

@@ -22,8 +22,10 @@ and a smaller excursion: peak ``|B0''|`` 6.29 (7.51 for the septic alone), ``|B1
 :func:`blend_duration` is the shortest ``T`` no shorter than asked for which the position and
 velocity terms need at most a given acceleration; the acceleration and jerk terms only carry
 the held path's own over to the live one's, clipped by :func:`blend_coefficients` so that an
-estimate's error cannot swing the blend.  :func:`local_cubic` estimates the live path's
-velocity, acceleration and jerk from its last ticks.
+estimate's error cannot swing the blend (the shaper carries the jerk over a shorter time than
+the rest: its excursion grows as ``j T^3``).  :func:`local_cubic` estimates the live path's
+velocity, acceleration and jerk from its last ticks, :func:`cubic_residual` says whether a
+cubic is what they are.
 """
 
 from __future__ import annotations
@@ -35,8 +37,8 @@ import numpy as np
 from numpy.polynomial import polynomial as npp
 
 __all__ = ["B3_ACC_PEAK", "BLEND_ACC_PEAK", "BLEND_ACC_SHARE", "BLEND_MERGE_PEAK", "BLEND_TERMS",
-           "blend_coefficients", "blend_duration", "carried_acceleration", "horner",
-           "jerk_duration", "local_cubic"]
+           "blend_coefficients", "blend_duration", "carried_acceleration", "cubic_residual",
+           "horner", "jerk_duration", "local_cubic"]
 
 
 BLEND_ACC_SHARE = 0.25
@@ -188,3 +190,16 @@ def local_cubic(times: Sequence[float], values: Sequence[Sequence[float]], at: f
     c = npp.polyfit(t / span, np.asarray(values, dtype=float), 3)  # (4, columns), in t / span
     return [(float(c1) / span, 2.0 * float(c2) / span**2, 6.0 * float(c3) / span**3)
             for c1, c2, c3 in zip(c[1], c[2], c[3], strict=True)]
+
+
+def cubic_residual(times: Sequence[float], values: Sequence[Sequence[float]]) -> float:
+    """The largest distance of any value of ``values`` (one row of columns per instant of
+    ``times``) from its column's least-squares cubic in ``times`` (0 for four instants or
+    fewer)."""
+    if len(times) <= 4:
+        return 0.0
+    t = np.asarray(times, dtype=float)
+    t = (t - t[-1]) / max(float(t[-1] - t[0]), 1e-12)
+    x = np.asarray(values, dtype=float)
+    c = npp.polyfit(t, x, 3)
+    return float(np.max(np.abs(npp.polyval(t, c).T - x)))

@@ -28,12 +28,15 @@ without ``t`` estimated over :data:`UNSTAMPED_SETTLE_S` of its frames (or played
 :data:`UNSTAMPED_WAIT_S`), the moving average full and the band limit
 :data:`BAND_SETTLE_DELAYS` of its delays past its seeding (seeded at rest, it follows a moving
 input only after a transient), and :data:`FIT_S` more for the live input's motion (a
-least-squares cubic); the held reference stays until then.  It lasts ``startup_s``/``rejoin_s``,
-or longer per axis where its gap and velocity change need more than a quarter of the axis'
-acceleration limit (``blend_acc``: the compensator multiplies the reference's acceleration by
-its in-band gain), or its gap, velocity and acceleration changes more than its jerk budget
-(``blend_jerk``: ``blend_acc`` over the model's lag, which the compensator multiplies the
-jerk by).  Undriven axes stay at neutral.
+least-squares cubic), until a window of :data:`FIT_S` the cubic explains to within
+:data:`FIT_TOL` (a bend of the live input inside the window is not its motion; after
+:data:`FIT_WAIT_S` the blend carries the live velocity only); the held reference stays until
+then.  It lasts ``startup_s``/``rejoin_s``, or longer per axis where its gap and velocity change
+need more than a quarter of the axis' acceleration limit (``blend_acc``: the compensator
+multiplies the reference's acceleration by its in-band gain), or its gap, velocity and
+acceleration changes more than its jerk budget (``blend_jerk``: ``blend_acc`` over the model's
+lag, which the compensator multiplies the jerk by); the jerk difference fades out over
+:data:`JERK_CARRY_S` at most.  Undriven axes stay at neutral.
 
 Input reconstruction ``smooth`` (the default): the input *played back on the sender's timeline, a
 little behind its newest sample*, interpolated between samples already received.  Three parts,
@@ -75,6 +78,7 @@ from motcomp.core.bandlimit import BandLimit, BandLimitParams
 from motcomp.core.blend import (
     blend_coefficients,
     blend_duration,
+    cubic_residual,
     horner,
     jerk_duration,
     local_cubic,
@@ -116,7 +120,26 @@ UNSTAMPED_WAIT_S = 1.0
 bunched beyond the 25 ms gate, never spans it)."""
 FIT_S = 0.02
 """... and once the live input has run this long more: its velocity, acceleration and jerk at
-the blend's start are those of the least-squares cubic through these ticks."""
+the blend's start are those of the least-squares cubic through the last ticks this long ..."""
+FIT_TOL = 3e-7
+"""... which the cubic must explain to within this (m or rad, every tick of every axis): a
+window that holds a bend of the live input (a transient of its reconstruction) gives a cubic
+whose acceleration and jerk at its end are not the input's (3 m/s^2 and 373 m/s^3 were read
+on one core, 20 um off the ticks, and the blend carried them into a 2.3 m excursion of the
+rails, the input within +-0.4 m; at 0.7 um still -0.46 m/s^2 and -42 m/s^3), so the blend
+waits for a window that is a cubic (the slalom's read 0.002-0.08 um, the band limit's seeding
+fading; that start, 7 ms later: -0.16 m/s^2 and 0.2 m/s^3) ..."""
+FIT_WAIT_S = 0.25
+"""... for at most this long after the first full window; then it carries the live input's
+velocity only (its acceleration and jerk taken as the held path's: the reference's own step
+to the live ones at the start, no estimate carried over the blend)."""
+JERK_CARRY_S = 0.5
+"""A blend carries the jerk difference over this long at most (its gap, velocity and
+acceleration over the whole blend): a jerk estimated from a few tens of milliseconds is the
+least certain figure (some m/s^3 from 0.1 um off a cubic), and carried over a blend of
+seconds, within its acceleration budget, it swings the reference as ``j T^3`` (0.38 m from
+42 m/s^3 over 1.9 s); over 0.2 s it moves it by 4 mm at most, and the reference's jerk
+still changes without a step."""
 GAP_BLEND_PERIODS = 10.0
 GAP_BLEND_S = 0.2
 """After an extrapolation, the difference to the samples fades out over about this many input
@@ -262,10 +285,14 @@ class ReferenceShaper:
         self._blend_s = 0.0
         self._blend_each: list[float] = []  # each axis' blend duration
         self._blend_poly: list[list[float]] | None = None  # each axis' difference faded out
+        self._blend_jerk: list[list[float]] = []  # and its jerk's, over JERK_CARRY_S at most
+        self._blend_jerk_s: list[float] = []
         self._blend_move: _Move | None = None  # the ramp to neutral a rejoin interrupts
         self._blend_pending = False
         self._run_s = 0.0  # smooth: time the moving average and band limit ran since a reset
-        self._live_hist: list[tuple[float, list[float]]] = []  # the live input since settled
+        self._live_hist: list[tuple[float, list[float]]] = []  # the live input, last FIT_S
+        self._fit_full_at: float | None = None  # when that window first spanned FIT_S
+        self._fit_trusted = True  # the cubic explains the window (FIT_TOL)
         self._stale_since: float | None = None
         self._move: _Move | None = None
         self.parking = False
@@ -486,6 +513,9 @@ class ReferenceShaper:
                     if el < d:
                         done = False
                         ref[i] += horner(c, el / d)
+                        dj = self._blend_jerk_s[i]
+                        if el < dj:
+                            ref[i] += horner(self._blend_jerk[i], el / dj)
                 if done:
                     self._blend_poly = None
                 else:
@@ -499,19 +529,29 @@ class ReferenceShaper:
 
     def _live_known(self, p: ShaperParams, now: float, live: list[float]) -> bool:
         """``smooth``: whether the live input has run long enough for a blend to start (module
-        docstring); keeps its values from the moment it settled."""
+        docstring, :data:`FIT_S` to :data:`FIT_WAIT_S`); keeps its values over the last
+        ``FIT_S`` from the moment it settled."""
         hist = self._live_hist
         if not self._playing or (self.timeline.span() < UNSTAMPED_SETTLE_S
                                  and self._run_s < UNSTAMPED_WAIT_S):
             hist.clear()
+            self._fit_full_at = None
             return False
         band_s = max((b.delay_s for b in p.band if b is not None), default=0.0)
         ma_s = self._ma_len * p.tick_s if self._ma_len >= MA_MIN_TICKS else 0.0
         if self._run_s < BAND_SETTLE_DELAYS * band_s + ma_s:
             hist.clear()
+            self._fit_full_at = None
             return False
         hist.append((now, live[:]))
-        return len(hist) >= 4 and now - hist[0][0] >= FIT_S
+        while not self._fit_trusted and len(hist) > 4 and now - hist[1][0] >= FIT_S:
+            del hist[0]  # waiting for a window the cubic explains: it slides
+        if len(hist) < 4 or now - hist[0][0] < FIT_S:
+            return False
+        if self._fit_full_at is None:
+            self._fit_full_at = now
+        self._fit_trusted = cubic_residual([t for t, _ in hist], [x for _, x in hist]) <= FIT_TOL
+        return self._fit_trusted or now - self._fit_full_at >= FIT_WAIT_S
 
     def _blend_start(self, p: ShaperParams, live: list[float], now: float) -> None:
         """A blend from the reference held (or ramping) to ``live`` (:mod:`motcomp.core.blend`):
@@ -527,11 +567,18 @@ class ReferenceShaper:
         hist = self._live_hist
         if p.reconstruction == "smooth" and hist:
             live_d = local_cubic([t for t, _ in hist], [x for _, x in hist], now)
+            if live_d is not None and not self._fit_trusted:  # its velocity only (FIT_WAIT_S)
+                live_d = [(v, hd[1], hd[2]) for (v, _, _), hd in zip(live_d, held_d,
+                                                                     strict=True)]
         elif p.reconstruction == "linear":
             live_d = [(v, 0.0, 0.0) for v in self._lin_slope]
         hist.clear()
+        self._fit_full_at = None
+        self._fit_trusted = True
         base = self._blend_s
         polys, each = [], []
+        jerks: list[list[float]] = []
+        jerk_s: list[float] = []
         for i, (x, h) in enumerate(zip(live, held, strict=True)):
             hv, ha, hj = held_d[i]
             lv, la, lj = live_d[i] if live_d is not None else rest
@@ -541,8 +588,12 @@ class ReferenceShaper:
             if p.blend_jerk and p.driven[i] and d > 0.0:
                 d = jerk_duration(g, r, ha - la, a, p.blend_jerk[i], d)
             each.append(d)
-            polys.append(blend_coefficients(g, r, ha - la, hj - lj, d, a) if d > 0.0 else [])
+            polys.append(blend_coefficients(g, r, ha - la, 0.0, d, a) if d > 0.0 else [])
+            dj = min(d, JERK_CARRY_S)
+            jerks.append(blend_coefficients(0.0, 0.0, 0.0, hj - lj, dj, a) if dj > 0.0 else [])
+            jerk_s.append(dj)
         self._blend_poly, self._blend_each = polys, each
+        self._blend_jerk, self._blend_jerk_s = jerks, jerk_s
 
     def _live_now(self, p: ShaperParams, now: float) -> list[float]:
         """The live values at this tick: reconstructed as ``p.reconstruction`` says."""
