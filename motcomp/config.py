@@ -32,6 +32,7 @@ import os
 import re
 import stat
 import tomllib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -45,6 +46,7 @@ from motcomp.core.blend import BLEND_ACC_SHARE
 from motcomp.core.compensator import Compensator
 from motcomp.core.envelope import EnvelopeParams
 from motcomp.core.loop import stability
+from motcomp.core.minjerk import move_duration
 from motcomp.core.models import P1D, ProcessModel, parse_model
 from motcomp.core.pid import PIDGains
 from motcomp.core.predictor import MonitorParams, PredictorParams
@@ -574,6 +576,7 @@ def resolve_axes(cfg: ServiceConfig, profile: str | None = "") -> ResolvedAxes:
         driven.append(True)
     arr = np.array(rows, dtype=float)
     limits = AxisLimits(arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3], AXES)
+    warnings += _parking_warnings(cfg, driven, limits)
     return ResolvedAxes(AXES, tuple(driven), tuple(models), tuple(plants), tuple(gains), limits,
                         tuple(bypass), tuple(warnings), tuple(prediction), tuple(predict),
                         envelope)
@@ -1074,6 +1077,37 @@ def config_hash(cfg: ServiceConfig) -> str:
 
 def _band_key(inp: InputConfig, axis: str) -> str:
     return f"input.axis_band_hz.{axis}" if axis in inp.axis_band_hz else "input.band_hz"
+
+
+PARK_SETTLE_S = 0.5
+"""``loop.park_timeout_s`` must exceed the longest ramp to neutral by this much (the command's
+settle after the ramp: some tens of milliseconds measured)."""
+
+
+def _parking_warnings(cfg: ServiceConfig, driven: Sequence[bool], limits: AxisLimits
+                      ) -> list[str]:
+    """One warning per driven axis that cannot park within ``loop.park_timeout_s`` from
+    anywhere in its range: its ramp to neutral from the farther position limit (the shaper's
+    ramp: ``ramp_speed_fraction`` of ``vel_max``,
+    :data:`~motcomp.core.blend.BLEND_ACC_SHARE` of ``acc_max``) plus :data:`PARK_SETTLE_S`
+    exceeds it, so that a stop from there would end mid-ramp (exit 1)."""
+    loop = cfg.loop
+    out = []
+    for i, name in enumerate(AXES):
+        if not driven[i]:
+            continue
+        far = max(abs(float(limits.p_min[i])), abs(float(limits.p_max[i])))
+        v, a = float(limits.v_max[i]), float(limits.a_max[i])
+        ramp = move_duration(far, loop.ramp_speed_fraction * v, BLEND_ACC_SHARE * a)
+        if ramp + PARK_SETTLE_S > loop.park_timeout_s:
+            out.append(
+                f"{name}: loop.park_timeout_s = {loop.park_timeout_s:g} s is shorter than its "
+                f"ramp to neutral from its position limit {far:g} ({ramp:.2f} s at "
+                f"loop.ramp_speed_fraction = {loop.ramp_speed_fraction:g} of its vel_max "
+                f"{v:g}): a stop from there would end mid-ramp (exit 1); give park_timeout_s "
+                f">= {math.ceil((ramp + PARK_SETTLE_S) * 10.0) / 10.0:g} or a larger "
+                "ramp_speed_fraction")
+    return out
 
 
 def tick_params(cfg: ServiceConfig, axes: ResolvedAxes) -> TickParams:

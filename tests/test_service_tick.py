@@ -15,7 +15,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from motcomp.config import parse_config, read_toml
+from motcomp.config import PARK_SETTLE_S, parse_config, read_toml, resolve_axes
 from motcomp.core.axes import AXES
 from motcomp.core.tick import is_parked, park
 from motcomp.io.memory import MemorySink, MemorySource
@@ -270,6 +270,33 @@ def test_a_ramp_to_neutral_from_beyond_the_limits_starts_at_once(how: str) -> No
     tau = 1.0 / ramp_s
     along = p_max * (10 * tau ** 3 - 15 * tau ** 4 + 6 * tau ** 5)
     assert y[k0 + home - start + 1000] == pytest.approx(p_max - along, abs=3e-3)
+
+
+@pytest.mark.parametrize(("loop", "short"), [
+    ({}, False), ({"park_timeout_s": 10.3}, False), ({"park_timeout_s": 10.2}, True),
+    ({"ramp_speed_fraction": 0.15}, True), ({"ramp_speed_fraction": 0.15, "park_timeout_s": 16.8},
+                                            False)])
+def test_a_park_timeout_shorter_than_a_ramp_from_the_limits_is_warned_of(loop: dict[str, float],
+                                                                         short: bool) -> None:
+    """``loop.park_timeout_s`` should leave each driven axis room to ramp to neutral from its
+    farther position limit, plus PARK_SETTLE_S: a timeout cuts parking short, the service
+    stopping mid-ramp (the example's rails_y, 2.6 m: 9.75 s at a quarter of 2 m/s, the test
+    above; 16.25 s at 0.15 of it).  The config loads with a warning (which the service logs at
+    start and on a reload, and ``motcomp config check`` prints) naming the axis, the keys and
+    the least timeout that would do."""
+    data = read_toml(ROOT / "config" / "motcomp.toml")
+    data.setdefault("loop", {}).update(loop)
+    cfg = parse_config(data)
+    axes = resolve_axes(cfg)
+    i = AXES.index("rails_y")
+    ramp_s = 1.875 * 2.6 / (cfg.loop.ramp_speed_fraction * axes.limits.v_max[i])
+    assert axes.limits.p_max[i] == 2.6 and axes.limits.v_max[i] == 2.0
+    assert short == (ramp_s + PARK_SETTLE_S > cfg.loop.park_timeout_s)
+    said = [w for w in axes.warnings if w.startswith("rails_y: loop.park_timeout_s")]
+    assert len(said) == short, axes.warnings
+    if short:
+        assert f"({ramp_s:.2f} s at loop.ramp_speed_fraction" in said[0]
+        assert f">= {math.ceil((ramp_s + PARK_SETTLE_S) * 10) / 10:g} or a larger" in said[0]
 
 
 def test_parking_reaches_neutral_within_the_limits() -> None:

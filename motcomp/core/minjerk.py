@@ -9,12 +9,14 @@ Peak speed: ``1.875 * distance / duration``.
 
 from __future__ import annotations
 
+import math
 from typing import Any, overload
 
 from numpy.typing import NDArray
 
 __all__ = ["PEAK_ACC_FACTOR", "PEAK_DEPART_FACTOR", "PEAK_SPEED_FACTOR", "min_jerk",
-           "min_jerk_between", "min_jerk_derivatives", "min_jerk_rate", "min_jerk_weight"]
+           "min_jerk_between", "min_jerk_derivatives", "min_jerk_rate", "min_jerk_weight",
+           "move_duration"]
 
 PEAK_SPEED_FACTOR = 1.875
 """Peak of ``ds/dx``: a minimum-jerk move of ``distance`` over ``T`` peaks at 1.875 distance/T."""
@@ -60,3 +62,15 @@ def min_jerk_weight(progress: float) -> float:
     if progress <= 0.0:
         return 1.0
     return 1.0 - min_jerk(progress)
+
+
+def move_duration(distance: float, speed: float, acc: float = 0.0, min_s: float = 0.05) -> float:
+    """The shortest minimum-jerk move over ``distance`` (at least ``min_s``) whose peak speed
+    is at most ``speed`` (no bound for ``speed <= 0``) and peak acceleration at most ``acc``
+    (no bound for ``acc <= 0``)."""
+    d = min_s
+    if speed > 0.0:
+        d = max(d, PEAK_SPEED_FACTOR * abs(distance) / speed)
+    if acc > 0.0:
+        d = max(d, math.sqrt(PEAK_ACC_FACTOR * abs(distance) / acc))
+    return d

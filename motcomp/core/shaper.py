@@ -85,10 +85,9 @@ from motcomp.core.blend import (
 )
 from motcomp.core.interp import Curve, Transition
 from motcomp.core.minjerk import (
-    PEAK_ACC_FACTOR,
-    PEAK_SPEED_FACTOR,
     min_jerk_derivatives,
     min_jerk_weight,
+    move_duration,
 )
 from motcomp.core.native import frozen_reduce
 from motcomp.core.playback import Playback, min_transit
@@ -221,13 +220,8 @@ class _Move:
         self.end = list(end)
         self.duration: list[float] = []
         for i, (s, e, v) in enumerate(zip(start, end, speed, strict=True)):
-            d = min_s
-            if v > 0:
-                d = max(d, PEAK_SPEED_FACTOR * abs(e - s) / v)
-            a = acc[i] if i < len(acc) else 0.0
-            if a > 0:
-                d = max(d, math.sqrt(PEAK_ACC_FACTOR * abs(e - s) / a))
-            self.duration.append(d)
+            self.duration.append(move_duration(e - s, v, acc[i] if i < len(acc) else 0.0,
+                                               min_s))
 
     def derivatives(self, t: float) -> list[tuple[float, float, float]]:
         """Each axis' velocity, acceleration and jerk at ``t``."""
