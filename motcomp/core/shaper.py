@@ -136,9 +136,9 @@ JERK_CARRY_S = 0.5
 """A blend carries the jerk difference over this long at most (its gap, velocity and
 acceleration over the whole blend): a jerk estimated from a few tens of milliseconds is the
 least certain figure (some m/s^3 from 0.1 um off a cubic), and carried over a blend of
-seconds, within its acceleration budget, it swings the reference as ``j T^3`` (0.38 m from
-42 m/s^3 over 1.9 s); over 0.2 s it moves it by 4 mm at most, and the reference's jerk
-still changes without a step."""
+seconds, within its acceleration budget, it swings the reference as ``j T^3`` (0.37 m from
+42 m/s^3 over 1.9 s); over 0.5 s, at its clip, it moves it by 0.069 ``blend_acc`` x 0.5^2 at
+most (2.6 cm on the rails), and the reference's jerk still changes without a step."""
 GAP_BLEND_PERIODS = 10.0
 GAP_BLEND_S = 0.2
 """After an extrapolation, the difference to the samples fades out over about this many input
@@ -284,7 +284,7 @@ class ReferenceShaper:
         self._blend_move: _Move | None = None  # the ramp to neutral a rejoin interrupts
         self._blend_pending = False
         self._run_s = 0.0  # smooth: time the moving average and band limit ran since a reset
-        self._live_hist: list[tuple[float, list[float]]] = []  # the live input, last FIT_S
+        self._live_hist: list[tuple[float, list[float]]] = []  # the live input since settled
         self._fit_full_at: float | None = None  # when that window first spanned FIT_S
         self._fit_trusted = True  # the cubic explains the window (FIT_TOL)
         self._stale_since: float | None = None
