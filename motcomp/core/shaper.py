@@ -530,12 +530,14 @@ class ReferenceShaper:
                                  and self._run_s < UNSTAMPED_WAIT_S):
             hist.clear()
             self._fit_full_at = None
+            self._fit_trusted = True
             return False
         band_s = max((b.delay_s for b in p.band if b is not None), default=0.0)
         ma_s = self._ma_len * p.tick_s if self._ma_len >= MA_MIN_TICKS else 0.0
         if self._run_s < BAND_SETTLE_DELAYS * band_s + ma_s:
             hist.clear()
             self._fit_full_at = None
+            self._fit_trusted = True
             return False
         hist.append((now, live[:]))
         while not self._fit_trusted and len(hist) > 4 and now - hist[1][0] >= FIT_S:
