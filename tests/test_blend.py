@@ -24,7 +24,6 @@ from motcomp.core.blend import (
     JERK_STRETCH,
     blend_coefficients,
     blend_duration,
-    cubic_residual,
     horner,
     jerk_duration,
     local_cubic,
@@ -127,18 +126,20 @@ def test_the_local_cubic_is_exact_on_a_cubic() -> None:
     rng = np.random.default_rng(5)
     t = np.sort(rng.uniform(-0.03, 0.0, 25))  # irregular ticks
     x = np.stack([0.1 + 0.5 * t + 0.7 * t**2 + 1.3 * t**3, -2.0 + 3.0 * t**3], axis=1)
-    fit = local_cubic(t.tolist(), x.tolist(), 0.01)
+    fit = local_cubic(t.tolist(), x.tolist())
     assert fit is not None
-    for (v, a, j), (v0, a0, j0) in zip(fit, [(0.5 + 1.4 * 0.01 + 3.9 * 1e-4, 1.4 + 7.8 * 0.01,
-                                              7.8), (9.0 * 1e-4, 18.0 * 0.01, 18.0)],
-                                       strict=True):
+    derivs, residual = fit
+    e = float(t[-1])  # the derivatives at the latest instant, in closed form
+    for (v, a, j), (v0, a0, j0) in zip(derivs, [(0.5 + 1.4 * e + 3.9 * e**2, 1.4 + 7.8 * e, 7.8),
+                                                (9.0 * e**2, 18.0 * e, 18.0)], strict=True):
         assert (v, a, j) == pytest.approx((v0, a0, j0), rel=1e-6, abs=1e-9)
-    assert local_cubic([0.0, 0.001, 0.002], [[1.0]] * 3, 0.002) is None
     # a cubic is its own least-squares cubic; a bend is not
-    assert cubic_residual(t.tolist(), x.tolist()) < 1e-12
+    assert residual < 1e-12
     bent = np.where(t < -0.015, 0.823 * t, -0.012345 + 0.775 * (t + 0.015))  # 48 mm/s less
-    assert cubic_residual(t.tolist(), bent[:, None].tolist()) > 1e-5
-    assert local_cubic([0.0, 0.0, 0.001, 0.001], [[1.0]] * 4, 0.001) is None
+    bent_fit = local_cubic(t.tolist(), bent[:, None].tolist())
+    assert bent_fit is not None and bent_fit[1] > 1e-5
+    assert local_cubic([0.0, 0.001, 0.002], [[1.0]] * 3) is None
+    assert local_cubic([0.0, 0.0, 0.001, 0.001], [[1.0]] * 4) is None
 
 
 def test_the_minimum_jerk_derivatives() -> None:

@@ -24,8 +24,7 @@ velocity terms need at most a given acceleration; the acceleration and jerk term
 the held path's own over to the live one's, clipped by :func:`blend_coefficients` so that an
 estimate's error cannot swing the blend (the shaper carries the jerk over a shorter time than
 the rest: its excursion grows as ``j T^3``).  :func:`local_cubic` estimates the live path's
-velocity, acceleration and jerk from its last ticks, :func:`cubic_residual` says whether a
-cubic is what they are.
+velocity, acceleration and jerk from its last ticks and says how far they are from a cubic.
 """
 
 from __future__ import annotations
@@ -37,8 +36,8 @@ import numpy as np
 from numpy.polynomial import polynomial as npp
 
 __all__ = ["B3_ACC_PEAK", "BLEND_ACC_PEAK", "BLEND_ACC_SHARE", "BLEND_MERGE_PEAK", "BLEND_TERMS",
-           "blend_coefficients", "blend_duration", "carried_acceleration", "cubic_residual",
-           "horner", "jerk_duration", "local_cubic"]
+           "blend_coefficients", "blend_duration", "carried_acceleration", "horner",
+           "jerk_duration", "local_cubic"]
 
 
 BLEND_ACC_SHARE = 0.25
@@ -178,28 +177,19 @@ def blend_coefficients(g: float, r: float, a: float, j: float, duration: float,
     return out
 
 
-def local_cubic(times: Sequence[float], values: Sequence[Sequence[float]], at: float
-                ) -> list[tuple[float, float, float]] | None:
-    """The velocity, acceleration and jerk at ``at`` of the least-squares cubic through each
-    column of ``values`` (one row of columns per instant of ``times``), or None if ``times``
+def local_cubic(times: Sequence[float], values: Sequence[Sequence[float]]
+                ) -> tuple[list[tuple[float, float, float]], float] | None:
+    """The least-squares cubic through each column of ``values`` (one row of columns per
+    instant of ``times``, the latest last): its velocity, acceleration and jerk at the latest
+    instant, and the largest distance of any value from its column's cubic; None if ``times``
     do not span four distinct instants."""
     if len(set(times)) < 4:
         return None
-    t = np.asarray(times, dtype=float) - at
-    span = float(np.max(np.abs(t)))
-    c = npp.polyfit(t / span, np.asarray(values, dtype=float), 3)  # (4, columns), in t / span
-    return [(float(c1) / span, 2.0 * float(c2) / span**2, 6.0 * float(c3) / span**3)
-            for c1, c2, c3 in zip(c[1], c[2], c[3], strict=True)]
-
-
-def cubic_residual(times: Sequence[float], values: Sequence[Sequence[float]]) -> float:
-    """The largest distance of any value of ``values`` (one row of columns per instant of
-    ``times``) from its column's least-squares cubic in ``times`` (0 for four instants or
-    fewer)."""
-    if len(times) <= 4:
-        return 0.0
     t = np.asarray(times, dtype=float)
-    t = (t - t[-1]) / max(float(t[-1] - t[0]), 1e-12)
+    t = t - t[-1]
+    span = float(np.max(np.abs(t)))
     x = np.asarray(values, dtype=float)
-    c = npp.polyfit(t, x, 3)
-    return float(np.max(np.abs(npp.polyval(t, c).T - x)))
+    c = npp.polyfit(t / span, x, 3)  # (4, columns), in t / span
+    residual = float(np.max(np.abs(npp.polyval(t / span, c).T - x)))
+    return [(float(c1) / span, 2.0 * float(c2) / span**2, 6.0 * float(c3) / span**3)
+            for c1, c2, c3 in zip(c[1], c[2], c[3], strict=True)], residual

@@ -78,7 +78,6 @@ from motcomp.core.bandlimit import BandLimit, BandLimitParams
 from motcomp.core.blend import (
     blend_coefficients,
     blend_duration,
-    cubic_residual,
     horner,
     jerk_duration,
     local_cubic,
@@ -287,6 +286,7 @@ class ReferenceShaper:
         self._live_hist: list[tuple[float, list[float]]] = []  # the live input since settled
         self._fit_full_at: float | None = None  # when that window first spanned FIT_S
         self._fit_trusted = True  # the cubic explains the window (FIT_TOL)
+        self._live_fit: list[tuple[float, float, float]] | None = None  # its derivatives now
         self._stale_since: float | None = None
         self._move: _Move | None = None
         self.parking = False
@@ -528,17 +528,14 @@ class ReferenceShaper:
         hist = self._live_hist
         if not self._playing or (self.timeline.span() < UNSTAMPED_SETTLE_S
                                  and self._run_s < UNSTAMPED_WAIT_S):
-            hist.clear()
-            self._fit_full_at = None
-            self._fit_trusted = True
+            self._fit_reset()
             return False
         band_s = max((b.delay_s for b in p.band if b is not None), default=0.0)
         ma_s = self._ma_len * p.tick_s if self._ma_len >= MA_MIN_TICKS else 0.0
         if self._run_s < BAND_SETTLE_DELAYS * band_s + ma_s:
-            hist.clear()
-            self._fit_full_at = None
-            self._fit_trusted = True
+            self._fit_reset()
             return False
+        self._live_fit = None
         hist.append((now, live[:]))
         while not self._fit_trusted and len(hist) > 4 and now - hist[1][0] >= FIT_S:
             del hist[0]  # waiting for a window the cubic explains: it slides
@@ -546,8 +543,16 @@ class ReferenceShaper:
             return False
         if self._fit_full_at is None:
             self._fit_full_at = now
-        self._fit_trusted = cubic_residual([t for t, _ in hist], [x for _, x in hist]) <= FIT_TOL
+        fit = local_cubic([t for t, _ in hist], [x for _, x in hist])
+        self._live_fit = fit[0] if fit is not None else None
+        self._fit_trusted = fit is None or fit[1] <= FIT_TOL
         return self._fit_trusted or now - self._fit_full_at >= FIT_WAIT_S
+
+    def _fit_reset(self) -> None:
+        """Forget the live input's window and its fit (:meth:`_live_known`)."""
+        self._live_hist.clear()
+        self._live_fit = self._fit_full_at = None
+        self._fit_trusted = True
 
     def _blend_start(self, p: ShaperParams, live: list[float], now: float) -> None:
         """A blend from the reference held (or ramping) to ``live`` (:mod:`motcomp.core.blend`):
@@ -560,17 +565,14 @@ class ReferenceShaper:
         held, held_d = (move.at(now)[0], move.derivatives(now)) if move is not None \
             else (self.ref, [rest] * self.n)
         live_d: list[tuple[float, float, float]] | None = None
-        hist = self._live_hist
-        if p.reconstruction == "smooth" and hist:
-            live_d = local_cubic([t for t, _ in hist], [x for _, x in hist], now)
+        if p.reconstruction == "smooth":
+            live_d = self._live_fit  # this tick's (_live_known)
             if live_d is not None and not self._fit_trusted:  # its velocity only (FIT_WAIT_S)
                 live_d = [(v, hd[1], hd[2]) for (v, _, _), hd in zip(live_d, held_d,
                                                                      strict=True)]
         elif p.reconstruction == "linear":
             live_d = [(v, 0.0, 0.0) for v in self._lin_slope]
-        hist.clear()
-        self._fit_full_at = None
-        self._fit_trusted = True
+        self._fit_reset()
         base = self._blend_s
         polys, each = [], []
         jerks: list[list[float]] = []
