@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import os
+import resource
 import subprocess
 import sys
-from collections.abc import Mapping
+import time
+from collections.abc import Generator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +19,51 @@ from motcomp.runtime.probe import HostClock, loop_kept_from_cpu
 ROOT = Path(__file__).resolve().parent.parent
 
 RAILS = P1D(K=1.0, Td=0.0175, Tp1=0.1857683128)
+
+_CPU_USE = pytest.StashKey[list[tuple[str, float, float, float]]]()
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--cpu-over", type=float, default=None, metavar="S",
+                     help="list the tests that used more than S seconds of CPU: the test's "
+                          "process and the child processes it waited for (docs/TESTING.md)")
+
+
+def _cpu_s() -> tuple[float, float]:
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime, kids.ru_utime + kids.ru_stime
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None
+                            ) -> Generator[None, None, None]:
+    """With ``--cpu-over``: each test's wall time and CPU (its setup and teardown included)."""
+    if item.config.getoption("--cpu-over") is None:
+        yield
+        return
+    own0, kids0 = _cpu_s()
+    wall0 = time.monotonic()
+    yield
+    own1, kids1 = _cpu_s()
+    item.config.stash.setdefault(_CPU_USE, []).append(
+        (item.nodeid, time.monotonic() - wall0, own1 - own0, kids1 - kids0))
+
+
+def pytest_terminal_summary(terminalreporter: Any, exitstatus: int,
+                            config: pytest.Config) -> None:
+    limit = config.getoption("--cpu-over")
+    if limit is None:
+        return
+    rows = config.stash.get(_CPU_USE, [])
+    over = sorted((r for r in rows if r[2] + r[3] > limit), key=lambda r: -(r[2] + r[3]))
+    tr = terminalreporter
+    tr.section(f"tests that used more than {limit:g} s of CPU")
+    for nodeid, wall, own, kids in over:
+        tr.write_line(f"{own + kids:7.1f} s CPU ({own:.1f} s its own, {kids:.1f} s its "
+                      f"children's) in {wall:.1f} s: {nodeid}")
+    total = sum(r[2] + r[3] for r in rows)
+    tr.write_line(f"{len(over)} of {len(rows)} tests; all of them: {total:.0f} s of CPU")
 
 
 @pytest.fixture
