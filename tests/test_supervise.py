@@ -350,6 +350,30 @@ def test_the_status_table_and_a_recording_summary_show_the_alarms() -> None:
     assert "+10.00" in row and "27.60" in row, text
 
 
+def test_the_supervisor_judges_a_window_without_its_end_as_adding_no_time() -> None:
+    """The same through the supervisor's own judging of its estimator's results: a result
+    without ``to_t`` (the window not filled yet) is judged with no end, not at 0 s nor at
+    the epoch, and the results after it add their spacing on the frame clock."""
+    from motcomp.config import load_config, resolve_axes
+    from motcomp.runtime.supervise import Supervisor
+
+    sup = Supervisor(SupervisionConfig(), resolve_axes(load_config(config_file("motcomp.toml"))))
+    try:
+        model = sup.models["rails_y"].spec()
+        blind = {**_fig(0.0, informative=False), "model": model,
+                 "reason": "1.1 s of feedback paired with outputs"}
+        assert sup._judge({"rails_y": dict(blind)}, 0.0) == []
+        state = sup.judge.axes["rails_y"]
+        assert state.judged == 1 and state.last_t is None and state.blind_s == 0.0
+        t0 = 1.796e9
+        for k in range(5):
+            assert sup._judge({"rails_y": {**blind, "to_t": t0 + 2.0 * k}}, 2.0 * k) == []
+        assert state.judged == 6 and state.blind_s == pytest.approx(8.0)
+        assert state.last_t == t0 + 8.0
+    finally:
+        sup.close()
+
+
 def test_the_supervisor_estimates_in_its_own_process_from_the_monitor() -> None:
     import time
 
