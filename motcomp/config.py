@@ -1084,21 +1084,30 @@ PARK_SETTLE_S = 0.5
 settle after the ramp: some tens of milliseconds measured)."""
 
 
+def _ramp_limits(loop: LoopConfig, limits: AxisLimits
+                 ) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """Each axis' peak speed of a ramp to neutral (the shaper's ``ramp_speed``:
+    ``ramp_speed_fraction`` of ``vel_max``) and peak acceleration of its ramps and blends
+    (``blend_acc``: :data:`~motcomp.core.blend.BLEND_ACC_SHARE` of ``acc_max``)."""
+    return (tuple(loop.ramp_speed_fraction * float(v) for v in limits.v_max),
+            tuple(BLEND_ACC_SHARE * float(a) for a in limits.a_max))
+
+
 def _parking_warnings(cfg: ServiceConfig, driven: Sequence[bool], limits: AxisLimits
                       ) -> list[str]:
     """One warning per driven axis that cannot park within ``loop.park_timeout_s`` from
-    anywhere in its range: its ramp to neutral from the farther position limit (the shaper's
-    ramp: ``ramp_speed_fraction`` of ``vel_max``,
-    :data:`~motcomp.core.blend.BLEND_ACC_SHARE` of ``acc_max``) plus :data:`PARK_SETTLE_S`
-    exceeds it, so that a stop from there would end mid-ramp (exit 1)."""
+    anywhere in its range: its ramp to neutral from the farther position limit
+    (:func:`_ramp_limits`) plus :data:`PARK_SETTLE_S` exceeds it, so that a stop from there
+    would end mid-ramp (exit 1)."""
     loop = cfg.loop
+    speed, acc = _ramp_limits(loop, limits)
     out = []
     for i, name in enumerate(AXES):
         if not driven[i]:
             continue
         far = max(abs(float(limits.p_min[i])), abs(float(limits.p_max[i])))
-        v, a = float(limits.v_max[i]), float(limits.a_max[i])
-        ramp = move_duration(far, loop.ramp_speed_fraction * v, BLEND_ACC_SHARE * a)
+        v = float(limits.v_max[i])
+        ramp = move_duration(far, speed[i], acc[i])
         if ramp + PARK_SETTLE_S > loop.park_timeout_s:
             out.append(
                 f"{name}: loop.park_timeout_s = {loop.park_timeout_s:g} s is shorter than its "
@@ -1119,9 +1128,9 @@ def tick_params(cfg: ServiceConfig, axes: ResolvedAxes) -> TickParams:
     lo = tuple(float(a - f * (b - a)) for a, b in zip(lim.p_min, lim.p_max, strict=True))
     hi = tuple(float(b + f * (b - a)) for a, b in zip(lim.p_min, lim.p_max, strict=True))
     loop = cfg.loop
+    ramp_speed, blend_acc = _ramp_limits(loop, lim)
     shaper = ShaperParams(
-        driven=axes.driven, ramp_speed=tuple(loop.ramp_speed_fraction * float(v)
-                                             for v in lim.v_max),
+        driven=axes.driven, ramp_speed=ramp_speed,
         reach_lo=lo, reach_hi=hi, home_lo=tuple(float(v) for v in lim.p_min),
         home_hi=tuple(float(v) for v in lim.p_max), stale_after_s=loop.stale_after_s,
         hold_s=loop.hold_s,
@@ -1129,9 +1138,8 @@ def tick_params(cfg: ServiceConfig, axes: ResolvedAxes) -> TickParams:
         reconstruction=cfg.input.reconstruction, tick_s=1.0 / loop.rate_hz,
         max_extrapolation_s=cfg.input.max_extrapolation_s, lead_s=cfg.input.lead_s,
         playback_lag_s=cfg.input.playback_lag_s,
-        blend_acc=tuple(BLEND_ACC_SHARE * float(a) for a in lim.a_max),
-        blend_jerk=tuple(BLEND_ACC_SHARE * float(a) / m.Tp1
-                         for a, m in zip(lim.a_max, axes.models, strict=True)),
+        blend_acc=blend_acc,
+        blend_jerk=tuple(a / m.Tp1 for a, m in zip(blend_acc, axes.models, strict=True)),
         band=tuple(band_limit_params(hz, loop.rate_hz, _band_key(cfg.input, a)) if d else None
                    for a, hz, d in zip(AXES, cfg.input.bands_hz(), axes.driven, strict=True)))
     return TickParams(loop.rate_hz, shaper, cfg.status.saturation_tolerance,
