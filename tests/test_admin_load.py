@@ -141,3 +141,27 @@ def test_sigterm_parks_during_a_burst_of_reloads(tmp_path: Path) -> None:
         got = kinds(pending[1:])
         assert got["busy"] > 0 and got["ok"] <= ADMIN_QUEUE + 5, got
         out_sub.undeclare()
+
+
+def test_queries_beyond_the_channel_are_answered_empty_at_once_not_held() -> None:
+    """The library fact the service's query channels rely on (``QUERY_CHANNEL``): a
+    ``RingChannel`` queryable that nobody drains drops the oldest queries of a burst, and their
+    askers get an empty answer at once -- zenoh's thread is never held by a full channel."""
+    import zenoh
+
+    port = free_tcp_port()
+    with open_session(ZenohEndpoints(listen=(loopback(port),))) as server, \
+            open_session(ZenohEndpoints(connect=(loopback(port),))) as client:
+        queryable = server.declare_queryable("test/q", zenoh.handlers.RingChannel(2))
+        time.sleep(0.3)
+        t0 = time.monotonic()
+        pending = [client.get("test/q", timeout=20.0) for _ in range(5)]
+        first = [list(h) for h in pending[:3]]  # the three the ring dropped
+        waited = time.monotonic() - t0
+        served = 0
+        while (q := queryable.try_recv()) is not None:
+            q.reply("test/q", msgpack.packb({"mode": "x"}))
+            served += 1
+        assert first == [[], [], []] and waited < 10.0, (first, waited)
+        assert served == 2 and kinds(pending[3:]) == Counter(ok=2)
+        queryable.undeclare()

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import re
 import signal
 import subprocess
 import time
@@ -310,3 +311,38 @@ send_every = 1
             assert sum(st["violations"].values()) == 0
             fb.undeclare()
             hs.undeclare()
+
+
+def zenoh_threads(pid: int) -> list[str]:
+    """The names of a process' zenoh threads: those of its task runtimes (app, rx, tx, acc,
+    net; ``<runtime>-<n>``)."""
+    names = []
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        with contextlib.suppress(OSError):
+            names.append(Path(f"/proc/{pid}/task/{tid}/comm").read_text().strip())
+    return sorted(n for n in names if re.fullmatch(r"(app|rx|tx|acc|net)-\d+", n))
+
+
+@pytest.mark.parametrize("setting", [None, "(rx: (worker_threads: 1))"])
+def test_the_service_runs_zenoh_on_one_thread_unless_the_environment_says_otherwise(
+        tmp_path: Path, setting: str | None) -> None:
+    """The command sets ``ZENOH_RUNTIME`` to one thread where the environment leaves it unset,
+    and keeps the environment's where it is set: zenoh's own runtimes then run as it says (rx
+    with one worker, not zenoh's default of two)."""
+    env = subprocess_env()
+    env.pop("ZENOH_RUNTIME", None)
+    if setting is not None:
+        env["ZENOH_RUNTIME"] = setting
+    p_svc = free_tcp_port()
+    with process(["run", "--config", str(write_config(tmp_path)), "-l", loopback(p_svc)],
+                 tmp_path / "svc.log", env) as svc, \
+            open_session(ZenohEndpoints(connect=(loopback(p_svc),))) as session:
+        wait_status(session)  # a link accepted, a query received and its reply sent
+        threads = zenoh_threads(svc.pid)
+        svc.send_signal(signal.SIGTERM)
+        assert svc.wait(timeout=30) == 0
+    if setting is None:
+        # app-0, the one worker, and the blocking threads tokio adds to it, named alike
+        assert "app-0" in threads and all(n.startswith("app-") for n in threads), threads
+    else:
+        assert {"rx-0", "tx-0", "acc-0"} <= set(threads) and "rx-1" not in threads, threads

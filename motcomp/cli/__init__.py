@@ -61,7 +61,12 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point; returns the process exit code."""
+    """Entry point; returns the process exit code.  As a process' entry (``argv`` None: the
+    command line), it also sets how the process runs zenoh (:func:`use_one_zenoh_thread`)."""
+    if argv is None:
+        from motcomp.io.zenoh_io import use_one_zenoh_thread
+
+        use_one_zenoh_thread()
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser(MODULE_OF.get(argv[0]) if argv else None)
     args = parser.parse_args(argv)

@@ -7,12 +7,19 @@ the newest ``n`` samples (older ones are dropped) and ``try_recv()`` never block
 channel handler polled from a Python thread, so no Python callback ever runs on a zenoh thread
 (a process whose callback subscriber is still declared at exit can hang). Sessions are closed in
 ``finally``/``with``. Never fork after ``zenoh.open()``.
+
+motcomp's commands run zenoh's tasks on one thread (:data:`ONE_THREAD`, set by
+:func:`use_one_zenoh_thread` unless the environment sets ``ZENOH_RUNTIME``): zenoh's default
+spreads them over five runtimes and six threads, which wake one another for every frame.  Nothing
+of motcomp blocks a zenoh thread (channels that drop, never a full FIFO of the data path), so one
+thread serves every link (docs/DEPLOYMENT.md, "zenoh's threads").
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import threading
 import time
@@ -27,6 +34,7 @@ from motcomp.io.wire import encode_output
 
 __all__ = [
     "MAX_BURST",
+    "ONE_THREAD",
     "NoPeerError",
     "ZenohEndpoints",
     "ZenohSink",
@@ -34,8 +42,24 @@ __all__ = [
     "add_zenoh_args",
     "endpoints_from_args",
     "open_session",
+    "use_one_zenoh_thread",
     "wait_for_subscriber",
 ]
+
+ZENOH_RUNTIME_ENV = "ZENOH_RUNTIME"
+"""The environment variable zenoh reads its task runtimes' settings from (RON), once, when the
+process first uses them."""
+ONE_THREAD = ("(rx: (handover: app), acc: (handover: app), tx: (handover: app), "
+              "net: (handover: app))")
+"""zenoh's receiving, accepting, transmitting and network runtimes handed over to its application
+runtime (one worker thread by default): all of zenoh's tasks on one thread."""
+
+
+def use_one_zenoh_thread() -> str:
+    """Have this process run zenoh's tasks on one thread (:data:`ONE_THREAD`), unless the
+    environment already sets ``ZENOH_RUNTIME``; returns the setting in force.  Call it before
+    the process opens its first session (the commands do, at start); child processes inherit it."""
+    return os.environ.setdefault(ZENOH_RUNTIME_ENV, ONE_THREAD)
 
 
 class NoPeerError(TransportError):

@@ -150,8 +150,9 @@ class ModeLog:
 FEEDBACK_RING = 256
 """Feedback frames kept between two polls of the main thread (every 20 ms)."""
 QUERY_CHANNEL = 1024
-"""Status and admin queries kept between two polls of the main thread (a full channel would
-hold up zenoh's network thread, and with it the input)."""
+"""Status and admin queries kept between two polls of the main thread; beyond, a burst's oldest
+are dropped (their askers get no reply) rather than held: a full FIFO would hold up zenoh's
+thread, and with it the input and the output."""
 QUERIES_PER_POLL = 64
 """Status queries, and admin queries, taken from their channels per poll (every 20 ms): a burst
 is answered over several polls, the main thread never holds the interpreter long."""
@@ -704,9 +705,9 @@ class Service:
                                                             zenoh.handlers.RingChannel(1))
             status_pub = session.declare_publisher(cfg.status.key)
             status_q = session.declare_queryable(cfg.status.key,
-                                                 zenoh.handlers.FifoChannel(QUERY_CHANNEL))
+                                                 zenoh.handlers.RingChannel(QUERY_CHANNEL))
             admin_q = (session.declare_queryable(f"{cfg.admin.key}/**",
-                                                 zenoh.handlers.FifoChannel(QUERY_CHANNEL))
+                                                 zenoh.handlers.RingChannel(QUERY_CHANNEL))
                        if cfg.admin.enabled else None)
             thread = threading.Thread(target=self._loop, name="motcomp-loop", daemon=True)
             worker = threading.Thread(target=self._admin_worker, name="motcomp-admin",
