@@ -49,7 +49,14 @@ import numpy as np
 from _bench import machine, process_cpu_s, write_section
 
 from motcomp.core.axes import AXES
-from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loopback, open_session
+from motcomp.io.zenoh_io import (
+    ZenohEndpoints,
+    first_reply,
+    free_tcp_port,
+    loopback,
+    open_session,
+    use_one_zenoh_thread,
+)
 from motcomp.resources import config_file
 
 SCHEDS = {  # scheduling mode -> [loop] settings over the example config
@@ -560,6 +567,9 @@ def report(args: argparse.Namespace, rows: list[dict[str, Any]],
 
 
 def main() -> None:
+    # every process of the benchmark runs zenoh as motcomp's commands do (docs/DEPLOYMENT.md,
+    # "zenoh's threads"): the transport alone then costs what the service's transport costs
+    use_one_zenoh_thread()
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=40.0, help="length of each run")
