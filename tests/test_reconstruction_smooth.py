@@ -3,6 +3,7 @@ does to the command with jittery, slow and timestamp-less senders (through the t
 
 from __future__ import annotations
 
+import functools
 import math
 
 import msgpack
@@ -126,9 +127,12 @@ def _jittery(cfg: ServiceConfig, signal: str, src_hz: float, jitter_us: float, s
     return acted / len(u), command_quality(np.array(u), 1000.0).hf_acc_rms
 
 
-def _floor(cfg: ServiceConfig, signal: str, bypass: bool) -> float:
-    traj = builtin(signal, 1000.0)
-    run = ideal_run(cfg, traj.pos, 1000.0, bypass=bypass)
+@functools.cache
+def _floor(bypass: bool) -> float:
+    """The floor: the HF acceleration RMS of the ideal run's slalom command (1 kHz samples,
+    perfectly timed) through the smooth reconstruction's config, bypassed or compensated."""
+    traj = builtin("slalom", 1000.0)
+    run = ideal_run(_cfg("smooth"), traj.pos, 1000.0, bypass=bypass)
     return command_quality(next(iter(run.u.values())), 1000.0).hf_acc_rms
 
 
@@ -138,7 +142,7 @@ def test_a_1khz_sender_with_300us_jitter_reaches_the_floor(with_t: bool) -> None
     and the HF acceleration is many times the floor); the smooth one absorbs it."""
     smooth = _cfg("smooth")
     share, hf = _jittery(smooth, "slalom", 1000.0, 300.0, False, with_t, False)
-    floor = _floor(smooth, "slalom", False)
+    floor = _floor(False)
     assert share == 0.0
     assert hf <= 1.2 * floor
 
@@ -153,9 +157,9 @@ def test_slow_senders_are_upsampled_at_the_floor(src_hz: float, with_t: bool) ->
     1.0-1.1x)."""
     smooth = _cfg("smooth")
     share, hf = _jittery(smooth, "slalom", src_hz, 300.0, False, with_t, True)
-    assert share == 0.0 and hf <= 1.2 * _floor(smooth, "slalom", True)
+    assert share == 0.0 and hf <= 1.2 * _floor(True)
     share_on, hf_on = _jittery(smooth, "slalom", src_hz, 300.0, False, with_t, False)
-    assert share_on == 0.0 and hf_on <= 1.2 * _floor(smooth, "slalom", False)
+    assert share_on == 0.0 and hf_on <= 1.2 * _floor(False)
     if with_t:
         share_lin, hf_lin = _jittery(_cfg("linear"), "slalom", src_hz, 300.0, False, True, True)
         assert share_lin > 0.01 and hf_lin > 100 * hf
@@ -173,8 +177,8 @@ def test_stalls_of_a_1khz_sender_stay_at_the_floor(with_t: bool) -> None:
     share, hf = _jittery(smooth, "slalom", 1000.0, 300.0, True, with_t, False)
     share_b, hf_b = _jittery(smooth, "slalom", 1000.0, 300.0, True, with_t, True)
     assert share == 0.0 and share_b == 0.0
-    assert hf <= 1.2 * _floor(smooth, "slalom", False)
-    assert hf_b <= 1.2 * _floor(smooth, "slalom", True)
+    assert hf <= 1.2 * _floor(False)
+    assert hf_b <= 1.2 * _floor(True)
 
 
 @pytest.mark.parametrize("with_t", [True, False], ids=["t", "no-t"])
@@ -186,11 +190,11 @@ def test_samples_a_sender_skips_keep_their_place(with_t: bool) -> None:
     acted on 20 % of a live recording's ticks)."""
     smooth = _cfg("smooth")
     share, hf = _jittery(smooth, "slalom", 1000.0, 300.0, False, with_t, False, skips=True)
-    assert share == 0.0 and hf <= 1.2 * _floor(smooth, "slalom", False)
+    assert share == 0.0 and hf <= 1.2 * _floor(False)
     # and frames lost on the way besides (seq steps by 2): the skip is counted on top
     share, hf = _jittery(smooth, "slalom", 1000.0, 300.0, False, with_t, False, skips=True,
                          losses=True)
-    assert share == 0.0 and hf <= 1.2 * _floor(smooth, "slalom", False)
+    assert share == 0.0 and hf <= 1.2 * _floor(False)
 
 
 @pytest.mark.parametrize(("before_trough_ms", "skipped", "slalom"), [
@@ -264,7 +268,7 @@ def test_a_drifting_sender_clock_is_followed_without_steps(drift: float) -> None
     drifts; the playback instant follows through its filter and the limiter never acts."""
     share, hf = _jittery(_cfg("smooth"), "slalom", 1000.0, 300.0, True, True, False,
                          drift=drift)
-    assert share == 0.0 and hf <= 1.2 * _floor(_cfg("smooth"), "slalom", False)
+    assert share == 0.0 and hf <= 1.2 * _floor(False)
 
 
 def _cubic(t: float) -> tuple[float, float, float, float]:
@@ -600,7 +604,7 @@ def test_a_lead_takes_the_lag_off_a_slow_sender(src_hz: float, lead_s: float) ->
     assert band is not None
     assert plain[0] - band.delay_s > 0.006 and abs(ahead[0] - band.delay_s) < 0.0015
     assert plain[0] - ahead[0] == pytest.approx(lead_s, abs=5e-4)
-    assert share == 0.0 and hf <= 2.0 * _floor(_cfg("smooth"), "slalom", False)
+    assert share == 0.0 and hf <= 2.0 * _floor(False)
 
 
 def test_the_start_blend_of_a_sender_without_t_waits_for_its_instants() -> None:

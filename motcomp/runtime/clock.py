@@ -33,7 +33,7 @@ import weakref
 from collections.abc import Callable
 
 __all__ = ["DEGRADED_MISSED_SHARE", "INPUT_GRACE", "TIMER_SLACK_NS", "DeadlineClock",
-           "run_delay_reader", "set_timer_slack"]
+           "run_delay_reader", "set_timer_slack", "sleep_until"]
 
 TIMER_SLACK_NS = 1000
 """Timer slack of the thread that waits (ns): how late the kernel may end its sleeps."""
@@ -57,6 +57,18 @@ def set_timer_slack(ns: int) -> bool:
         return bool(libc.prctl(29, ctypes.c_ulong(ns), 0, 0, 0) == 0)
     except (OSError, AttributeError):
         return False
+
+
+def sleep_until(due_ns: int, spin_ns: int, nap_ns: int = 0,
+                clock: Callable[[], int] = time.perf_counter_ns) -> None:
+    """Sleep until ``spin_ns`` before ``due_ns`` on ``clock`` -- in one sleep, or in naps of at
+    most ``nap_ns`` if > 0 --, then spin until ``due_ns``.  The sleeps end within the calling
+    thread's timer slack (:func:`set_timer_slack`)."""
+    wake = due_ns - spin_ns
+    while (rest := wake - clock()) > 0:
+        time.sleep((nap_ns if 0 < nap_ns < rest else rest) / 1e9)
+    while clock() < due_ns:
+        pass
 
 
 def run_delay_reader() -> Callable[[], int] | None:
@@ -118,14 +130,8 @@ class DeadlineClock:
         self.missed_waiting: int | None = 0 if self._run_delay else None
 
     def wait(self) -> tuple[int, int]:
-        clock = self._clock
         deadline = self.next_ns
-        wake = deadline - self.spin_ns
-        nap = self.nap_ns
-        while (rest := wake - clock()) > 0:
-            time.sleep((nap if 0 < nap < rest else rest) / 1e9)
-        while clock() < deadline:
-            pass
+        sleep_until(deadline, self.spin_ns, self.nap_ns, self._clock)
         return self._advance(deadline)
 
     def wait_or_poll(self, poll: Callable[[], bool], poll_us: float) -> tuple[int, int, bool]:

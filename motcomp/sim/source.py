@@ -53,6 +53,7 @@ from motcomp.io.zenoh_io import (
     open_session,
     wait_for_subscriber,
 )
+from motcomp.runtime.clock import TIMER_SLACK_NS, set_timer_slack, sleep_until
 
 __all__ = ["PublishStats", "Send", "SenderTiming", "Trajectory", "band_sweep", "builtin",
            "lane_change", "load_trajectory", "publish", "send_schedule"]
@@ -447,28 +448,19 @@ class PublishStats:
         return out
 
 
-_NAP_NS = 100_000
-"""Longest sleep while waiting for a send instant, as the service's loop naps (a virtual CPU
-idle for longer than the host's halt polling can wake late)."""
-
-
 def _wait_until(due_ns: int, spin_ns: int, stop: threading.Event) -> None:
-    """Sleep (on ``stop`` for long waits, then in naps) until ``spin_ns`` before ``due_ns`` on
-    ``perf_counter_ns``, then spin; returns early if ``stop`` is set during a long wait."""
-    perf = time.perf_counter_ns
-    while (rest := due_ns - spin_ns - perf()) > 0:
-        if rest > 5_000_000:
-            if stop.wait((rest - 2_000_000) / 1e9):
-                return
-        else:
-            time.sleep(min(rest, _NAP_NS) / 1e9)
-    while perf() < due_ns:
-        pass
+    """Wait for ``due_ns`` on ``perf_counter_ns`` as the service's loop waits for a deadline
+    (:func:`~motcomp.runtime.clock.sleep_until`: one sleep, then a spin of ``spin_ns``), a
+    wait longer than 5 ms on ``stop`` first; returns early if ``stop`` is set during that."""
+    rest = due_ns - spin_ns - time.perf_counter_ns()
+    if rest > 5_000_000 and stop.wait((rest - 2_000_000) / 1e9):
+        return
+    sleep_until(due_ns, spin_ns)
 
 
 def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/setpoint",
             seq_start: int = 0, repeat: int = 1, stop: threading.Event | None = None,
-            spin_us: float = 100.0, lead_in_s: float = 0.0, wait_peer_s: float = 0.0,
+            spin_us: float = 50.0, lead_in_s: float = 0.0, wait_peer_s: float = 0.0,
             progress: Callable[[float], None] | None = None,
             timing: SenderTiming | None = None, with_t: bool = True,
             wait_peer_asked_s: float | None = None) -> PublishStats:
@@ -534,6 +526,7 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
         if lead_in_s > 0:
             stop.wait(lead_in_s)
         schedule = send_schedule(traj.rate_hz, timing)
+        set_timer_slack(TIMER_SLACK_NS)  # as the service's loop: sleeps end on time
         perf = time.perf_counter_ns
         t_wall0, t_mono0 = time.time(), perf()
         start_ns = t_mono0 + period_ns  # sample 0 is due one period from now
