@@ -71,6 +71,23 @@ def rails() -> P1D:
     return RAILS
 
 
+EXAMPLE_RAILS = ("design", "--plant", "rails", "--rule", "optimal", "--input-lag-ms", "2.8",
+                 "--prediction", "on", "--band", "0.03", "2", "--chain-hf-gain", "20", "--json",
+                 "--quiet")
+"""The example config's rails design (config/motcomp.toml)."""
+
+
+@pytest.fixture(scope="session")
+def example_rails_design(tmp_path_factory: pytest.TempPathFactory
+                         ) -> tuple[subprocess.CompletedProcess[str], Path]:
+    """:data:`EXAMPLE_RAILS` run once per session with ``--out``, this machine's defaults: the
+    finished process and the fragment it wrote."""
+    frag = tmp_path_factory.mktemp("example_rails") / "design.toml"
+    p = subprocess.run(motcomp_cmd(*EXAMPLE_RAILS, "--out", str(frag)), capture_output=True,
+                       text=True, env=subprocess_env(), timeout=300)
+    return p, frag
+
+
 def motcomp_cmd(*args: str) -> list[str]:
     """Command line running this checkout's motcomp (works without installing)."""
     return [sys.executable, "-m", "motcomp", *args]

@@ -37,7 +37,9 @@ def test_design_optimal_json_keeps_the_schema_and_adds_its_block() -> None:
     assert "robust" not in opt
 
 
-def test_design_optimal_fragment_is_the_example_configs_rails_tuning(tmp_path: Path) -> None:
+def test_design_optimal_fragment_is_the_example_configs_rails_tuning(
+        tmp_path: Path,
+        example_rails_design: tuple[subprocess.CompletedProcess[str], Path]) -> None:
     """``--out`` writes the gains and the prefilter in the config's keys, exactly; the example
     config's rails are this design -- the live stack's 2.8 ms (a 1 kHz sender's playback and the
     platform's setpoint age), the default 48 Hz band limit, the PID and the prefilter in series
@@ -52,10 +54,7 @@ def test_design_optimal_fragment_is_the_example_configs_rails_tuning(tmp_path: P
     from motcomp.core.pid import PIDGains
     from motcomp.resources import config_file
 
-    frag = tmp_path / "design.toml"
-    p = run("design", "--plant", "rails", "--rule", "optimal", "--input-lag-ms", "2.8",
-            "--prediction", "on", "--band", "0.03", "2", "--chain-hf-gain", "20", "--json",
-            "--quiet", "--out", str(frag))
+    p, frag = example_rails_design  # conftest.EXAMPLE_RAILS with --out
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
     text = frag.read_text()
@@ -68,7 +67,7 @@ def test_design_optimal_fragment_is_the_example_configs_rails_tuning(tmp_path: P
     assert set(axis) == {"model", "bypass", "gains", "prediction"} and axis["bypass"] is False
     assert axis["gains"] == out["gains"]
     site = tmp_path / "site.toml"
-    site.write_text(f'include = ["{config_file("motcomp.toml")}", "design.toml"]\n')
+    site.write_text(f'include = ["{config_file("motcomp.toml")}", "{frag}"]\n')
     assert run("config", "check", str(site)).returncode == 0
     axes = resolve_axes(load_config(site))
     y, x = axes.names.index("rails_y"), axes.names.index("rails_x")

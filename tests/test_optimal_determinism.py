@@ -15,6 +15,7 @@ import platform
 import subprocess
 from collections.abc import Callable
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,13 +32,9 @@ from motcomp.design.predictor import (
 )
 from motcomp.presets import load_preset
 from tests._designs import assert_same_gains, assert_same_prefilter, prefilter
-from tests.conftest import RAILS, motcomp_cmd, subprocess_env
+from tests.conftest import EXAMPLE_RAILS, RAILS, motcomp_cmd, subprocess_env
 
 EPS = 1e-12
-EXAMPLE_RAILS = ("design", "--plant", "rails", "--rule", "optimal", "--input-lag-ms", "2.8",
-                 "--prediction", "on", "--band", "0.03", "2", "--chain-hf-gain", "20", "--json",
-                 "--quiet")
-"""The example config's rails design (config/motcomp.toml)."""
 
 
 def _chain_pid_problem() -> tuple[ProcessModel, P1D, Constraints]:
@@ -138,13 +135,14 @@ def _another_machine() -> dict[str, str]:
 
 
 @pytest.mark.slow
-def test_the_example_rails_design_is_the_same_computed_as_another_machine_would() -> None:
+def test_the_example_rails_design_is_the_same_computed_as_another_machine_would(
+        example_rails_design: tuple[subprocess.CompletedProcess[str], Path]) -> None:
     """The example config's rails design in two processes: this machine's defaults, and the
     kernels and thread count of another."""
     out = []
-    for env in (subprocess_env(), _another_machine()):
-        p = subprocess.run(motcomp_cmd(*EXAMPLE_RAILS), capture_output=True, text=True,
-                           env=env, timeout=300)
+    for p in (example_rails_design[0],
+              subprocess.run(motcomp_cmd(*EXAMPLE_RAILS), capture_output=True, text=True,
+                             env=_another_machine(), timeout=300)):
         assert p.returncode == 0, p.stderr
         out.append(json.loads(p.stdout))
     a, b = out
