@@ -3,7 +3,7 @@
 Real processes on loopback: ``motcomp run --config config/demo.toml`` listening on a free port,
 ``motcomp hil`` and ``tools/wire_senders.py`` connecting to it, and a zenoh session in this
 process recording ``sim/motion/setpoint``, ``platform/setpoint`` and ``platform/feedback``.  The
-sender plays the slalom on rails_y (0.4 m at 0.31 Hz, 1 kHz, 20 s), compensated (the demo
+sender plays the slalom on rails_y (0.4 m at 0.31 Hz, 1 kHz, 15 s), compensated (the demo
 config's default for the rails), and in the same frames the heave on hex_z (5 cm at 0.5 Hz)
 through the hexapod's prediction; each is judged on its own axis.  Over the steady part of
 the run (from 4 s after the sender's first sample to 0.25 s before its last) the figures are:
@@ -60,7 +60,7 @@ from motcomp.core.quality import SineFit, above, command_quality_over, hf_within
 from motcomp.runtime.probe import HostClock, HostProbe
 from motcomp.sim.ideal import ideal_run
 
-DURATION_S = 20.0
+DURATION_S = 15.0
 SETTLE_S = 4.0
 TAIL_S = 0.25
 SEED = 1
