@@ -54,6 +54,35 @@ def test_an_on_time_sender_sends_each_sample_at_its_instant() -> None:
     assert not late.any() and not held.any()
 
 
+def test_a_send_instant_is_waited_for_as_the_service_waits_for_a_deadline(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """One sleep until the spin before the instant (not naps: each wake-up costs a share of a
+    core at 1 kHz), then the spin; never early.  A wait longer than 5 ms sleeps on the stop event
+    first, and a stop set returns at once."""
+    import threading
+
+    from motcomp.sim import source
+
+    sleeps: list[float] = []
+    real_sleep = time.sleep
+
+    def sleep(s: float) -> None:
+        sleeps.append(s)
+        real_sleep(s)
+
+    monkeypatch.setattr(time, "sleep", sleep)
+    stop = threading.Event()
+    due = time.perf_counter_ns() + 4_000_000
+    source._wait_until(due, 50_000, stop)
+    assert time.perf_counter_ns() >= due
+    # (none only if this thread was kept from its CPU for the whole 3.95 ms before it slept)
+    assert len(sleeps) <= 1 and all(x <= 3.95e-3 + 1e-9 for x in sleeps), sleeps
+    stop.set()
+    t0 = time.perf_counter_ns()
+    source._wait_until(t0 + 60_000_000, 50_000, stop)
+    assert time.perf_counter_ns() - t0 < 30_000_000 and len(sleeps) == 1  # not a 60 ms wait
+
+
 def test_jitter_is_uniform_within_its_bound_and_a_seed_reproduces_it() -> None:
     n = 40_000
     late, held = schedule(1000.0, SenderTiming(jitter_us=300.0, seed=5), n)
