@@ -40,6 +40,7 @@ __all__ = ["Drift", "HilConfig", "HilPlatform", "default_truth", "parse_drift", 
 
 log = logging.getLogger("motcomp.hil")
 
+AXIS_INDEX = {axis: i for i, axis in enumerate(AXES)}
 AGE_BIN_S = 1e-5
 """Resolution of the setpoint age's histogram (10 us); :data:`AGE_BINS` of them span 0.1 s."""
 AGE_BINS = 10_000
@@ -155,6 +156,7 @@ class HilPlatform:
         self.sim = PlatformSimulator(cfg.models, cfg.rate_hz, cfg.p_min, cfg.p_max, None,
                                      cfg.accelerometer, seed=cfg.seed)
         self.v_hard = None if cfg.v_max is None else np.asarray(cfg.v_max, dtype=float)
+        self._v_hard = [] if self.v_hard is None else self.v_hard.tolist()
         self.setpoint = [0.0] * len(AXES)
         self.frames = 0
         self.bad = 0
@@ -172,7 +174,7 @@ class HilPlatform:
         self._period_s = 1.0 / cfg.rate_hz
         self._queue: deque[tuple[float, dict[str, float]]] = deque()
         self._prev_t: float | None = None
-        self._prev = np.zeros(len(AXES))
+        self._prev = [0.0] * len(AXES)
         for d in cfg.drifts:  # each drift checked now, on a simulator of its axis alone
             truth = cfg.models[AXES.index(d.axis)]
             if d.model.kind != truth.kind:
@@ -254,19 +256,20 @@ class HilPlatform:
         return self.age_sum / self.age_n if self.age_n else math.nan
 
     def _judge_speed(self, t_frame: float) -> None:
-        now_sp = np.array(self.setpoint)
+        now_sp = list(self.setpoint)
         if self.v_hard is not None and self._prev_t is not None and t_frame > self._prev_t:
-            fast = np.abs(now_sp - self._prev) > self.v_hard * (t_frame - self._prev_t) * (
-                1 + 1e-6)
-            self.sim.violations += fast
+            dt = t_frame - self._prev_t
+            for i, (v, was) in enumerate(zip(now_sp, self._prev, strict=True)):
+                if abs(v - was) > self._v_hard[i] * dt * (1 + 1e-6):
+                    self.sim.violations[i] += 1
         self._prev_t, self._prev = t_frame, now_sp
 
     def take_axes(self, got: dict[str, float]) -> None:
         """Setpoints by axis (decoded from CAN frames, or a queued frame's): they replace the
-        held setpoint at once."""
-        for i, axis in enumerate(AXES):
-            if axis in got:
-                self.setpoint[i] = got[axis]
+        held setpoint at once (names not in :data:`AXES` are ignored)."""
+        for axis, value in got.items():
+            if (i := AXIS_INDEX.get(axis)) is not None:
+                self.setpoint[i] = value
 
     def catch_up(self, skipped: int, tick_t: float | None = None) -> None:
         """Simulate the ``skipped`` periods before the tick at wall time ``tick_t`` that the

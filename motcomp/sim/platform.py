@@ -61,6 +61,8 @@ __all__ = [
 
 MAX_DELAY_S = 0.25
 """Longest delay a drift may give an axis (the delay range ``motcomp identify`` searches)."""
+HISTORY_REWIND = 4096
+"""Steps between two moves of the setpoints' history to the start of its buffer."""
 
 
 @dataclass(frozen=True)
@@ -133,7 +135,9 @@ class Accelerometer:
 class _SensorStream:
     """Per-sample accelerometer imperfections of all axes at once, the streaming twin of
     :meth:`Accelerometer.apply` (same noise, bias, tremor line with a slow random-walk
-    modulation of amplitude and phase, quantisation); random numbers are drawn in blocks."""
+    modulation of amplitude and phase, quantisation).  Sample ``k`` is measured at ``k / rate``;
+    the disturbance of a block of samples (random numbers, walk, tremor line) is computed at
+    once, so a sample costs an addition and the quantisation."""
 
     def __init__(self, accs: Sequence[Accelerometer], rate_hz: float, rng: np.random.Generator,
                  block: int = 1024) -> None:
@@ -147,28 +151,43 @@ class _SensorStream:
         self.tremor_w = np.array([2 * math.pi * a.tremor_hz for a in accs])
         self.lsb = np.array([a.lsb for a in accs])
         self.quantise = bool(np.any(self.lsb > 0))
+        self.quantise_all = bool(np.all(self.lsb > 0))
         self.lsb_safe = np.where(self.lsb > 0, self.lsb, 1.0)
+        self.ideal = not (np.any(self.bias) or np.any(self.noise_std)
+                          or np.any(self.tremor_amp) or self.quantise)
         self.phase0 = rng.uniform(0, 2 * math.pi, self.n)
         self.walk = np.zeros((2, self.n))
+        self._k0 = 0
         self._i = block
-        self._noise = np.zeros((block, self.n))
-        self._steps = np.zeros((block, 2, self.n))
+        self._dist = np.zeros((block, self.n))
 
-    def sample(self, acc_true: np.ndarray, t_s: float) -> np.ndarray:
-        if self._i == self.block:
-            self._noise = self.rng.normal(0.0, 1.0, (self.block, self.n)) * self.noise_std
-            self._steps = self.rng.normal(0.0, 1.0, (self.block, 2, self.n)) / math.sqrt(
-                self.rate_hz)
-            self._i = 0
-        i = self._i
+    def _fill(self, k0: int) -> None:
+        """The disturbance of samples ``k0 .. k0 + block - 1``."""
+        noise = self.rng.normal(0.0, 1.0, (self.block, self.n)) * self.noise_std
+        steps = self.rng.normal(0.0, 1.0, (self.block, 2, self.n)) / math.sqrt(self.rate_hz)
+        walk = self.walk + np.cumsum(steps, axis=0)
+        self.walk = walk[-1].copy()
+        amp = self.tremor_amp * (1.0 + 0.2 * np.tanh(0.3 * walk[:, 0]))
+        t = (k0 + np.arange(self.block))[:, None] / self.rate_hz
+        self._dist = self.bias + noise + amp * np.sin(self.tremor_w * t + self.phase0
+                                                      + 0.5 * walk[:, 1])
+        self._k0 = k0
+        self._i = 0
+
+    def sample(self, acc_true: np.ndarray, k: int) -> np.ndarray:
+        """The measurement of sample ``k`` (true acceleration ``acc_true``); consecutive
+        samples reuse the block's disturbance, any other ``k`` starts a new block."""
+        if self.ideal:
+            return acc_true
+        if self._i == self.block or k != self._k0 + self._i:
+            self._fill(k)
+        out = acc_true + self._dist[self._i]
         self._i += 1
-        self.walk += self._steps[i]
-        amp = self.tremor_amp * (1.0 + 0.2 * np.tanh(0.3 * self.walk[0]))
-        out = acc_true + self.bias + self._noise[i] + amp * np.sin(
-            self.tremor_w * t_s + self.phase0 + 0.5 * self.walk[1])
+        if self.quantise_all:
+            return np.round(out / self.lsb) * self.lsb
         if self.quantise:
-            out = np.where(self.lsb > 0, np.round(out / self.lsb_safe) * self.lsb_safe, out)
-        return np.asarray(out)
+            return np.where(self.lsb > 0, np.round(out / self.lsb_safe) * self.lsb_safe, out)
+        return out
 
 
 class PlatformSimulator:
@@ -217,6 +236,7 @@ class PlatformSimulator:
         else:
             self.accelerometers = tuple(accelerometer)
         self._disc: list[DiscreteLTI] = [m.discretize(rate_hz) for m in models]
+        self._rate2 = self.rate_hz**2
         self._rng = np.random.default_rng(seed)
         self._sensor = _SensorStream(self.accelerometers, self.rate_hz, self._rng)
         self._build()
@@ -239,15 +259,28 @@ class PlatformSimulator:
             self._g1[o:o + k, i] = d.gamma1[:, 0]
             self._c[i, o:o + k] = d.c[0]
             o += k
-        delays = np.array([d.delay_samples for d in self._disc])
-        length = 1
-        # room for any delay a drift may set (set_model) without losing history
-        while length < max(int(delays.max()) + 3, math.ceil(MAX_DELAY_S * self.rate_hz) + 3):
-            length *= 2
-        self._mask = length - 1
-        self._hist = np.zeros((self.n, length))
-        self._rows = np.arange(self.n)
-        self._d = delays
+        self._order = total
+        # the setpoints' history: a linear buffer whose last ``room`` columns move to its start
+        # when it is full (room for any delay a drift may set without losing history)
+        self._room = max(max(d.delay_samples for d in self._disc),
+                         math.ceil(MAX_DELAY_S * self.rate_hz)) + 3
+        self._cols = self._room + HISTORY_REWIND
+        self._hist = np.zeros((self.n, self._cols))
+        self._flat = self._hist.reshape(-1)
+        self._base = np.arange(self.n) * self._cols
+        self._d = np.array([d.delay_samples for d in self._disc])
+        self._restack()
+
+    def _restack(self) -> None:
+        """The step's matrix from the axes' systems: ``[x'; y] = M [x; u[k-d+1]; u[k-d]]``
+        with ``y = C x' + D u[k-d+1]``, and the history's offsets of each axis' delays."""
+        c = self._c
+        top = np.hstack((self._phi, self._g0, self._g1))
+        bottom = np.hstack((c @ self._phi, c @ self._g0 + np.diag(self._dfeed), c @ self._g1))
+        self._big = np.vstack((top, bottom))
+        self._off_d = self._base - self._d
+        # u[k-d+1] is the value held at the end of the period: this period's own for d = 0
+        self._off_d1 = self._base - np.maximum(self._d - 1, 0)
 
     def set_model(self, axis: int, model: ProcessModel) -> None:
         """Change the true dynamics of ``axis`` (an index) now, keeping its motion: the output
@@ -261,7 +294,7 @@ class PlatformSimulator:
         """
         new = model.discretize(self.rate_hz)
         old = self._disc[axis]
-        if new.delay_samples + 3 > self._mask + 1:
+        if new.delay_samples + 3 > self._room:
             raise ConfigError(f"drift of axis {axis}: delay {model.dead_time_s:g} s beyond "
                               f"{MAX_DELAY_S:g} s")
         if new.order != old.order or (new.order > 1 and not (
@@ -286,11 +319,13 @@ class PlatformSimulator:
         self._c[axis, o:o + k] = new.c[0]
         self._dfeed[axis] = new.d_feed
         self._d[axis] = new.delay_samples
+        self._restack()
 
     def reset(self, position: ArrayLike) -> None:
         """At rest at ``position`` (the command and the output, for unit-gain axes)."""
         p = np.array(position, dtype=float).reshape(self.n)
         self._k = 0
+        self._p = self._room
         self._hist[:] = p[:, None]
         self._x = np.concatenate([d.steady_state(float(pi)) for d, pi in
                                   zip(self._disc, p, strict=True)]) if self._phi.size else \
@@ -312,28 +347,35 @@ class PlatformSimulator:
         """
         u = np.array(setpoint, dtype=float).reshape(self.n)
         finite = np.isfinite(u)
-        violated = (u < self.p_min) | (u > self.p_max) | ~finite
-        u = np.clip(np.where(finite, u, self._u_last), self.p_min, self.p_max)
+        if finite.all():
+            violated = (u < self.p_min) | (u > self.p_max)
+        else:  # held: the last setpoint, inside the limits
+            u = np.where(finite, u, self._u_last)
+            violated = ~finite | (u < self.p_min) | (u > self.p_max)
+        if violated.any():
+            u = np.minimum(np.maximum(u, self.p_min), self.p_max)
         if self.v_max is not None:
             violated |= np.abs(u - self._u_last) > self.v_max * self.dt_s * (1 + 1e-9)
         self.violations += violated
         self._u_last = u
-        k = self._k
-        mask = self._mask
-        self._hist[:, k & mask] = u
-        # u[k-d] and u[k-d+1] (= u[k+1-d], the value held at the end of this period)
-        u_d = self._hist[self._rows, (k - self._d) & mask]
-        u_d1 = np.where(self._d > 0, self._hist[self._rows, (k - self._d + 1) & mask], u)
-        self._x = self._phi @ self._x + self._g0 @ u_d1 + self._g1 @ u_d
-        y = self._c @ self._x + self._dfeed * u_d1
-        acc_true = (y - 2.0 * self._y1 + self._y2) * self.rate_hz**2
+        p = self._p
+        self._hist[:, p] = u
+        flat = self._flat
+        xy = self._big @ np.concatenate((self._x, flat[self._off_d1 + p], flat[self._off_d + p]))
+        self._x = xy[:self._order]
+        y = xy[self._order:]
+        acc_true = (y - 2.0 * self._y1 + self._y2) * self._rate2
         # the stencil is centred on the start of this period: that is the instant at which
         # the acceleration is measured, and the position reported with it
         self.position_at_start = self._y1
         self._y2 = self._y1
         self._y1 = y
-        self._k = k + 1
-        acc = self._sensor.sample(acc_true, self._k * self.dt_s)
+        self._k += 1
+        if p + 1 == self._cols:  # full: the history the delays reach moves to the start
+            self._hist[:, :self._room] = self._hist[:, -self._room:]
+            p = self._room - 1
+        self._p = p + 1
+        acc = self._sensor.sample(acc_true, self._k)
         self.position = y
         return y, acc, violated
 
