@@ -1,7 +1,7 @@
 """The simulated platform's step (:class:`~motcomp.sim.platform.PlatformSimulator`): every axis
 against its continuous closed-form step response, across the setpoint history's rewinds and a
 drift of delay; its hard limits axis by axis; its accelerometer across the blocks in which the
-disturbance is drawn."""
+disturbance is drawn; and ``motcomp hil``'s speed limit between setpoint frames."""
 
 from __future__ import annotations
 
@@ -162,3 +162,30 @@ def test_the_accelerometer_s_noise_bias_and_quantum() -> None:
     assert np.allclose(acc.std(axis=0), 0.05, rtol=0.06)
     q = acc / 0.001
     assert np.abs(q - np.round(q)).max() < 1e-6
+
+
+def test_the_platform_judges_its_speed_limit_between_frames_at_their_own_times() -> None:
+    """``motcomp hil``'s hard velocity limit (1 m/s here) between consecutive setpoint frames,
+    over the frames' own ``t``: 0.9 mm in 1 ms passes, 1.1 mm in 1 ms is a violation of that
+    axis alone, 1.9 mm over 2 ms passes, and a frame whose ``t`` does not advance is not
+    judged."""
+    from motcomp.core.axes import AXES
+    from motcomp.io.wire import encode_output
+    from motcomp.sim.hil import HilConfig, HilPlatform
+
+    n = len(AXES)
+    plat = HilPlatform(HilConfig(models=[P1D(K=1.0, Td=0.0, Tp1=0.01)] * n,
+                                 p_min=np.full(n, -1.0), p_max=np.full(n, 1.0),
+                                 v_max=np.full(n, 1.0)))
+    frames = [  # (t, rails_x, rails_y)
+        (0.000, 0.0, 0.0),
+        (0.001, 0.0009, 0.0),     # 0.9 m/s
+        (0.002, 0.0009, 0.0011),  # rails_y 1.1 m/s
+        (0.004, 0.0028, 0.0011),  # rails_x 0.95 m/s over 2 ms
+        (0.004, 0.5, 0.0011),     # t did not advance: not judged
+    ]
+    for seq, (t, x, y) in enumerate(frames):
+        plat.take_frame(encode_output(seq, t, seq, [x, y] + [0.0] * (n - 2), []))
+        plat.step(t)
+    assert plat.sim.violations.tolist() == [0, 1] + [0] * (n - 2)
+    assert plat.setpoint[:2] == [0.5, 0.0011] and plat.bad == 0
