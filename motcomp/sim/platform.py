@@ -213,7 +213,9 @@ class PlatformSimulator:
     Notes
     -----
     All axes are advanced together: their exact ZOH discretisations are stacked into one
-    block-diagonal system, and each axis reads its own delayed inputs from a ring buffer.
+    block-diagonal system advanced by one matrix product a step (the output's row included),
+    and each axis reads its own delayed inputs from the setpoints' history (a buffer whose
+    newest part moves to its start every :data:`HISTORY_REWIND` steps).
     """
 
     def __init__(self, models: Sequence[ProcessModel], rate_hz: float, p_min: ArrayLike,
