@@ -155,8 +155,7 @@ class HilPlatform:
         # step, so one tick may see two frames' worth of motion)
         self.sim = PlatformSimulator(cfg.models, cfg.rate_hz, cfg.p_min, cfg.p_max, None,
                                      cfg.accelerometer, seed=cfg.seed)
-        self.v_hard = None if cfg.v_max is None else np.asarray(cfg.v_max, dtype=float)
-        self._v_hard = [] if self.v_hard is None else self.v_hard.tolist()
+        self.v_hard = None if cfg.v_max is None else [float(v) for v in cfg.v_max]
         self.setpoint = [0.0] * len(AXES)
         self.frames = 0
         self.bad = 0
@@ -259,8 +258,9 @@ class HilPlatform:
         now_sp = list(self.setpoint)
         if self.v_hard is not None and self._prev_t is not None and t_frame > self._prev_t:
             dt = t_frame - self._prev_t
-            for i, (v, was) in enumerate(zip(now_sp, self._prev, strict=True)):
-                if abs(v - was) > self._v_hard[i] * dt * (1 + 1e-6):
+            for i, (v, was, v_max) in enumerate(zip(now_sp, self._prev, self.v_hard,
+                                                    strict=True)):
+                if abs(v - was) > v_max * dt * (1 + 1e-6):
                     self.sim.violations[i] += 1
         self._prev_t, self._prev = t_frame, now_sp
 
