@@ -232,6 +232,7 @@ class LoopConfig(BaseModel):
     realtime_priority: int = Field(0, ge=0, le=99)
     slice_us: float = Field(100.0, ge=0.0, le=SLICE_MAX_US)
     cpu: int = Field(-1, ge=-1)
+    cpu_latency_us: int = Field(0, ge=-1, le=1_000_000)
 
     @field_validator("slice_us")
     @classmethod
@@ -406,9 +407,9 @@ class ServiceConfig(BaseModel):
 
 RESTART_KEYS: tuple[str, ...] = (
     "loop.rate_hz", "loop.sync_to_input", "loop.poll_us", "loop.spin_us", "loop.sleep_max_us",
-    "loop.realtime_priority", "loop.slice_us", "loop.cpu", "input", "output", "feedback",
-    "status.key", "status.period_s", "status.window_s", "admin", "zenoh", "envelope",
-    "supervision.window_s",
+    "loop.realtime_priority", "loop.slice_us", "loop.cpu", "loop.cpu_latency_us", "input",
+    "output", "feedback", "status.key", "status.period_s", "status.window_s", "admin", "zenoh",
+    "envelope", "supervision.window_s",
 )
 """Top-level keys (or sub-keys) that a live reload may not change: they need a restart."""
 

@@ -3,10 +3,11 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 import motcomp.runtime.clock as clock_mod
-from motcomp.runtime.clock import DeadlineClock
+from motcomp.runtime.clock import LEAD_QUANTILE, LEAD_STEP_NS, DeadlineClock, SleepLead
 
 
 class FakeTime:
@@ -103,6 +104,58 @@ def test_naps_never_exceed_the_bound_and_keep_the_deadlines(
     naps.clear()
     c.wait()
     assert len(naps) == 1 and naps[0] > 700_000  # 0: one sleep
+
+
+def test_the_sleep_ends_as_long_before_the_deadline_as_the_machine_s_wake_ups_need(
+        fake: FakeTime, monkeypatch: pytest.MonkeyPatch) -> None:
+    # every sleep ends 20-40 us late (uniform), as a virtual machine wakes a thread: the clock
+    # learns to end it their 0.9 quantile (38 us) before the deadline -- on time at 90 % of the
+    # ticks, spinning only what that lead leaves -- and never more than spin_us before it
+    rng = np.random.default_rng(7)
+
+    def late_sleep(s: float) -> None:
+        fake.sleep(s)
+        fake.ns += int(rng.uniform(20_000, 40_000))
+
+    monkeypatch.setattr(clock_mod.time, "sleep", late_sleep)
+    c = DeadlineClock(1000.0, spin_us=100.0, clock=fake.ticking)
+    assert c.lead.ns == 100_000  # starts at spin_us: on time from the first tick
+    late, spun = [], []
+    for k in range(4000):
+        d, now = c.wait()
+        if k >= 2000:
+            late.append(now - d)
+            spun.append(c.lead.ns)
+    assert abs(np.median(spun) - 38_000) <= 2_000, np.median(spun)
+    on_time = np.mean(np.array(late) <= 2_000)  # (the fake clock moves 1 us a read)
+    assert 0.85 <= on_time <= 0.95, on_time
+    assert c.missed == 0
+    # where the wake-ups need more than spin_us, the lead stays at spin_us
+    capped = DeadlineClock(1000.0, spin_us=30.0, clock=fake.ticking)
+    for _ in range(500):
+        capped.wait()
+    assert capped.lead.ns == 30_000
+    # spin_us = 0: no spin at all, whatever the sleeps do
+    none = DeadlineClock(1000.0, spin_us=0.0, clock=fake.ticking)
+    for _ in range(100):
+        none.wait()
+    assert none.lead.ns == 0
+
+
+def test_the_lead_follows_its_quantile_a_step_at_a_time() -> None:
+    lead = SleepLead(200_000)
+    lead.learn(5_000_000)  # one stall of 5 ms: one step up (already at its cap here)
+    assert lead.ns == 200_000
+    lead = SleepLead(200_000)
+    for _ in range(1000):
+        lead.learn(0)  # sleeps that end on time: down a tenth of a step each
+    assert lead.ns == 200_000 - 1000 * round(LEAD_STEP_NS * (1 - LEAD_QUANTILE))
+    before = lead.ns
+    lead.learn(5_000_000)
+    assert lead.ns - before == round(LEAD_STEP_NS * LEAD_QUANTILE)  # a stall: one step
+    for _ in range(10_000):
+        lead.learn(0)
+    assert lead.ns == 0  # never below zero
 
 
 def test_input_synchronous_wait_sleeps_in_poll_steps_then_spins(

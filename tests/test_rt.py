@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -12,7 +13,7 @@ import pytest
 from motcomp.config import load_config
 from motcomp.errors import ConfigError
 from motcomp.resources import config_file
-from motcomp.runtime.rt import pin_to_cpu, set_realtime
+from motcomp.runtime.rt import CPU_LATENCY_DEVICE, hold_cpu_latency, pin_to_cpu, set_realtime
 
 
 def test_off_by_default() -> None:
@@ -107,4 +108,40 @@ def test_config_slice_range(tmp_path: Path, value: float, ok: bool) -> None:
         assert load_config(cfg).loop.slice_us == value
     else:
         with pytest.raises(ConfigError, match="slice_us"):
+            load_config(cfg)
+
+
+def test_the_cpu_latency_request_is_left_or_says_why_it_is_not_held(tmp_path: Path) -> None:
+    assert hold_cpu_latency(-1) == ("CPU wake-up latency left to the system", None)
+    report, fd = hold_cpu_latency(0, device=str(tmp_path))  # not a device one can write
+    assert fd is None
+    assert report == (f"CPU wake-up latency not held ({tmp_path}: Is a directory; "
+                      "docs/DEPLOYMENT.md)")
+
+
+@pytest.mark.skipif(not os.access(CPU_LATENCY_DEVICE, os.W_OK),
+                    reason=f"{CPU_LATENCY_DEVICE} is not writable here (root's by default)")
+def test_the_cpu_latency_request_holds_while_its_descriptor_is_open() -> None:
+    report, fd = hold_cpu_latency(7)
+    assert fd is not None
+    try:
+        # the kernel's answer, read apart: the least of every request held now
+        with open(CPU_LATENCY_DEVICE, "rb") as dev:
+            system = struct.unpack("i", dev.read(4))[0]
+        assert 0 <= system <= 7
+        assert report == f"CPU wake-up latency at most 7 us (the system's now {system} us)"
+    finally:
+        os.close(fd)
+
+
+@pytest.mark.parametrize(("value", "ok"), [(-1, True), (0, True), (20, True), (-2, False),
+                                           (2_000_000, False)])
+def test_config_cpu_latency_range(tmp_path: Path, value: int, ok: bool) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'include = ["{config_file("motcomp.toml")}"]\n[loop]\n'
+                   f'cpu_latency_us = {value}\n')
+    if ok:
+        assert load_config(cfg).loop.cpu_latency_us == value
+    else:
+        with pytest.raises(ConfigError, match="cpu_latency_us"):
             load_config(cfg)

@@ -24,6 +24,7 @@ from motcomp.io.can_io import CanSetpointReceiver
 from motcomp.io.wire import decode_output, encode_input
 from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loopback, open_session
 from motcomp.resources import config_file
+from motcomp.runtime.rt import CPU_LATENCY_DEVICE
 from tests._notify import NotifyListener
 from tests.conftest import motcomp_cmd, subprocess_env
 
@@ -124,6 +125,12 @@ send_every = 4
             assert sent > 0.5 * n and st["frames"]["accepted"] > 0.5 * sent
             assert st["mode"] == "running"
             assert "slice" in st["realtime"], st["realtime"]  # the loop thread's scheduling
+            if os.access(CPU_LATENCY_DEVICE, os.W_OK):  # its request, held while it runs
+                assert "CPU wake-up latency at most 0 us" in st["realtime"], st["realtime"]
+                fds = Path(f"/proc/{svc.pid}/fd")
+                assert CPU_LATENCY_DEVICE in {os.path.realpath(f) for f in fds.iterdir()}
+            else:
+                assert "CPU wake-up latency not held" in st["realtime"], st["realtime"]
             assert st["loop"]["tick_p50_us"] >= st["loop"]["compute_p50_us"] > 0
             # outputs: every axis, finite, within the limits; the input reached them
             frames = []

@@ -29,6 +29,7 @@ from motcomp.core.tick import parse_input
 from motcomp.errors import ConfigError
 from motcomp.io.wire import encode_input
 from motcomp.io.zenoh_io import ZenohEndpoints, free_tcp_port, loopback, open_session
+from motcomp.runtime.clock import SleepLead
 from motcomp.sim.source import (
     RAILS_MODEL,
     SenderTiming,
@@ -57,8 +58,8 @@ def test_an_on_time_sender_sends_each_sample_at_its_instant() -> None:
 def test_a_send_instant_is_waited_for_as_the_service_waits_for_a_deadline(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """One sleep until the spin before the instant (not naps: each wake-up costs a share of a
-    core at 1 kHz), then the spin; never early.  A wait longer than 5 ms sleeps on the stop event
-    first, and a stop set returns at once."""
+    core at 1 kHz), then the spin, as long as the sleep's lead (``SleepLead``); never early.  A
+    wait longer than 5 ms sleeps on the stop event first, and a stop set returns at once."""
     import threading
 
     from motcomp.sim import source
@@ -73,13 +74,13 @@ def test_a_send_instant_is_waited_for_as_the_service_waits_for_a_deadline(
     monkeypatch.setattr(time, "sleep", sleep)
     stop = threading.Event()
     due = time.perf_counter_ns() + 4_000_000
-    source._wait_until(due, 50_000, stop)
+    source._wait_until(due, SleepLead(50_000), stop)
     assert time.perf_counter_ns() >= due
     # (none only if this thread was kept from its CPU for the whole 3.95 ms before it slept)
     assert len(sleeps) <= 1 and all(x <= 3.95e-3 + 1e-9 for x in sleeps), sleeps
     stop.set()
     t0 = time.perf_counter_ns()
-    source._wait_until(t0 + 60_000_000, 50_000, stop)
+    source._wait_until(t0 + 60_000_000, SleepLead(50_000), stop)
     assert time.perf_counter_ns() - t0 < 30_000_000 and len(sleeps) == 1  # not a 60 ms wait
 
 

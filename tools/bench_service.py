@@ -94,12 +94,11 @@ def publisher(port: int, seconds: float) -> None:
 
 
 def schedule_like_loop(loop: Any) -> str:
-    """Schedule the calling thread as the service schedules its loop thread; the same report."""
-    from motcomp.runtime.rt import pin_to_cpu, set_realtime, set_slice
+    """Schedule the calling thread as the service schedules its loop thread, and hold the CPUs'
+    wake-up latency as it does until this process ends; the same report."""
+    from motcomp.runtime.rt import schedule_loop
 
-    naps = f"naps of {loop.sleep_max_us:g} us" if loop.sleep_max_us > 0 else "one sleep per tick"
-    return (f"{set_realtime(loop.realtime_priority)}; {set_slice(loop.slice_us)}; {naps}; "
-            f"{pin_to_cpu(loop.cpu)}")
+    return schedule_loop(loop)[0]
 
 
 def bare_clock(cfg_path: str, seconds: float) -> dict[str, Any]:
@@ -423,7 +422,7 @@ def mode_medians(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def sched_name(report: str) -> str:
     """How the loop thread was scheduled, from the service's own report."""
-    parts = [p for p in report.split("; ") if p and p != "not pinned"
+    parts = [p.split(" (")[0] for p in report.split("; ") if p and p != "not pinned"
              and not p.startswith(("normal scheduling", "slice not set"))]
     return "; ".join(parts)
 

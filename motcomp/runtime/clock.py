@@ -1,12 +1,15 @@
 """Absolute-deadline pacing: the one place that reads the clock in the loop.
 
-``time.sleep()`` until ``spin_us`` before the deadline, then spin on ``perf_counter_ns``.  The
+``time.sleep()`` until shortly before the deadline, then spin on ``perf_counter_ns``.  The
 clock sets its thread's timer slack to :data:`TIMER_SLACK_NS` (``prctl(PR_SET_TIMERSLACK)``, no
 privilege needed): with the kernel's default of 50 us for a normal thread a sleep ends up to
-50 us late, and the spin before the deadline then never happens; with 1 us it ends within a
-few microseconds and a spin of 50 us absorbs the rest.  Deadlines are absolute (``t0 + k *
-period``), so errors do not accumulate; a late tick is counted as missed periods and the
-schedule skips ahead instead of catching up in a burst.
+50 us late, and the spin before the deadline then never happens; with 1 us a sleep ends as late
+as the machine wakes a thread (15-70 us on a virtual machine), and the spin absorbs the rest.
+How long before the deadline the sleep ends is learned (:class:`SleepLead`): the
+:data:`LEAD_QUANTILE` quantile of the sleeps' own lateness, at most ``spin_us`` -- so the loop
+spins only as long as this machine's wake-ups need, and is on time at that share of its ticks.
+Deadlines are absolute (``t0 + k * period``), so errors do not accumulate; a late tick is
+counted as missed periods and the schedule skips ahead instead of catching up in a burst.
 
 ``sleep_max_us`` (0 by default: one sleep) cuts the sleep into naps.  On a virtual machine a
 virtual CPU that stays idle longer than the hypervisor's halt-polling window (KVM: 200 us by
@@ -32,11 +35,15 @@ import time
 import weakref
 from collections.abc import Callable
 
-__all__ = ["DEGRADED_MISSED_SHARE", "INPUT_GRACE", "TIMER_SLACK_NS", "DeadlineClock",
-           "run_delay_reader", "set_timer_slack", "sleep_until"]
+__all__ = ["DEGRADED_MISSED_SHARE", "INPUT_GRACE", "LEAD_QUANTILE", "TIMER_SLACK_NS",
+           "DeadlineClock", "SleepLead", "run_delay_reader", "set_timer_slack", "sleep_until"]
 
 TIMER_SLACK_NS = 1000
 """Timer slack of the thread that waits (ns): how late the kernel may end its sleeps."""
+LEAD_QUANTILE = 0.9
+"""The share of a waiting thread's sleeps that end before their deadline (:class:`SleepLead`)."""
+LEAD_STEP_NS = 1000
+"""How fast :class:`SleepLead` follows its quantile (ns a sleep, at most)."""
 
 DEGRADED_MISSED_SHARE = 0.02
 """A loop that missed more than this share of its deadlines over a stretch is degraded there:
@@ -59,14 +66,44 @@ def set_timer_slack(ns: int) -> bool:
         return False
 
 
-def sleep_until(due_ns: int, spin_ns: int, nap_ns: int = 0,
+class SleepLead:
+    """How long before a deadline a waiting thread's sleep should end: a running estimate of
+    the :data:`LEAD_QUANTILE` quantile of its sleeps' lateness (the time from the instant a
+    sleep was asked to end to the instant the thread ran again), at most ``max_ns``.
+
+    Each lateness moves the estimate by at most :data:`LEAD_STEP_NS` -- up by that times the
+    quantile when the lateness exceeds it, down by that times its complement otherwise -- so it
+    settles where that share of the sleeps end before it and one stall moves it by a step.  It
+    starts at ``max_ns``."""
+
+    __slots__ = ("_q", "max_ns", "ns")
+
+    def __init__(self, max_ns: int) -> None:
+        self.max_ns = max(0, int(max_ns))
+        self._q = self.max_ns
+        self.ns = self.max_ns
+
+    def learn(self, late_ns: int) -> None:
+        if late_ns > self._q:
+            self._q += round(LEAD_STEP_NS * LEAD_QUANTILE)
+        else:
+            self._q = max(0, self._q - round(LEAD_STEP_NS * (1 - LEAD_QUANTILE)))
+        self.ns = min(self._q, self.max_ns)
+
+
+def sleep_until(due_ns: int, lead: SleepLead, nap_ns: int = 0,
                 clock: Callable[[], int] = time.perf_counter_ns) -> None:
-    """Sleep until ``spin_ns`` before ``due_ns`` on ``clock`` -- in one sleep, or in naps of at
-    most ``nap_ns`` if > 0 --, then spin until ``due_ns``.  The sleeps end within the calling
-    thread's timer slack (:func:`set_timer_slack`)."""
-    wake = due_ns - spin_ns
+    """Sleep until ``lead.ns`` before ``due_ns`` on ``clock`` -- in one sleep, or in naps of at
+    most ``nap_ns`` if > 0 --, then spin until ``due_ns``; ``lead`` learns how late the sleep
+    ended.  The sleeps end within the calling thread's timer slack (:func:`set_timer_slack`)
+    after the machine wakes the thread."""
+    wake = due_ns - lead.ns
+    slept = False
     while (rest := wake - clock()) > 0:
         time.sleep((nap_ns if 0 < nap_ns < rest else rest) / 1e9)
+        slept = True
+    if slept:
+        lead.learn(-rest)
     while clock() < due_ns:
         pass
 
@@ -99,7 +136,8 @@ class DeadlineClock:
     :attr:`missed` counts the periods skipped because a tick overran, and :attr:`skipped` the
     deadlines skipped just before the one returned (so the caller can account for them).  With
     ``poll`` (input-synchronous mode) the wait also ends early, at least half a period after the
-    last tick, when ``poll()`` returns True; it is called every ``poll_us``.
+    last tick, when ``poll()`` returns True; it is called every ``poll_us``.  :attr:`lead`
+    says how long before a deadline ``wait()``'s sleep ends (learned, at most ``spin_us``).
 
     :attr:`missed_waiting` is the part of :attr:`missed` that the thread's wait for a CPU
     accounts for (None without ``run_delay``): at a tick ``L`` late after a wait ``W`` for a CPU
@@ -115,6 +153,7 @@ class DeadlineClock:
         set_timer_slack(TIMER_SLACK_NS)
         self.period_ns = round(1e9 / rate_hz)
         self.spin_ns = int(spin_us * 1000)
+        self.lead = SleepLead(self.spin_ns)
         self.nap_ns = int(sleep_max_us * 1000)
         self._clock = clock
         self.start_ns = clock()
@@ -131,7 +170,7 @@ class DeadlineClock:
 
     def wait(self) -> tuple[int, int]:
         deadline = self.next_ns
-        sleep_until(deadline, self.spin_ns, self.nap_ns, self._clock)
+        sleep_until(deadline, self.lead, self.nap_ns, self._clock)
         return self._advance(deadline)
 
     def wait_or_poll(self, poll: Callable[[], bool], poll_us: float) -> tuple[int, int, bool]:

@@ -1,4 +1,5 @@
-"""Optional real-time scheduling, scheduler slice and CPU pinning of the calling thread (Linux).
+"""Optional real-time scheduling, scheduler slice and CPU pinning of the calling thread, and the
+CPUs' wake-up latency while the process runs (Linux).
 
 All are best effort: each call reports what happened and the loop runs whatever the answer.
 Open zenoh *before* raising the loop thread: zenoh's threads inherit the policy of the thread
@@ -13,6 +14,11 @@ that opens the session.
   docs/BENCHMARKS.md).  Older kernels accept the call and ignore the value: the report says so
   (read back with ``sched_getattr``).  Python has no wrapper for these two system calls, hence
   ``ctypes``.
+- The *wake-up latency* is the kernel's CPU latency QoS (``/dev/cpu_dma_latency``): while a
+  process keeps that file open with a value written to it, no CPU enters an idle state that
+  takes longer than that to leave.  A loop that sleeps between ticks then wakes on time and on
+  warmer caches (with 0, idle CPUs poll; on a virtual machine its virtual CPUs stop halting).
+  The file is root's by default; docs/DEPLOYMENT.md gives the service's user access to it.
 """
 
 from __future__ import annotations
@@ -20,10 +26,15 @@ from __future__ import annotations
 import ctypes
 import os
 import platform
+import struct
 
-from motcomp.config import SLICE_MAX_US, SLICE_MIN_US
+from motcomp.config import SLICE_MAX_US, SLICE_MIN_US, LoopConfig
 
-__all__ = ["get_slice_us", "pin_to_cpu", "set_realtime", "set_slice"]
+__all__ = ["CPU_LATENCY_DEVICE", "get_slice_us", "hold_cpu_latency", "pin_to_cpu", "schedule_loop",
+           "set_realtime", "set_slice"]
+
+CPU_LATENCY_DEVICE = "/dev/cpu_dma_latency"
+"""The kernel's CPU latency QoS: a request holds while its file descriptor stays open."""
 
 _SYSCALLS = {"x86_64": (314, 315), "aarch64": (274, 275)}
 """(sched_setattr, sched_getattr) system call numbers."""
@@ -110,3 +121,35 @@ def pin_to_cpu(cpu: int) -> str:
     except (OSError, ValueError) as exc:
         return f"cannot pin to CPU {cpu} ({exc}); not pinned"
     return f"pinned to CPU {cpu}"
+
+
+def hold_cpu_latency(latency_us: int, device: str = CPU_LATENCY_DEVICE) -> tuple[str, int | None]:
+    """Ask that no CPU take longer than ``latency_us`` to wake from idle while the returned file
+    descriptor stays open (-1: leave the system's setting; ``(report, None)``).  Returns what
+    happened and the descriptor to close when the request should end (None where nothing is
+    held).  The request ends with the process in any case."""
+    if latency_us < 0:
+        return "CPU wake-up latency left to the system", None
+    try:
+        fd = os.open(device, os.O_RDWR)
+    except OSError as exc:
+        return (f"CPU wake-up latency not held ({device}: {exc.strerror}; "
+                "docs/DEPLOYMENT.md)"), None
+    try:
+        os.write(fd, struct.pack("i", int(latency_us)))
+        held = struct.unpack("i", os.pread(fd, 4, 0))[0]
+    except OSError as exc:
+        os.close(fd)
+        return f"CPU wake-up latency not held ({device}: {exc.strerror})", None
+    return f"CPU wake-up latency at most {latency_us} us (the system's now {held} us)", fd
+
+
+def schedule_loop(loop: LoopConfig) -> tuple[str, int | None]:
+    """Schedule the calling thread as ``loop`` asks for the service's loop thread (real-time
+    priority, slice, CPU) and hold the CPUs' wake-up latency; returns what happened (the
+    status' ``realtime``) and the latency request's descriptor (None: none held), to close when
+    the loop ends."""
+    naps = f"naps of {loop.sleep_max_us:g} us" if loop.sleep_max_us > 0 else "one sleep per tick"
+    latency, fd = hold_cpu_latency(loop.cpu_latency_us)
+    return (f"{set_realtime(loop.realtime_priority)}; {set_slice(loop.slice_us)}; {naps}; "
+            f"{pin_to_cpu(loop.cpu)}; {latency}"), fd

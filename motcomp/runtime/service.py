@@ -40,6 +40,7 @@ from __future__ import annotations
 import gc
 import logging
 import math
+import os
 import queue
 import signal
 import sys
@@ -81,7 +82,7 @@ from motcomp.runtime.clock import DEGRADED_MISSED_SHARE, DeadlineClock
 from motcomp.runtime.confine import Confinement
 from motcomp.runtime.monitor import BIN_S, COMMAND_WINDOW_S, LAG_RANGE_S, MotionMonitor
 from motcomp.runtime.reload import Prepared, Preparer
-from motcomp.runtime.rt import pin_to_cpu, set_realtime, set_slice
+from motcomp.runtime.rt import schedule_loop
 from motcomp.runtime.stats import LoopStats
 from motcomp.runtime.supervise import Supervisor
 from motcomp.runtime.systemd import Notifier
@@ -300,12 +301,10 @@ class Service:
         self.io_ns = io + perf() - t_io
 
     def _loop(self) -> None:
+        latency_fd: int | None = None
         try:
             loop = self.cfg.loop
-            naps = (f"naps of {loop.sleep_max_us:g} us" if loop.sleep_max_us > 0
-                    else "one sleep per tick")
-            self.rt_report = (f"{set_realtime(loop.realtime_priority)}; "
-                              f"{set_slice(loop.slice_us)}; {naps}; {pin_to_cpu(loop.cpu)}")
+            self.rt_report, latency_fd = schedule_loop(loop)
             gc.collect()
             gc.freeze()
             clock = DeadlineClock(loop.rate_hz, loop.spin_us, sleep_max_us=loop.sleep_max_us)
@@ -341,6 +340,8 @@ class Service:
             self._loop_error = exc
             self.exit_code = 1
         finally:
+            if latency_fd is not None:
+                os.close(latency_fd)
             self.loop_done.set()
 
     # --- configuration changes (main thread builds, loop thread swaps) ---------------------

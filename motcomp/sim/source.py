@@ -53,7 +53,7 @@ from motcomp.io.zenoh_io import (
     open_session,
     wait_for_subscriber,
 )
-from motcomp.runtime.clock import TIMER_SLACK_NS, set_timer_slack, sleep_until
+from motcomp.runtime.clock import TIMER_SLACK_NS, SleepLead, set_timer_slack, sleep_until
 
 __all__ = ["PublishStats", "Send", "SenderTiming", "Trajectory", "band_sweep", "builtin",
            "lane_change", "load_trajectory", "publish", "send_schedule"]
@@ -448,14 +448,15 @@ class PublishStats:
         return out
 
 
-def _wait_until(due_ns: int, spin_ns: int, stop: threading.Event) -> None:
+def _wait_until(due_ns: int, lead: SleepLead, stop: threading.Event) -> None:
     """Wait for ``due_ns`` on ``perf_counter_ns`` as the service's loop waits for a deadline
-    (:func:`~motcomp.runtime.clock.sleep_until`: one sleep, then a spin of ``spin_ns``), a
-    wait longer than 5 ms on ``stop`` first; returns early if ``stop`` is set during that."""
-    rest = due_ns - spin_ns - time.perf_counter_ns()
+    (:func:`~motcomp.runtime.clock.sleep_until`: one sleep, then a spin as long as ``lead``
+    learned), a wait longer than 5 ms on ``stop`` first; returns early if ``stop`` is set
+    during that."""
+    rest = due_ns - lead.ns - time.perf_counter_ns()
     if rest > 5_000_000 and stop.wait((rest - 2_000_000) / 1e9):
         return
-    sleep_until(due_ns, spin_ns)
+    sleep_until(due_ns, lead)
 
 
 def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/setpoint",
@@ -504,7 +505,7 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
     skipped = stalls = held = 0
     every = max(1, round(traj.rate_hz / 10))
     period_ns = round(1e9 / traj.rate_hz)
-    spin_ns = int(spin_us * 1000)
+    lead = SleepLead(int(spin_us * 1000))
     t0 = math.nan
     k = 0
     t_start = time.monotonic()
@@ -536,7 +537,7 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
             while k < total and not stop.is_set():
                 send = next(schedule)
                 due = start_ns + send.at_ns
-                _wait_until(due, spin_ns, stop)
+                _wait_until(due, lead, stop)
                 if stop.is_set():
                     break
                 if perf() - due >= period_ns:  # this process was stalled: the instant passed
