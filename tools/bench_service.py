@@ -63,6 +63,7 @@ SCHEDS = {  # scheduling mode -> [loop] settings over the example config
     "config": "",
     "plain": "slice_us = 0\nsleep_max_us = 0\n",
     "rt": "realtime_priority = 50\ncpu = 1\n",
+    "idle": "cpu_latency_us = -1\n",
 }
 RATIO_MAX = 1.5
 """Target: missed ticks of the service / missed ticks of the clock alone."""
@@ -467,6 +468,7 @@ def report(args: argparse.Namespace, rows: list[dict[str, Any]],
             for name in ticks[0]}
     opts = (f"--seconds {args.seconds:g} --repeats {args.repeats}"
             f"{' --plain' if args.plain else ''}{' --rt' if args.rt else ''}"
+            f"{' --idle' if args.idle else ''}"
             f"{f' --spin-us {args.spin_us:g}' if args.spin_us is not None else ''}")
     lines = [
         f"Machine: {machine()}.",
@@ -586,6 +588,9 @@ def main() -> None:
     ap.add_argument("--rt", action="store_true",
                     help="also run with SCHED_FIFO 50 and the loop pinned to CPU 1 (needs the "
                          "privilege; the service reports whether it got it)")
+    ap.add_argument("--idle", action="store_true",
+                    help="also run with the system's idle states (loop.cpu_latency_us = -1: "
+                         "the CPUs' wake-up latency not held)")
     ap.add_argument("--publisher", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--bare", help=argparse.SUPPRESS)
     ap.add_argument("--tick-child", help=argparse.SUPPRESS)
@@ -606,7 +611,7 @@ def main() -> None:
         return
     if args.quick:
         args.seconds, args.repeats, args.ticks = 15.0, 1, 2000
-    scheds = ["config"] + ["plain"] * args.plain + ["rt"] * args.rt
+    scheds = ["config"] + ["plain"] * args.plain + ["rt"] * args.rt + ["idle"] * args.idle
     pairs = args.repeats * len(scheds) * 2
     estimate = pairs * (3 * args.seconds + PAIR_OVERHEAD_S) + args.repeats * (
         args.ticks / 1000 + 5)

@@ -8,8 +8,8 @@ itself imposed on it: deadlines missed, lateness percentiles, the longest stall.
 benchmark then judges its real-time figures only if :meth:`HostClock.holds`, and otherwise
 reports them as not judged, with these figures (docs/TESTING.md).
 
-The probe costs what the loop's clock costs: its spin before each deadline (``spin_us`` of
-each period) and its naps.  ``python -m motcomp.runtime.probe RATE SPIN_US SLEEP_MAX_US``
+The probe costs what the loop's clock costs: its spin before each deadline (at most
+``spin_us`` of each period) and its naps.  ``python -m motcomp.runtime.probe RATE SPIN_US SLEEP_MAX_US``
 runs it until SIGTERM and prints one JSON line.
 """
 
