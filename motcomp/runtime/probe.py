@@ -9,8 +9,8 @@ benchmark then judges its real-time figures only if :meth:`HostClock.holds`, and
 reports them as not judged, with these figures (docs/TESTING.md).
 
 The probe costs what the loop's clock costs: its spin before each deadline (at most
-``spin_us`` of each period) and its naps.  ``python -m motcomp.runtime.probe RATE SPIN_US SLEEP_MAX_US``
-runs it until SIGTERM and prints one JSON line.
+``spin_us`` of each period) and its naps.  ``python -m motcomp.runtime.probe RATE SPIN_US
+SLEEP_MAX_US`` runs it until SIGTERM and prints one JSON line.
 """
 
 from __future__ import annotations
