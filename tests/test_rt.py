@@ -145,3 +145,12 @@ def test_config_cpu_latency_range(tmp_path: Path, value: int, ok: bool) -> None:
     else:
         with pytest.raises(ConfigError, match="cpu_latency_us"):
             load_config(cfg)
+
+
+def test_the_cpu_latency_needs_a_restart(tmp_path: Path) -> None:
+    from motcomp.runtime.reload import restart_changes
+
+    base = load_config(config_file("motcomp.toml"))
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'include = ["{config_file("motcomp.toml")}"]\n[loop]\ncpu_latency_us = -1\n')
+    assert restart_changes(base, load_config(cfg)) == ["loop.cpu_latency_us"]
