@@ -44,6 +44,8 @@ LEAD_QUANTILE = 0.9
 """The share of a waiting thread's sleeps that end before their deadline (:class:`SleepLead`)."""
 LEAD_STEP_NS = 1000
 """How fast :class:`SleepLead` follows its quantile (ns a sleep, at most)."""
+_LEAD_UP_NS = round(LEAD_STEP_NS * LEAD_QUANTILE)
+_LEAD_DOWN_NS = round(LEAD_STEP_NS * (1 - LEAD_QUANTILE))
 
 DEGRADED_MISSED_SHARE = 0.02
 """A loop that missed more than this share of its deadlines over a stretch is degraded there:
@@ -85,9 +87,9 @@ class SleepLead:
 
     def learn(self, late_ns: int) -> None:
         if late_ns > self._q:
-            self._q += round(LEAD_STEP_NS * LEAD_QUANTILE)
+            self._q += _LEAD_UP_NS
         else:
-            self._q = max(0, self._q - round(LEAD_STEP_NS * (1 - LEAD_QUANTILE)))
+            self._q = max(0, self._q - _LEAD_DOWN_NS)
         self.ns = min(self._q, self.max_ns)
 
 
