@@ -117,6 +117,11 @@ def test_the_cpu_latency_request_is_left_or_says_why_it_is_not_held(tmp_path: Pa
     assert fd is None
     assert report == (f"CPU wake-up latency not held ({tmp_path}: Is a directory; "
                       "docs/DEPLOYMENT.md)")
+    if os.path.exists("/dev/full"):  # opens, but refuses every write: nothing held, fd closed
+        before = len(os.listdir("/proc/self/fd"))
+        report, fd = hold_cpu_latency(0, device="/dev/full")
+        assert fd is None and len(os.listdir("/proc/self/fd")) == before
+        assert report == "CPU wake-up latency not held (/dev/full: No space left on device)"
 
 
 @pytest.mark.skipif(not os.access(CPU_LATENCY_DEVICE, os.W_OK),
