@@ -156,6 +156,15 @@ def test_the_lead_follows_its_quantile_a_step_at_a_time() -> None:
     for _ in range(10_000):
         lead.learn(0)
     assert lead.ns == 0  # never below zero
+    # six minutes of sleeps late beyond the cap (a starved host), then on time again: back from
+    # the cap within cap / (a tenth of a step) sleeps, not after six minutes' worth of steps
+    lead = SleepLead(50_000)
+    for _ in range(360_000):
+        lead.learn(200_000)
+    assert lead.ns == 50_000
+    for _ in range(50_000 // round(LEAD_STEP_NS * (1 - LEAD_QUANTILE))):
+        lead.learn(0)
+    assert lead.ns == 0
 
 
 def test_input_synchronous_wait_sleeps_in_poll_steps_then_spins(

@@ -76,7 +76,8 @@ class SleepLead:
     Each lateness moves the estimate by at most :data:`LEAD_STEP_NS` -- up by that times the
     quantile when the lateness exceeds it, down by that times its complement otherwise -- so it
     settles where that share of the sleeps end before it and one stall moves it by a step.  It
-    starts at ``max_ns``."""
+    starts at ``max_ns`` and never exceeds it, so after any stretch of late sleeps it comes
+    down again within ``max_ns`` / (step x (1 - quantile)) sleeps that end on time."""
 
     __slots__ = ("_q", "max_ns", "ns")
 
@@ -87,10 +88,10 @@ class SleepLead:
 
     def learn(self, late_ns: int) -> None:
         if late_ns > self._q:
-            self._q += _LEAD_UP_NS
+            self._q = min(self._q + _LEAD_UP_NS, self.max_ns)
         else:
             self._q = max(0, self._q - _LEAD_DOWN_NS)
-        self.ns = min(self._q, self.max_ns)
+        self.ns = self._q
 
 
 def sleep_until(due_ns: int, lead: SleepLead, nap_ns: int = 0,
