@@ -199,9 +199,10 @@ class TickParams:
 
 
 @mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
-@dataclass
 class TickOutput:
-    """What one tick sends: the command ``u`` in :data:`AXES` order and what goes with it."""
+    """What one tick sends: the command ``u`` in :data:`AXES` order and what goes with it.
+    (A plain class, not a dataclass: compiled, a dataclass' generated ``__init__`` would run
+    interpreted at every tick.)"""
 
     seq: int
     """Counts the outputs (catch-up steps send nothing)."""
@@ -212,9 +213,30 @@ class TickOutput:
     limited: list[bool]
     mode: str
     """``""`` when live and settled, else ``rejoin``, ``stale`` or ``parking``."""
-    rx_ns: int = 0
+    rx_ns: int
     """How long after the tick's instant its input frames were taken (ns; 0: at it): what a
     replay needs to time them as the tick did (output frames carry it as ``rx``)."""
+
+    def __init__(self, seq: int, src_seq: int, u: list[float], flags: list[str],
+                 limited: list[bool], mode: str, rx_ns: int = 0) -> None:
+        self.seq = seq
+        self.src_seq = src_seq
+        self.u = u
+        self.flags = flags
+        self.limited = limited
+        self.mode = mode
+        self.rx_ns = rx_ns
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, TickOutput) and (
+            (self.seq, self.src_seq, self.u, self.flags, self.limited, self.mode, self.rx_ns)
+            == (other.seq, other.src_seq, other.u, other.flags, other.limited, other.mode,
+                other.rx_ns))
+
+    def __repr__(self) -> str:
+        return (f"TickOutput(seq={self.seq!r}, src_seq={self.src_seq!r}, u={self.u!r}, "
+                f"flags={self.flags!r}, limited={self.limited!r}, mode={self.mode!r}, "
+                f"rx_ns={self.rx_ns!r})")
 
 
 @mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
