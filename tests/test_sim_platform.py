@@ -164,6 +164,25 @@ def test_the_accelerometer_s_noise_bias_and_quantum() -> None:
     assert np.abs(q - np.round(q)).max() < 1e-6
 
 
+def test_a_block_measured_at_once_has_the_same_imperfections() -> None:
+    """``Accelerometer.apply`` (recordings made offline) measures a block as the platform's
+    stream does sample by sample: the bias as mean, the noise as spread, the quantum, and the
+    tremor line within its +-20 % modulation; a 2-D block's columns are separate axes."""
+    rng = np.random.default_rng(5)
+    acc = Accelerometer(noise_std=0.05, bias=0.02, lsb=0.001).apply(np.zeros((4000, 3)),
+                                                                     RATE, rng)
+    assert acc.shape == (4000, 3)
+    assert np.abs(acc.mean(axis=0) - 0.02).max() < 4 * 0.05 / math.sqrt(4000)
+    assert np.allclose(acc.std(axis=0), 0.05, rtol=0.06)
+    assert np.abs(acc / 0.001 - np.round(acc / 0.001)).max() < 1e-6
+    assert abs(np.corrcoef(acc[:, 0], acc[:, 1])[0, 1]) < 0.1  # independent axes
+    amp = 0.03
+    line = Accelerometer(tremor_hz=14.0, tremor_amp=amp).apply(np.zeros(3500), RATE, rng)
+    assert line.shape == (3500,)
+    assert 0.8 * amp <= np.abs(line).max() <= 1.2 * amp + 1e-12
+    assert Accelerometer().apply(np.zeros(0), RATE, rng).shape == (0,)
+
+
 def test_the_platform_judges_its_speed_limit_between_frames_at_their_own_times() -> None:
     """``motcomp hil``'s hard velocity limit (1 m/s here) between consecutive setpoint frames,
     over the frames' own ``t``: 0.9 mm in 1 ms passes, 1.1 mm in 1 ms is a violation of that

@@ -114,28 +114,19 @@ class Accelerometer:
 
     def apply(self, acc_true: ArrayLike, rate_hz: float, rng: np.random.Generator,
               t0_s: float = 0.0) -> FloatArray:
-        """Measured acceleration for a block of true samples at ``rate_hz``."""
+        """Measured acceleration for a block of true samples at ``rate_hz`` (the first at
+        ``t0_s``; a 2-D block's columns are measured as separate axes): the imperfections of
+        :class:`_SensorStream` over one block."""
         a = np.asarray(acc_true, dtype=float)
-        out = a + self.bias
-        if self.noise_std > 0:
-            out = out + rng.normal(0.0, self.noise_std, a.shape)
-        if self.tremor_amp > 0 and self.tremor_hz > 0:
-            t = t0_s + np.arange(a.shape[0]) / rate_hz
-            # slow random-walk modulation of amplitude (+-20 %) and phase
-            walk = np.cumsum(rng.normal(0.0, 1.0, (a.shape[0], 2)), axis=0) / math.sqrt(rate_hz)
-            amp = self.tremor_amp * (1.0 + 0.2 * np.tanh(0.3 * walk[:, 0]))
-            ph = 0.5 * walk[:, 1] + rng.uniform(0, 2 * math.pi)
-            line = amp * np.sin(2 * math.pi * self.tremor_hz * t + ph)
-            out = out + (line if a.ndim == 1 else line[:, None])
-        if self.lsb > 0:
-            out = np.round(out / self.lsb) * self.lsb
-        return np.asarray(out)
+        cols = a.reshape(a.shape[0], math.prod(a.shape[1:]))
+        stream = _SensorStream([self] * cols.shape[1], rate_hz, rng, block=max(cols.shape[0], 1))
+        return stream.measure(cols, t0_s * rate_hz).reshape(a.shape)
 
 
 class _SensorStream:
-    """Per-sample accelerometer imperfections of all axes at once, the streaming twin of
-    :meth:`Accelerometer.apply` (same noise, bias, tremor line with a slow random-walk
-    modulation of amplitude and phase, quantisation).  Sample ``k`` is measured at ``k / rate``;
+    """Per-sample accelerometer imperfections of all axes at once (noise, bias, tremor line with
+    a slow random-walk modulation of amplitude and phase, quantisation; :meth:`measure` gives a
+    block at once, as :meth:`Accelerometer.apply` does).  Sample ``k`` is measured at ``k / rate``;
     the disturbance of a block of samples (random numbers, walk, tremor line) is computed at
     once, so a sample costs an addition and the quantisation."""
 
@@ -157,11 +148,11 @@ class _SensorStream:
                           or np.any(self.tremor_amp) or self.quantise)
         self.phase0 = rng.uniform(0, 2 * math.pi, self.n)
         self.walk = np.zeros((2, self.n))
-        self._k0 = 0
+        self._k0: float = 0
         self._i = block
         self._dist = np.zeros((block, self.n))
 
-    def _fill(self, k0: int) -> None:
+    def _fill(self, k0: float) -> None:
         """The disturbance of samples ``k0 .. k0 + block - 1``."""
         noise = self.rng.normal(0.0, 1.0, (self.block, self.n)) * self.noise_std
         steps = self.rng.normal(0.0, 1.0, (self.block, 2, self.n)) / math.sqrt(self.rate_hz)
@@ -183,6 +174,18 @@ class _SensorStream:
             self._fill(k)
         out = acc_true + self._dist[self._i]
         self._i += 1
+        return self._quantised(out)
+
+    def measure(self, acc_true: np.ndarray, k0: float) -> np.ndarray:
+        """The measurement of the samples ``k0, k0 + 1, ...`` of ``acc_true`` (rows; at most
+        a block of them) at once."""
+        if self.ideal or acc_true.shape[0] == 0:
+            return np.array(acc_true, dtype=float)
+        self._fill(k0)
+        self._i = self.block
+        return self._quantised(acc_true + self._dist[:acc_true.shape[0]])
+
+    def _quantised(self, out: np.ndarray) -> np.ndarray:
         if self.quantise_all:
             return np.round(out / self.lsb) * self.lsb
         if self.quantise:
