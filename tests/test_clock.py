@@ -186,10 +186,49 @@ def test_input_synchronous_wait_sleeps_in_poll_steps_then_spins(
 
     _, now, polled = c.wait_or_poll(poll, 50.0)
     assert polled and arrive <= now <= arrive + 5_000  # seen as it landed, not a poll step late
-    assert naps and max(n for _, n in naps) <= 50_000  # poll steps ...
+    # one sleep until it watches (from half a period after the last tick: at the start, as
+    # after any tick not on an input seen landing), then poll steps ...
+    assert c.start_ns + 500_000 <= naps[0][0] + naps[0][1] <= c.start_ns + 502_000
+    assert naps[1:] and max(n for _, n in naps[1:]) <= 50_000
     spin_at = arrive + 50_000 - 200_000
     assert all(t + n <= spin_at + 1_000 for t, n in naps)  # ... none into the last spin_us
     assert len(seen) > 100  # the spin polled at every clock read
+
+
+def test_input_synchronous_wait_learns_when_to_watch(
+        fake: FakeTime, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Inputs that land a period after the last tick, give or take 30 us (uniform): the watch
+    settles at the closed-form 0.9 quantile of how early they land (24 us), where the wait
+    sleeps once a tick and 90 % of the inputs land while it watches and are taken as they land;
+    the others were there when the watch began and are taken then, and the wait after such a
+    tick polls from half a period (the input's instant unknown)."""
+    sleeps = [0]
+
+    def sleep(s: float) -> None:
+        sleeps[0] += 1
+        fake.sleep(s)
+
+    monkeypatch.setattr(clock_mod.time, "sleep", sleep)
+    c = DeadlineClock(1000.0, spin_us=50.0, clock=fake.ticking)
+    rng = np.random.default_rng(3)
+    _, last, _ = c.wait_or_poll(lambda: True, 50.0)
+    watch, waited, on_landing = [], [], 0
+    ticks = 3000
+    for k in range(ticks):
+        arrive = last + 1_000_000 - int(rng.uniform(-30_000, 30_000))
+        sleeps[0] = 0
+        _, now, polled = c.wait_or_poll(lambda a=arrive: fake.ns >= a, 50.0)
+        assert polled and now >= arrive
+        if k >= ticks // 2:
+            watch.append(c.watch.ns)
+            waited.append(sleeps[0])
+            on_landing += now - arrive <= 2_000
+        last = now
+    assert np.mean(watch) == pytest.approx(24_000, abs=4_000)
+    once = sum(w == 1 for w in waited) / len(waited)  # no poll steps: the watch within spin_us
+    assert 0.85 <= once <= 0.95 and max(waited) <= 10  # else a sleep and 9 steps of 50 us
+    assert 0.85 <= on_landing / len(watch) <= 0.95
+    assert c.missed == 0
 
 
 def test_missed_deadlines_are_split_by_the_thread_s_wait_for_a_cpu(fake: FakeTime) -> None:

@@ -36,7 +36,8 @@ import weakref
 from collections.abc import Callable
 
 __all__ = ["DEGRADED_MISSED_SHARE", "INPUT_GRACE", "LEAD_QUANTILE", "TIMER_SLACK_NS",
-           "DeadlineClock", "SleepLead", "run_delay_reader", "set_timer_slack", "sleep_until"]
+           "WATCH_STEP_NS", "DeadlineClock", "SleepLead", "run_delay_reader", "set_timer_slack",
+           "sleep_until"]
 
 TIMER_SLACK_NS = 1000
 """Timer slack of the thread that waits (ns): how late the kernel may end its sleeps."""
@@ -44,8 +45,9 @@ LEAD_QUANTILE = 0.9
 """The share of a waiting thread's sleeps that end before their deadline (:class:`SleepLead`)."""
 LEAD_STEP_NS = 1000
 """How fast :class:`SleepLead` follows its quantile (ns a sleep, at most)."""
-_LEAD_UP_NS = round(LEAD_STEP_NS * LEAD_QUANTILE)
-_LEAD_DOWN_NS = round(LEAD_STEP_NS * (1 - LEAD_QUANTILE))
+WATCH_STEP_NS = 10_000
+"""How fast the input-synchronous wait's watch follows its quantile (ns a tick, at most):
+from half a period of 1 kHz to the transport's spread in about half a second."""
 
 DEGRADED_MISSED_SHARE = 0.02
 """A loop that missed more than this share of its deadlines over a stretch is degraded there:
@@ -79,18 +81,24 @@ class SleepLead:
     starts at ``max_ns`` and never exceeds it, so after any stretch of late sleeps it comes
     down again within ``max_ns`` / (step x (1 - quantile)) sleeps that end on time."""
 
-    __slots__ = ("_q", "max_ns", "ns")
+    __slots__ = ("_down", "_q", "_up", "max_ns", "ns")
 
-    def __init__(self, max_ns: int) -> None:
+    def __init__(self, max_ns: int, step_ns: int = LEAD_STEP_NS) -> None:
         self.max_ns = max(0, int(max_ns))
         self._q = self.max_ns
         self.ns = self.max_ns
+        self._up = round(step_ns * LEAD_QUANTILE)
+        self._down = round(step_ns * (1 - LEAD_QUANTILE))
 
     def learn(self, late_ns: int) -> None:
-        if late_ns > self._q:
-            self._q = min(self._q + _LEAD_UP_NS, self.max_ns)
+        self.learn_exceeded(late_ns > self._q)
+
+    def learn_exceeded(self, exceeded: bool) -> None:
+        """One sample, told only whether it exceeded the estimate."""
+        if exceeded:
+            self._q = min(self._q + self._up, self.max_ns)
         else:
-            self._q = max(0, self._q - _LEAD_DOWN_NS)
+            self._q = max(0, self._q - self._down)
         self.ns = self._q
 
 
@@ -138,9 +146,10 @@ class DeadlineClock:
     ``wait()`` blocks until the next deadline and returns ``(deadline_ns, now_ns)``;
     :attr:`missed` counts the periods skipped because a tick overran, and :attr:`skipped` the
     deadlines skipped just before the one returned (so the caller can account for them).  With
-    ``poll`` (input-synchronous mode) the wait also ends early, at least half a period after the
-    last tick, when ``poll()`` returns True; it is called every ``poll_us``.  :attr:`lead`
-    says how long before a deadline ``wait()``'s sleep ends (learned, at most ``spin_us``).
+    ``poll`` (input-synchronous mode, :meth:`wait_or_poll`) the wait also ends early, at least
+    half a period after the last tick, when ``poll()`` returns True; it is called from
+    :attr:`watch` before the input is expected, every ``poll_us``.  :attr:`lead` says how long
+    before a deadline ``wait()``'s sleep ends (learned, at most ``spin_us``).
 
     :attr:`missed_waiting` is the part of :attr:`missed` that the thread's wait for a CPU
     accounts for (None without ``run_delay``): at a tick ``L`` late after a wait ``W`` for a CPU
@@ -157,6 +166,8 @@ class DeadlineClock:
         self.period_ns = round(1e9 / rate_hz)
         self.spin_ns = int(spin_us * 1000)
         self.lead = SleepLead(self.spin_ns)
+        self.watch = SleepLead(self.period_ns // 2, WATCH_STEP_NS)
+        self._landed = False
         self.nap_ns = int(sleep_max_us * 1000)
         self._clock = clock
         self.start_ns = clock()
@@ -180,28 +191,56 @@ class DeadlineClock:
         """Like :meth:`wait`, but tick early when ``poll()`` says an input has arrived.
 
         Returns ``(deadline_ns, now_ns, polled)``; after an early tick the schedule is re-phased
-        to it, so a source at the loop rate drives the loop: the next input is due a period
+        to it, so a source at the loop rate drives the loop: the next input is expected a period
         later, and the own clock waits :data:`INPUT_GRACE` of a period more for it before it
         ticks without (a frame a few microseconds late would otherwise cost an extra tick on
-        stale input, and another half a period later on the frame).  Polls every ``poll_us``
-        until ``spin_us`` before the input is due, then without sleeping, as :meth:`wait`
-        spins: the input is seen as it lands.
+        stale input, and another half a period later on the frame).
+
+        The wait sleeps until it watches, then polls every ``poll_us`` until ``spin_us`` before
+        the input is expected, and from there without sleeping, as :meth:`wait` spins: the
+        input is seen as it lands.  After a tick on an input seen landing, it watches from
+        :attr:`watch` before the next one is expected; after any other tick (the own clock's,
+        or on an input found waiting) from half a period after it, as at the start.
+        :attr:`watch` is learned as :class:`SleepLead` learns its lead, from whether the input
+        was already there when the watch began: it settles where that holds at
+        1 - :data:`LEAD_QUANTILE` of the ticks (those inputs are taken when the watch begins),
+        so a loop driven by a steady source wakes about once a period instead of polling half
+        of it.  It starts at half a period, and moves by at most :data:`WATCH_STEP_NS` a tick.
         """
         clock = self._clock
         deadline = self.next_ns
+        expected = deadline - self._grace_ns
         earliest = self._last_tick_ns + self.period_ns // 2
-        spin_at = deadline - self._grace_ns - self.spin_ns
+        spin_at = expected - self.spin_ns
         step = poll_us / 1e6
+        # the watch holds where the last tick was an input's landing (its instant the input's);
+        # after any other tick the input's instant is not known: watch from half a period
+        anchored = self._landed
+        watch_at = max(earliest, expected - self.watch.ns) if anchored else earliest
+        learn = False
+        if (rest := watch_at - clock()) > 0:
+            time.sleep(rest / 1e9)
+            learn = anchored
+        first = True
         while True:
             now = clock()
-            if now >= earliest and poll():
-                d, n = self._advance(now)
-                self._grace_ns = self.period_ns * INPUT_GRACE // 100
-                self.next_ns += self._grace_ns
-                return d, n, True
+            if now >= earliest:
+                arrived = poll()
+                if first:  # the first look: was the input already there?
+                    if learn:
+                        self.watch.learn_exceeded(arrived)
+                    self._landed = False
+                if arrived:
+                    self._landed = not first  # seen landing, not found waiting
+                    d, n = self._advance(now)
+                    self._grace_ns = self.period_ns * INPUT_GRACE // 100
+                    self.next_ns += self._grace_ns
+                    return d, n, True
+                first = False
             if now >= deadline:
                 d, n = self._advance(deadline)
                 self._grace_ns = 0
+                self._landed = False
                 return d, n, False
             if now < spin_at:
                 time.sleep(min(step, (spin_at - now) / 1e9))
