@@ -24,6 +24,7 @@ import pytest
 
 from motcomp.config import load_config
 from motcomp.core.axes import AXES
+from motcomp.io.wire import encode_output
 from motcomp.record import read_session
 from motcomp.record.recorder import SessionWriter
 from motcomp.replay.synth import SynthOptions, synthesize
@@ -57,6 +58,11 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
                        flush_s=0, fsync=False) as w:
         for rec in records:
             w.write_raw(rec.topic, rec.log_ns, rec.publish_ns, rec.sequence, rec.data)
+        # output frames as the service sends them: rx (ns after t the tick took its inputs)
+        last = max(r.log_ns for r in records if r.topic == "platform/setpoint")
+        for j in range(3):
+            w.write("platform/setpoint", last + 1 + j, encode_output(
+                10**6 + j, 1.0 + j / 1e3, 7, [0.01 * j] * len(AXES), ["stale"], 35_000 + j))
         w.write("platform/status", records[-1].log_ns, msgpack.packb(
             {"t": 1.5, "setpoint_age_ms": float("nan"), "ticks": 3, "axes": ["rails_x"]}))
         w.write("platform/status", records[-1].log_ns + 1, msgpack.packb([1, 2, 3]))
@@ -119,6 +125,7 @@ def test_every_message_validates_against_its_channel_schema_and_loses_nothing(
     assert invalid["sim/motion/setpoint"] >= 3000 // 50 - 10
     assert invalid["platform/status"] == 1
     assert "platform/setpoint" not in invalid and "platform/feedback" not in invalid
+    assert sum("rx" in json.loads(m.data) for t, _, m in rows if t == "platform/setpoint") == 3
     channels = {topic for topic, _, _ in rows}
     assert {"sim/motion/setpoint", "platform/setpoint", "platform/feedback", "motcomp/status",
             "platform/status", "sim/motion/setpoint/invalid"} <= channels

@@ -9,13 +9,21 @@ arithmetic as a lower bound of what vectorising over 8 axes would cost.  The thr
 interleaved in blocks, each on its own continuous timeline, ``gc.freeze()``-d as the service's
 loop is.
 
+With ``--gaps`` it times ``tick.step`` alone with a gap between two calls, spent spinning on the
+clock in this thread (nothing of this process sleeps or runs in between): from back to back to
+3 ms, interleaved in rounds.  Where the tick costs more after a longer gap, what it left in the
+CPU's caches and predictors decays while it does nothing -- the machine's other work, on this
+host or on the physical cores under a virtual one -- and the loop at 1 kHz pays that at every
+tick (docs/BENCHMARKS.md, "The tick after a gap").
+
 With ``--compare-plain`` the whole measurement runs in child processes, alternately with the
 installed tick (compiled by mypyc where the install compiled it) and with the plain Python
 modules (``MOTCOMP_PURE_PYTHON=1``), three rounds each, and the section gives both and their
 ratio (docs/BENCHMARKS.md, "The tick compiled").
 
 Writes the "core" section of docs/BENCHMARKS.md.
-Usage: ``python tools/bench_core.py [--ticks 60000] [--quick] [--no-write] [--compare-plain]``
+Usage: ``python tools/bench_core.py [--ticks 60000] [--quick] [--no-write] [--compare-plain |
+--gaps]``
 """
 
 from __future__ import annotations
@@ -211,6 +219,64 @@ def compare_plain(ticks: int) -> str:
     return "\n".join(lines)
 
 
+GAPS_US = (0, 50, 150, 400, 1000, 3000)
+"""Gaps between two calls of ``--gaps`` (us; 0: back to back)."""
+GAP_ROUNDS = 3
+
+
+def gaps(ticks: int) -> str:
+    """``tick.step`` after each of :data:`GAPS_US`, ``ticks`` calls per gap in
+    :data:`GAP_ROUNDS` interleaved rounds; the section's text."""
+    cfg = load_config(config_file("motcomp.toml"))
+    params, state = new_tick(cfg)
+    lim = state.comp.limits
+    per = max(ticks // GAP_ROUNDS, 1)
+    warm = 2000
+    total = warm + per * GAP_ROUNDS * len(GAPS_US)
+    frames = [encode_input(k, k / 1000.0, dict(zip(AXES, row, strict=True)))
+              for k, row in enumerate(references(total, lim.p_min, lim.p_max).tolist())]
+    clock = time.perf_counter_ns
+    times: dict[int, list[float]] = {g: [] for g in GAPS_US}
+    gc.collect()
+    gc.freeze()
+    try:
+        for k in range(warm):
+            step(state, params, k * 1_000_000, frames[k])
+        k = warm
+        end = clock()
+        for _ in range(GAP_ROUNDS):
+            for gap in GAPS_US:
+                for _ in range(per):
+                    due = end + gap * 1000
+                    while clock() < due:
+                        pass
+                    t0 = clock()
+                    step(state, params, k * 1_000_000, frames[k])
+                    end = clock()
+                    times[gap].append((end - t0) / 1e3)
+                    k += 1
+    finally:
+        gc.unfreeze()
+    if state.accepted != total:
+        raise SystemExit(f"the tick accepted {state.accepted} of {total} frames")
+    q = {g: np.percentile(t, (50, 99)) for g, t in times.items()}
+    lines = [
+        f"Machine: {machine()}.",
+        "",
+        f"`python tools/bench_core.py --gaps --ticks {ticks}` (tick: {native.ACTIVE}): "
+        f"`tick.step` on the example config's 8 axes, {per * GAP_ROUNDS} calls after each gap "
+        f"in {GAP_ROUNDS} interleaved rounds; the gap spent spinning on the clock in the same "
+        "thread (the CPU never idle, nothing else of this process running).",
+        "",
+        "| gap before the call | median (us) | p99 (us) | median / back to back |",
+        "|---|---|---|---|",
+    ]
+    for g in GAPS_US:
+        name = "back to back" if g == 0 else f"{g} us"
+        lines.append(f"| {name} | {q[g][0]:.1f} | {q[g][1]:.1f} | {q[g][0] / q[0][0]:.2f}x |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -219,9 +285,17 @@ def main() -> None:
     ap.add_argument("--no-write", action="store_true", help="print only")
     ap.add_argument("--compare-plain", action="store_true",
                     help="the installed tick against the plain Python one (child processes)")
+    ap.add_argument("--gaps", action="store_true",
+                    help="tick.step after gaps of 0-3 ms spent spinning (section core-gaps)")
     ap.add_argument("--json", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     ticks = 6000 if args.quick else args.ticks
+    if args.gaps:
+        text = gaps(ticks)
+        print(text)
+        if not args.no_write:
+            write_section("core-gaps", text)
+        return
     if args.compare_plain:
         text = compare_plain(ticks)
         print(text)

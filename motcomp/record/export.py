@@ -65,7 +65,8 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "title": "motcomp output frame (docs/WIRE.md)", "type": "object",
         "properties": {"seq": {"type": "integer"}, "t": _NUMBER, "src_seq": {"type": "integer"},
                        "pos": {**_AXES_MAP, "required": list(AXES)},
-                       "flags": {"type": "array", "items": {"type": "string"}}},
+                       "flags": {"type": "array", "items": {"type": "string"}},
+                       "rx": {"type": "integer", "minimum": 0}},
         "required": ["seq", "t", "src_seq", "pos", "flags"], "additionalProperties": False},
     "feedback": {
         "title": "platform feedback frame (docs/WIRE.md)", "type": "object",
@@ -134,20 +135,29 @@ def _input(obj: Any) -> dict[str, Any]:
     return out
 
 
+_OUTPUT_KEYS = frozenset(SCHEMAS["output"]["properties"])
+
+
 def _output(obj: Any) -> dict[str, Any]:
-    if not isinstance(obj, dict) or set(obj) != {"seq", "t", "src_seq", "pos", "flags"}:
-        raise _UnfitError("not a map of seq, t, src_seq, pos, flags")
-    for k in ("seq", "src_seq"):
-        if isinstance(obj[k], bool) or not isinstance(obj[k], int):
+    if not isinstance(obj, dict) or not (
+            {"seq", "t", "src_seq", "pos", "flags"} <= set(obj) <= _OUTPUT_KEYS):
+        raise _UnfitError("not a map of seq, t, src_seq, pos, flags (and rx)")
+    for k in ("seq", "src_seq", "rx"):
+        if k in obj and (isinstance(obj[k], bool) or not isinstance(obj[k], int)):
             raise _UnfitError(f"{k} is not an integer")
+    if obj.get("rx", 0) < 0:
+        raise _UnfitError("rx is negative")
     pos = _numbers(obj["pos"], "pos", axes_only=True)
     if set(pos) != set(AXES):
         raise _UnfitError("pos does not carry the 8 axes")
     flags = obj["flags"]
     if not isinstance(flags, list) or not all(isinstance(f, str) for f in flags):
         raise _UnfitError("flags is not a list of strings")
-    return {"seq": obj["seq"], "t": _number(obj["t"], "t"), "src_seq": obj["src_seq"],
-            "pos": pos, "flags": flags}
+    out = {"seq": obj["seq"], "t": _number(obj["t"], "t"), "src_seq": obj["src_seq"],
+           "pos": pos, "flags": flags}
+    if "rx" in obj:
+        out["rx"] = obj["rx"]
+    return out
 
 
 def _feedback(obj: Any) -> dict[str, Any]:
