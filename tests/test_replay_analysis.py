@@ -140,6 +140,21 @@ def test_delay_off_reads_the_platform_lag_on_a_host_that_misses_deadlines() -> N
     assert loaded.delay_on_ms == pytest.approx(loaded.delay_off_ms, abs=0.1)
 
 
+def test_the_simulated_delays_count_the_input_s_reconstruction_as_the_recorded_ones_do() -> None:
+    """The replayed tick's reference lies behind the input by what its reconstruction adds (the
+    playback lag, here 1.7 ms, and 2.5 ms in a stretch of a late sender's): the simulated
+    delays, measured behind that reference, add the window's median of it, as the recorded
+    delays (behind the recorded input) hold it."""
+    session, plan, res = session_of([])
+    bare = rails_y(session, plan, res)
+    res.lag_s = np.full(plan.rows, 0.0017)
+    res.lag_s[:plan.rows // 4] = 0.0025  # a quarter of the run: not the median
+    res.lag_s[:10] = np.nan  # before the playback starts
+    lagged = rails_y(session, plan, res)
+    assert lagged.delay_off_ms == pytest.approx(bare.delay_off_ms + 1.7, abs=1e-6)
+    assert lagged.delay_on_ms == pytest.approx(bare.delay_on_ms + 1.7, abs=1e-6)
+
+
 def test_the_model_is_judged_against_the_recorded_platform() -> None:
     """A platform faster than the config's model (Tp1 150 ms against 185.8 ms): the report
     reads the difference of their phase delays at the motion's frequency, which the

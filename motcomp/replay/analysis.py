@@ -11,8 +11,11 @@ above :data:`MIN_MOTION`) and the compensation state does not change, at most
   and by the reference through the limiter alone (``off``: no compensation,
   :func:`motcomp.core.saturation.limit_axis`, the compensator's own limiter), behind the tick's
   reference plus the delay of the axis' band limit before it (``input.band_hz``: a pure delay
-  in the driver's band), so that both figures are behind the motion-cueing input as the
-  recorded ones are (the playback's own lag, about one input period, is not added).  Both
+  in the driver's band) and what the replayed tick's input reconstruction added (its playback
+  lag and moving average, beyond the smallest transit: the median of
+  :attr:`EngineResult.lag_s` over the window), so that both figures are behind the
+  motion-cueing input as the recorded ones are (the smallest transit, a fraction of a
+  millisecond on one host, is not added: the sender's clock is not the loop's).  Both
   commands reach the model as the platform gets them: held through the deadlines the service
   missed (nothing is sent at a catch-up step).  The reference they are measured behind is the
   tick's, taken between two ticks sent across a stall on the line joining them (the motion
@@ -233,6 +236,16 @@ def _estimate(r: np.ndarray, y: np.ndarray, rate_hz: float, lead: int = 0) -> fl
     return None  # no convergence
 
 
+def _reconstruction_lag(res: EngineResult, rows: np.ndarray) -> float:
+    """The median over ``rows`` of what the replayed tick's input reconstruction added to the
+    delay (s; 0 where the engine did not say)."""
+    if res.lag_s is None:
+        return 0.0
+    lag = res.lag_s[rows]
+    lag = lag[np.isfinite(lag)]
+    return float(np.median(lag)) if lag.size else 0.0
+
+
 def _median_ms(values: list[float]) -> float:
     return float(np.median(values)) * 1e3 if values else math.nan
 
@@ -331,7 +344,7 @@ def analyse(session: Session, plan: TickPlan, res: EngineResult, cfg: ServiceCon
             d_off = _estimate(r, simulate_axis(axes.plants[a], cmd_off, rate)[cut:], rate, cut)
             if d_on is not None and d_off is not None:
                 band = bands[a] if a < len(bands) else None
-                lag = 0.0 if band is None else band.delay_s
+                lag = (0.0 if band is None else band.delay_s) + _reconstruction_lag(res, rows)
                 on_d.append(d_on + lag)
                 off_d.append(d_off + lag)
         rep.delay_on_ms, rep.delay_off_ms, rep.delay_windows = (_median_ms(on_d),

@@ -58,6 +58,9 @@ class EngineResult:
     flags: np.ndarray | None = None
     """The tick's output flags as :data:`~motcomp.record.frames.FLAG_BITS` (0 at catch-up
     rows): comparable with a recording's bit for bit."""
+    lag_s: np.ndarray | None = None
+    """What the input's reconstruction adds to the delay beyond the smallest transit, after the
+    step (s; :attr:`~motcomp.core.shaper.ReferenceShaper.lag_s`)."""
     rejected: dict[str, int] = field(default_factory=dict)
     """Input frames the replay's tick rejected, by reason (those that occurred)."""
     timings: dict[str, float] = field(default_factory=dict)
@@ -125,6 +128,7 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
     mode = np.zeros(n, dtype=np.int8)
     src_seq = np.full(n, -2, dtype=np.int64)
     flags = np.zeros(n, dtype=np.int64)
+    lag = np.full(n, np.nan)
     flag_bit = FLAG_BITS
     data, bounds = inp.data, inp.bounds
     warm_pending = plan.warm
@@ -150,6 +154,7 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
         mode_b: array[int] = array("b")
         src_b: array[int] = array("q")
         flag_b: array[int] = array("q")
+        lag_b: array[float] = array("d")
         for i in range(rows.size):
             hook = hooks.get(b0 + i)
             if hook is not None:
@@ -168,6 +173,7 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
             mode_b.append(mode_index[out.mode])
             src_b.append(out.src_seq)
             flag_b.append(sum(flag_bit.get(f, 0) for f in out.flags))
+            lag_b.append(shaper.lag_s)
         m = rows.size
         u[rows] = np.frombuffer(u_b, dtype=np.float64).reshape(m, len(AXES))
         ref[rows] = np.frombuffer(ref_b, dtype=np.float64).reshape(m, len(AXES))
@@ -175,13 +181,15 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
         mode[rows] = np.frombuffer(mode_b, dtype=np.int8)
         src_seq[rows] = np.frombuffer(src_b, dtype=np.int64)
         flags[rows] = np.frombuffer(flag_b, dtype=np.int64)
+        lag[rows] = np.frombuffer(lag_b, dtype=np.float64)
     bypass = np.zeros((n, len(AXES)), dtype=bool)
     for (r0, mask), (r1, _) in zip(bypass_from, [*bypass_from[1:], (n, None)], strict=True):
         bypass[r0:r1] = mask
     if progress is not None:
         progress(1.0)
     rejected = {k: v for k, v in state.rejected_by_reason.items() if v}
-    return EngineResult(ref, u, limited, mode, src_seq, bypass, emit.copy(), flags, rejected,
+    return EngineResult(ref, u, limited, mode, src_seq, bypass, emit.copy(), flags, lag,
+                        rejected,
                         {"engine_s": time.perf_counter() - t0,
                          "us_per_tick": (time.perf_counter() - t0) / max(ticks.size, 1) * 1e6})
 
