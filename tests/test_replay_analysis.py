@@ -155,6 +155,33 @@ def test_the_simulated_delays_count_the_input_s_reconstruction_as_the_recorded_o
     assert lagged.delay_on_ms == pytest.approx(bare.delay_on_ms + 1.7, abs=1e-6)
 
 
+def test_an_axis_compensated_by_its_prediction_alone_is_compensated() -> None:
+    """An axis whose PID is bypassed while its prediction acts (a delay-dominated one: the
+    hexapod's in the example config) is compensated, in the replay and in the recording; off
+    is the PID bypassed and the prediction off (``nopredict`` or ``fallback``) -- or the PID
+    bypassed alone on an axis the config does not predict."""
+    from motcomp.record.frames import FLAG_BITS, compensation_off
+
+    bypass, nopredict, fallback = (FLAG_BITS[f"{k}:rails_y"]
+                                   for k in ("bypass", "nopredict", "fallback"))
+    flags = np.array([0, bypass, bypass | nopredict, bypass | fallback, nopredict])
+    assert compensation_off(flags, "rails_y", True).tolist() == [False, False, True, True, False]
+    assert compensation_off(flags, "rails_y", False).tolist() == [False, True, True, True, False]
+    assert compensation_off(flags, "rails_x", True).tolist() == [False] * 5
+    session, plan, res = session_of([])
+    # rails_y's PID bypassed throughout (the engine's mask says so), its prediction acting
+    res.bypass[:, RAILS_Y] = True
+    res.flags = np.full(plan.rows, bypass, np.int64)
+    assert session.outputs is not None
+    session.outputs.flags[:] = bypass
+    predicted = rails_y(session, plan, res)
+    assert predicted.compensated and math.isfinite(predicted.delay_on_ms)
+    res.flags[:] = bypass | nopredict
+    session.outputs.flags[:] = bypass | nopredict
+    off = rails_y(session, plan, res)
+    assert not off.compensated
+
+
 def test_the_model_is_judged_against_the_recorded_platform() -> None:
     """A platform faster than the config's model (Tp1 150 ms against 185.8 ms): the report
     reads the difference of their phase delays at the motion's frequency, which the

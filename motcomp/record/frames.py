@@ -435,6 +435,17 @@ FLAG_BITS: dict[str, int] = {
 MODE_BITS = FLAG_BITS["stale"] | FLAG_BITS["rejoin"] | FLAG_BITS["parking"]
 
 
+def compensation_off(flags: np.ndarray, axis: str, predicts: bool) -> np.ndarray:
+    """Per output (its :data:`FLAG_BITS`): whether ``axis`` went uncompensated -- its PID
+    bypassed and, on an axis whose config predicts it (``predicts``), its prediction off too
+    (``nopredict`` or ``fallback``): the reference reached the limiter as it came.  (A
+    delay-dominated axis runs with its PID bypassed and its prediction on: compensated.)"""
+    off = (flags & FLAG_BITS[f"bypass:{axis}"]) != 0
+    if predicts:
+        off &= (flags & (FLAG_BITS[f"nopredict:{axis}"] | FLAG_BITS[f"fallback:{axis}"])) != 0
+    return np.asarray(off)
+
+
 class _FramesBase(Extractor):
     fields: tuple[str, ...] = ()
     maps: tuple[str, ...] = ()

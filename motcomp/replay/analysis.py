@@ -7,13 +7,13 @@ above :data:`MIN_MOTION`) and the compensation state does not change, at most
 :data:`MAX_WINDOWS` of them spread over the session; the median over windows is reported.
 
 * *simulated*: the config's platform model (``plants``, the full models, not the compensator's
-  P1D) driven by the replayed commands (``on``, windows where the replay compensated the axis)
-  and by the reference through the limiter alone (``off``: no compensation,
-  :func:`motcomp.core.saturation.limit_axis`, the compensator's own limiter), behind the tick's
-  reference plus the delay of the axis' band limit before it (``input.band_hz``: a pure delay
-  in the driver's band) and what the replayed tick's input reconstruction added (its playback
-  lag and moving average, beyond the smallest transit: the median of
-  :attr:`EngineResult.lag_s` over the window), so that both figures are behind the
+  P1D) driven by the replayed commands (``on``, windows where the replay compensated the axis,
+  by its PID or its prediction) and by the reference through the limiter alone (``off``: no
+  compensation, :func:`motcomp.core.saturation.limit_axis`, the compensator's own limiter),
+  behind the tick's reference plus the delay of the axis' band limit before it
+  (``input.band_hz``: a pure delay in the driver's band) and what the replayed tick's input
+  reconstruction added (its playback lag and moving average, beyond the smallest transit: the
+  median of :attr:`EngineResult.lag_s` over the window), so that both figures are behind the
   motion-cueing input as the recorded ones are (the smallest transit, a fraction of a
   millisecond on one host, is not added: the sender's clock is not the loop's).  Both
   commands reach the model as the platform gets them: held through the deadlines the service
@@ -25,7 +25,8 @@ above :data:`MIN_MOTION`) and the compensation state does not change, at most
   recorded while the loop missed 16 % of its deadlines read 494 ms for the rails' 196 ms);
 * *recorded*: the recorded feedback position behind the recorded input (both on the
   recorder's receive times), on windows where the service had compensation on, resp. off
-  (from the bypass flags of the recorded outputs).
+  (from the recorded outputs' flags: off is the PID bypassed and, on an axis the config
+  predicts, its prediction off too -- :func:`~motcomp.record.frames.compensation_off`).
 
 * *the platform against the model*: the recorded feedback and the config's model, both driven
   by the recorded commands (frame clocks: the outputs' and the feedback's own ``t``), on windows
@@ -53,7 +54,7 @@ from motcomp.core.axes import AXES
 from motcomp.core.saturation import at_rest, axis_constants, limit_axis
 from motcomp.errors import ConfigError, DataError
 from motcomp.jsonsafe import finite
-from motcomp.record.frames import FLAG_BITS
+from motcomp.record.frames import FLAG_BITS, compensation_off
 from motcomp.record.session import Session
 from motcomp.replay.engine import EngineResult
 from motcomp.replay.plan import TickPlan
@@ -318,12 +319,14 @@ def analyse(session: Session, plan: TickPlan, res: EngineResult, cfg: ServiceCon
     for a, name in enumerate(AXES):
         if not axes.driven[a]:
             continue
-        rep = AxisReport(name, compensated=bool((~res.bypass[:, a]).any()))
+        off = (res.bypass[:, a] if res.flags is None
+               else compensation_off(res.flags, name, predicts(axes, a)))
+        rep = AxisReport(name, compensated=bool((~off[emit]).any()))
         rep.saturated_samples = int(np.count_nonzero(sat_e[:, a]))
         rep.saturation_events = _events(sat_e[:, a])
         ref_sent = res.ref[sent, a]
         ref = np.interp(grid_ns, plan.now_ns[sent], ref_sent) if sent.size else res.ref[gi, a]
-        mask = ~res.bypass[gi, a] if rep.compensated else np.ones(gi.size, bool)
+        mask = ~off[gi] if rep.compensated else np.ones(gi.size, bool)
         on_d, off_d = [], []
         for w in _windows(mask, rate):
             if np.ptp(ref[w]) < MIN_MOTION:
@@ -360,7 +363,7 @@ def analyse(session: Session, plan: TickPlan, res: EngineResult, cfg: ServiceCon
                 rep.max_diff = flush_subnormal(float(np.max(np.abs(d))))
                 rep.rms_diff = flush_subnormal(float(np.sqrt(np.mean(d * d))))
         reports.append(rep)
-    _recorded_delays(session, reports, rate)
+    _recorded_delays(session, reports, axes, rate)
     _model_against_platform(session, reports, axes, rate)
     n_cmp = 0 if out_idx is None else int(out_idx.size)
     return ReplayReport(label, reports, int(np.count_nonzero(emit)), plan.rows,
@@ -437,8 +440,17 @@ def _model_against_platform(session: Session, reports: list[AxisReport], axes: R
         rep.model_fit = float(np.median(fits))
 
 
-def _recorded_delays(session: Session, reports: list[AxisReport], rate: float) -> None:
-    """Input -> feedback delays on the recorded timestamps, split by the recorded bypass.
+def predicts(axes: ResolvedAxes, a: int) -> bool:
+    """Whether the config predicts axis ``a`` (a prefilter, and ``predict`` on)."""
+    return (a < len(axes.prediction) and axes.prediction[a] is not None
+            and a < len(axes.predict) and bool(axes.predict[a]))
+
+
+def _recorded_delays(session: Session, reports: list[AxisReport], axes: ResolvedAxes,
+                     rate: float) -> None:
+    """Input -> feedback delays on the recorded timestamps, split by whether the recorded
+    outputs had the axis compensated (:func:`~motcomp.record.frames.compensation_off`, with the
+    replayed config's prediction settings).
 
     Both streams are taken on the recorder's clock (receive times): the sender's and the
     platform's own clocks need not agree, nor run at the same rate (a sender clock 20 ppm fast
@@ -464,7 +476,7 @@ def _recorded_delays(session: Session, reports: list[AxisReport], rate: float) -
         (t_ref <= t_in[-1])
     for rep in reports:
         a = AXES.index(rep.axis)
-        bypassed = (oflags & FLAG_BITS[f"bypass:{rep.axis}"]) != 0
+        bypassed = compensation_off(oflags, rep.axis, predicts(axes, a))
         for mask, attr in ((~bypassed & usable, "recorded_on_ms"),
                            (bypassed & usable, "recorded_off_ms")):
             vals = []
