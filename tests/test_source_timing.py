@@ -348,3 +348,30 @@ def test_motion_benchmark_runs_one_case(tmp_path: Path) -> None:
     assert ideal["rate_hz"] == 60 and -50 < ideal["delay_ms"] < 250
     text = (tmp_path / "motion.md").read_text()
     assert "| 60 Hz, jitter 300 us | no |" in text and "| ideal, 60 Hz | - |" in text
+
+
+def test_a_motion_file_s_columns_are_axes_or_said_to_be_ignored(tmp_path: Path) -> None:
+    """A CSV column that reads like an axis but is none (a typo) is refused, naming the column
+    and the axis it resembles: played without it, that axis would not move.  Other columns
+    (the identification files' ``acc``) are not setpoints: the trajectory's description names
+    the axes played and the columns ignored.  A file with no axis column says what they are
+    called."""
+    from motcomp.errors import DataError
+    from motcomp.sim.source import load_trajectory
+
+    def csv(name: str, header: str) -> Path:
+        path = tmp_path / name
+        path.write_text(header + "\n" + "\n".join(
+            ",".join([f"{k / 100:g}"] + ["0.01"] * header.count(",")) for k in range(5)) + "\n")
+        return path
+
+    with pytest.raises(DataError, match=r"column 3 'hex_zz' is not an axis \(did you mean "
+                                        r"'hex_z'\?\)"):
+        load_trajectory(csv("typo.csv", "t,rails_y,hex_zz"), 1000.0)
+    with pytest.raises(DataError, match=r"no setpoint column among \['speed'\].*rails_x"):
+        load_trajectory(csv("none.csv", "t,speed"), 1000.0)
+    traj = load_trajectory(csv("ident.csv", "t,cmd,acc"), 1000.0, "rails_y")
+    assert list(traj.pos) == ["rails_y"]
+    assert traj.description.endswith("(rails_y; columns ignored: acc)")
+    assert load_trajectory(csv("two.csv", "t,rails_x,hex_z"), 1000.0).description.endswith(
+        "(rails_x, hex_z)")

@@ -27,6 +27,7 @@ more than a period ago is dropped.
 from __future__ import annotations
 
 import csv
+import difflib
 import math
 import secrets
 import signal
@@ -239,6 +240,7 @@ def load_trajectory(path: Path, rate_hz: float, axis: str | None = None) -> Traj
             raise DataError(f"{path}: cannot read msgpack stream: {exc}") from None
         t = np.array(times)
         cols = {a: np.array(v) for a, v in rows.items()}
+        description = f"{path} ({', '.join(cols)})"
     else:
         try:
             with path.open(newline="") as fh:
@@ -252,14 +254,25 @@ def load_trajectory(path: Path, rate_hz: float, axis: str | None = None) -> Traj
         arr = np.array(data)
         t = arr[:, 0]
         cols = {}
+        ignored = []
         for j, name in enumerate(header[1:], start=1):
             if name == "cmd":
                 if axis is None:
                     raise DataError(f"{path}: column 'cmd' needs --axis to name its axis")
                 name = axis
             elif name not in AXIS_INDEX:
-                continue  # other columns (acc, ...) are not setpoints
+                near = difflib.get_close_matches(name, AXES, n=1, cutoff=0.75)
+                if near:  # a misspelt axis would go unplayed
+                    raise DataError(f"{path}: column {j + 1} {name!r} is not an axis (did you "
+                                    f"mean {near[0]!r}?); axes: {', '.join(AXES)}")
+                ignored.append(name)  # other columns (acc, ...) are not setpoints
+                continue
             cols[name] = arr[:, j]
+        if not cols:
+            raise DataError(f"{path}: no setpoint column among {header[1:]}: name them after "
+                            f"the axes ({', '.join(AXES)}), or 'cmd' with --axis")
+        description = (f"{path} ({', '.join(cols)}"
+                       + (f"; columns ignored: {', '.join(ignored)})" if ignored else ")"))
     for a in cols:
         if a not in AXIS_INDEX:
             raise DataError(f"{path}: unknown axis {a!r}")
@@ -269,7 +282,8 @@ def load_trajectory(path: Path, rate_hz: float, axis: str | None = None) -> Traj
         i = int(np.argmax(np.diff(t) <= 0)) + 1
         raise DataError(f"{path}: time does not increase at sample {i} (t={t[i]!r})")
     grid = t[0] + np.arange(int((t[-1] - t[0]) * rate_hz) + 1) / rate_hz
-    return Trajectory(rate_hz, {a: np.interp(grid, t, v) for a, v in cols.items()}, str(path))
+    return Trajectory(rate_hz, {a: np.interp(grid, t, v) for a, v in cols.items()},
+                      description)
 
 
 @dataclass(frozen=True)
