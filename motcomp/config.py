@@ -388,7 +388,7 @@ class ServiceConfig(BaseModel):
     def _axes(self) -> ServiceConfig:
         for name in self.axes:
             if name not in AXES:
-                raise ValueError(f"unknown axis {name!r}; axes: {', '.join(AXES)}")
+                raise ValueError(f"axes.{name}: unknown axis; axes: {', '.join(AXES)}")
         for name in self.envelope:
             if name not in AXES:
                 raise ValueError(f"envelope.{name}: unknown axis; axes: {', '.join(AXES)}")
@@ -612,12 +612,6 @@ def _inside_envelope(cfg: ServiceConfig, name: str, row: tuple[float, float, flo
                               f"{bound!r} (the hardware envelope, a restart key)")
 
 
-def _format_error(source: str, exc: ValidationError) -> str:
-    loc, msg = validation_message(exc, ServiceConfig)
-    more = f" [and {exc.error_count() - 1} more]" if exc.error_count() > 1 else ""
-    return f"{source}: {loc or '<top>'}: {msg}{more}"
-
-
 def validation_message(exc: ValidationError, root: type[BaseModel]) -> tuple[str, str]:
     """``(dotted key, "<reason> (got <value>)")`` of the first error of validating ``root``;
     an unknown key is named with the keys its table takes that come close ("did you mean")."""
@@ -656,22 +650,58 @@ def _did_you_mean(loc: tuple[Any, ...], root: type[BaseModel]) -> str:
     return f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
 
 
-def parse_config(data: dict[str, Any], source: str = "<config>") -> ServiceConfig:
-    """Validate a parsed TOML document.
+@dataclass(frozen=True)
+class _Origin:
+    """Which file of a config and its includes holds each value (``read``'s provenance)."""
+
+    top: Path
+    files: dict[KeyPath, Path]
+
+    def source(self, key: str, source: str) -> str:
+        """``source``, or the included file that holds ``key`` (a dotted key path), naming
+        ``source`` as its includer."""
+        parts = tuple(key.split("."))
+        f = next((self.files[parts[:k]] for k in range(len(parts), 0, -1)
+                  if parts[:k] in self.files), None)
+        if f is None:  # a table: the file of its values, if one holds them all
+            below = {v for k, v in self.files.items() if k[:len(parts)] == parts}
+            f = below.pop() if len(below) == 1 else None
+        if f is None or f == self.top:
+            return source
+        return f"{_shown(f, self.top)} (included by {source})"
+
+
+_KEY_PREFIX = re.compile(r"([A-Za-z_][\w-]*(?:\.[\w-]+)*): ")
+"""A message that begins with the dotted key it is about (the config's own checks)."""
+
+
+def parse_config(data: dict[str, Any], source: str = "<config>",
+                 origin: _Origin | None = None) -> ServiceConfig:
+    """Validate a parsed TOML document (``origin``: which file holds each value, for the
+    message).
 
     Raises
     ------
     ConfigError
-        ``"<source>: <key.path>: <reason> (got <value>)"``.
+        ``"<file>: <key.path>: <reason> (got <value>)"``: the file of ``origin`` that holds the
+        key, else ``source``.
     """
+    def where(key: str) -> str:
+        return source if origin is None else origin.source(key, source)
+
     try:
         cfg = ServiceConfig.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(_format_error(source, exc)) from None
+        loc, msg = validation_message(exc, ServiceConfig)
+        key = loc or (m.group(1) if (m := _KEY_PREFIX.match(msg)) else "")
+        more = f" [and {exc.error_count() - 1} more]" if exc.error_count() > 1 else ""
+        at = f"{loc}: " if loc else "" if key else "<top>: "  # else the message names it
+        raise ConfigError(f"{where(key)}: {at}{msg}{more}") from None
     try:
         resolve_axes(cfg)
     except ConfigError as exc:
-        raise ConfigError(f"{source}: {exc}") from None
+        m = _KEY_PREFIX.match(str(exc))
+        raise ConfigError(f"{where(m.group(1) if m else '')}: {exc}") from None
     return cfg
 
 
@@ -831,7 +861,8 @@ class _Reader:
         try:
             text = p.read_text()
         except OSError as exc:
-            raise ConfigError(f"{p}: cannot read: {exc.strerror}") from None
+            by = f" (included by {seen[-1]})" if seen else ""
+            raise ConfigError(f"{p}: cannot read: {exc.strerror}{by}") from None
         try:
             data = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
@@ -1066,8 +1097,11 @@ def check_envelope(path: str | Path, cfg: ServiceConfig | None = None,
 
 
 def load_config(path: str | Path) -> ServiceConfig:
-    """Read (with includes) and validate a TOML config file (see module docstring)."""
-    return parse_config(read_toml(path), str(path))
+    """Read (with includes) and validate a TOML config file (see module docstring); an error
+    in a value names the file that holds it."""
+    top = Path(path).resolve()
+    data, origin = _Reader().read(top, ())
+    return parse_config(data, str(path), _Origin(top, origin))
 
 
 def config_hash(cfg: ServiceConfig) -> str:

@@ -23,6 +23,7 @@ from motcomp.config import (
 )
 from motcomp.core.models import parse_model
 from motcomp.core.pid import PIDGains
+from motcomp.errors import ConfigError
 from motcomp.resources import config_file
 from tests.conftest import motcomp_cmd, subprocess_env
 
@@ -321,3 +322,29 @@ def test_config_check_suggests_the_key_meant(tmp_path: Path, text: str, msg: str
     site.write_text(f'include = ["{EXAMPLE}"]\n{text}')
     p = run("config", "check", str(site))
     assert p.returncode == 2 and msg in p.stderr, p.stderr
+
+
+@pytest.mark.parametrize(("text", "msg"), [
+    ("[axes.rails_y]\nvel_max_m_ss = 2.0\n",
+     "axes.rails_y.vel_max_m_ss: unknown key 'vel_max_m_ss'; did you mean 'vel_max_m_s'"),
+    ("[axes.rails_y]\nvel_max_m_s = 20.0\n", "axes.rails_y.vel_max_m_s: lies outside [0, 10]"),
+    ("[axes.rails_z]\nbypass = true\n", "axes.rails_z: unknown axis; axes: rails_x"),
+])
+def test_an_error_names_the_included_file_that_holds_the_value(tmp_path: Path, text: str,
+                                                                msg: str) -> None:
+    """A site config of several fragments: the error names the fragment with the bad value and
+    the file that includes it, not only the top file; a value of the top file names it."""
+    (tmp_path / "frag").mkdir()
+    (tmp_path / "frag" / "bad.toml").write_text(text)
+    site = tmp_path / "site.toml"
+    site.write_text(f'include = ["{EXAMPLE}", "frag/bad.toml"]\n')
+    with pytest.raises(ConfigError) as err:
+        load_config(site)
+    assert str(err.value).startswith(f"frag/bad.toml (included by {site}): {msg}"), err.value
+    site.write_text(f'include = ["{EXAMPLE}"]\n{text}')  # the same value in the top file
+    with pytest.raises(ConfigError) as err:
+        load_config(site)
+    assert str(err.value).startswith(f"{site}: {msg}"), err.value
+    site.write_text(f'include = ["{EXAMPLE}", "frag/none.toml"]\n')
+    with pytest.raises(ConfigError, match=r"none\.toml: cannot read: .* \(included by .*site"):
+        load_config(site)
