@@ -75,7 +75,7 @@ def test_the_documented_deployment_passes(tmp_path: Path,
                                           capsys: pytest.CaptureFixture[str]) -> None:
     code, out, err = check(acl_deployment(tmp_path), capsys)
     assert code == 0, err
-    assert f"zenoh: {tmp_path / 'zenoh-acl.json5'} opens" in out
+    assert f"zenoh: a session opens with {tmp_path / 'zenoh-acl.json5'} (listening on" in out
 
 
 def test_zenoh_config_itself(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

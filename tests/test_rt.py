@@ -18,7 +18,21 @@ from motcomp.runtime.rt import CPU_LATENCY_DEVICE, hold_cpu_latency, pin_to_cpu,
 
 def test_off_by_default() -> None:
     assert "normal" in set_realtime(0)
-    assert pin_to_cpu(-1) == "not pinned"
+    assert pin_to_cpu(-1).startswith("not pinned")
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2 or not hasattr(os, "sched_setaffinity"),
+                    reason="needs two CPUs and Linux")
+def test_not_pinned_says_where_a_restricted_process_may_run() -> None:
+    """Unpinned in a process that a taskset or a cpuset keeps on one CPU: the report says so
+    (an operator reading "not pinned" would expect every CPU)."""
+    cpu = max(os.sched_getaffinity(0))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    out = subprocess.run(
+        [sys.executable, "-c", "from motcomp.runtime.rt import pin_to_cpu; print(pin_to_cpu(-1))"],
+        capture_output=True, text=True, env=env, check=True, timeout=60,
+        preexec_fn=lambda: os.sched_setaffinity(0, {cpu})).stdout.strip()
+    assert out == f"not pinned (the process may run on CPU {cpu})"
 
 
 def test_reports_match_the_kernel_state() -> None:

@@ -386,6 +386,7 @@ def test_mode_switches_are_logged_with_their_reason(caplog: pytest.LogCaptureFix
                 seen.update(svc.state, svc.params)
 
     with caplog.at_level("INFO", logger="motcomp.service"):
+        run(100, False)  # no sender yet: said, not warned
         run(100, True)   # start-up blend
         run(400, True)   # live
         run(300, False)  # stale: hold, ramp
@@ -394,6 +395,8 @@ def test_mode_switches_are_logged_with_their_reason(caplog: pytest.LogCaptureFix
         park(svc.state, svc.params, k * MS)
         run(40, False)
     text = "\n".join(r.getMessage() for r in caplog.records)
+    assert [r.levelname for r in caplog.records if "waiting for input" in r.getMessage()] == [
+        "INFO"]
     assert "input started: blending to the live input over at least 0.20 s" in text
     assert "input stale: no valid frame for 0.050 s" in text and "holding 0.10 s" in text
     assert "input resumed: blending to the live input over at least 0.20 s" in text

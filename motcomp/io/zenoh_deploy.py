@@ -197,7 +197,8 @@ def probe(ep: ZenohEndpoints) -> str:
     except TransportError as exc:
         raise ConfigError(f"zenoh refuses the deployment ({ep.config_file or 'no config file'}"
                           f", listening on {', '.join(protocols)}): {exc}") from None
-    return (f"zenoh: {ep.config_file or 'default settings'} opens (listening on "
+    return (f"zenoh: a session opens with "
+            f"{ep.config_file or 'zenoh' + chr(39) + 's default settings'} (listening on "
             f"{', '.join(protocols)}; credentials, access control and TLS material read by "
             f"zenoh)")
 

@@ -113,6 +113,9 @@ def set_realtime(priority: int) -> str:
 def pin_to_cpu(cpu: int) -> str:
     """Pin the calling thread to ``cpu`` (-1: no pinning); returns what happened."""
     if cpu < 0:
+        allowed = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+        if allowed and len(allowed) < (os.cpu_count() or 0):  # a taskset, a cgroup's cpuset
+            return f"not pinned (the process may run on CPU {', '.join(map(str, allowed))})"
         return "not pinned"
     if not hasattr(os, "sched_setaffinity"):
         return "CPU pinning not available on this OS"

@@ -125,6 +125,8 @@ class ModeLog:
     def __init__(self, state: TickState) -> None:
         self.mode = state.mode
         self.episodes = state.shaper.stale_episodes
+        self.waiting = False
+        """No input frame yet, since the start-up went stale."""
 
     def update(self, state: TickState, p: TickParams) -> None:
         mode, episodes = state.mode, state.shaper.stale_episodes
@@ -133,19 +135,25 @@ class ModeLog:
         if episodes > self.episodes and mode != "stale":
             log.warning("input was stale %d time(s) briefly (no valid frame for %.3f s)",
                         episodes - self.episodes, p.shaper.stale_after_s)
-        if mode == "stale":
+        if mode == "stale" and state.received == 0:  # nothing yet: a sender not started
+            log.info("waiting for input: no frame received yet, holding the start position "
+                     "(the input goes stale after %.3f s without a valid frame once it runs)",
+                     p.shaper.stale_after_s)
+        elif mode == "stale":
             log.warning("input stale: no valid frame for %.3f s (%d received, %d rejected, "
                         "last rejection: %s); holding %.2f s, then ramping to neutral",
                         p.shaper.stale_after_s, state.received, state.rejected,
                         state.last_reject or "none", p.shaper.hold_s)
         elif mode == "rejoin":
             log.info("input %s: blending to the live input over at least %.2f s",
-                     "started" if self.mode == "startup" else "resumed", state.shaper.blend_s)
+                     "started" if self.mode == "startup" or self.waiting else "resumed",
+                     state.shaper.blend_s)
         elif mode == "parking":
             log.info("stop requested: parking (ramping every axis to neutral)")
         elif mode == "running" and self.mode != "startup":
             log.info("running on live input")
         self.mode, self.episodes = mode, episodes
+        self.waiting = mode == "stale" and state.received == 0
 
 
 FEEDBACK_RING = 256
@@ -655,7 +663,7 @@ class Service:
         attempt: dict[str, Any] = {"t": time.time(), "kind": "profile", "path": None}
         return self._attempt(
             attempt, lambda: self.preparer.prepare_profile(self.cfg, self.axes, name),
-            f"switch to profile {name}")
+            f"switch to profile {name}" if name else "switch to no profile")
 
     def _attempt(self, attempt: dict[str, Any], prepare: Callable[[], Prepared], what: str
                  ) -> dict[str, Any]:
@@ -667,9 +675,10 @@ class Service:
             attempt.update(ok=True, version=self.config_version, profile=new.cfg.profile)
             for w in new.axes.warnings:
                 log.warning("%s", w)
-            log.info("%s ok: %s (hash %s, version %d, profile %s)", what,
-                     attempt.get("path") or "-", new.digest, self.config_version,
-                     new.cfg.profile)
+            log.info("%s ok%s (hash %s, version %d, %s)", what,
+                     f": {attempt['path']}" if attempt.get("path") else "", new.digest,
+                     self.config_version,
+                     f"profile {new.cfg.profile}" if new.cfg.profile else "no profile")
         except MotcompError as exc:
             attempt.update(ok=False, error=str(exc))
             log.error("%s rejected: %s (running config %s kept)", what, exc, self.config_id)
