@@ -539,7 +539,8 @@ def report(args: argparse.Namespace, rows: list[dict[str, Any]],
             f"{r['transport_cpu']:.1f} | {r['rss']:.0f} | {r['steal']:.1f} |")
     own = next(r for r in med if not r["sync"])
     cold = tick["paced"][0] / tick["tight"][0]
-    cold_text = " already: a thread that sleeps between ticks resumes on cold caches"
+    cold_text = (" already: the tick after a millisecond's gap costs more, whether its thread "
+                 "slept or spun (`bench_core.py --gaps`, docs/BENCHMARKS.md)")
     lines += [
         "",
         f"Targets (2-core machine, no real-time privileges): compute p99 <= 50 us, lateness "
