@@ -540,3 +540,24 @@ def test_a_status_the_service_could_not_build_says_so() -> None:
                           "error": "status failed: RuntimeError('dictionary changed size')"})
     assert text.splitlines()[1] == ("ERROR       status failed: RuntimeError('dictionary "
                                     "changed size') (the service's status is incomplete)")
+
+
+def test_info_names_every_config_the_service_ran(tmp_path: Path) -> None:
+    """A recording through which the service was reloaded to other configs: info names each,
+    in the order they came (the replay's note the same)."""
+    from motcomp.cli.info import format_info, summarise
+    from motcomp.record.session import read_session
+
+    path = tmp_path / "s.mcap"
+    cfg = load_config(config_file("motcomp.toml"))
+    synthesize(path, cfg, SynthOptions(duration_s=2.0))
+    s = read_session(path)
+    first = config_hash(cfg)
+    assert s.config_hashes() == [first]
+    s.status += [(s.status[-1][0] + k, {"config": {"hash": h}})
+                 for k, h in enumerate(["b2", first, "c3", "b2"], start=1)]
+    s.status.append((s.status[-1][0] + 1, {"config": "not a table"}))
+    assert s.config_hashes() == [first, "b2", "c3"]
+    info = summarise(path)
+    info["config_hashes"] = s.config_hashes()
+    assert f"config hash {first}, then b2, c3 (reloaded during the recording)" in format_info(info)

@@ -134,7 +134,8 @@ def summarise(path: Path, gap_s: float | None = None) -> dict[str, Any]:
         "file": s.name,
         "duration_s": duration,
         "messages": s.messages,
-        "config_hash": meta.get("config_hash") or _status_hash(s.status),
+        "config_hash": meta.get("config_hash") or next(iter(s.config_hashes()), None),
+        "config_hashes": s.config_hashes(),
         "recorded_config": s.config_json is not None,
         "metadata": meta,
         "platform": _last_platform(s.status),
@@ -185,14 +186,6 @@ def _mismatch(status: list[tuple[int, dict[str, Any]]], t0: int) -> dict[str, An
                 "last_estimate": last.get(a)} for a in sorted(set(on) | set(last))}
 
 
-def _status_hash(status: list[tuple[int, dict[str, Any]]]) -> str | None:
-    for _, st in status:
-        cfg = st.get("config")
-        if isinstance(cfg, dict) and isinstance(cfg.get("hash"), str):
-            return str(cfg["hash"])
-    return None
-
-
 def _span(run: list[float | None]) -> str:
     start, end = run
     assert start is not None
@@ -206,7 +199,9 @@ def format_info(info: dict[str, Any]) -> str:
     if meta.get("version"):
         head += f" (motcomp {meta['version']}"
         head += f", started {meta['started']})" if meta.get("started") else ")"
+    later = [h for h in info.get("config_hashes", []) if h != info["config_hash"]]
     lines = [head, f"config hash {info['config_hash'] or 'unknown'}"
+             + (f", then {', '.join(later)} (reloaded during the recording)" if later else "")
              + ("" if info["recorded_config"] else
                 " (no config recorded" + (f": {meta['config_missing']})"
                                           if meta.get("config_missing") else ")"))]

@@ -207,6 +207,17 @@ class Session:
         return to, cmd, flags, lost_from
 
 
+    def config_hashes(self) -> list[str]:
+        """The hashes of the configs the service ran during the recording, as its recorded
+        statuses name them, in the order they first appear (more than one: it was reloaded to
+        another config)."""
+        seen: dict[str, None] = {}
+        for _, st in self.status:
+            cfg = st.get("config")
+            if isinstance(cfg, dict) and isinstance(cfg.get("hash"), str):
+                seen.setdefault(cfg["hash"])
+        return list(seen)
+
     def command_in_force(self, axis: str, times: np.ndarray, clock: str = "frame"
                          ) -> tuple[np.ndarray, np.ndarray]:
         """``(cmd, known)``: the output position of ``axis`` in force at each of ``times`` (s

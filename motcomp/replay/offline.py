@@ -96,12 +96,10 @@ def plan_for(session: Session, cfg: ServiceConfig, axes: ResolvedAxes, run: int 
                           "ticks rebuilt from the input arrivals")
     if bypass == "config":
         plan.bypass0, plan.bypass_events = None, []
-    hashes = {st["config"].get("hash") for _, st in session.status
-              if isinstance(st.get("config"), dict)} - {None}
+    hashes = session.config_hashes()
     if len(hashes) > 1:
         plan.notes.append(f"the service's config changed during the recording (hashes "
-                          f"{', '.join(sorted(map(str, hashes)))}): replayed with one config "
-                          "throughout")
+                          f"{', '.join(hashes)}): replayed with one config throughout")
     return plan
 
 
