@@ -67,12 +67,14 @@ def stalls(seed: int, share: float) -> list[tuple[int, int]]:
 
 
 def session_of(missed: list[tuple[int, int]], u_offset: float = 0.0,
-               platform: P1D | None = None) -> tuple[Session, TickPlan, EngineResult]:
+               platform: P1D | None = None, age_s: float = 0.0002
+               ) -> tuple[Session, TickPlan, EngineResult]:
     """A compensated rails_y session whose reference is :func:`motion` and whose command is
     the reference itself (a feasible target passes the limiter exactly); the deadlines in
     ``missed`` sent nothing (catch-up rows); the recorded outputs are the command plus
     ``u_offset`` on hex_z; the feedback (without ``platform``: none) is ``platform`` driven
-    by the commands as sent, held between outputs."""
+    by the commands as sent, held between outputs, its cycles ``age_s`` after the service's
+    ticks (each applies the output of the tick before it: the setpoints' age)."""
     n = int(DURATION_S * RATE)
     now_ns = 10**12 + np.arange(n, dtype=np.int64) * PERIOD_NS
     emit = np.ones(n, bool)
@@ -102,7 +104,7 @@ def session_of(missed: list[tuple[int, int]], u_offset: float = 0.0,
         held = pos[np.cumsum(emit) - 1]  # the output in force at each deadline
         y = np.zeros((n, len(AXES)))
         y[:, RAILS_Y] = simulate_axis(platform, held[:, RAILS_Y], RATE)
-        fb_t = WALL0 + np.arange(n) / RATE + 0.0002
+        fb_t = WALL0 + np.arange(n) / RATE + age_s
         fb_ns = np.round(fb_t * 1e9).astype(np.int64) + 300_000
         feedback = FeedbackStream("platform/feedback", fb_ns, fb_ns, t=fb_t, pos=y,
                                   acc=np.full((n, len(AXES)), np.nan), valid=np.ones(n, bool))
@@ -180,6 +182,20 @@ def test_an_axis_compensated_by_its_prediction_alone_is_compensated() -> None:
     session.outputs.flags[:] = bypass | nopredict
     off = rails_y(session, plan, res)
     assert not off.compensated
+
+
+def test_the_stack_s_share_is_the_platform_s_not_the_model_s() -> None:
+    """A platform that is the config's model but applies each setpoint 0.7 ms after its tick
+    (its cycles that much after the service's): the platform's lag behind the commands holds
+    those 0.7 ms, which the compensator does not cancel, so the report's error and its *live,
+    about* say them (sampled on the platform's cycles, the commands reached the model 0.7 ms
+    late too, and the error read 0)."""
+    model = AXES_CFG.plants[RAILS_Y]
+    session, plan, res = session_of([], platform=model, age_s=0.0007)
+    ry = rails_y(session, plan, res)
+    assert ry.model_error_ms == pytest.approx(0.7, abs=0.1)
+    assert ry.platform_lag_ms - ry.model_lag_ms == pytest.approx(0.7, abs=0.1)
+    assert ry.expected_on_ms == pytest.approx(ry.delay_on_ms + 0.7, abs=0.1)
 
 
 def test_the_model_is_judged_against_the_recorded_platform() -> None:

@@ -29,12 +29,16 @@ above :data:`MIN_MOTION`) and the compensation state does not change, at most
   predicts, its prediction off too -- :func:`~motcomp.record.frames.compensation_off`).
 
 * *the platform against the model*: the recorded feedback and the config's model, both driven
-  by the recorded commands (frame clocks: the outputs' and the feedback's own ``t``), on windows
-  where the commands move: the lag of each behind the commands, and the share of the platform's
-  motion the model explains.  Their difference is the model's delay error, which the
-  compensator inherits: live, the ``on`` delay is about ``delay_on + platform - model``.  With
-  no feedback of the axis, or no motion in it, this cannot be judged offline, and the report
-  says so (``model_check``).
+  by the recorded commands (frame clocks: the outputs' and the feedback's own ``t``; the model
+  takes each command at its output's instant, on a grid of them), on windows where the commands
+  move: the lag of each behind the commands, and the share of the platform's motion the model
+  explains.  The platform's lag holds the stack's share (the setpoints' age when the platform
+  applies them), which the compensator does not cancel.  (Sampled on the feedback's grid, the
+  commands reached the model only when the platform applied them: the stack's share cancelled
+  out of the difference, and *live, about* read that much early.)  Their difference is the
+  model's delay error, which the compensator inherits: live, the ``on`` delay is about
+  ``delay_on + platform - model``.  With no feedback of the axis, or no motion in it, this
+  cannot be judged offline, and the report says so (``model_check``).
 
 Saturation is the replayed tick's own verdict (``TickOutput.limited``: the ``sat:<axis>``
 flag), counted in samples and in events (runs of saturated samples).  At catch-up steps nothing
@@ -67,6 +71,9 @@ MIN_WINDOW_S = 3.0
 MAX_WINDOWS = 6
 MIN_MOTION = 1e-3
 """Least peak-to-peak motion (m or rad) of a window used for delays."""
+AFTER_TICK_S = 1e-6
+"""The platform-against-model grid lies this far after the outputs' instants (a tick's ``t``
+read back from its frame may round a hair after the tick's own instant)."""
 SETTLE_S = 5.0
 """After a warm start, the first seconds are left out of the comparison with the recording."""
 
@@ -402,9 +409,16 @@ def _model_against_platform(session: Session, reports: list[AxisReport], axes: R
         # hundred ms); windows in them where the commands are known
         brk = np.flatnonzero(np.diff(t_fb) > FEEDBACK_GAP_S) + 1
         spans = []
+        t_out = np.sort(out.t[out.valid & np.isfinite(out.t)])
         for s0, s1 in zip(np.concatenate([[0], brk]).tolist(),
                           np.concatenate([brk, [t_fb.size]]).tolist(), strict=True):
-            g = _uniform(t_fb[s0], t_fb[s1 - 1], rate)
+            # the grid of the outputs' instants (just after them: each sample takes its own
+            # tick's output), so that the model takes each command when the service sent it,
+            # as the platform's lag behind the commands holds the stack's share
+            k0 = int(np.searchsorted(t_out, t_fb[s0]))
+            if k0 >= t_out.size:
+                continue
+            g = _uniform(float(t_out[k0]) + AFTER_TICK_S, t_fb[s1 - 1], rate)
             if g.size < MIN_WINDOW_S * rate or not known_all[s0:s1].any():
                 continue
             cmd, _ = session.command_in_force(rep.axis, g)
