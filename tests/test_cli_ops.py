@@ -561,3 +561,38 @@ def test_info_names_every_config_the_service_ran(tmp_path: Path) -> None:
     info = summarise(path)
     info["config_hashes"] = s.config_hashes()
     assert f"config hash {first}, then b2, c3 (reloaded during the recording)" in format_info(info)
+
+
+def test_json_output_is_strict_json_whatever_the_status_holds(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A status whose figures are NaN or infinite (a platform that reports no setpoint age, as
+    over CAN) prints as strict JSON with null there; before, ``status --json`` crashed."""
+    import math
+
+    import numpy as np
+
+    from motcomp.cli._common import print_json
+
+    print_json({"platform": {"setpoint_age_ms": math.nan, "ages": [1.0, math.inf]},
+                "n": np.int64(3), "x": np.float64(-math.inf)})
+    assert json.loads(capsys.readouterr().out) == {
+        "platform": {"setpoint_age_ms": None, "ages": [1.0, None]}, "n": 3, "x": None}
+
+
+def test_status_watch_ends_on_sigterm_with_exit_0() -> None:
+    """``motcomp status --watch`` stops on SIGTERM as on Ctrl-C: exit 0."""
+    p = subprocess.Popen(motcomp_cmd("status", "--watch", "0.2", "--timeout", "0.2", "-e",
+                                     loopback(free_tcp_port())),
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env=subprocess_env())
+    try:
+        deadline = time.monotonic() + 30
+        assert p.stdout is not None
+        line = p.stdout.readline()  # a first (unanswered) poll: the watch runs
+        assert line and time.monotonic() < deadline
+        p.send_signal(signal.SIGTERM)
+        assert p.wait(timeout=30) == 0, p.stderr.read() if p.stderr else ""
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()

@@ -106,7 +106,11 @@ def remaining(timeout_s: float, floor_s: float = 0.1) -> float:
 
 
 def print_json(obj: Any) -> None:
-    json.dump(obj, sys.stdout, indent=2, allow_nan=False, default=_json_default)
+    """``obj`` as strict JSON on stdout: NaN and infinities as null (:func:`~motcomp.jsonsafe.
+    finite`), numpy values as Python's."""
+    from motcomp.jsonsafe import finite
+
+    json.dump(finite(obj), sys.stdout, indent=2, allow_nan=False, default=_json_default)
     sys.stdout.write("\n")
 
 

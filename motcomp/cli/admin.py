@@ -177,10 +177,12 @@ def run_status(args: argparse.Namespace) -> int:
         return 0
     ep = endpoints_from_args(args)
     clear = sys.stdout.isatty() and not args.json
-    # Ctrl-C (SIGINT) ends the watch after the poll in progress: raised as KeyboardInterrupt
-    # inside zenoh's calls, it could leave the session to a close that never returned
+    # Ctrl-C (SIGINT) or SIGTERM ends the watch after the poll in progress (exit 0): raised as
+    # KeyboardInterrupt inside zenoh's calls, it could leave the session to a close that never
+    # returned
     stop = threading.Event()
-    previous = signal.signal(signal.SIGINT, lambda _sig, _frame: stop.set())
+    previous = {sig: signal.signal(sig, lambda _sig, _frame: stop.set())
+                for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         with open_session(ep) as session:
             while not stop.is_set():
@@ -198,7 +200,8 @@ def run_status(args: argparse.Namespace) -> int:
                     sys.stdout.flush()
                 stop.wait(max(0.0, t_next - time.monotonic()))
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     return 0
 
 
@@ -411,7 +414,9 @@ def run_reload(args: argparse.Namespace) -> int:
         return _unreachable("reload", exc)
     if isinstance(out, int):
         return out
-    print(f"reloaded: {out.get('path')} (hash {out.get('hash')}, version {out.get('version')})")
+    print(f"reloaded: {out.get('path')} (hash {out.get('hash')}, version {out.get('version')})"
+          + (": the same values as before (to run another file: reload --config FILE)"
+             if out.get("unchanged") else ""))
     return 0
 
 
