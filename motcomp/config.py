@@ -25,6 +25,7 @@ without one.
 
 from __future__ import annotations
 
+import difflib
 import hashlib
 import json
 import math
@@ -281,6 +282,18 @@ class CanConfig(BaseModel):
     bitrate_bps: int = Field(1_000_000, gt=0)
     dbc: str = "motcomp.dbc"
     send_every: int = Field(4, ge=1, le=100)
+
+    @field_validator("interface")
+    @classmethod
+    def _known_interface(cls, v: str) -> str:
+        from can.interfaces import VALID_INTERFACES
+
+        if v not in VALID_INTERFACES:
+            near = difflib.get_close_matches(v, sorted(VALID_INTERFACES), n=1)
+            raise ValueError("not a python-can interface"
+                             + (f"; did you mean {near[0]!r}?" if near else "")
+                             + f" (python-can's: {', '.join(sorted(VALID_INTERFACES))})")
+        return v
 
 
 class OutputConfig(BaseModel):

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import subprocess
+from pathlib import Path
 
 import can
 import pytest
@@ -21,6 +23,7 @@ from motcomp.io.can_io import (
     load_layouts,
 )
 from motcomp.resources import config_file
+from tests.conftest import motcomp_cmd, subprocess_env
 
 DBC = config_file("motcomp.dbc")
 LAYOUTS, DB = load_layouts(DBC)
@@ -116,3 +119,35 @@ def test_lost_frame_counts_an_alive_error_but_keeps_the_value() -> None:
     finally:
         tx.shutdown()
         recv.close()
+
+
+@pytest.mark.parametrize(("can_table", "code", "says"), [
+    ('interface = "udp_multicast"\nchannel = "239.74.163.91"', 0,
+     "CAN: udp_multicast:239.74.163.91 opens (4 frames of the DBC, every 4 ticks)"),
+    ('interface = "socketcann"', 2,
+     "output.can.interface: not a python-can interface; did you mean 'socketcan'?"),
+    ('interface = "virtual"\nchannel = "x"\ndbc = "nosuch.dbc"', 2, "nosuch.dbc"),
+])
+def test_config_check_opens_the_can_output_as_the_service_will(
+        tmp_path: Path, can_table: str, code: int, says: str) -> None:
+    """``config check`` of a config whose output goes over CAN opens it as the service will:
+    the interface must be python-can's, the DBC must load and the bus open here (where a bus
+    does not open, the service would not start)."""
+    site = tmp_path / "site.toml"
+    site.write_text(f'include = ["{config_file("motcomp.toml")}"]\n[output]\ntransport = "can"\n'
+                    f"[output.can]\n{can_table}\n")
+    p = subprocess.run(motcomp_cmd("config", "check", str(site)), capture_output=True,
+                       text=True, env=subprocess_env(), timeout=120)
+    assert p.returncode == code and says in p.stdout + p.stderr, p.stdout + p.stderr
+
+
+@pytest.mark.skipif(Path("/sys/class/net/can0").exists(), reason="this machine has a can0")
+def test_config_check_says_when_the_bus_does_not_open_here(tmp_path: Path) -> None:
+    site = tmp_path / "site.toml"
+    site.write_text(f'include = ["{config_file("motcomp.toml")}"]\n[output]\ntransport = "both"\n'
+                    '[output.can]\ninterface = "socketcan"\nchannel = "can0"\n')
+    p = subprocess.run(motcomp_cmd("config", "check", str(site)), capture_output=True,
+                       text=True, env=subprocess_env(), timeout=120)
+    assert p.returncode == 2, p.stdout + p.stderr
+    assert "output.can: cannot open CAN bus socketcan:can0" in p.stderr
+    assert "the service would not start here" in p.stderr

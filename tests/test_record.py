@@ -212,3 +212,17 @@ def test_file_cut_in_its_summary_loses_nothing(tmp_path: Path) -> None:
     cut.write_bytes(data[:-40])  # footer and part of the summary gone
     s = read_session(cut)
     assert s.messages == len(msgs) and not s.warnings
+
+
+def test_the_summary_says_which_keys_got_nothing() -> None:
+    """A key the recorder subscribed to that no message came on is said, the commands' with
+    why that happens (a service whose output goes over CAN alone); a wildcard is not."""
+    from motcomp.record.recorder import RecordSummary
+    from motcomp.record.session import DEFAULT_KEYS
+
+    out, fb = DEFAULT_KEYS["output"], DEFAULT_KEYS["feedback"]
+    text = RecordSummary([Path("s.mcap")], {fb: 10}, 0, 1.0, None, None,
+                         (out, fb, "other/**")).text()
+    assert f"  {fb}: 10" in text
+    assert f"  {out}: nothing came (a service whose output goes over CAN alone" in text
+    assert "other/**" not in text

@@ -60,6 +60,11 @@ def run_check(args: argparse.Namespace) -> int:
     new_tick(cfg, axes)
     envelope_lines = check_envelope(args.file, cfg)[0]  # as `motcomp run` does at start
     zenoh_note = check_service_zenoh(cfg.zenoh, args.file)  # as the service opens zenoh
+    can_note = []
+    if cfg.output.transport in ("can", "both"):  # as the service opens its CAN output
+        from motcomp.io.can_io import check_can_output
+
+        can_note = [check_can_output(cfg.output.can, Path(args.file).resolve())]
     effective = cfg.model_dump(mode="json")
     if args.json:
         json.dump({"hash": config_hash(cfg), "config": effective}, sys.stdout, indent=2)
@@ -83,7 +88,7 @@ def run_check(args: argparse.Namespace) -> int:
         print(f"restart-only keys: {', '.join(RESTART_KEYS)}; everything else can be reloaded")
     notes, source_warnings = source_report(args.file, cfg)
     if not args.json:
-        print("\n".join([*notes, zenoh_note, *envelope_lines]))
+        print("\n".join([*notes, zenoh_note, *can_note, *envelope_lines]))
     for w in source_warnings:
         print(w, file=sys.stderr)
     for w in axes.warnings:

@@ -23,10 +23,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from motcomp.core.axes import AXES
 from motcomp.core.tick import TickOutput
 from motcomp.errors import ConfigError, FrameError, TransportError
+
+if TYPE_CHECKING:
+    from motcomp.config import CanConfig
 
 __all__ = [
     "CanSetpointReceiver",
@@ -196,6 +200,41 @@ def open_bus(interface: str, channel: str, bitrate_bps: int | None = None) -> ob
         return can.Bus(**kwargs)  # type: ignore[arg-type]
     except (can.CanError, OSError, ValueError, ImportError) as exc:
         raise TransportError(f"cannot open CAN bus {interface}:{channel}: {exc}") from exc
+
+
+def open_can_output(c: CanConfig, config_path: Path | None) -> CanSink:
+    """The service's CAN output of ``c`` (``output.can``): its DBC (a relative path from the
+    directory of ``config_path``, else among motcomp's shipped files) and its bus.
+
+    Raises
+    ------
+    ConfigError
+        A DBC that does not load or lacks an axis' frame.
+    TransportError
+        A bus that does not open here.
+    """
+    from motcomp.resources import config_file
+
+    dbc = Path(c.dbc)
+    if not dbc.is_absolute():
+        base = config_path.parent if config_path else None
+        dbc = base / dbc if base and (base / dbc).is_file() else config_file(c.dbc)
+    layouts, _ = load_layouts(dbc)
+    return CanSink(open_bus(c.interface, c.channel, c.bitrate_bps), layouts, c.send_every)
+
+
+def check_can_output(c: CanConfig, config_path: Path | None) -> str:
+    """``motcomp config check``'s CAN part: open the output as the service will, close it; the
+    summary, or :class:`ConfigError` naming the bus and why (a bus that does not open here
+    stops the service at start)."""
+    try:
+        sink = open_can_output(c, config_path)
+    except TransportError as exc:
+        raise ConfigError(f"output.can: {exc}: the service would not start here (exit 1); run "
+                          "the check on the motion computer, where the bus is") from None
+    sink.bus.shutdown()  # type: ignore[attr-defined]
+    return (f"CAN: {c.interface}:{c.channel} opens ({len(sink.layouts)} frames of the DBC, "
+            f"every {c.send_every} ticks)")
 
 
 class CanSink:

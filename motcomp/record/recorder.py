@@ -266,11 +266,17 @@ class RecordSummary:
     status: dict[str, Any] | None
     config_missing: str | None = None
     """Why the recording holds no config (None: it holds the service's)."""
+    keys: tuple[str, ...] = ()
+    """The keys subscribed to (a key of no message is said)."""
 
     def text(self) -> str:
         lines = [f"recorded {sum(self.counts.values())} messages in {self.duration_s:.1f} s to "
                  + ", ".join(str(p) for p in self.parts)]
         lines += [f"  {k}: {n}" for k, n in sorted(self.counts.items())]
+        lines += [f"  {k}: nothing came (a service whose output goes over CAN alone sends no "
+                  f"commands on zenoh: output.transport = \"both\", docs/DEPLOYMENT.md)"
+                  if k == DEFAULT_KEYS["output"] else f"  {k}: nothing came"
+                  for k in self.keys if "*" not in k and not self.counts.get(k)]
         lines.append(f"  config: not recorded ({self.config_missing})" if self.config_missing
                      else "  config: the service's, attached")
         if self.dropped:
@@ -419,7 +425,7 @@ def record(opts: RecordOptions, endpoints: ZenohEndpoints,
             for s in subs:
                 s.undeclare()
     return RecordSummary(writer.parts, dict(writer.counts), dropped[0], time.monotonic() - t0,
-                         status, missing)
+                         status, missing, tuple(opts.keys))
 
 
 def _status_of(payload: bytes) -> dict[str, Any]:

@@ -77,7 +77,6 @@ from motcomp.core.tick import (
 from motcomp.errors import ConfigError, MotcompError, ServiceError
 from motcomp.io.ports import InputPort, OutputPort
 from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, ZenohSource, open_session
-from motcomp.resources import config_file
 from motcomp.runtime.clock import DEGRADED_MISSED_SHARE, DeadlineClock
 from motcomp.runtime.confine import Confinement
 from motcomp.runtime.monitor import BIN_S, COMMAND_WINDOW_S, LAG_RANGE_S, MotionMonitor
@@ -671,8 +670,10 @@ class Service:
         try:
             new = prepare()
             attempt["hash"] = new.digest
+            before = self.config_id
             self.apply_config(new)
-            attempt.update(ok=True, version=self.config_version, profile=new.cfg.profile)
+            attempt.update(ok=True, version=self.config_version, profile=new.cfg.profile,
+                           unchanged=new.digest == before)
             for w in new.axes.warnings:
                 log.warning("%s", w)
             log.info("%s ok%s (hash %s, version %d, %s)", what,
@@ -832,15 +833,9 @@ class Service:
                 if isinstance(st.get(k), int | float) and not isinstance(st.get(k), bool)}}
 
     def _open_can(self) -> Any:
-        from motcomp.io.can_io import CanSink, load_layouts, open_bus
+        from motcomp.io.can_io import open_can_output
 
-        c = self.cfg.output.can
-        dbc = Path(c.dbc)
-        if not dbc.is_absolute():
-            base = self.config_path.parent if self.config_path else None
-            dbc = base / dbc if base and (base / dbc).is_file() else config_file(c.dbc)
-        layouts, _ = load_layouts(dbc)
-        return CanSink(open_bus(c.interface, c.channel, c.bitrate_bps), layouts, c.send_every)
+        return open_can_output(self.cfg.output.can, self.config_path)
 
     def _main(self, thread: threading.Thread, status_pub: Any, status_q: Any,
               admin_q: Any) -> int:
