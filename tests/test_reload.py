@@ -162,6 +162,9 @@ def test_reload_in_process_keeps_the_old_config_on_failure(tmp_path: Path) -> No
         path.write_text('profile = "fast"\n' + BASE)  # optimised -> AMIGO gains on the rails
         r = svc.reload()
         assert r["ok"] and r["version"] == 2 and svc.config_version == 2, r
+        assert r["unchanged"] is False  # another config
+        again = svc.reload()  # the same file again: said (an operator meant another file?)
+        assert again["ok"] and again["unchanged"] is True and svc.config_version == 3, again
         assert svc.axes.gains[Y] == tune("amigo", RAILS).gains
         kept = (svc.cfg, svc.axes, svc.params, svc.config_id)
         for name, (text, *reasons) in INVALID.items():
@@ -173,11 +176,11 @@ def test_reload_in_process_keeps_the_old_config_on_failure(tmp_path: Path) -> No
             at = [r["error"].find(reason) for reason in reasons]
             assert r["ok"] is False and min(at) >= 0 and at == sorted(at), (name, r)
             assert (svc.cfg, svc.axes, svc.params, svc.config_id) == kept, name
-            assert svc.config_version == 2 and svc.reloads[-1]["ok"] is False
+            assert svc.config_version == 3 and svc.reloads[-1]["ok"] is False
         path.write_text('profile = "paper"\n' + BASE)  # -> Ziegler-Nichols
-        assert svc.reload()["ok"] and svc.config_version == 3
+        assert svc.reload()["ok"] and svc.config_version == 4
         assert svc.axes.gains[Y] == tune("zn", RAILS).gains
-    assert len(run.swaps()) == 2
+    assert len(run.swaps()) == 3
     assert_within_limits(run, svc)
     assert svc.state.rejected == 0 and svc.state.ticks == len(run.u)
 

@@ -374,6 +374,29 @@ def test_the_supervisor_judges_a_window_without_its_end_as_adding_no_time() -> N
         sup.close()
 
 
+def test_a_reload_that_replaces_the_model_ends_its_alarm_in_the_log(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """An axis in alarm whose model a reload replaces is judged anew: the log says that its
+    alarm ends with the model it was raised on (before, the state went back to ok unsaid)."""
+    from motcomp.config import load_config, resolve_axes
+    from motcomp.runtime.supervise import Supervisor, _AxisState
+
+    cfg = load_config(config_file("motcomp.toml"))
+    sup = Supervisor(SupervisionConfig(), resolve_axes(cfg))
+    try:
+        sup.judge.axes["rails_y"] = _AxisState(alarm=True)
+        other = cfg.model_copy(update={"axes": {**cfg.axes, "rails_y": cfg.axes[
+            "rails_y"].model_copy(update={"model": "p1d:K=1,Td=0.0275,Tp1=0.19"})}})
+        with caplog.at_level("INFO", logger="motcomp.supervise"):
+            sup.set_axes(resolve_axes(other))
+        assert "rails_y" not in sup.judge.axes
+        text = caplog.text
+        assert "rails_y: the model is now p1d:K=1,Td=0.0275,Tp1=0.19" in text
+        assert "its model mismatch alarm ends with the model it was raised on" in text
+    finally:
+        sup.close()
+
+
 def test_the_supervisor_estimates_in_its_own_process_from_the_monitor() -> None:
     import time
 

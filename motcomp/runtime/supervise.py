@@ -401,10 +401,14 @@ class Supervisor:
         self.models = {a: axes.plants[i] for i, a in enumerate(AXES) if axes.driven[i]}
         for axis, model in self.models.items():
             before = old.get(axis)
-            if before is not None and before.spec() != model.spec() and \
-                    self.judge.axes.pop(axis, None) is not None:
-                log.info("%s: the model is now %s (was %s): supervision judges against it "
-                         "from the next estimate", axis, model.spec(), before.spec())
+            if before is None or before.spec() == model.spec():
+                continue
+            st = self.judge.axes.pop(axis, None)
+            if st is not None:
+                log.info("%s: the model is now %s (was %s)%s: supervision judges against it "
+                         "from the next estimate", axis, model.spec(), before.spec(),
+                         ", its model mismatch alarm ends with the model it was raised on"
+                         if st.alarm else "")
 
     def reconfigure(self, cfg: SupervisionConfig, axes: ResolvedAxes) -> None:
         """A reload's ``[supervision]`` and models (``window_s`` is a restart key)."""
