@@ -596,3 +596,25 @@ def test_status_watch_ends_on_sigterm_with_exit_0() -> None:
         if p.poll() is None:
             p.kill()
             p.wait()
+
+
+def test_info_of_a_recording_without_outputs_does_not_claim_no_bypass(tmp_path: Path) -> None:
+    """Without output frames (a service whose output went over CAN alone) the mode switches
+    cannot be told: info says so instead of "bypass none"."""
+    from motcomp.cli.info import format_info, summarise
+    from motcomp.record.mcapio import ScanResult, iter_records
+    from motcomp.record.recorder import SessionWriter
+
+    full = tmp_path / "full.mcap"
+    synthesize(full, load_config(config_file("motcomp.toml")), SynthOptions(duration_s=1.0))
+    res = ScanResult(full)
+    records = [r for r in iter_records(full, result=res) if r.topic != "platform/setpoint"]
+    path = tmp_path / "no_outputs.mcap"
+    with SessionWriter(path, sorted({r.topic for r in records}), None, None, flush_s=0,
+                       fsync=False) as w:
+        for r in records:
+            w.write_raw(r.topic, r.log_ns, r.publish_ns, r.sequence, r.data)
+    text = format_info(summarise(path))
+    assert "mode switches: unknown, no output frames recorded" in text, text
+    assert "bypass     none" not in text
+    assert "mode switches (output flags):" in format_info(summarise(full))

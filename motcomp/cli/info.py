@@ -219,20 +219,25 @@ def format_info(info: dict[str, Any]) -> str:
         lines.append(f"{k['key']:<28}{k['role'] or '-':<10}{k['messages']:>9}{rate:>10}"
                      f"{g['count']:>6}  {longest}")
     modes = info["modes"]
-    lines.append("mode switches (output flags):")
-    groups: dict[str, list[str]] = {}  # axes with the same switches on one line
-    for axis, runs in modes["bypass"].items():
-        text = ", ".join(f"on {'from the start' if r[0] == 0 else f'at {r[0]:.2f} s'}"
-                         + ("" if r[1] is None else f", off at {r[1]:.2f} s") for r in runs)
-        groups.setdefault(text, []).append(axis)
-    for text, axes in groups.items():
-        lines.append(f"  bypass     {', '.join(axes)}: {text}")
-    if not groups:
-        lines.append("  bypass     none")
-    for mode in ("stale", "rejoin", "parking"):
-        runs = modes[mode]
-        lines.append(f"  {mode:<10} " + (f"{len(runs)}: " + ", ".join(_span(r) for r in runs[:8])
-                                         + (", ..." if len(runs) > 8 else "") if runs else "none"))
+    if any(k["messages"] for k in info["keys"] if k["role"] == "output"):
+        lines.append("mode switches (output flags):")
+        groups: dict[str, list[str]] = {}  # axes with the same switches on one line
+        for axis, runs in modes["bypass"].items():
+            text = ", ".join(f"on {'from the start' if r[0] == 0 else f'at {r[0]:.2f} s'}"
+                             + ("" if r[1] is None else f", off at {r[1]:.2f} s") for r in runs)
+            groups.setdefault(text, []).append(axis)
+        for text, axes in groups.items():
+            lines.append(f"  bypass     {', '.join(axes)}: {text}")
+        if not groups:
+            lines.append("  bypass     none")
+        for mode in ("stale", "rejoin", "parking"):
+            runs = modes[mode]
+            lines.append(f"  {mode:<10} " + (
+                f"{len(runs)}: " + ", ".join(_span(r) for r in runs[:8])
+                + (", ..." if len(runs) > 8 else "") if runs else "none"))
+    else:  # nothing to tell the modes from: not "none"
+        lines.append("mode switches: unknown, no output frames recorded (a service whose output "
+                     "goes over CAN alone sends none on zenoh: output.transport = \"both\")")
     for axis, mm in (info.get("model_mismatch") or {}).items():
         runs = mm["alarms"]
         est = mm["last_estimate"] or {}
