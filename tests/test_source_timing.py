@@ -12,6 +12,7 @@ so each received frame names its sample even without ``t`` and after dropped sam
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 import time
@@ -375,3 +376,42 @@ def test_a_motion_file_s_columns_are_axes_or_said_to_be_ignored(tmp_path: Path) 
     assert traj.description.endswith("(rails_y; columns ignored: acc)")
     assert load_trajectory(csv("two.csv", "t,rails_x,hex_z"), 1000.0).description.endswith(
         "(rails_x, hex_z)")
+
+
+def test_a_sender_whose_subscriber_goes_says_so_and_goes_on(tmp_path: Path) -> None:
+    """``motcomp source`` whose subscriber (the service) goes away says so after a second
+    without one, says when one is back, and its summary counts the frames nobody could hear;
+    it goes on publishing (a vehicle model does not stop for its consumer)."""
+    import signal
+
+    import zenoh
+
+    endpoint = loopback(free_tcp_port())
+    with open_session(ZenohEndpoints(listen=(endpoint,))) as session:
+        sub = session.declare_subscriber("sim/motion/setpoint", zenoh.handlers.RingChannel(16))
+        p = subprocess.Popen(motcomp_cmd("source", "--signal", "slalom", "--quiet", "-e",
+                                         endpoint),
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             env=subprocess_env())
+        try:
+            t_end = time.monotonic() + 30
+            while sub.try_recv() is None:  # it publishes
+                assert time.monotonic() < t_end and p.poll() is None
+                time.sleep(0.05)
+            sub.undeclare()  # the service goes
+            time.sleep(2.5)
+            sub = session.declare_subscriber("sim/motion/setpoint",
+                                             zenoh.handlers.RingChannel(16))
+            time.sleep(1.0)
+            p.send_signal(signal.SIGTERM)
+            out, err = p.communicate(timeout=30)
+        finally:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+            sub.undeclare()
+    assert p.returncode == 0, err
+    assert "no subscriber of sim/motion/setpoint reachable for 1." in err, err
+    assert "a subscriber of sim/motion/setpoint again after" in err, err
+    unheard = int(re.search(r"(\d+) published with no subscriber reachable", out).group(1))
+    assert 1000 <= unheard <= 2600, out  # about 1.5-2.5 s of 1 kHz frames

@@ -124,7 +124,9 @@ def run(args: argparse.Namespace) -> int:
                             lead_in_s=args.lead_in,
                             wait_peer_s=remaining(args.wait_peer) if args.wait_peer > 0 else 0.0,
                             wait_peer_asked_s=args.wait_peer,
-                            progress=bar.update, timing=timing, with_t=not args.no_t)
+                            progress=bar.update, timing=timing, with_t=not args.no_t,
+                            warn=lambda text: print(f"motcomp source: {text}", file=sys.stderr,
+                                                    flush=True))
     except NoPeerError as exc:
         print(f"motcomp source: {exc}; is the service running and its endpoint right?",
               file=sys.stderr)

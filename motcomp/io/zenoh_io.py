@@ -231,6 +231,14 @@ class ZenohSink:
         except Exception:  # a closed session or a transport error must not stop the loop
             self.errors += 1
 
+    def heard(self) -> bool:
+        """Whether a subscriber of the key is reachable now (the publisher's matching status;
+        True where zenoh cannot tell)."""
+        try:
+            return bool(self._pub.matching_status.matching)
+        except Exception:  # a closed session: nothing to tell
+            return True
+
     def send(self, out: TickOutput, t: float) -> None:
         """An :class:`~motcomp.io.ports.OutputPort`: the output frame of docs/WIRE.md."""
         self.put(encode_output(out.seq, t, out.src_seq, out.u, out.flags, out.rx_ns))

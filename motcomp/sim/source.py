@@ -286,6 +286,10 @@ def load_trajectory(path: Path, rate_hz: float, axis: str | None = None) -> Traj
                       description)
 
 
+LOST_PEER_S = 1.0
+"""A sender that finds no subscriber of its key for this long says so (:func:`publish`)."""
+
+
 @dataclass(frozen=True)
 class SenderTiming:
     """How a sender departs from perfect timing (the defaults: it does not).
@@ -435,6 +439,8 @@ class PublishStats:
     """Stalls that held at least one frame."""
     held: int = 0
     """Frames sent late, in a burst at the end of a stall."""
+    unheard: int = 0
+    """Frames published while no subscriber of the key was reachable (the service gone)."""
 
     @property
     def sent(self) -> int:
@@ -456,6 +462,8 @@ class PublishStats:
         if self.skipped:
             out += (f"; {self.skipped} not sent: their instants passed while this process was "
                     "stalled")
+        if self.unheard:
+            out += f"; {self.unheard} published with no subscriber reachable"
         if self.stopped:
             left = self.samples - self.sent - self.skipped
             out += f"; stopped by a signal with {left} samples still to send"
@@ -478,7 +486,8 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
             spin_us: float = 50.0, lead_in_s: float = 0.0, wait_peer_s: float = 0.0,
             progress: Callable[[float], None] | None = None,
             timing: SenderTiming | None = None, with_t: bool = True,
-            wait_peer_asked_s: float | None = None) -> PublishStats:
+            wait_peer_asked_s: float | None = None,
+            warn: Callable[[str], None] | None = None) -> PublishStats:
     """Publish the trajectory (``repeat`` times) on absolute deadlines.
 
     The motion stays on wall time, as a vehicle model's does: samples whose send instants pass
@@ -490,7 +499,9 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
     reachable, waiting at most ``wait_peer_s`` from this call (opening the session included;
     ``wait_peer_asked_s``, default the same, is the wait the caller was asked for, which the
     error names); ``progress`` is called with the seconds of motion sent so far, about ten times
-    a second.
+    a second.  When no subscriber of ``key`` is reachable for :data:`LOST_PEER_S` (the service
+    gone), ``warn`` is told once, and again when one is back; the frames go on (counted in
+    :attr:`PublishStats.unheard`).
 
     Raises
     ------
@@ -516,7 +527,9 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
                else np.zeros(traj.samples)).tolist() for a in axes]
     seq = seq_start
     total = traj.samples * repeat
-    skipped = stalls = held = 0
+    skipped = stalls = held = unheard = 0
+    lost_at: float | None = None  # when no subscriber was found reachable (checked at 10 Hz)
+    warned = False
     every = max(1, round(traj.rate_hz / 10))
     period_ns = round(1e9 / traj.rate_hz)
     lead = SleepLead(int(spin_us * 1000))
@@ -527,7 +540,7 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
     def stats() -> PublishStats:
         return PublishStats(key, seq_start, seq, total, skipped, stop.is_set() and k < total,
                             time.monotonic() - t_start, traj.rate_hz, t0, with_t,
-                            timing.describe(), seed, stalls, held)
+                            timing.describe(), seed, stalls, held, unheard)
 
     with open_session(endpoints) as session:
         left = max(0.1, wait_peer_s - (time.monotonic() - t_start))
@@ -569,9 +582,23 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
                                           {a: col[i] + d * sl[i] for a, col, sl in
                                            zip(axes, columns, slopes, strict=True)}))
                     seq += 1
+                    if lost_at is not None:
+                        unheard += 1
                 k += 1
-                if progress is not None and k % every == 0:
-                    progress(k / traj.rate_hz)
+                if k % every == 0:
+                    if progress is not None:
+                        progress(k / traj.rate_hz)
+                    now = time.monotonic()
+                    if not sink.heard():
+                        lost_at = now if lost_at is None else lost_at
+                        if not warned and now - lost_at >= LOST_PEER_S and warn is not None:
+                            warn(f"no subscriber of {key} reachable for {now - lost_at:.1f} s: "
+                                 "is the service still running? (publishing on)")
+                            warned = True
+                    elif lost_at is not None:
+                        if warned and warn is not None:
+                            warn(f"a subscriber of {key} again after {now - lost_at:.1f} s")
+                        lost_at, warned = None, False
         finally:
             sink.close()
     return stats()
