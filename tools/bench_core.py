@@ -122,6 +122,12 @@ def references(ticks: int, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
                      for i in range(len(AXES))], axis=1)
 
 
+def input_frames(rows: list[list[float]]) -> list[bytes]:
+    """A valid 8-axis input frame per row, sample ``k`` at ``k`` ms."""
+    return [encode_input(k, k / 1000.0, dict(zip(AXES, row, strict=True)))
+            for k, row in enumerate(rows)]
+
+
 def measure(call: Callable[[int], object], ks: range) -> np.ndarray:
     """Time ``call(k)`` for each ``k`` (us)."""
     out = np.empty(len(ks))
@@ -145,8 +151,7 @@ def run(ticks: int) -> tuple[dict[str, np.ndarray], dict[str, list[float]], dict
     lim = comp.limits
     refs = references(ticks, lim.p_min, lim.p_max)
     rows = refs.tolist()
-    frames = [encode_input(k, k / 1000.0, dict(zip(AXES, row, strict=True)))
-              for k, row in enumerate(rows)]
+    frames = input_frames(rows)
     vector = NumpyTick(new_tick(cfg)[1].comp)
     comp_step = comp.step
     calls: dict[str, Callable[[int], object]] = {
@@ -233,8 +238,7 @@ def gaps(ticks: int) -> str:
     per = max(ticks // GAP_ROUNDS, 1)
     warm = 2000
     total = warm + per * GAP_ROUNDS * len(GAPS_US)
-    frames = [encode_input(k, k / 1000.0, dict(zip(AXES, row, strict=True)))
-              for k, row in enumerate(references(total, lim.p_min, lim.p_max).tolist())]
+    frames = input_frames(references(total, lim.p_min, lim.p_max).tolist())
     clock = time.perf_counter_ns
     times: dict[int, list[float]] = {g: [] for g in GAPS_US}
     gc.collect()
@@ -290,18 +294,14 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     ticks = 6000 if args.quick else args.ticks
-    if args.gaps:
-        text = gaps(ticks)
-        print(text)
-        if not args.no_write:
-            write_section("core-gaps", text)
-        return
-    if args.compare_plain:
-        text = compare_plain(ticks)
-        print(text)
-        if not args.no_write:
-            write_section("core-compiled", text)
-        return
+    for asked, section, measure_section in ((args.gaps, "core-gaps", gaps),
+                                            (args.compare_plain, "core-compiled", compare_plain)):
+        if asked:
+            text = measure_section(ticks)
+            print(text)
+            if not args.no_write:
+                write_section(section, text)
+            return
     times, blocks, check = run(ticks)
     if args.json:
         print(json.dumps({"active": native.ACTIVE, "percentiles": percentiles(times),
