@@ -35,7 +35,11 @@ reference is the input at the sender instant ``now - D`` (plus the configured le
              SETTLE_POLE / settle_s: continuous to its second derivative (the reference's
              acceleration never steps), a change of its target within 6 % after settle_s
     restart  (a new timeline: the first frame, a rejoin): offset and spacing from the new
-             samples; D starts at its target at the first tick that has two samples
+             samples; D starts at its target at the first tick that has two samples.  The
+             offset is *settled* once a bin is complete: until then it may rest on one frame
+             that left late (its sender stalled between computing and sending it: a transit
+             hundreds of ms long), which the fresher frames after it lower -- the bound on a
+             live sender's ``t`` (``shaper.next_t_bound``) waits for it
 
 Jitter, late frames and stalls never raise the lag: a sample later than the playback is
 bridged by the extrapolation (:mod:`motcomp.core.interp`) and corrected as it arrives.
@@ -179,6 +183,12 @@ class Playback:
         if not srt:
             return 0.0
         return srt[min(int(SPACING_QUANTILE * len(srt)), len(srt) - 1)]
+
+    def settled(self) -> bool:
+        """The offset is read over a completed bin (BIN_S of arrivals) since the restart: one
+        frame's transit bounds it only from above, since a frame may leave late (its sender
+        stalled between computing and sending it), and the frames after it lower it."""
+        return len(self._bin_tr) > 1
 
     def ready(self) -> bool:
         """Playback can start: an offset and one interval are known."""

@@ -382,13 +382,19 @@ class ReferenceShaper:
         loop instant ``arrived`` may carry: not before the newest sample (less ``min_dt_s``, the
         same sample again), and not after ``arrived`` on the sender's clock (the loop's, less
         the smallest transit: no sample lands before it is computed) by more than
-        ``stale_after_s`` (None: any, the input is not live at ``now`` or not stamped)."""
+        ``stale_after_s`` -- once that transit is read over a completed bin of arrivals since
+        the timeline (re)started (:meth:`Playback.settled`; ``hi`` infinite before).  None:
+        any, the input is not live at ``now`` or not stamped."""
         tl = self.timeline
-        off = self.playback.offset
+        pb = self.playback
+        off = pb.offset
         if tl.t_last is None or off is None or not tl.stamped or self.is_stale(p, now):
             return None
         base = tl.base()
-        return tl.t_last + base - p.min_dt_s, arrived - off + base + p.stale_after_s
+        lo = tl.t_last + base - p.min_dt_s
+        if not pb.settled():
+            return lo, math.inf
+        return lo, arrived - off + base + p.stale_after_s
 
     def _on_input_linear(self, p: ShaperParams, pos: dict[int, float], now: float,
                          t_sender: float | None, rejoin: bool) -> None:
