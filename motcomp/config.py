@@ -559,7 +559,7 @@ def resolve_axes(cfg: ServiceConfig, profile: str | None = "") -> ResolvedAxes:
         if pred is not None and abs(pred.rate_hz - cfg.loop.rate_hz) > 1e-9 * cfg.loop.rate_hz:
             raise ConfigError(f"{where}.prediction.rate_hz: designed for {pred.rate_hz:g} Hz, "
                               f"the loop runs at {cfg.loop.rate_hz:g} Hz (loop.rate_hz): design "
-                              "it again for this rate (motcomp design --rate-hz)")
+                              "it again for this rate (motcomp design --rate)")
         if "gains" in tuning_layer:
             g = GainsConfig(**tuning_layer["gains"]).to_gains()
             if bypass_on:

@@ -208,7 +208,7 @@ def test_chain_hf_gain_needs_prediction_on() -> None:
 def test_pareto_with_prediction_draws_both_curves(tmp_path: Path) -> None:
     out = tmp_path / "pareto"
     p = run("pareto", "--plant", "hexapod", "--bounds", "6", "--hf-bounds", "3",
-            "--prediction", "on", "--out", str(out), "--quiet", "--json")
+            "--prediction", "on", "--input-band-hz", "0", "--out", str(out), "--quiet", "--json")
     assert p.returncode == 0, p.stderr
     assert (out / "pareto_prediction.png").stat().st_size > 10_000
     points = {q["kind"]: q for q in json.loads(p.stdout)["prediction"]}

@@ -6,6 +6,8 @@ import json
 import subprocess
 from pathlib import Path
 
+import pytest
+
 from tests._designs import assert_same_gains, assert_same_prefilter
 from tests.conftest import motcomp_cmd, subprocess_env
 
@@ -106,6 +108,17 @@ def test_pareto_writes_figure_and_table(tmp_path: Path) -> None:
     for name in ("Ziegler-Nichols", "Cohen-Coon", "AMIGO", "SIMC", "optimal, peak <= 8 dB",
                  "optimal, plain PID, peak <= 8 dB"):
         assert name in table
-    points = json.loads((out / "pareto.json").read_text())["points"]
+    data = json.loads((out / "pareto.json").read_text())
+    points = data["points"]
     assert {p["kind"] for p in points} == {"optimal", "optimal-plain", "rule"}
     assert not list(out.glob(".tmp-*"))
+    # the frontier's 8 dB point is motcomp design's optimum: the same plant as the compensator
+    # sees it, the input's band limit included by default in both
+    p = run("design", "--plant", "rails", "--rule", "optimal", "--prediction", "off", "--json",
+            "--quiet")
+    assert p.returncode == 0, p.stderr
+    design = json.loads(p.stdout)
+    assert data["input_lag_ms"] == design["input_lag_ms"] > 5.0  # the band limit's delay
+    eight = next(q for q in points if q["label"] == "optimal, peak <= 8 dB")
+    assert eight["max_residual_delay_ms"] == pytest.approx(
+        design["corrected"]["max_residual_delay_ms"], abs=0.01)

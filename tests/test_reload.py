@@ -321,6 +321,9 @@ def test_bypass_off_without_axes_keeps_the_config_bypass(tmp_path: Path) -> None
         assert svc.status()["prediction"]["hex_z"]["state"] == "off"
         assert svc.request_bypass(False, ["hex_z"]) == hexapod  # predicted: PID stays off
         assert svc.status()["prediction"]["hex_z"]["state"] != "off"
+        # the reply says which of the PID-bypassed axes prediction compensates
+        reply = svc.admin("bypass", msgpack.packb({"on": False, "axes": ["hex_z"]}))
+        assert reply["bypass"] == hexapod and "hex_z" in reply["predicted"], reply
         run.wait(10)
     base = tmp_path / "base.toml"  # the hexapod without prediction: named, its PID comes on
     base.write_text("\n".join(line for line in config_file("motcomp.toml").read_text()

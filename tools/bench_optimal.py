@@ -161,7 +161,8 @@ def main() -> int:
     pareto_figure(par, FIGURE)
     table = pareto_markdown(par).split("\n", 2)[2]
     lines += ["### Pareto frontier (rails, 1 kHz)", "",
-              f"`motcomp pareto --plant rails --out DIR` ({t_par:.0f} s); figure: "
+              f"`motcomp pareto --plant rails --input-band-hz 0 --out DIR` ({t_par:.0f} s; "
+              f"without the input's band limit); figure: "
               f"[{FIGURE.name}]({FIGURE.name}).", "", table.strip(), ""]
 
     # --- the <= 6 dB experiment ---------------------------------------------------------------

@@ -401,7 +401,10 @@ def run_bypass(args: argparse.Namespace) -> int:
         return _unreachable("bypass", exc)
     if isinstance(out, int):
         return out
-    print(f"bypassed axes: {', '.join(out['bypass']) or 'none'}")
+    print(f"bypassed axes (PID): {', '.join(out['bypass']) or 'none'}")
+    alone = [a for a in out.get("predicted", []) if a in out["bypass"]]
+    if alone:  # compensation on, by prediction alone
+        print(f"  of them compensated by prediction: {', '.join(alone)}")
     return 0
 
 

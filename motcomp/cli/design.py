@@ -113,6 +113,12 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--internal", metavar="SPEC",
                    help="internal P1D model of the compensator if it differs from the plant "
                         "(default: the plant, or its P1D approximation)")
+    _add_input_chain(p)
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    _add_optimal(p)
+
+
+def _add_input_chain(p: argparse.ArgumentParser) -> None:
     p.add_argument("--input-lag-ms", type=non_negative_float, default=0.0, metavar="MS",
                    help="lag of the input reconstruction before the compensator, cancelled "
                         "with the platform's delay: the config's input.playback_lag_s (1.7 ms; "
@@ -124,8 +130,6 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                         f"{BAND_HZ_DEFAULT:g}; 0: none): its delay is added to --input-lag-ms "
                         "and cancelled, and the report gives what input noise does to the "
                         "command with it (docs/WIRE.md)")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    _add_optimal(p)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -167,6 +171,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    metavar="GAIN",
                    help="with --prediction on: the HF command-gain bounds of the frontier with "
                         "and without prediction (default 3 10 60)")
+    _add_input_chain(r)
     r.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory")
     r.add_argument("--json", action="store_true", help="print one JSON object")
     _add_optimal(r)
@@ -329,25 +334,33 @@ def run_pareto(args: argparse.Namespace) -> int:
         prediction_frontier,
         prediction_markdown,
     )
+    from motcomp.design.report import with_input_lag
 
     if args.chain_hf_gain is not None:
         raise ConfigError("--chain-hf-gain is an option of motcomp design: pareto's frontier "
                           "with prediction spans --hf-bounds")
-    plant = _source(args).model
+    platform = _source(args).model
+    internal = _internal(args) or platform.to_p1d()
+    # the plant as the compensator sees it, as motcomp design takes it
+    plant, lag_s = with_input_lag(platform, args.rate, args.input_lag_ms / 1e3,
+                                  args.input_band_hz)
     options = _options(args)
     prediction = _prediction(args, "off")
     with _progress(args, "pareto frontier") as progress:
-        result = pareto(plant, _internal(args), args.rate, tuple(args.bounds),
+        result = pareto(plant, internal, args.rate, tuple(args.bounds),
                         options.constraints, progress=progress)
     points = []
     if prediction.mode == "on":
         with _progress(args, "frontier with prediction") as progress:
-            points = prediction_frontier(plant, _internal(args), args.rate, tuple(args.bounds),
+            points = prediction_frontier(plant, internal, args.rate, tuple(args.bounds),
                                          tuple(args.hf_bounds), options.constraints,
                                          prediction, progress)
-    text = pareto_markdown(result) + (
+    chain = (f"The input's lag, {lag_s * 1e3:.2f} ms (--input-lag-ms {args.input_lag_ms:g}, "
+             f"the band limit at --input-band-hz {args.input_band_hz:g}), is added to "
+             f"{platform.spec()}'s dead time, as motcomp design adds it.\n\n")
+    text = chain + pareto_markdown(result) + (
         prediction_markdown(points, options.constraints.band_hz) if points else "")
-    data = pareto_json(result)
+    data = {"input_lag_ms": lag_s * 1e3, **pareto_json(result)}
     if points:
         data["prediction"] = [p.as_dict() for p in points]
 
@@ -359,7 +372,8 @@ def run_pareto(args: argparse.Namespace) -> int:
         paths[1].write_text(json.dumps(data, indent=2) + "\n")
         pareto_figure(result, paths[2])
         if points:
-            paths.append(prediction_figure(points, f"{plant.spec()} at {args.rate:g} Hz",
+            paths.append(prediction_figure(points, f"{platform.spec()} at {args.rate:g} Hz, "
+                                                   f"input lag {lag_s * 1e3:.2f} ms",
                                            tmp / "pareto_prediction.png"))
         return paths
 

@@ -141,7 +141,7 @@ def run_excite(args: argparse.Namespace) -> int:
         u = exc.usage
         print(f"{exc.kind} for {exc.axis}: {summary['duration_s']:.1f} s at {exc.rate_hz:g} Hz; "
               f"peaks {exc.peaks['position']:.4g} (pos), {exc.peaks['velocity']:.4g} (vel), "
-              f"{exc.peaks['acceleration']:.4g} (acc) = {u['position'] * 100:.0f} %, "
-              f"{u['velocity'] * 100:.0f} %, {u['acceleration'] * 100:.0f} % of the limits")
+              f"{exc.peaks['acceleration']:.4g} (acc) = {u['position'] * 100:.3g} %, "
+              f"{u['velocity'] * 100:.3g} %, {u['acceleration'] * 100:.3g} % of the limits")
         print(f"wrote {', '.join(files)}")
     return 0

@@ -80,6 +80,26 @@ DESIGN_RULES: tuple[str, ...] = (*RULES, OPTIMAL)
 """Every ``--rule`` that :func:`design_report` accepts."""
 
 
+def with_input_lag(plant: ProcessModel, rate_hz: float, input_lag_s: float,
+                   input_band_hz: float) -> tuple[ProcessModel, float]:
+    """The plant as the compensator sees it -- the input reconstruction's lag and the band
+    limit's delay (``input.band_hz``; 0: none) added to its dead time -- and that lag in all
+    (s).
+
+    Raises
+    ------
+    ConfigError
+        If ``input_lag_s`` is not within 0-1 s.
+    """
+    if not (math.isfinite(input_lag_s) and 0.0 <= input_lag_s <= 1.0):
+        raise ConfigError(f"input lag must be 0-1000 ms, got {input_lag_s * 1e3:g} ms")
+    band_limit = band_limit_params(input_band_hz, rate_hz)
+    if band_limit is not None:
+        input_lag_s += band_limit.delay_s
+    return (opt.perturb(plant, dead_time_s=input_lag_s) if input_lag_s > 0.0 else plant,
+            input_lag_s)
+
+
 def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
                   filter_n: float = 10.0, gains: PIDGains | None = None,
                   model: P1D | None = None, options: opt.OptimalOptions | None = None,
@@ -109,15 +129,10 @@ def design_report(plant: ProcessModel, rule: str, rate_hz: float = 1000.0,
     (:func:`motcomp.design.frequency.noise_figures`) with and without it.
     """
     internal = model or plant.to_p1d()
-    if not (math.isfinite(input_lag_s) and 0.0 <= input_lag_s <= 1.0):
-        raise ConfigError(f"input lag must be 0-1000 ms, got {input_lag_s * 1e3:g} ms")
-    band_limit = band_limit_params(input_band_hz, rate_hz)
     playback_lag_s = input_lag_s
-    if band_limit is not None:
-        input_lag_s += band_limit.delay_s
     platform = plant
-    if input_lag_s > 0.0:
-        plant = opt.perturb(plant, dead_time_s=input_lag_s)
+    plant, input_lag_s = with_input_lag(plant, rate_hz, input_lag_s, input_band_hz)
+    band_limit = band_limit_params(input_band_hz, rate_hz)
     warnings: list[str] = []
     std: dict[str, float] = {}
     design: opt.OptimalDesign | None = None
@@ -301,7 +316,7 @@ def _predict(plant: ProcessModel, internal: P1D, rate_hz: float, design: opt.Opt
         elif p.mode == "auto":
             if baseline < o.min_gain_ms:
                 block["note"] = (f"the optimal PID leaves {baseline:.2f} ms, less than the "
-                                 f"{o.min_gain_ms:g} ms a prefilter must gain: not designed")
+                                 f"{o.min_gain_ms:g} ms a prefilter must gain")
                 return block, None
             stages.plan([("designing the prefilter after the PID", STAGE_PREFILTER),
                          ("checking the design", STAGE_CHECK)])

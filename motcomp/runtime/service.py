@@ -385,8 +385,11 @@ class Service:
             done.set()
 
         self.run_between_ticks(apply, done, "the bypass change")
-        log.info("bypass %s for %s: compensation %s (admin request)", "on" if on else "off",
-                 ", ".join(names) or "no axis", "off" if on else "on")
+        by_prediction = [a for a in names if not on and a in result]
+        log.info("bypass %s for %s: compensation %s (admin request)%s", "on" if on else "off",
+                 ", ".join(names) or "no axis", "off" if on else "on",
+                 f"; {', '.join(by_prediction)}: by prediction alone, the PID bypassed by the "
+                 "config" if by_prediction else "")
         return result
 
     def run_between_ticks(self, fn: Callable[[], None], done: threading.Event, what: str,
@@ -620,7 +623,12 @@ class Service:
                         axes is None or (isinstance(axes, list)
                                          and all(isinstance(a, str) for a in axes))):
                     raise ConfigError("bypass request needs {'on': true|false, 'axes': [str]}")
-                return {"ok": True, "bypass": self.request_bypass(on, axes)}
+                bypassed = self.request_bypass(on, axes)
+                off, cfg_axes = self.state.prediction_off, self.axes
+                return {"ok": True, "bypass": bypassed,
+                        "predicted": [a for i, a in enumerate(AXES)
+                                      if cfg_axes.driven[i] and cfg_axes.predict[i]
+                                      and not off[i]]}
             if name == "reload":
                 path = req.get("path")
                 if path is not None and not isinstance(path, str):
