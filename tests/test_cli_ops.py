@@ -323,6 +323,17 @@ def test_status_of_a_running_service_as_table_json_and_watch(tmp_path: Path) -> 
         out, err = w.communicate(timeout=10)
         assert w.returncode == 0, err
         assert out.count("\naxis ") >= 2 and out.count("--- ") >= 2, out
+        # with --json: one object per line, each the whole status
+        w = subprocess.Popen(motcomp_cmd("status", "-e", ep, "--watch", "0.5", "--json"),
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             env=subprocess_env())
+        time.sleep(3.0)
+        w.send_signal(signal.SIGINT)
+        out, err = w.communicate(timeout=10)
+        assert w.returncode == 0, err
+        polls = [json.loads(line) for line in out.splitlines()]
+        assert len(polls) >= 2 and all(q["ticks"] > 0 for q in polls), out[:2000]
+        assert polls[-1]["ticks"] > polls[0]["ticks"]
 
 
 @pytest.mark.slow

@@ -213,3 +213,21 @@ def test_an_unfinished_recording_exports_what_it_holds(session: Path, tmp_path: 
         p = cli("export", str(cut), "-o", str(out), "--format", fmt, "--quiet")
         assert p.returncode == 2 and "no complete chunk" in p.stderr, p.stderr
         assert not out.exists() or (fmt == "csv" and not any(out.iterdir()))
+
+
+def test_an_input_frame_not_decoded_has_no_seq_in_the_tables(tmp_path: Path) -> None:
+    """Input frames that are not msgpack, or a map without ``seq``: ``decoded`` 0 and the
+    ``seq`` cell empty -- never a seq 0 that reads as the sender's first frame."""
+    path = tmp_path / "bad.mcap"
+    frames = [msgpack.packb({"seq": 7, "t": 1.0, "pos": {"rails_y": 0.1}}), b"\xc1 not msgpack",
+              msgpack.packb({"t": 1.002, "pos": {"rails_y": 0.1}}),
+              msgpack.packb({"seq": 9, "t": 1.003, "pos": {"rails_y": 0.1}})]
+    with SessionWriter(path, ["sim/motion/setpoint"], None, None, flush_s=0, fsync=False) as w:
+        for k, payload in enumerate(frames):
+            w.write_raw("sim/motion/setpoint", 10**9 + k * 10**6, 10**9 + k * 10**6, k, payload)
+    p = cli("export", str(path), "-o", str(tmp_path / "csv"), "--format", "csv")
+    assert p.returncode == 0, p.stderr
+    with (tmp_path / "csv" / "input.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [(r["seq"], r["decoded"]) for r in rows] == [("7", "1"), ("", "0"), ("", "0"),
+                                                        ("9", "1")]

@@ -105,12 +105,12 @@ def remaining(timeout_s: float, floor_s: float = 0.1) -> float:
     return max(floor_s, timeout_s - (time.monotonic() - STARTED))
 
 
-def print_json(obj: Any) -> None:
+def print_json(obj: Any, indent: int | None = 2) -> None:
     """``obj`` as strict JSON on stdout: NaN and infinities as null (:func:`~motcomp.jsonsafe.
-    finite`), numpy values as Python's."""
+    finite`), numpy values as Python's; ``indent`` None: on one line."""
     from motcomp.jsonsafe import finite
 
-    json.dump(finite(obj), sys.stdout, indent=2, allow_nan=False, default=_json_default)
+    json.dump(finite(obj), sys.stdout, indent=indent, allow_nan=False, default=_json_default)
     sys.stdout.write("\n")
 
 

@@ -45,7 +45,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--json", action="store_true", help="print the raw status map as JSON")
     s.add_argument("--watch", nargs="?", type=positive_float, const=1.0, default=None,
                    metavar="SECONDS",
-                   help="refresh every SECONDS (default 1) until Ctrl-C")
+                   help="refresh every SECONDS (default 1) until Ctrl-C; with --json, one "
+                        "JSON object per line (a poll nobody answered: a line on stderr)")
     _service_args(s, "motcomp/status", 3.0)
     s.set_defaults(func=run_status)
 
@@ -189,8 +190,9 @@ def run_status(args: argparse.Namespace) -> int:
                 t_next = time.monotonic() + args.watch
                 try:
                     st = _ask(session, ep, args.key, None, args.timeout)
-                except NoPeerError as exc:
-                    print(f"{time.strftime('%H:%M:%S')} {exc}", flush=True)
+                except NoPeerError as exc:  # stdout stays JSON lines with --json
+                    print(f"{time.strftime('%H:%M:%S')} {exc}", flush=True,
+                          file=sys.stderr if args.json else sys.stdout)
                 else:
                     if clear:
                         sys.stdout.write("\x1b[H\x1b[2J")
@@ -207,7 +209,7 @@ def run_status(args: argparse.Namespace) -> int:
 
 def _show(args: argparse.Namespace, st: dict[str, Any]) -> None:
     if args.json:
-        print_json(st)
+        print_json(st, None if args.watch is not None else 2)
     else:
         print(format_status(st))
 

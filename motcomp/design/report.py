@@ -784,6 +784,7 @@ def write_figures(report: dict[str, Any], runs: dict[str, SimulationResult], pla
         top.plot(res.t, res.reference, "k", lw=0.8, label="setpoint")
         top.plot(res.t, res.response_on, "C1", lw=0.8, label="platform, corrected")
         top.set_title("0.1-3 Hz swept sine")
+        top.set_ylabel("position (axis units)")
         top.legend(loc="upper right")
         n = res.t.size
         for col, (a, b, title) in enumerate(((int(0.08 * n), int(0.2 * n), "low frequencies"),
@@ -792,10 +793,14 @@ def write_figures(report: dict[str, Any], runs: dict[str, SimulationResult], pla
             ax.plot(res.t[a:b], res.reference[a:b], "k", lw=1, label="setpoint")
             ax.plot(res.t[a:b], res.response_on[a:b], "C1", lw=1, label="corrected")
             ax.set_title(title)
+            ax.set_xlabel("time (s)")
+            if col == 0:
+                ax.set_ylabel("position (axis units)")
         bottom = fig.add_subplot(3, 1, 3)
         bottom.plot(res.t, res.reference, "k", lw=0.8, label="setpoint")
         bottom.plot(res.t, res.response_off, "C0", lw=0.8, label="platform, uncorrected")
         bottom.set_xlabel("time (s)")
+        bottom.set_ylabel("position (axis units)")
         bottom.legend(loc="upper right")
         fig.tight_layout()
         paths.append(out_dir / "sweep.png")

@@ -321,7 +321,7 @@ def write_figures(ident: Identification, out_dir: Path) -> list[Path]:
     ax.set_ylabel("command (axis units)", color="C0")
     ax2 = ax.twinx()
     ax2.plot(t, rec.acc - sel.bias, color="0.5", lw=0.4, alpha=0.7)
-    ax2.set_ylabel("measured acceleration (bias removed)", color="0.4")
+    ax2.set_ylabel("measured acceleration, bias removed (axis units/s^2)", color="0.4")
     ax.set_title(f"{_axis(ident, None)}: identification signals")
     ax.set_xlabel("time (s)")
     # a validation block for the zoom
@@ -336,7 +336,7 @@ def write_figures(ident: Identification, out_dir: Path) -> list[Path]:
                 label=f"{k}: fit {f.fit_percent:.1f} %")
     ax.set_title("model prediction vs measurement (validation data)")
     ax.set_xlabel("time (s)")
-    ax.set_ylabel("acceleration")
+    ax.set_ylabel("acceleration (axis units/s^2)")
     ax.legend(loc="upper right", fontsize=8)
     ax = axes[2]
     nper = min(t.size, int(8 * rate))
@@ -353,7 +353,7 @@ def write_figures(ident: Identification, out_dir: Path) -> list[Path]:
     for f0 in prep.notches_hz:
         ax.axvline(f0, color="C3", ls=":", lw=0.8)
     ax.set_xlabel("frequency (Hz)")
-    ax.set_ylabel("acceleration PSD")
+    ax.set_ylabel("acceleration PSD ((axis units/s^2)^2/Hz)")
     ax.set_title("acceleration spectra" + (" (dotted: tremor lines notched)"
                                            if prep.notches_hz else ""))
     ax.legend(fontsize=8)

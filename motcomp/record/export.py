@@ -367,7 +367,10 @@ def _tables(source: Path) -> Iterator[tuple[str, dict[str, np.ndarray]]]:
         cols: dict[str, np.ndarray] = {"log_time_ns": st.log_ns,
                                        "publish_time_ns": st.publish_ns}
         if isinstance(st, InputStream):
-            cols.update(seq=np.where(st.decoded, st.seq, 0), t=st.t, decoded=st.decoded)
+            # empty where the frame was not decoded (no seq to give): never a seq 0 of its own
+            cols.update(seq=np.array([int(q) if d else None for q, d in
+                                      zip(st.seq.tolist(), st.decoded.tolist(), strict=True)],
+                                     dtype=object), t=st.t, decoded=st.decoded)
         elif isinstance(st, OutputStream):
             cols.update(seq=st.seq, t=st.t, src_seq=st.src_seq, valid=st.valid)
         elif isinstance(st, FeedbackStream):
