@@ -80,6 +80,7 @@ from motcomp.errors import ConfigError
 
 __all__ = [
     "GAIN_RTOL",
+    "MS_HAIR",
     "Constraints",
     "MemberResult",
     "OptimalDesign",
@@ -360,6 +361,10 @@ COARSE_SOFTNESS = 10.0
 START_TIE_MS = 1e-4
 """Starts whose objectives differ by less than this are equivalent: the first in the fixed
 order of starts is kept."""
+MS_HAIR = 0.005
+"""How far above ``max_sensitivity`` a design's Ms may read on the dense grid of its evaluation
+and still meet the bound (the optimiser's grid is coarser): beyond it the design report says
+"BEYOND the bound" and the Pareto table "no"."""
 GAIN_RTOL = 1e-4
 """What "the same design" means: the same problem, on any x86-64 CPU, BLAS and thread count,
 gives gains within this relative tolerance of each other (measured across BLAS threads, a

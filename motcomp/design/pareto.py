@@ -24,7 +24,7 @@ from motcomp.core.models import P1D, ProcessModel
 from motcomp.core.pid import PIDGains
 from motcomp.core.tuning import RULE_NAMES, RULES, tune
 from motcomp.design.frequency import Evaluation, evaluate
-from motcomp.design.optimal import Constraints, command_excess_db, optimise
+from motcomp.design.optimal import MS_HAIR, Constraints, command_excess_db, optimise
 from motcomp.design.predictor import PredictionOptions, PredictorBounds, design_predictor
 from motcomp.errors import ConfigError
 
@@ -74,6 +74,8 @@ def _point(label: str, kind: str, bound: float | None, gains: PIDGains, ev: Eval
         feasible = (ev.stable and ev.gain_error_db <= c.gain_error_db + 0.02
                     and excess <= c.command_excess_db + 0.02
                     and ev.peak_command_gain <= c.max_command_gain * 1.002)
+    # the sensitivity as the design report judges it, the optimiser's points included
+    feasible = feasible and ev.ms <= c.max_sensitivity + MS_HAIR
     return ParetoPoint(label=label, kind=kind, peak_bound_db=bound,
                        max_residual_delay_ms=ev.max_residual_delay_ms,
                        peak_gain_db=ev.peak_gain_db, peak_gain_hz=ev.peak_gain_hz,

@@ -710,8 +710,8 @@ def optimal_markdown(block: dict[str, Any]) -> list[str]:
         lines.append(f"| command amplification from {c['hf_from_hz']:g} Hz | {hf_bound:g} | "
                      f"{v['hf_command_gain']:.1f} | "
                      f"{status(v['hf_command_gain'], hf_bound or 0.0, 0.05)} |")
-    ms_flag = ("BEYOND the bound" if v["ms"] > c["max_sensitivity"] + 0.005
-               else status(v["ms"], c["max_sensitivity"], 0.005))
+    ms_flag = ("BEYOND the bound" if v["ms"] > c["max_sensitivity"] + opt.MS_HAIR
+               else status(v["ms"], c["max_sensitivity"], opt.MS_HAIR))
     lines += [
         f"| max sensitivity Ms | {c['max_sensitivity']:g} | {v['ms']:.2f} | {ms_flag} |",
         f"| largest pole modulus (discrete loop) | < 1 | {v['max_pole_modulus']:.5f} | |",
