@@ -562,3 +562,23 @@ def test_a_feasible_smooth_reference_is_never_flagged() -> None:
     assert not any(any(o.limited) for o in outs)
     assert not any(f.startswith("sat:") for o in outs for f in o.flags)
     assert state.sat == [0] * len(AXES)
+
+
+def test_the_wait_for_a_first_frame_is_no_stale_episode() -> None:
+    """300 ms without a frame after the start (stale after 50 ms: the mode says so), then a
+    live sender: no stale episode and no stale time counted; a 100 ms gap later is one
+    episode, its stale time from 50 ms after the last frame to the next."""
+    params, state = new_tick(config())
+    for k in range(300):
+        out = step(state, params, k * MS)
+    assert out.mode == "stale" and state.shaper.stale_episodes == 0
+    for k in range(300, 1300):
+        step(state, params, k * MS, encode_input(k, k * 1e-3, {"rails_y": 0.1}))
+    assert state.shaper.stale_episodes == 0 and state.shaper.stale_total_s == 0.0
+    for k in range(1300, 1400):
+        step(state, params, k * MS)
+    for k in range(1400, 1500):
+        step(state, params, k * MS, encode_input(k, k * 1e-3, {"rails_y": 0.1}))
+    assert state.shaper.stale_episodes == 1
+    assert state.shaper.stale_total_s == pytest.approx(0.1 - params.shaper.stale_after_s,
+                                                       abs=2e-3)

@@ -300,8 +300,12 @@ def format_status(st: dict[str, Any]) -> str:
             lines.append("            band limit " + ", ".join(
                 f"{hz:g} Hz ({ms:.2f} ms)" for hz, ms in bands)
                 + " (design --input-band-hz; its delay is cancelled with the lag)")
-    lines.append(f"stale       now {st.get('stale_s', 0.0):.2f} s  total "
-                 f"{st.get('stale_total_s', 0.0):.2f} s  episodes {st.get('stale_episodes', 0)}")
+    if (st.get("frames") or {}).get("received", 1) == 0:
+        lines.append(f"stale       waiting for a first frame ({st.get('stale_s', 0.0):.2f} s)")
+    else:
+        lines.append(f"stale       now {st.get('stale_s', 0.0):.2f} s  total "
+                     f"{st.get('stale_total_s', 0.0):.2f} s  episodes "
+                     f"{st.get('stale_episodes', 0)}")
     env = st.get("envelope") or {}
     if env.get("clamps"):
         acted = ", ".join(f"{a} {n}" for a, n in (env.get("acted") or {}).items() if n)

@@ -292,6 +292,7 @@ class ReferenceShaper:
         self.parking = False
         self.parked = False
         self.stale_total_s = 0.0
+        """Time the input was stale, and how many times (the wait for a first frame aside)."""
         self.stale_episodes = 0
 
     @property
@@ -351,7 +352,7 @@ class ReferenceShaper:
             self._on_input_smooth(p, pos, now if arrived is None else arrived, t_sender,
                                   rejoin, max(frames, 1))
         if rejoin:
-            if self._stale_since is not None:
+            if self._stale_since is not None and not first:  # not the wait for a first frame
                 self.stale_total_s += now - self._stale_since
             self._stale_since = None
             self._blend_move, self._move = self._move, None
@@ -486,7 +487,8 @@ class ReferenceShaper:
             mode = "stale"
             if self._stale_since is None:
                 self._stale_since = now
-                self.stale_episodes += 1
+                if self.last_input_s is not None:  # not the wait for a first frame
+                    self.stale_episodes += 1
                 self._blend_poly = self._blend_move = None
                 self._blend_pending = False
             if now - self._stale_since < p.hold_s:
