@@ -22,7 +22,7 @@ from typing import Any
 
 import pytest
 
-from motcomp.cli import build_parser
+from motcomp.cli import build_parser, main
 from motcomp.cli._common import (
     non_negative_float,
     non_negative_int,
@@ -131,6 +131,19 @@ def test_bad_numbers_are_usage_errors(argv: list[str], capsys: pytest.CaptureFix
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert f"motcomp {argv[0]}: error: argument" in err, err
+
+
+@pytest.mark.parametrize("argv", [["design", "--plant", "rails", "--bogus", "1"],
+                                  ["status", "--nope"], ["config", "check", "a", "b"]])
+def test_an_unknown_argument_is_said_with_the_command_s_usage(
+        argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    """Not the top level's ``usage: motcomp [-h] [--version] COMMAND ...``."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    usage = f"usage: motcomp {' '.join(argv[:2] if argv[0] == 'config' else argv[:1])}"
+    assert err.startswith(usage) and "error: unrecognized arguments" in err, err
 
 
 def test_negative_timeout_is_a_usage_error_not_a_traceback() -> None:

@@ -60,6 +60,20 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def _command_parser(parser: argparse.ArgumentParser, args: argparse.Namespace
+                    ) -> argparse.ArgumentParser:
+    """The innermost sub-parser ``args`` were parsed by (``motcomp config check``'s for
+    ``config check``)."""
+    while True:
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction) and \
+                    getattr(args, action.dest, None) in action.choices:
+                parser = action.choices[getattr(args, action.dest)]
+                break
+        else:
+            return parser
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the process exit code.  As a process' entry (``argv`` None: the
     command line), it also sets how the process runs zenoh (:func:`use_one_zenoh_thread`)."""
@@ -69,7 +83,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         use_one_zenoh_thread()
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser(MODULE_OF.get(argv[0]) if argv else None)
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # said with the command's own usage, not the top level's
+        _command_parser(parser, args).error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         code = args.func(args)
     except (ConfigError, DataError) as exc:
