@@ -642,3 +642,15 @@ def test_info_of_a_recording_without_outputs_does_not_claim_no_bypass(tmp_path: 
     assert "mode switches: unknown, no output frames recorded" in text, text
     assert "bypass     none" not in text
     assert "mode switches (output flags):" in format_info(summarise(full))
+
+
+def test_ctrl_c_while_the_command_s_modules_load_exits_130_without_a_traceback(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    import importlib
+
+    def interrupted(name: str, package: str | None = None) -> Any:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(importlib, "import_module", interrupted)
+    assert main(["design", "--plant", "rails"]) == 130
+    assert "Traceback" not in capsys.readouterr().err

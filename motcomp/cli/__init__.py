@@ -82,7 +82,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         use_one_zenoh_thread()
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser(MODULE_OF.get(argv[0]) if argv else None)
+    try:  # Ctrl-C while the command's modules load: no traceback
+        parser = build_parser(MODULE_OF.get(argv[0]) if argv else None)
+    except KeyboardInterrupt:
+        return 130
     args, extra = parser.parse_known_args(argv)
     if extra:  # said with the command's own usage, not the top level's
         _command_parser(parser, args).error(f"unrecognized arguments: {' '.join(extra)}")
