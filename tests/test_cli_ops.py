@@ -328,22 +328,22 @@ def test_status_of_a_running_service_as_table_json_and_watch(tmp_path: Path) -> 
         assert "loop times (us" in p.stdout and "{" not in p.stdout
         p = cli("status", "-e", ep, "--json")
         assert p.returncode == 0 and json.loads(p.stdout)["ticks"] > 0
-        w = subprocess.Popen(motcomp_cmd("status", "-e", ep, "--watch", "0.5"),
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                             env=subprocess_env())
-        time.sleep(3.0)
-        w.send_signal(signal.SIGINT)
-        out, err = w.communicate(timeout=10)
-        assert w.returncode == 0, err
+
+        def watch(*extra: str) -> str:
+            """``status --watch 0.5`` for 3 s, stopped by Ctrl-C (exit 0): its stdout."""
+            w = subprocess.Popen(motcomp_cmd("status", "-e", ep, "--watch", "0.5", *extra),
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                 env=subprocess_env())
+            time.sleep(3.0)
+            w.send_signal(signal.SIGINT)
+            out, err = w.communicate(timeout=10)
+            assert w.returncode == 0, err
+            return out
+
+        out = watch()
         assert out.count("\naxis ") >= 2 and out.count("--- ") >= 2, out
         # with --json: one object per line, each the whole status
-        w = subprocess.Popen(motcomp_cmd("status", "-e", ep, "--watch", "0.5", "--json"),
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                             env=subprocess_env())
-        time.sleep(3.0)
-        w.send_signal(signal.SIGINT)
-        out, err = w.communicate(timeout=10)
-        assert w.returncode == 0, err
+        out = watch("--json")
         polls = [json.loads(line) for line in out.splitlines()]
         assert len(polls) >= 2 and all(q["ticks"] > 0 for q in polls), out[:2000]
         assert polls[-1]["ticks"] > polls[0]["ticks"]
