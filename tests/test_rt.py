@@ -2,18 +2,35 @@
 
 from __future__ import annotations
 
+import math
 import os
+import platform
 import struct
 import subprocess
 import sys
+import threading
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
+import numpy as np
 import pytest
 
-from motcomp.config import load_config
+from motcomp.config import load_config, new_tick
+from motcomp.core.axes import AXES
+from motcomp.core.fpmode import subnormals_flushed
+from motcomp.core.tick import step
 from motcomp.errors import ConfigError
+from motcomp.io.wire import encode_input
 from motcomp.resources import config_file
-from motcomp.runtime.rt import CPU_LATENCY_DEVICE, hold_cpu_latency, pin_to_cpu, set_realtime
+from motcomp.runtime.rt import (
+    CPU_LATENCY_DEVICE,
+    hold_cpu_latency,
+    pin_to_cpu,
+    set_realtime,
+)
+
+T = TypeVar("T")
 
 
 def test_off_by_default() -> None:
@@ -163,3 +180,73 @@ def test_the_cpu_latency_needs_a_restart(tmp_path: Path) -> None:
     cfg = tmp_path / "c.toml"
     cfg.write_text(f'include = ["{config_file("motcomp.toml")}"]\n[loop]\ncpu_latency_us = -1\n')
     assert restart_changes(base, load_config(cfg)) == ["loop.cpu_latency_us"]
+
+
+SUBNORMAL = struct.unpack("<d", struct.pack("<Q", 1))[0]
+"""The smallest subnormal double, 4.9e-324 (built from its bits: no arithmetic)."""
+FLUSHING = platform.machine() in ("x86_64", "aarch64") and sys.platform.startswith("linux")
+
+
+def in_thread(fn: Callable[[], T]) -> T:
+    """``fn()`` in a thread of its own (a floating-point mode set there leaves this one alone)."""
+    out: list[T] = []
+    th = threading.Thread(target=lambda: out.append(fn()))
+    th.start()
+    th.join()
+    assert out, "the thread raised"
+    return out[0]
+
+
+def arithmetic(x: float, y: float) -> tuple[float, float, float]:
+    """A subnormal result, a subnormal input times one, and numpy's product of the two."""
+    return x / 4.0, y * 1.0, float(np.multiply(np.array([y]), 1.0)[0])
+
+
+@pytest.mark.skipif(not FLUSHING, reason="flushing is known on x86-64 and AArch64 Linux")
+def test_subnormals_are_flushed_in_the_block_and_its_threads_and_nowhere_else() -> None:
+    normal = sys.float_info.min  # 2.2e-308: a quarter of it is subnormal
+    assert arithmetic(normal, SUBNORMAL) == (normal / 4, SUBNORMAL, SUBNORMAL)
+
+    def block() -> tuple[str, tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
+        with subnormals_flushed() as report:
+            inside = arithmetic(normal, SUBNORMAL)
+            child = in_thread(lambda: arithmetic(normal, SUBNORMAL))  # inherits the mode
+        return report, inside, child, arithmetic(normal, SUBNORMAL)
+
+    report, inside, child, after = in_thread(block)
+    assert report == "subnormals flushed to zero"
+    assert inside == child == (0.0, 0.0, 0.0)
+    assert after == (normal / 4, SUBNORMAL, SUBNORMAL)  # the block's end restores the mode
+    assert arithmetic(normal, SUBNORMAL) == (normal / 4, SUBNORMAL, SUBNORMAL)  # this thread's
+
+
+def rest_after_a_tiny_motion(flush: bool) -> list[float]:
+    """The tick's outputs and reference of the rails while a motion of 1e-290 m ends and they
+    come to rest (a large motion sinks as far, only later), the subnormal ones."""
+    cfg = load_config(config_file("motcomp.toml"))
+    params, state = new_tick(cfg)
+
+    def run() -> list[float]:
+        found = []
+        for k in range(4000):
+            now = 10**12 + k * 10**6
+            y = 1e-290 * math.sin(2 * math.pi * 0.5 * k / 1000) if k < 1000 else 0.0
+            frame = encode_input(k, now / 1e9, {a: y if a.startswith("rails") else 0.0
+                                                for a in AXES})
+            out = step(state, params, now, [frame])
+            found += [x for x in (*out.u, *state.shaper.ref) if 0 < abs(x) < sys.float_info.min]
+        return found
+
+    def flushed() -> list[float]:
+        with subnormals_flushed():
+            return run()
+
+    return in_thread(flushed if flush else run)
+
+
+@pytest.mark.skipif(not FLUSHING, reason="flushing is known on x86-64 and AArch64 Linux")
+def test_the_tick_computes_no_subnormal_where_it_flushes_them() -> None:
+    """At rest the states of decaying filters sink towards zero through the subnormals (slow
+    on some CPUs): in the loop's mode the tick never holds one."""
+    assert rest_after_a_tiny_motion(flush=False)  # they arise where they are not flushed
+    assert rest_after_a_tiny_motion(flush=True) == []

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import platform
 import re
 import signal
 import subprocess
@@ -125,6 +126,8 @@ send_every = 4
             assert sent > 0.5 * n and st["frames"]["accepted"] > 0.5 * sent
             assert st["mode"] == "running"
             assert "slice" in st["realtime"], st["realtime"]  # the loop thread's scheduling
+            if platform.machine() in ("x86_64", "aarch64"):  # and its floating-point mode
+                assert st["realtime"].endswith("; subnormals flushed to zero"), st["realtime"]
             if os.access(CPU_LATENCY_DEVICE, os.W_OK):  # its request, held while it runs
                 assert "CPU wake-up latency at most 0 us" in st["realtime"], st["realtime"]
                 fds = Path(f"/proc/{svc.pid}/fd")

@@ -424,7 +424,7 @@ def mode_medians(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 def sched_name(report: str) -> str:
     """How the loop thread was scheduled, from the service's own report."""
     parts = [p.split(" (")[0] for p in report.split("; ") if p and p != "not pinned"
-             and not p.startswith(("normal scheduling", "slice not set"))]
+             and not p.startswith(("normal scheduling", "slice not set", "subnormals"))]
     return "; ".join(parts)
 
 

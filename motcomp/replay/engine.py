@@ -6,8 +6,9 @@ frame the tick read (the tick checks them itself) and the number of deadlines mi
 (the tick computes the catch-up steps itself).  Between ticks it does what the service does
 between ticks: bypass switches (:func:`~motcomp.core.tick.set_bypass`) and the parking request
 (:func:`~motcomp.core.tick.park`).  The same function on the same bytes at the same instants
-gives the same numbers: a replay with the recorded config reproduces the recorded outputs bit
-for bit (docs/REPLAY.md says when the instants are known exactly).
+gives the same numbers (in the same floating-point mode: subnormals flushed to zero, as in the
+service's loop): a replay with the recorded config reproduces the recorded outputs bit for bit
+(docs/REPLAY.md says when the instants are known exactly).
 
 Catch-up rows of the plan are not stepped here: they are the ``skipped`` of the tick that
 follows them, and their columns in :class:`EngineResult` are NaN (nothing was sent).
@@ -24,6 +25,7 @@ import numpy as np
 
 from motcomp.config import ResolvedAxes, ServiceConfig, new_tick, resolve_axes
 from motcomp.core.axes import AXES
+from motcomp.core.fpmode import subnormals_flushed
 from motcomp.core.tick import TickParams, TickState, park, set_bypass, step, warm_start
 from motcomp.record.frames import FLAG_BITS
 from motcomp.record.session import InputStream
@@ -88,8 +90,15 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
 
     A warm plan starts at rest at :func:`initial_position`, with no start-up blend until the
     first frame is accepted.  Catch-up rows must be consecutive periods ending just before a
-    tick (as :func:`~motcomp.replay.plan.build_plan` makes them).
+    tick (as :func:`~motcomp.replay.plan.build_plan` makes them).  Computes with subnormals
+    flushed to zero, as the service's loop does (:func:`~motcomp.core.fpmode.flush_subnormals`).
     """
+    with subnormals_flushed():
+        return _run_ticks(plan, inp, cfg, progress)
+
+
+def _run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
+               progress: Callable[[float], None] | None) -> EngineResult:
     t0 = time.perf_counter()
     axes = resolve_axes(cfg)
     params, state = new_tick(cfg, axes)

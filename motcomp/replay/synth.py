@@ -22,6 +22,7 @@ import numpy as np
 
 from motcomp.config import ServiceConfig, config_hash, new_tick, resolve_axes
 from motcomp.core.axes import AXES, AXIS_INDEX
+from motcomp.core.fpmode import subnormals_flushed
 from motcomp.core.tick import is_parked, park, set_bypass, step
 from motcomp.io.wire import encode_feedback, encode_input, encode_output
 from motcomp.record.recorder import SessionWriter
@@ -86,7 +87,13 @@ def motion(t: np.ndarray, axis: str, amplitude: float = 1.0) -> np.ndarray:
 
 
 def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict[str, object]:
-    """Write the recording of a synthetic session; returns facts about it (tick count...)."""
+    """Write the recording of a synthetic session; returns facts about it (tick count...).
+    The tick computes with subnormals flushed to zero, as in the service's loop."""
+    with subnormals_flushed():
+        return _synthesize(path, cfg, opts)
+
+
+def _synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict[str, object]:
     rng = np.random.default_rng(opts.seed)
     period = round(1e9 / cfg.loop.rate_hz)
     n_src = int(opts.duration_s * opts.source_hz)

@@ -19,6 +19,7 @@ that opens the session.
   takes longer than that to leave.  A loop that sleeps between ticks then wakes on time and on
   warmer caches (with 0, idle CPUs poll; on a virtual machine its virtual CPUs stop halting).
   The file is root's by default; docs/DEPLOYMENT.md gives the service's user access to it.
+- *Subnormals* are flushed to zero in the loop thread (:mod:`motcomp.core.fpmode`).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import platform
 import struct
 
 from motcomp.config import SLICE_MAX_US, SLICE_MIN_US, LoopConfig
+from motcomp.core.fpmode import flush_subnormals
 
 __all__ = ["CPU_LATENCY_DEVICE", "get_slice_us", "hold_cpu_latency", "pin_to_cpu", "schedule_loop",
            "set_realtime", "set_slice"]
@@ -149,10 +151,10 @@ def hold_cpu_latency(latency_us: int, device: str = CPU_LATENCY_DEVICE) -> tuple
 
 def schedule_loop(loop: LoopConfig) -> tuple[str, int | None]:
     """Schedule the calling thread as ``loop`` asks for the service's loop thread (real-time
-    priority, slice, CPU) and hold the CPUs' wake-up latency; returns what happened (the
-    status' ``realtime``) and the latency request's descriptor (None: none held), to close when
-    the loop ends."""
+    priority, slice, CPU), hold the CPUs' wake-up latency and flush its subnormals; returns
+    what happened (the status' ``realtime``) and the latency request's descriptor (None: none
+    held), to close when the loop ends."""
     naps = f"naps of {loop.sleep_max_us:g} us" if loop.sleep_max_us > 0 else "one sleep per tick"
     latency, fd = hold_cpu_latency(loop.cpu_latency_us)
     return (f"{set_realtime(loop.realtime_priority)}; {set_slice(loop.slice_us)}; {naps}; "
-            f"{pin_to_cpu(loop.cpu)}; {latency}"), fd
+            f"{pin_to_cpu(loop.cpu)}; {latency}; {flush_subnormals()}"), fd

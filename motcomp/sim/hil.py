@@ -27,6 +27,7 @@ import msgpack
 import numpy as np
 
 from motcomp.core.axes import AXES
+from motcomp.core.fpmode import subnormals_flushed
 from motcomp.core.models import ProcessModel, parse_model
 from motcomp.errors import ConfigError, FrameError
 from motcomp.io.wire import decode_output, encode_feedback
@@ -308,8 +309,8 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
 
         receiver = CanSetpointReceiver(open_bus(cfg.can_interface, cfg.can_channel),
                                        cfg.dbc or config_file("motcomp.dbc"))
-    with open_session(endpoints) as session:
-        _log_startup(cfg, endpoints, plat)
+    with open_session(endpoints) as session, subnormals_flushed() as flushed:
+        _log_startup(cfg, endpoints, plat, flushed)
         # every frame, in order (a ring: never blocks zenoh, keeps the newest 4096)
         source = (session.declare_subscriber(cfg.setpoint_key, zenoh.handlers.RingChannel(4096))
                   if cfg.transport == "zenoh" else None)
@@ -362,12 +363,13 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
     return 0
 
 
-def _log_startup(cfg: HilConfig, endpoints: ZenohEndpoints, plat: HilPlatform) -> None:
+def _log_startup(cfg: HilConfig, endpoints: ZenohEndpoints, plat: HilPlatform,
+                 flushed: str) -> None:
     where = (f"CAN {cfg.can_interface} {cfg.can_channel} (DBC {cfg.dbc or 'shipped'})"
              if cfg.transport == "can" else f"zenoh {cfg.setpoint_key}")
     log.info("simulated platform at %g Hz; zenoh %s; setpoints from %s; feedback on %s, "
-             "counters on %s at 1 Hz", cfg.rate_hz, endpoints.describe(), where,
-             cfg.feedback_key, cfg.status_key)
+             "counters on %s at 1 Hz; %s", cfg.rate_hz, endpoints.describe(), where,
+             cfg.feedback_key, cfg.status_key, flushed)
     v_hard = plat.v_hard
     for i, axis in enumerate(AXES):
         log.info("  %-9s truth %s; hard limits [%g, %g]%s", axis, cfg.models[i],
