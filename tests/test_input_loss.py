@@ -7,15 +7,21 @@ added), hex_z predicted with its PID bypassed (the example's).  When the input i
 stale, with the command at ``p`` moving at ``v`` (``s`` the sign of ``v``), for every later
 tick of the episode::
 
-    s (u - p) <= max(v^2 / (2 a_max), max over the references r since then of s (r - p)) + SLACK
+    s (u - p) <= max(v^2 / (2 a_max), max over the references r since then of s (r - p))
+                 + MOVE_SHARE a_max h^2 + SLACK
 
-(the braking distance, widened only by the ramp to neutral); every command within the axis'
-limits from the start of the run (:func:`tests.test_saturation.check_sequence`); the axis at
-neutral, at rest, at the end of the ramp.  The hold then the ramp: until ``hold_s`` after
+(the braking distance, widened only by the ramp to neutral, and the limiter's catch of a ramp it
+follows from behind: a step it may overshoot by up to ``a_max h^2``, 6 um on the rails); every
+command within the axis' limits from the start of the run
+(:func:`tests.test_saturation.check_sequence`); the axis at neutral, at rest, at the end of the
+ramp.  The hold then the ramp: until ``hold_s`` after
 ``stale``, once braked (its velocity no longer the way it went) the command only comes back
 to the held reference (no ramp before ``hold_s``); its speed stays within the ramp's peak speed
 (``ramp_speed_fraction x vel_max``), or within braking at ``a_max`` from its speed at the stale
-instant while above it.
+instant while above it.  An axis back on the held reference when the hold ends follows the ramp
+to neutral as it is (its acceleration within the ramp's, a quarter of ``a_max``): the window
+takes in the ramp's reach, so its edge never brakes the command (it did, at up to ``a_max``
+for 10-45 ms, when it took in only the reference itself).
 
 On the previous behaviour (no window) the travel bound fails for the compensated rails_y: on 14
 stops (speeds 0.8-1.2, stops at 3.7-8.05 s) it ran 0.015-0.107 m beyond the bound, its speed
@@ -159,7 +165,8 @@ def assert_path_to_rest(ep: Episode, i: int, hold: bool = True) -> float:
     """The property of the module docstring for axis ``i`` (without the hold: parking);
     returns the worst excess travel."""
     excess, _ = excess_travel(ep, i)
-    assert excess <= SLACK, f"{AXES[i]}: {excess:.6f} m beyond the bound"
+    catch = MOVE_SHARE * ep.state.comp.limits.a_max[i] * H * H
+    assert excess <= catch + SLACK, f"{AXES[i]}: {excess:.6f} m beyond the bound"
     u = ep.u[:, i]
     check_sequence(u, 0.0, ep.state.comp.limits, H, i)
     assert abs(u[-1]) < 1e-9 and abs(u[-1] - u[-2]) < 1e-12, \
@@ -179,6 +186,12 @@ def assert_path_to_rest(ep: Episode, i: int, hold: bool = True) -> float:
     assert speed[worst] <= cap[worst] * (1.0 + RAMP_SPEED_TOL), \
         f"{AXES[i]}: {speed[worst]:.4f} {worst} ms after stale, above the ramp's " \
         f"{sp.ramp_speed[i]} (or braking at a_max)"
+    if hold and abs(u[k_hold] - ep.ref[0, i]) < 1e-9:
+        # back on the held reference when the hold ends: the command follows the ramp to
+        # neutral as it is, within its acceleration (the window never brakes it)
+        acc = np.abs(np.diff(u[k_hold - 1:], 2)) / H**2
+        assert acc.max() <= sp.blend_acc[i] * (1.0 + 1e-6), \
+            f"{AXES[i]}: {acc.max():.3f} on the ramp to neutral, above its {sp.blend_acc[i]:g}"
     return excess
 
 
@@ -189,6 +202,7 @@ SPEEDS = (0.8, 1.0, 1.2)
 @given(speed=st.sampled_from(SPEEDS), stop_s=st.floats(FIRST_STOP_S, LAST_STOP_S - 0.01))
 @example(speed=1.0, stop_s=8.1 - 0.05)
 @example(speed=1.0, stop_s=6.0)
+@example(speed=0.8, stop_s=4.1)  # the window braked rails_x and hex_z at 0.99 and 0.91 a_max
 def test_the_path_to_rest_after_an_input_loss_is_bounded(speed: float, stop_s: float) -> None:
     ep = stop_at(speed, stop_s)
     for i in (RY, RX, HZ):

@@ -96,19 +96,20 @@ Rules for edge cases
   both ways (docs/TUNING.md, "Switching compensation on and off").
 * Input loss (:meth:`open_window`, the tick's rule: :mod:`motcomp.core.tick`): each axis is held
   in a window, the hull of its command, its braking point ``u + v |v| / (2 a_max)`` and the
-  reference (widened by later references, :meth:`widen_window`), by the limiter itself: the
-  window's bounds replace the axis' position limits and the ramp's peak speed its velocity
-  limit, so that the limiter's braking condition, which keeps the end of the range, keeps the
-  window's edge.  The braking point is reachable from ``(u, v)`` at ``a_max`` (the exact
-  discrete distance is ``v^2/(2 a_max) - a_max h^2/2`` at most, :mod:`motcomp.core.saturation`),
-  so the command never goes beyond it.  Meanwhile the target is the reference (``w`` = 0 at
-  once), and the PID starts over at rest at the held reference (its output is that reference
-  while it holds: the compensated path of the reference from the loss on, not its response to
-  the step the hold makes of a moving reference, which rang for 0.2 s at tens of m/s^2 and
-  leaked through the weight at the rejoin).  :meth:`close_window` switches compensation back on
-  as a switch out of bypass does, but with no ``fade_s`` floor: within the hold the two paths
-  meet at rest and the switch is immediate; during the ramp to neutral the weight moves as
-  fast as their gap and its rate allow (docs/TUNING.md, "Switching compensation on and off").
+  reference (widened by later references and the reach of their motion, :meth:`widen_window`), by
+  the limiter itself: the window's bounds replace the axis' position limits and the ramp's peak
+  speed its velocity limit, so that the limiter's braking condition, which keeps the end of the
+  range, keeps the window's edge. The braking point is reachable from ``(u, v)`` at ``a_max`` (the
+  exact discrete distance is ``v^2/(2 a_max) - a_max h^2/2`` at most,
+  :mod:`motcomp.core.saturation`), so the command never goes beyond it. Meanwhile the target is
+  the reference (``w`` = 0 at once), and the PID starts over at rest at the held reference (its
+  output is that reference while it holds: the compensated path of the reference from the loss on,
+  not its response to the step the hold makes of a moving reference, which rang for 0.2 s at tens
+  of m/s^2 and leaked through the weight at the rejoin). :meth:`close_window` switches
+  compensation back on as a switch out of bypass does, but with no ``fade_s`` floor: within the
+  hold the two paths meet at rest and the switch is immediate; during the ramp to neutral the
+  weight moves as fast as their gap and its rate allow (docs/TUNING.md, "Switching compensation on
+  and off").
 """
 
 from __future__ import annotations
@@ -288,6 +289,8 @@ class Compensator:
         self._window: list[tuple[float, ...] | None] = [None] * n
         """Per axis, the limiter's constants with a window's bounds (:meth:`open_window`)."""
         self._window_speed = [0.0] * n
+        self._window_ref = [0.0] * n
+        """Per axis, the reference the window last took in (:meth:`widen_window`)."""
         self._set_lim(limits)
         self._models: tuple[P1D, ...] = ()
         self._gains: tuple[PIDGains, ...] = ()
@@ -351,16 +354,28 @@ class Compensator:
             r = reference[i]
             cap = speed[i]
             self._window_speed[i] = cap if 0.0 < cap < lim[4] else lim[4]
+            self._window_ref[i] = r
             self._set_window(i, min(u, stop, r), max(u, stop, r))
 
     def widen_window(self, reference: Sequence[float]) -> None:
-        """Widen each open window to take in ``reference`` (a ramp to neutral is never
-        blocked); allocates only when a bound moves."""
+        """Widen each open window to take in ``reference`` and, where the command is not ahead
+        of it, the reach of its motion: one more step of it and its braking distance at half
+        ``a_max``, ``r + v h + v |v| / a_max`` (``v`` its velocity since the last call).  A
+        target moving on at the window's very edge would be braked there as at an end stop, at
+        ``a_max``: the reach keeps a ramp to neutral feasible, so a command on it or behind it
+        follows it as it is, never braked; a command ahead of it is braked to it at the edge.
+        Allocates only when a bound moves."""
         for i, win in enumerate(self._window):
             if win is not None:
                 r = reference[i]
-                if r < win[2] or r > win[3]:
-                    self._set_window(i, min(r, win[2]), max(r, win[3]))
+                step = r - self._window_ref[i]
+                self._window_ref[i] = r
+                lim = self._lim[i]  # lim[1] = 1 / h, lim[8] = 1 / (2 a_max)
+                reach = r if step * (self._u[i] - r) > 0.0 else (
+                    r + step + step * abs(step) * lim[1] * lim[1] * 2.0 * lim[8])
+                lo, hi = (r, reach) if reach >= r else (reach, r)
+                if lo < win[2] or hi > win[3]:
+                    self._set_window(i, min(lo, win[2]), max(hi, win[3]))
 
     def close_window(self) -> None:
         """The input is live again: every axis back to its limits, and the compensated ones
