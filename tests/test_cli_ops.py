@@ -622,6 +622,38 @@ def test_status_watch_ends_on_sigterm_with_exit_0() -> None:
             p.wait()
 
 
+def test_status_watch_goes_on_past_a_service_that_does_not_answer(tmp_path: Path) -> None:
+    """A service that matches the query but does not answer in time (stalled: zenoh replies
+    ``Timeout`` for it) is a poll nobody answered: a line on stderr, the watch goes on; a
+    single status says so and exits 3."""
+    port = free_tcp_port()
+    with open_session(ZenohEndpoints(listen=(loopback(port),))) as session:
+        mute = session.declare_queryable("motcomp/status")  # takes queries, never replies
+        try:
+            p = subprocess.Popen(motcomp_cmd("status", "--watch", "0.2", "--timeout", "0.3",
+                                             "--json", "-e", loopback(port)),
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                 env=subprocess_env())
+            try:
+                assert p.stderr is not None
+                lines = [p.stderr.readline() for _ in range(3)]  # three unanswered polls
+                p.send_signal(signal.SIGTERM)
+                assert p.wait(timeout=30) == 0
+                rest = p.stderr.read()
+            finally:
+                if p.poll() is None:
+                    p.kill()
+                    p.wait()
+            assert all("no reply from the service" in line for line in lines), (lines, rest)
+            assert "Traceback" not in rest and "failed" not in rest, rest
+            one = subprocess.run(motcomp_cmd("status", "--timeout", "0.5", "-e", loopback(port)),
+                                 capture_output=True, text=True, env=subprocess_env(),
+                                 timeout=60)
+            assert one.returncode == 3 and "no reply from the service" in one.stderr, one.stderr
+        finally:
+            mute.undeclare()
+
+
 def test_info_of_a_recording_without_outputs_does_not_claim_no_bypass(tmp_path: Path) -> None:
     """Without output frames (a service whose output went over CAN alone) the mode switches
     cannot be told: info says so instead of "bypass none"."""

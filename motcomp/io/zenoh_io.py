@@ -247,9 +247,15 @@ class ZenohSink:
         self._pub.undeclare()
 
 
+ZENOH_TIMEOUT = "Timeout"
+"""The error zenoh itself replies with when a queryable matched but did not answer in time."""
+
+
 def query(session: Any, key: str, payload: bytes | None = None, timeout_s: float = 2.0
           ) -> list[bytes]:
-    """Payloads of the replies to a query (errors from the queryable raise TransportError)."""
+    """Payloads of the replies to a query: none if nobody answered within ``timeout_s`` (no
+    queryable, or one that did not answer in time); an error reply from the queryable raises
+    TransportError."""
     out: list[bytes] = []
     kwargs: dict[str, Any] = {"timeout": timeout_s}
     if payload is not None:
@@ -257,8 +263,8 @@ def query(session: Any, key: str, payload: bytes | None = None, timeout_s: float
     for reply in session.get(key, **kwargs):
         if reply.ok is not None:
             out.append(reply.ok.payload.to_bytes())
-        else:
-            raise TransportError(f"query {key}: {reply.err.payload.to_string()}")
+        elif (err := reply.err.payload.to_string()) != ZENOH_TIMEOUT:
+            raise TransportError(f"query {key}: {err}")
     return out
 
 
