@@ -61,7 +61,7 @@ from motcomp.core.quality import (
     estimate_delay,
     stretches,
 )
-from motcomp.errors import ServiceError
+from motcomp.errors import ConfigError, ServiceError
 from motcomp.io.zenoh_io import (
     ZenohEndpoints,
     first_reply,
@@ -71,6 +71,7 @@ from motcomp.io.zenoh_io import (
 )
 from motcomp.progress import Progress
 from motcomp.resources import config_file
+from motcomp.runtime.probe import loop_kept_from_cpu
 from motcomp.sim.ideal import IdealRun, ideal_run
 from motcomp.sim.source import Trajectory, builtin
 
@@ -171,6 +172,8 @@ class DemoResult:
     figures_from: dict[str, float] = field(default_factory=dict)
     """Per phase, where the command figures start (s into the motion): :data:`STARTUP_S`, or
     later where the service's prefilters reached full weight later."""
+    unmeasured: dict[str, str] = field(default_factory=dict)
+    """Why a delay could not be measured, by ``"<axis> <phase>"`` (its delay is NaN)."""
 
 
 def _spawn(args: list[str], log: Path) -> subprocess.Popen[bytes]:
@@ -192,13 +195,20 @@ def _drain(sub: Any, trace: _Trace, count: list[int]) -> None:
             pass
 
 
-def _resampled_delay(ref: _Trace, out: _Trace, axis: str, t0: float, t1: float) -> float:
+def _resampled_delay(ref: _Trace, out: _Trace, axis: str, t0: float, t1: float
+                     ) -> tuple[float, str]:
+    """The apparent delay of ``axis`` over ``[t0, t1]`` (s), or NaN and why it was not
+    measured."""
     tr, r = ref.window(axis, t0, t1)
     to, y = out.window(axis, t0, t1)
     if tr.size < 100 or to.size < 100 or np.ptp(r) == 0:
-        return float("nan")
+        return float("nan"), "too few samples of the motion or of the feedback"
     grid = np.arange(max(tr[0], to[0]), min(tr[-1], to[-1]), 1e-3)
-    return estimate_delay(np.interp(grid, tr, r), np.interp(grid, to, y), 1000.0, max_lag_s=1.0)
+    try:
+        return estimate_delay(np.interp(grid, tr, r), np.interp(grid, to, y), 1000.0,
+                              max_lag_s=1.0), ""
+    except ConfigError as exc:  # the feedback does not follow the motion within the lags
+        return float("nan"), str(exc)
 
 
 @dataclass
@@ -450,10 +460,14 @@ def run_demo(out_dir: Path, quiet: bool = False, keep_logs: bool = True) -> Demo
     finally:
         codes = stop_processes(procs)
     delays: dict[str, dict[str, float]] = {}
+    unmeasured: dict[str, str] = {}
     axes = [a for a in AXES if a in setpoints.pos]
     for axis in axes:
-        delays[axis] = {ph: _resampled_delay(setpoints, feedback, axis, *span)
-                        for ph, span in phases.items()}
+        delays[axis] = {}
+        for ph, span in phases.items():
+            delays[axis][ph], why = _resampled_delay(setpoints, feedback, axis, *span)
+            if why:
+                unmeasured[f"{axis} {ph}"] = why
     say("ideal runs (the config's tick fed the same motion perfectly timed, offline)")
     ideal = _ideal_runs(cfg, traj)
     limits = resolve_axes(cfg).limits
@@ -479,7 +493,7 @@ def run_demo(out_dir: Path, quiet: bool = False, keep_logs: bool = True) -> Demo
     fig, panels = _figure(setpoints, feedback, grids, ideal, motion, delays, acc_limit, command,
                           out_dir / "demo.png")
     result = DemoResult(delays, saturation, command, frames, acc_limit, motion, stale, status,
-                        hil_status, codes, fig, phases, panels, figures_from)
+                        hil_status, codes, fig, phases, panels, figures_from, unmeasured)
     if not keep_logs:
         for f in logs.iterdir():
             f.unlink()
@@ -497,6 +511,10 @@ def _ratio(x: float) -> str:
     if math.isnan(x):
         return "n/a"
     return f"{x:.1f}" if x < 1000 else ">999"
+
+
+def _ms(x: float) -> str:
+    return "n/a" if not math.isfinite(x) else f"{x * 1e3:5.1f}ms"
 
 
 def _pct(x: float) -> str:
@@ -521,7 +539,7 @@ def report(res: DemoResult) -> str:
     for axis, d in res.delays.items():
         for ph in PHASES:
             delay = d.get(ph, nan)
-            gained = f"{(d.get('off', nan) - delay) * 1e3:5.1f}ms" if ph == "on" else ""
+            gained = _ms(d.get("off", nan) - delay) if ph == "on" else ""
             c = res.command.get(axis, {}).get(ph)
             live_hf = ideal_hf = ratio = live_j = ideal_j = at = ideal_at = nan
             if c is not None:
@@ -530,10 +548,18 @@ def report(res: DemoResult) -> str:
                 at, ideal_at = c.at_limit, c.ideal_at_limit
             name = f"{axis} [{unit(axis)}]" if ph == PHASES[0] else ""
             lines.append(
-                f"{name:<15} {ph:<5} {delay * 1e3:5.1f}ms {gained:>7}  {_g(live_hf):>8} "
+                f"{name:<15} {ph:<5} {_ms(delay):>7} {gained:>7}  {_g(live_hf):>8} "
                 f"{_g(ideal_hf):>8} {_ratio(ratio):>6}  {_g(live_j):>7} {_g(ideal_j):>7}  "
                 f"{_pct(at):>8} {_pct(ideal_at):>8}  "
                 f"{res.saturation.get(axis, {}).get(ph, 0):>5}")
+    for key, why in res.unmeasured.items():
+        lines.extend(_wrap(f"{key}: delay not measured ({why})."))
+    starved = loop_kept_from_cpu(res.status)
+    if starved:
+        lines.extend(_wrap(f"NOT A QUIET HOST'S FIGURES: {starved}.  The delays and the "
+                           "command's figures above carry those stalls; the README's are a "
+                           "host's that holds the rate (docs/DEPLOYMENT.md, \"Missed "
+                           "deadlines\")."))
     predicted = [a for a in res.delays if a in (res.status.get("prediction") or {})]
     bypassed = set(res.status.get("bypass") or [])
     alone = [a for a in predicted if a in bypassed]
@@ -659,7 +685,8 @@ def _figure(sp: _Trace, fb: _Trace, grids: dict[str, _Command], ideal: dict[str,
         for ph, (m0, m1) in motion.items():
             tf, y = fb.window(axis, *_phase_span((m0, m1)))
             d = delays.get(axis, {}).get(ph, float("nan"))
-            ax.plot(tf - m0, y, color[ph], lw=1, label=f"platform, {ph} ({d * 1e3:.0f} ms)")
+            lag = f"{d * 1e3:.0f} ms" if math.isfinite(d) else "delay not measured"
+            ax.plot(tf - m0, y, color[ph], lw=1, label=f"platform, {ph} ({lag})")
         finish(ax, axis, "position", f"position ({unit(axis)})",
                "setpoint and platform feedback")
 

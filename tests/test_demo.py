@@ -15,12 +15,13 @@ from __future__ import annotations
 import math
 import platform
 
+import numpy as np
 import pytest
 
 from motcomp.config import load_config
-from motcomp.demo import PHASES, RAILS, DemoResult, report, run_demo
+from motcomp.demo import PHASES, RAILS, DemoResult, _resampled_delay, _Trace, report, run_demo
 from motcomp.resources import config_file
-from motcomp.runtime.probe import HostClock, HostProbe
+from motcomp.runtime.probe import HostClock, HostProbe, loop_kept_from_cpu
 from tests.conftest import judge_realtime
 
 pytestmark = pytest.mark.slow
@@ -66,6 +67,10 @@ def test_demo_reports_the_delay_gained(demo: DemoResult, host: HostClock | None)
     text = report(demo)
     assert all(code == 0 for code in demo.exit_codes.values()), text
     assert "Platform hard-limit violations: 0" in text
+    # a host that starved the service's loop is said under the table, with the reason
+    starved = loop_kept_from_cpu(demo.status)
+    assert ("NOT A QUIET HOST'S FIGURES" in text) == bool(starved), text
+    assert not starved or starved in " ".join(text.split()), text
     judge_realtime(host, "the delays of the demo", demo.status)
     ms = {a: (d["off"] * 1e3, d["on"] * 1e3) for a, d in demo.delays.items()}
     off, on = ms["rails_y"]  # the slalom, as in the paper's Fig. 4
@@ -150,3 +155,17 @@ def test_compensated_command_is_near_the_floor(demo: DemoResult, host: HostClock
         c = demo.command[axis]["on"]
         assert c.at_limit <= MAX_LIMITED_SHARE_ON, (axis, text)
         assert c.hf_ratio <= MAX_HF_RATIO_TO_IDEAL, (axis, text)
+
+
+def test_a_delay_the_feedback_does_not_show_is_not_measured_and_says_why() -> None:
+    """Feedback that does not follow the motion within the searched lags (a host that starved
+    the platform): the delay is NaN with the reason, the demo goes on (it stopped with exit 2)."""
+    t = np.arange(0.0, 10.0, 1e-3)
+    ref, out = _Trace(), _Trace()
+    for tk in t.tolist():  # the feedback drifts away: no lag within [-0.5, 1] s explains it
+        ref.add(tk, {"rails_y": math.sin(2 * math.pi * 0.31 * tk)})
+        out.add(tk, {"rails_y": tk})
+    delay, why = _resampled_delay(ref, out, "rails_y", 0.0, 10.0)
+    assert math.isnan(delay) and "edge of the searched lags" in why, (delay, why)
+    delay, why = _resampled_delay(ref, ref, "rails_y", 0.0, 10.0)
+    assert abs(delay) < 1e-3 and why == ""
