@@ -157,3 +157,26 @@ def test_live_profile_switch_is_bumpless(tmp_path: Path) -> None:
         assert svc.wait(timeout=20) == 0
     log = (tmp_path / "svc.log").read_text()
     assert "switch to profile fast ok" in log and "switch to profile sport rejected" in log
+
+
+def test_a_reload_keeps_the_profile_chosen_live(tmp_path: Path) -> None:
+    """``motcomp profile fast`` then a reload (SIGHUP) of a file that sets no profile: fast
+    stays active; a file that sets one wins; a file that no longer defines it: none."""
+    path = tmp_path / "motcomp.toml"
+    head = f'include = ["{config_file("motcomp.toml")}"]\n'
+    path.write_text(head + PROFILES)
+    svc = Service(parse_config(read_toml(path), str(path)), ZenohEndpoints(), config_path=path)
+    svc.preparer.start(wait=True)
+    with running(svc):
+        assert svc.switch_profile("fast")["ok"]
+        r = svc.reload()
+        assert r["ok"] and svc.cfg.profile == "fast" and r["profile"] == "fast", r
+        assert (svc.axes.gains[Y].kp, svc.axes.gains[Y].ki) == (3.0, 40.0)
+        path.write_text(head + 'profile = "normal"\n' + PROFILES)  # the file's own: it wins
+        assert svc.reload()["ok"] and svc.cfg.profile == "normal"
+        path.write_text(head + PROFILES)  # none in the file, none chosen live since
+        assert svc.reload()["ok"] and svc.cfg.profile is None
+        assert svc.switch_profile("normal")["ok"]
+        path.write_text(head + PROFILES[PROFILES.index("[profiles.fast]"):])  # normal gone
+        r = svc.reload()
+        assert r["ok"] and svc.cfg.profile is None, r

@@ -198,6 +198,9 @@ class Service:
         ``reload --config`` (what SIGHUP and ``reload`` re-read, and the status shows)."""
         self.confinement = self._confine(config_path)
         self.preparer = Preparer()
+        self.live_profile: str | None = None
+        """The profile an operator chose with ``motcomp profile`` (None: none chosen live):
+        a reload of a file that sets no profile keeps it while the file still defines it."""
         self.axes = resolve_axes(cfg)
         for w in self.axes.warnings:
             log.warning("%s", w)
@@ -657,8 +660,22 @@ class Service:
                 source = self.confinement.root / source
         attempt: dict[str, Any] = {"t": time.time(), "kind": "reload",
                                    "path": str(source) if source else None}
-        out = self._attempt(attempt, lambda: self.preparer.prepare_config(
-            self.cfg, self.axes, source, self.confinement), "reload")
+
+        def prepare() -> Prepared:
+            new = self.preparer.prepare_config(self.cfg, self.axes, source, self.confinement)
+            live = self.live_profile
+            if live is None or new.cfg.profile is not None:
+                return new  # none chosen live, or the file names its own
+            if live not in new.cfg.profiles:
+                log.warning("profile %s (chosen live) is not defined in the reloaded config: "
+                            "no profile active", live)
+                return new
+            log.info("profile %s (chosen live) kept: the reloaded config sets none", live)
+            return self.preparer.prepare_profile(new.cfg, new.axes, live)
+
+        out = self._attempt(attempt, prepare, "reload")
+        if out["ok"] and (self.cfg.profile is None or self.cfg.profile != self.live_profile):
+            self.live_profile = None  # the file's choice (or none) is in force now
         if out["ok"] and path and source != self.config_path:
             log.info("config in force is now %s (was %s): SIGHUP and reload re-read it",
                      source, self.config_path)
@@ -668,9 +685,12 @@ class Service:
     def switch_profile(self, name: str | None) -> dict[str, Any]:
         """Make ``name`` the active scenario profile (None: none), bumplessly."""
         attempt: dict[str, Any] = {"t": time.time(), "kind": "profile", "path": None}
-        return self._attempt(
+        out = self._attempt(
             attempt, lambda: self.preparer.prepare_profile(self.cfg, self.axes, name),
             f"switch to profile {name}" if name else "switch to no profile")
+        if out["ok"]:
+            self.live_profile = name
+        return out
 
     def _attempt(self, attempt: dict[str, Any], prepare: Callable[[], Prepared], what: str
                  ) -> dict[str, Any]:
