@@ -184,6 +184,18 @@ def _fig(delay: float, se: float = 0.2, gain: float = 0.0, informative: bool = T
                          "identified": "K, Td, Tp1"}}
 
 
+def test_the_status_keeps_the_last_informative_window() -> None:
+    """An informative window then one that tells nothing: the axis' block holds the latest
+    and, apart, the last informative one (what ``identify --from-status`` retunes from)."""
+    j = DriftJudge(SupervisionConfig())
+    told = _fig(10.0)
+    j.update("rails_y", told, 1.0, 1.0)
+    assert j.block("rails_y")["last_informative"] is None  # the latest is that one
+    j.update("rails_y", {**_fig(0.0, informative=False), "reason": "stalls"}, 3.0, 3.0)
+    block = j.block("rails_y")
+    assert block["reason"] == "stalls" and block["last_informative"] == told
+
+
 def test_a_window_without_its_end_adds_no_time_to_the_blind_motion() -> None:
     """A first estimate whose window has no end (``to_t`` None: the window not filled yet)
     followed by uninformative ones 2 s apart on the epoch clock: the axis was blind for their
@@ -323,6 +335,22 @@ def test_identify_from_a_saved_status_writes_the_fragment(tmp_path: Path) -> Non
                        text=True, env=subprocess_env(), timeout=60)
     assert p.returncode == 2 and "not informative (no motion)" in p.stderr, p.stderr
     assert not (tmp_path / "again").exists()
+    # the latest window told nothing, an earlier one did: that one is taken, and said
+    st = _status(True)
+    alarmed = st["model_mismatch"]["axes"]["rails_y"]  # type: ignore[index]
+    st["model_mismatch"]["axes"]["rails_y"] = {  # type: ignore[index]
+        **_fig(0.0, informative=False), "alarm": True, "last_informative": alarmed,
+        "reason": "5 stalls of the host cut out 13.8 s of the window"}
+    del st["model_mismatch"]["axes"]["rails_y"]["estimate"]  # type: ignore[index]
+    saved.write_text(json.dumps(st))
+    p = subprocess.run(motcomp_cmd("identify", str(saved), "--from-status", "--out",
+                                   str(tmp_path / "earlier")), capture_output=True, text=True,
+                       env=subprocess_env(), timeout=60)
+    assert p.returncode == 0, p.stderr
+    text = (tmp_path / "earlier" / "rails_y.toml").read_text()
+    assert 'model = "p1d:K=1.001,Td=0.0276,Tp1=0.186"' in text
+    assert "the last informative window (the latest is not: 5 stalls" in " ".join(
+        ln.lstrip("# ") for ln in text.splitlines()), text
     saved.write_text(json.dumps({"t": 1.0}))
     p = subprocess.run(motcomp_cmd("identify", str(saved), "--from-status"),
                        capture_output=True, text=True, env=subprocess_env(), timeout=60)

@@ -301,13 +301,22 @@ def _run_from_status(args: argparse.Namespace) -> int:
     if not isinstance(fig, dict):
         raise DataError(f"{where}: {axis} is not supervised (supervised: "
                         f"{', '.join(axes) or 'none'})")
+    taken = "the latest window"
+    earlier = fig.get("last_informative")
+    if isinstance(earlier, dict) and not (fig.get("informative")
+                                          and isinstance(fig.get("estimate"), dict)):
+        # the latest window told nothing (stalls, no motion): the last one that did
+        taken = (f"the last informative window (the latest is not: "
+                 f"{fig.get('reason') or 'no estimate'})")
+        fig = earlier
     est = fig.get("estimate")
     if not isinstance(est, dict):
         raise DataError(f"{where}: {axis}: no estimate yet ({fig.get('reason') or 'waiting'})")
     informative = bool(fig.get("informative"))
     when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(float(st.get("t", 0.0))))
     comments = [
-        f"# Estimated by motcomp's model supervision from ordinary driving ({where}, {when}):",
+        f"# Estimated by motcomp's model supervision from ordinary driving ({where}, {when}),",
+        f"# {taken}:",
         f"# {fig['to_t'] - fig['from_t']:.0f} s window, judged at {fig['at_hz']:.2f} Hz; "
         f"identified {est['identified']}; the model explains {100 * est['explained']:.2f} %.",
         f"# Td {est['Td_ms']:.2f} +- {est['Td_se_ms']:.2f} ms, "

@@ -129,6 +129,9 @@ class _AxisState:
     alarms: int = 0
     logged: float = -math.inf
     last: dict[str, Any] = field(default_factory=dict)
+    last_informative: dict[str, Any] | None = None
+    """The figures of the last informative window (what a retune takes when the latest window
+    told nothing)."""
     informative: int = 0
     judged: int = 0
     last_t: float | None = None
@@ -215,6 +218,7 @@ class DriftJudge:
                 return self.blind_text(axis, st)
             return None
         st.informative += 1
+        st.last_informative = fig
         if st.unsupervised:
             log.info("%s: supervised again: a window was judged after %.0f s of motion without",
                      axis, st.blind_s)
@@ -289,7 +293,9 @@ class DriftJudge:
                  else "ok" if fig.get("informative") else "not informative")
         return {"state": state, "alarm": st.alarm, "alarm_since_t": st.alarm_since,
                 "alarms": st.alarms, "windows": st.judged, "informative_windows": st.informative,
-                "blind_s": st.blind_s, "unsupervised": st.unsupervised, **fig}
+                "blind_s": st.blind_s, "unsupervised": st.unsupervised, **fig,
+                "last_informative": st.last_informative if st.last_informative is not fig
+                else None}
 
 
 # --- the service's side ------------------------------------------------------------------------
