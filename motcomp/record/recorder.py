@@ -279,8 +279,7 @@ class RecordSummary:
                   for k in self.keys if "*" not in k and not self.counts.get(k)]
         lines.append(f"  config: not recorded ({self.config_missing})" if self.config_missing
                      else "  config: the service's, attached")
-        if self.dropped:
-            lines.append(f"  dropped (queue full): {self.dropped}")
+        lines.append(f"  dropped (queue full): {self.dropped}")
         return "\n".join(lines)
 
 

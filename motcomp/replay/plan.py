@@ -347,6 +347,12 @@ def _from_outputs(session: Session, cfg: ServiceConfig, params: TickParams, run:
         park = (park[0] - shift, park[1]) if park and park[0] > shift else None
         notes.append(f"the recording starts mid-run (first tick seq {int(out.seq[idx[0]])}): "
                      "warm start at rest at the first input")
+    missed = int(np.count_nonzero(~emit))
+    if missed:
+        notes.append(f"the service missed {missed} of {emit.size} deadlines "
+                     f"({100 * missed / emit.size:.1f} %) over the replayed run: its live figures "
+                     "(the recorded 'on' delay, the status) carry those stalls, which the replay "
+                     "computes as the service did")
     rec_driven = [st["driven"] for _, st in session.status if isinstance(st.get("driven"), list)]
     by_axes = np.array([a in rec_driven[-1] for a in AXES]) if rec_driven else None
     rx = np.where(output >= 0, out.rx[np.maximum(output, 0)], 0) if out.rx.size else None
@@ -355,7 +361,8 @@ def _from_outputs(session: Session, cfg: ServiceConfig, params: TickParams, run:
 
 
 _RECORD_BETTER = ("to record every frame, run `motcomp record` where it gets its CPU (not "
-                  "beside a busy service on two cores) and check its summary's 'dropped'")
+                  "beside a busy service on two cores) and check its summary's 'dropped (queue "
+                  "full)'; frames lost before they reached it show as gaps in `motcomp info`")
 
 
 def _superseded(session: Session, log_ns: np.ndarray) -> int | None:
