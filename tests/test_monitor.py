@@ -540,3 +540,24 @@ def test_status_delay_of_a_running_service_agrees_with_the_recording(tmp_path: P
     assert fig["hf_acc_rms"] == 0.0  # at rest over the last 2 s
     # the hexapod does not move in a slalom: no delay to tell
     assert st["axes_quality"]["hex_z"]["delay_reason"].startswith("motion too small")
+
+
+def test_a_delay_of_a_window_the_host_starved_is_not_valid() -> None:
+    """Over the status' last window the loop missed more than MAX_MISSED_SHARE of its deadlines:
+    a delay the monitor found valid is marked not valid, the reason said; below, kept."""
+    from motcomp.runtime.monitor import MAX_MISSED_SHARE, starved_out
+
+    def axes() -> dict[str, dict[str, object]]:
+        return {"rails_y": {"apparent_delay_ms": 24.5, "delay_valid": True, "delay_reason": ""},
+                "rails_x": {"apparent_delay_ms": None, "delay_valid": False,
+                            "delay_reason": "no feedback"}}
+
+    kept = axes()
+    starved_out(kept, MAX_MISSED_SHARE)
+    assert kept == axes()
+    starved = axes()
+    starved_out(starved, 0.52)
+    assert starved["rails_y"]["delay_valid"] is False
+    assert starved["rails_y"]["apparent_delay_ms"] == 24.5  # the value is still given
+    assert starved["rails_y"]["delay_reason"].startswith("the loop missed 52 % of its deadlines")
+    assert starved["rails_x"] == axes()["rails_x"]  # its own reason stays

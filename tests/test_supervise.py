@@ -408,7 +408,8 @@ def test_a_window_the_host_starved_is_not_informative(missed: float) -> None:
     judged, its reason says so (an unchanged hexapod read 5.5 ms late at 45-55 % missed); at
     10 % the estimate is judged."""
     from motcomp.config import load_config, resolve_axes
-    from motcomp.runtime.supervise import MAX_MISSED_SHARE, Supervisor
+    from motcomp.runtime.monitor import MAX_MISSED_SHARE
+    from motcomp.runtime.supervise import Supervisor
 
     sup = Supervisor(SupervisionConfig(), resolve_axes(load_config(config_file("motcomp.toml"))))
     try:

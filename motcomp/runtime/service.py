@@ -79,7 +79,13 @@ from motcomp.io.ports import InputPort, OutputPort
 from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, ZenohSource, open_session
 from motcomp.runtime.clock import DEGRADED_MISSED_SHARE, DeadlineClock
 from motcomp.runtime.confine import Confinement
-from motcomp.runtime.monitor import BIN_S, COMMAND_WINDOW_S, LAG_RANGE_S, MotionMonitor
+from motcomp.runtime.monitor import (
+    BIN_S,
+    COMMAND_WINDOW_S,
+    LAG_RANGE_S,
+    MotionMonitor,
+    starved_out,
+)
 from motcomp.runtime.reload import Prepared, Preparer
 from motcomp.runtime.rt import schedule_loop
 from motcomp.runtime.stats import LoopStats
@@ -515,6 +521,7 @@ class Service:
         except Exception as exc:  # pragma: no cover - report() catches its own
             log.error("motion-quality figures failed: %r", exc)
             return {"quality": window, "axes_quality": {}}
+        starved_out(rep["axes"], float(self._deadlines.get("share") or 0.0))
         span = rep["span_ns"]
         if span is not None and self._t_wall0 and self._t_mono0:
             window["from_t"], window["to_t"] = (self._t_wall0 + (x - self._t_mono0) / 1e9

@@ -34,6 +34,7 @@ from motcomp.core.axes import AXES
 from motcomp.core.models import ProcessModel
 from motcomp.runtime import child
 from motcomp.runtime.estimate import EstimateSettings, LiveWindow
+from motcomp.runtime.monitor import MAX_MISSED_SHARE
 
 __all__ = ["ALARM_LOG_S", "BLIND_AFTER_S", "CONFIDENCE_Z", "CPU_SHARE_MAX", "MIN_RUN",
            "DriftJudge", "Supervisor", "settings_of"]
@@ -51,10 +52,6 @@ ESTIMATE_TIMEOUT_S = 30.0
 starts with the next period)."""
 CONFIDENCE_Z = 2.0
 """An estimate exceeds a bound when it does by this many of its standard errors."""
-MAX_MISSED_SHARE = 0.2
-"""A window in which the loop missed more than this share of its deadlines is not informative:
-its stalls are cut out, but between them a loop that starved ticks late and the estimate carries
-it (an unchanged hexapod read 5.5 ms late at 45-55 % missed; none of 88 windows at 12 %)."""
 MIN_RUN = 3
 """Fewest informative estimates that start (or clear) an alarm, however long the hold."""
 KEEP_MARGIN_S = 5.0
