@@ -304,3 +304,26 @@ def test_a_short_loss_never_carries_the_command_beyond_the_compensated_motion() 
         acc = np.abs(np.diff(u[back - 2:], 2)) * 1e6
         at_limit.append(int(np.sum(acc >= 0.9999 * 6.0)))
     assert at_limit == [0] * len(at_limit), at_limit
+
+
+def test_a_jump_of_the_reference_does_not_open_the_window() -> None:
+    """The reach the window takes in is the ramp's motion, at most its peak speed: the jump a
+    held reference beyond the range makes when the ramp starts from within it (input is taken
+    up to a quarter of the range beyond the limits) is no speed.  Taken as one, it opened the
+    window to the far end of the range (-2.6 m) and the window stopped nothing."""
+    params, state = new_tick(config())
+    comp = state.comp
+    p_max = float(comp.limits.p_max[RY])
+    at = [0.0] * len(AXES)
+    at[RY] = p_max
+    comp.reset(at)
+    held = list(at)
+    held[RY] = p_max + 0.1  # the held reference, beyond the range
+    speed = params.shaper.ramp_speed
+    comp.open_window([i == RY for i in range(len(AXES))], held, speed)
+    assert comp.window[RY] == (p_max, p_max)
+    comp.widen_window(at)  # the ramp starts from the reference brought within the range
+    lo, hi = comp.window[RY]  # type: ignore[misc]
+    step = speed[RY] * H  # one step at the ramp's peak speed and its braking at half a_max
+    reach = step + step * step / (H * H * comp.limits.a_max[RY])
+    assert hi == p_max and p_max - lo <= reach + 1e-12, (lo, reach)

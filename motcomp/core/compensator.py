@@ -360,7 +360,8 @@ class Compensator:
     def widen_window(self, reference: Sequence[float]) -> None:
         """Widen each open window to take in ``reference`` and, where the command is not ahead
         of it, the reach of its motion: one more step of it and its braking distance at half
-        ``a_max``, ``r + v h + v |v| / a_max`` (``v`` its velocity since the last call).  A
+        ``a_max``, ``r + v h + v |v| / a_max`` (``v`` its velocity since the last call, at most
+        the ramp's peak speed).  A
         target moving on at the window's very edge would be braked there as at an end stop, at
         ``a_max``: the reach keeps a ramp to neutral feasible, so a command on it or behind it
         follows it as it is, never braked; a command ahead of it is braked to it at the edge.
@@ -370,7 +371,14 @@ class Compensator:
                 r = reference[i]
                 step = r - self._window_ref[i]
                 self._window_ref[i] = r
-                lim = self._lim[i]  # lim[1] = 1 / h, lim[8] = 1 / (2 a_max)
+                lim = self._lim[i]  # lim[0] = h, lim[1] = 1 / h, lim[8] = 1 / (2 a_max)
+                # a ramp moves at most at its peak speed: a step beyond (the reference brought
+                # within the limits at the ramp's start, a stall's catch-up) is no speed
+                cap = self._window_speed[i] * lim[0]
+                if step > cap:
+                    step = cap
+                elif step < -cap:
+                    step = -cap
                 reach = r if step * (self._u[i] - r) > 0.0 else (
                     r + step + step * abs(step) * lim[1] * lim[1] * 2.0 * lim[8])
                 lo, hi = (r, reach) if reach >= r else (reach, r)
