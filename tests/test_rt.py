@@ -213,11 +213,17 @@ def test_subnormals_are_flushed_in_the_block_and_its_threads_and_nowhere_else() 
             child = in_thread(lambda: arithmetic(normal, SUBNORMAL))  # inherits the mode
         return report, inside, child, arithmetic(normal, SUBNORMAL)
 
-    report, inside, child, after = in_thread(block)
+    report, inside, child, after = in_thread(block)  # compared here, in this thread's mode
     assert report == "subnormals flushed to zero"
     assert inside == child == (0.0, 0.0, 0.0)
     assert after == (normal / 4, SUBNORMAL, SUBNORMAL)  # the block's end restores the mode
     assert arithmetic(normal, SUBNORMAL) == (normal / 4, SUBNORMAL, SUBNORMAL)  # this thread's
+
+
+def is_subnormal(x: float) -> bool:
+    """From the bits (a comparison would read a subnormal as zero in the flushed mode)."""
+    bits = struct.unpack("<Q", struct.pack("<d", x))[0] & 0x7FFF_FFFF_FFFF_FFFF
+    return 0 < bits < 0x0010_0000_0000_0000
 
 
 def rest_after_a_tiny_motion(flush: bool) -> list[float]:
@@ -234,7 +240,7 @@ def rest_after_a_tiny_motion(flush: bool) -> list[float]:
             frame = encode_input(k, now / 1e9, {a: y if a.startswith("rails") else 0.0
                                                 for a in AXES})
             out = step(state, params, now, [frame])
-            found += [x for x in (*out.u, *state.shaper.ref) if 0 < abs(x) < sys.float_info.min]
+            found += [x for x in (*out.u, *state.shaper.ref) if is_subnormal(x)]
         return found
 
     def flushed() -> list[float]:
@@ -250,3 +256,22 @@ def test_the_tick_computes_no_subnormal_where_it_flushes_them() -> None:
     on some CPUs): in the loop's mode the tick never holds one."""
     assert rest_after_a_tiny_motion(flush=False)  # they arise where they are not flushed
     assert rest_after_a_tiny_motion(flush=True) == []
+
+
+@pytest.mark.skipif(not FLUSHING, reason="flushing is known on x86-64 and AArch64 Linux")
+def test_the_block_restores_the_floating_point_environment_exactly() -> None:
+    """A thread already flushing keeps flushing after a block that asked for no flushing, and
+    one that was not, after a block that flushed: the environment comes back as it was."""
+    normal = sys.float_info.min
+
+    def nested() -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
+        with subnormals_flushed():
+            with subnormals_flushed(on=False) as report:
+                assert report == "subnormals kept"
+                kept = arithmetic(normal, SUBNORMAL)
+            still = arithmetic(normal, SUBNORMAL)
+        return kept, still, arithmetic(normal, SUBNORMAL)
+
+    kept, still, after = in_thread(nested)
+    assert kept == after == (normal / 4, SUBNORMAL, SUBNORMAL)
+    assert still == (0.0, 0.0, 0.0)

@@ -42,13 +42,37 @@ def _fenv_calls() -> tuple[Any, Any] | None:
     return None
 
 
+def _env() -> tuple[Any, Any, Any, int, int] | None:
+    """``(fesetenv, the calling thread's fenv_t, its control word, offset, bits)``, or None
+    where the mode is not known (another OS, CPU or a 32-bit process) or glibc fails."""
+    where = _FLUSH_BITS.get(platform.machine())
+    calls = _fenv_calls() if sys.platform.startswith("linux") else None
+    if where is None or calls is None or struct.calcsize("P") != 8:
+        return None
+    get, put = calls
+    offset, bits = where
+    env = (ctypes.c_ubyte * _FENV_BYTES)()
+    if get(env) != 0:
+        return None
+    return put, env, ctypes.c_uint32.from_buffer(env, offset), offset, bits
+
+
+def _is_zero(x: float) -> bool:
+    """True if ``x``'s bits are all zero but the sign's (read from its bytes: no arithmetic,
+    which the mode itself would bend)."""
+    return struct.unpack("<Q", struct.pack("<d", x))[0] & 0x7FFF_FFFF_FFFF_FFFF == 0
+
+
 def _flushes(smallest_normal: float, subnormal: float) -> bool:
-    """True if the calling thread flushes subnormal results and reads subnormal inputs as 0."""
-    return smallest_normal / 4.0 == 0.0 and subnormal * 1.0 == 0.0
+    """Whether the calling thread's arithmetic flushes a subnormal result (a quarter of the
+    smallest normal) and reads a subnormal input as zero (a subnormal times 2^52, a normal
+    number unless the input read as zero)."""
+    return _is_zero(smallest_normal / 4.0) and _is_zero(subnormal * 2.0**52)
 
 
 def _probe() -> bool:
-    """True if the calling thread flushes subnormals (computed on a subnormal made from bits)."""
+    """True if the calling thread's arithmetic flushes subnormals (computed on a subnormal made
+    from its bits)."""
     return _flushes(sys.float_info.min, struct.unpack("<d", struct.pack("<Q", 1))[0])
 
 
@@ -56,17 +80,11 @@ def flush_subnormals(on: bool = True) -> str:
     """Flush subnormal numbers to zero (results and inputs) in the calling thread's float
     arithmetic -- Python's, numpy's, the compiled tick's -- or stop (``on`` False); threads it
     starts afterwards inherit the mode.  Returns what happened, checked by computing."""
-    machine = platform.machine()
-    where = _FLUSH_BITS.get(machine)
-    calls = _fenv_calls() if sys.platform.startswith("linux") else None
-    if where is None or calls is None:
-        return f"subnormals not flushed (not known on {platform.system()} {machine})"
-    get, put = calls
-    offset, bits = where
-    env = (ctypes.c_ubyte * _FENV_BYTES)()
-    if get(env) != 0:
-        return "subnormals not flushed (fegetenv failed)"
-    word = ctypes.c_uint32.from_buffer(env, offset)
+    found = _env()
+    if found is None:
+        return (f"subnormals not flushed (not known on {platform.system()} "
+                f"{platform.machine()}, {8 * struct.calcsize('P')}-bit)")
+    put, env, word, _, bits = found
     word.value = word.value | bits if on else word.value & ~bits
     if put(env) != 0:
         return "subnormals not flushed (fesetenv failed)"
@@ -77,13 +95,14 @@ def flush_subnormals(on: bool = True) -> str:
 
 
 @contextmanager
-def subnormals_flushed() -> Iterator[str]:
-    """:func:`flush_subnormals` in the calling thread for the block, the previous mode after it;
-    yields what happened."""
-    was = _probe()
-    report = flush_subnormals(True)
+def subnormals_flushed(on: bool = True) -> Iterator[str]:
+    """:func:`flush_subnormals` (``on``) in the calling thread for the block, then its
+    floating-point environment exactly as it was; yields what happened."""
+    saved = _env()
+    report = flush_subnormals(on)
     try:
         yield report
     finally:
-        if not was:
-            flush_subnormals(False)
+        if saved is not None:
+            put, env = saved[0], saved[1]
+            put(env)
