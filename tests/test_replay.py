@@ -222,3 +222,21 @@ def test_cli_without_a_recorded_config_asks_for_one(tmp_path: Path) -> None:
     p = subprocess.run(motcomp_cmd("replay", str(path), "--quiet"), capture_output=True,
                        text=True, env=subprocess_env(), timeout=60)
     assert p.returncode == 2 and "--config" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_the_replay_computes_in_the_recorded_loop_s_floating_point_mode(rich: Path) -> None:
+    """Subnormals flushed where the recorded service's status says its loop flushed them (a
+    synthetic session says so, as the service does); not for a recording of a service that did
+    not (a version before, a CPU without the mode); as the service now does without a status."""
+    from motcomp.core.fpmode import FLUSHED
+    from motcomp.replay.plan import build_plan, recorded_flushed
+
+    session = read_session(rich)
+    assert FLUSHED in session.status[-1][1]["realtime"]
+    cfg = load_config(config_file("motcomp.toml"))
+    assert build_plan(session, cfg, resolve_axes(cfg)).flushed
+    loop = "normal scheduling (realtime_priority = 0); slice 100 us; one sleep per tick"
+    assert not recorded_flushed([{"realtime": loop}])
+    assert not recorded_flushed([{"realtime": f"{loop}; {FLUSHED}"}, {"realtime": loop}])
+    assert recorded_flushed([{"realtime": f"{loop}; {FLUSHED}"}])
+    assert recorded_flushed([{"t": 1.0}])

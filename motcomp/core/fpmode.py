@@ -21,7 +21,11 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-__all__ = ["flush_subnormals", "subnormals_flushed"]
+__all__ = ["FLUSHED", "flush_subnormals", "subnormals_flushed"]
+
+FLUSHED = "subnormals flushed to zero"
+"""What :func:`flush_subnormals` says when the mode holds (the service's status ``realtime``
+ends with it)."""
 
 _FLUSH_BITS = {"x86_64": (28, 0x8040), "aarch64": (0, 1 << 24)}
 """Where the flush-to-zero bits sit in glibc's ``fenv_t``: x86-64, the MXCSR (offset 28) with
@@ -91,7 +95,7 @@ def flush_subnormals(on: bool = True) -> str:
     if _probe() != on:
         return "subnormals not flushed (the CPU ignored the mode)" if on else \
             "subnormals still flushed (the CPU ignored the mode)"
-    return "subnormals flushed to zero" if on else "subnormals kept"
+    return FLUSHED if on else "subnormals kept"
 
 
 @contextmanager

@@ -6,9 +6,9 @@ frame the tick read (the tick checks them itself) and the number of deadlines mi
 (the tick computes the catch-up steps itself).  Between ticks it does what the service does
 between ticks: bypass switches (:func:`~motcomp.core.tick.set_bypass`) and the parking request
 (:func:`~motcomp.core.tick.park`).  The same function on the same bytes at the same instants
-gives the same numbers (in the same floating-point mode: subnormals flushed to zero, as in the
-service's loop): a replay with the recorded config reproduces the recorded outputs bit for bit
-(docs/REPLAY.md says when the instants are known exactly).
+gives the same numbers (in the same floating-point mode: subnormals flushed to zero where the
+service's loop flushed them): a replay with the recorded config reproduces the recorded outputs
+bit for bit (docs/REPLAY.md says when the instants are known exactly).
 
 Catch-up rows of the plan are not stepped here: they are the ``skipped`` of the tick that
 follows them, and their columns in :class:`EngineResult` are NaN (nothing was sent).
@@ -90,15 +90,10 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
 
     A warm plan starts at rest at :func:`initial_position`, with no start-up blend until the
     first frame is accepted.  Catch-up rows must be consecutive periods ending just before a
-    tick (as :func:`~motcomp.replay.plan.build_plan` makes them).  Computes with subnormals
-    flushed to zero, as the service's loop does (:func:`~motcomp.core.fpmode.flush_subnormals`).
+    tick (as :func:`~motcomp.replay.plan.build_plan` makes them).  The ticks compute in the
+    floating-point mode the recorded service's loop did (:attr:`TickPlan.flushed`,
+    :func:`~motcomp.core.fpmode.flush_subnormals`).
     """
-    with subnormals_flushed():
-        return _run_ticks(plan, inp, cfg, progress)
-
-
-def _run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
-               progress: Callable[[float], None] | None) -> EngineResult:
     t0 = time.perf_counter()
     axes = resolve_axes(cfg)
     params, state = new_tick(cfg, axes)
@@ -143,54 +138,55 @@ def _run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
     warm_pending = plan.warm
     shaper = state.shaper
     mode_index = _MODE_INDEX
-    for b0 in range(0, ticks.size, _BLOCK):
-        if progress is not None:
-            progress(b0 / max(ticks.size, 1))
-        rows = ticks[b0:b0 + _BLOCK]
-        fr = plan.frame[rows]
-        assert plan.frame_lo is not None
-        first = plan.frame_lo[rows]
-        has = fr >= 0
-        lo = np.where(has, first, -1).tolist()
-        hi = (fr + 1).tolist()
-        now_l = plan.now_ns[rows].tolist()
-        rx_l = (plan.rx_ns[rows] if plan.rx_ns is not None else np.zeros(rows.size, np.int64)
-                ).tolist()
-        skip_l = skipped[b0:b0 + _BLOCK].tolist()
-        u_b: array[float] = array("d")
-        ref_b: array[float] = array("d")
-        lim_b: array[int] = array("b")
-        mode_b: array[int] = array("b")
-        src_b: array[int] = array("q")
-        flag_b: array[int] = array("q")
-        lag_b: array[float] = array("d")
-        for i in range(rows.size):
-            hook = hooks.get(b0 + i)
-            if hook is not None:
-                for fn in hook:
-                    fn()
-            o = lo[i]
-            frames = ([data[bounds[k]:bounds[k + 1]] for k in range(o, hi[i])] if o >= 0
-                      else None)
-            out = step(state, current, now_l[i], frames, skip_l[i], now_l[i] + rx_l[i])
-            if warm_pending and state.accepted:
-                warm_pending = False
-                current = params
-            u_b.extend(out.u)
-            ref_b.extend(shaper.ref)
-            lim_b.extend(out.limited)
-            mode_b.append(mode_index[out.mode])
-            src_b.append(out.src_seq)
-            flag_b.append(sum(flag_bit.get(f, 0) for f in out.flags))
-            lag_b.append(shaper.lag_s)
-        m = rows.size
-        u[rows] = np.frombuffer(u_b, dtype=np.float64).reshape(m, len(AXES))
-        ref[rows] = np.frombuffer(ref_b, dtype=np.float64).reshape(m, len(AXES))
-        limited[rows] = np.frombuffer(lim_b, dtype=np.int8).reshape(m, len(AXES)) != 0
-        mode[rows] = np.frombuffer(mode_b, dtype=np.int8)
-        src_seq[rows] = np.frombuffer(src_b, dtype=np.int64)
-        flags[rows] = np.frombuffer(flag_b, dtype=np.int64)
-        lag[rows] = np.frombuffer(lag_b, dtype=np.float64)
+    with subnormals_flushed(plan.flushed):  # the recorded loop's mode
+        for b0 in range(0, ticks.size, _BLOCK):
+            if progress is not None:
+                progress(b0 / max(ticks.size, 1))
+            rows = ticks[b0:b0 + _BLOCK]
+            fr = plan.frame[rows]
+            assert plan.frame_lo is not None
+            first = plan.frame_lo[rows]
+            has = fr >= 0
+            lo = np.where(has, first, -1).tolist()
+            hi = (fr + 1).tolist()
+            now_l = plan.now_ns[rows].tolist()
+            rx_l = (plan.rx_ns[rows] if plan.rx_ns is not None else np.zeros(rows.size, np.int64)
+                    ).tolist()
+            skip_l = skipped[b0:b0 + _BLOCK].tolist()
+            u_b: array[float] = array("d")
+            ref_b: array[float] = array("d")
+            lim_b: array[int] = array("b")
+            mode_b: array[int] = array("b")
+            src_b: array[int] = array("q")
+            flag_b: array[int] = array("q")
+            lag_b: array[float] = array("d")
+            for i in range(rows.size):
+                hook = hooks.get(b0 + i)
+                if hook is not None:
+                    for fn in hook:
+                        fn()
+                o = lo[i]
+                frames = ([data[bounds[k]:bounds[k + 1]] for k in range(o, hi[i])] if o >= 0
+                          else None)
+                out = step(state, current, now_l[i], frames, skip_l[i], now_l[i] + rx_l[i])
+                if warm_pending and state.accepted:
+                    warm_pending = False
+                    current = params
+                u_b.extend(out.u)
+                ref_b.extend(shaper.ref)
+                lim_b.extend(out.limited)
+                mode_b.append(mode_index[out.mode])
+                src_b.append(out.src_seq)
+                flag_b.append(sum(flag_bit.get(f, 0) for f in out.flags))
+                lag_b.append(shaper.lag_s)
+            m = rows.size
+            u[rows] = np.frombuffer(u_b, dtype=np.float64).reshape(m, len(AXES))
+            ref[rows] = np.frombuffer(ref_b, dtype=np.float64).reshape(m, len(AXES))
+            limited[rows] = np.frombuffer(lim_b, dtype=np.int8).reshape(m, len(AXES)) != 0
+            mode[rows] = np.frombuffer(mode_b, dtype=np.int8)
+            src_seq[rows] = np.frombuffer(src_b, dtype=np.int64)
+            flags[rows] = np.frombuffer(flag_b, dtype=np.int64)
+            lag[rows] = np.frombuffer(lag_b, dtype=np.float64)
     bypass = np.zeros((n, len(AXES)), dtype=bool)
     for (r0, mask), (r1, _) in zip(bypass_from, [*bypass_from[1:], (n, None)], strict=True):
         bypass[r0:r1] = mask

@@ -31,6 +31,7 @@ replay's tick accepts, since the replay starts at rest at its position.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -38,12 +39,13 @@ import numpy as np
 
 from motcomp.config import ResolvedAxes, ServiceConfig, tick_params
 from motcomp.core.axes import AXES
+from motcomp.core.fpmode import FLUSHED
 from motcomp.core.tick import MAX_CATCH_UP, TickParams, parse_input
 from motcomp.errors import DataError
 from motcomp.record.frames import FLAG_BITS
 from motcomp.record.session import InputStream, Session
 
-__all__ = ["TickPlan", "build_plan", "consumed_ranges", "first_position"]
+__all__ = ["TickPlan", "build_plan", "consumed_ranges", "first_position", "recorded_flushed"]
 
 WARM_AFTER_TICKS = 5000
 """A recording whose first output is a later tick than this, and already used an input,
@@ -90,6 +92,10 @@ class TickPlan:
     rx_ns: np.ndarray | None = None
     """Per row, how long after its instant the tick took its input frames (the outputs'
     ``rx``; 0: at the instant).  None: 0 everywhere."""
+    flushed: bool = True
+    """The recorded service's loop computed with subnormals flushed to zero (its status'
+    ``realtime`` says so; a recording of a version before, or of a CPU without the mode, did
+    not).  Without a status: as the service does now."""
 
     def __post_init__(self) -> None:
         if self.frame_lo is None:
@@ -357,7 +363,15 @@ def _from_outputs(session: Session, cfg: ServiceConfig, params: TickParams, run:
     by_axes = np.array([a in rec_driven[-1] for a in AXES]) if rec_driven else None
     rx = np.where(output >= 0, out.rx[np.maximum(output, 0)], 0) if out.rx.size else None
     return TickPlan(now_ns, frame, output, emit, bypass0, events, park, warm, method, period,
-                    missing_frames, notes, holes, by_axes, rx_ns=rx)
+                    missing_frames, notes, holes, by_axes, rx_ns=rx,
+                    flushed=recorded_flushed(st for _, st in session.status))
+
+
+def recorded_flushed(status: Iterable[dict[str, Any]]) -> bool:
+    """Whether the service whose status frames these are computed its ticks with subnormals
+    flushed to zero: its last ``realtime`` says so (True without one: as the service does)."""
+    modes = [st["realtime"] for st in status if isinstance(st.get("realtime"), str)]
+    return FLUSHED in modes[-1] if modes else True
 
 
 _RECORD_BETTER = ("to record every frame, run `motcomp record` where it gets its CPU (not "

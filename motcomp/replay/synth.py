@@ -88,12 +88,8 @@ def motion(t: np.ndarray, axis: str, amplitude: float = 1.0) -> np.ndarray:
 
 def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict[str, object]:
     """Write the recording of a synthetic session; returns facts about it (tick count...).
-    The tick computes with subnormals flushed to zero, as in the service's loop."""
-    with subnormals_flushed():
-        return _synthesize(path, cfg, opts)
-
-
-def _synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict[str, object]:
+    The ticks compute with subnormals flushed to zero, as the service's loop does (its status
+    says so, as the service's does)."""
     rng = np.random.default_rng(opts.seed)
     period = round(1e9 / cfg.loop.rate_hz)
     n_src = int(opts.duration_s * opts.source_hz)
@@ -137,25 +133,26 @@ def _synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dic
     fi = 0
     parked_from = None
     out_msgs: list[tuple[int, bytes]] = []
-    for j, dl in enumerate(deadlines.tolist()):
-        t_rel = (dl - MONO0_NS) / 1e9 - 0.2
-        while bypass_at and bypass_at[0][0] <= t_rel:
-            _, on, names = bypass_at.pop(0)
-            set_bypass(state, [on if a in names else b
-                               for a, b in zip(AXES, state.comp.bypass, strict=True)])
-        payloads = []  # every frame that arrived since the last tick, as the service reads
-        while fi < len(frames) and frames[fi][0] <= dl:
-            payloads.append(frames[fi][1])
-            fi += 1
-        skipped = int((dl - deadlines[j - 1]) // period - 1) if j else 0
-        out = step(state, params, dl, payloads, skipped)
-        out_msgs.append((dl, encode_output(out.seq, WALL0 + (dl - MONO0_NS) / 1e9, out.src_seq,
-                                           out.u, out.flags)))
-        if opts.park_at_s is not None and parked_from is None and t_rel >= opts.park_at_s:
-            parked_from = j
-            park(state, params, dl)
-        elif parked_from is not None and is_parked(state):
-            break
+    with subnormals_flushed() as flushed:  # the loop's mode
+        for j, dl in enumerate(deadlines.tolist()):
+            t_rel = (dl - MONO0_NS) / 1e9 - 0.2
+            while bypass_at and bypass_at[0][0] <= t_rel:
+                _, on, names = bypass_at.pop(0)
+                set_bypass(state, [on if a in names else b
+                                   for a, b in zip(AXES, state.comp.bypass, strict=True)])
+            payloads = []  # every frame that arrived since the last tick, as the service reads
+            while fi < len(frames) and frames[fi][0] <= dl:
+                payloads.append(frames[fi][1])
+                fi += 1
+            skipped = int((dl - deadlines[j - 1]) // period - 1) if j else 0
+            out = step(state, params, dl, payloads, skipped)
+            out_msgs.append((dl, encode_output(out.seq, WALL0 + (dl - MONO0_NS) / 1e9, out.src_seq,
+                                               out.u, out.flags)))
+            if opts.park_at_s is not None and parked_from is None and t_rel >= opts.park_at_s:
+                parked_from = j
+                park(state, params, dl)
+            elif parked_from is not None and is_parked(state):
+                break
     n_out = len(out_msgs)
     # what the recorder receives (wall ns)
     def wall_ns(mono: int) -> int:
@@ -181,7 +178,8 @@ def _synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dic
             "driven": [a for a, d in zip(AXES, axes.driven, strict=True) if d],
             "frames": {"received": state.received, "accepted": state.accepted,
                        "rejected_by_reason": dict(state.rejected_by_reason)},
-            "saturation": dict(zip(AXES, state.sat, strict=True))}
+            "saturation": dict(zip(AXES, state.sat, strict=True)),
+            "realtime": f"synthetic session; {flushed}"}
         st["clock"] = ({"wall0": WALL0, "mono0_ns": MONO0_NS,
                         "grid0_ns": None if cfg.loop.sync_to_input else grid0,
                         "period_ns": period} if opts.clock_in_status else None)
