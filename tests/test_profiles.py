@@ -180,3 +180,24 @@ def test_a_reload_keeps_the_profile_chosen_live(tmp_path: Path) -> None:
         path.write_text(head + PROFILES[PROFILES.index("[profiles.fast]"):])  # normal gone
         r = svc.reload()
         assert r["ok"] and svc.cfg.profile is None, r
+
+
+def test_a_profile_chosen_live_that_no_longer_fits_is_dropped_not_the_reload(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """The profile chosen live cannot be applied over the reloaded file: the file applies, the
+    profile is dropped and the log says why (the reload was refused for it, unsaid)."""
+    path = tmp_path / "motcomp.toml"
+    path.write_text(f'include = ["{config_file("motcomp.toml")}"]\n' + PROFILES)
+    svc = Service(parse_config(read_toml(path), str(path)), ZenohEndpoints(), config_path=path)
+    svc.preparer.start(wait=True)
+    with running(svc):
+        assert svc.switch_profile("fast")["ok"]
+
+        def refuse(*_: object) -> None:
+            raise ConfigError("rails_y: gains unstable with the new model")
+
+        svc.preparer.prepare_profile = refuse  # type: ignore[method-assign,assignment]
+        r = svc.reload()
+        assert r["ok"] and svc.cfg.profile is None and svc.live_profile is None, r
+    assert "profile fast (chosen live) does not fit the reloaded config (rails_y: gains " \
+           "unstable with the new model): dropped" in caplog.text

@@ -668,20 +668,30 @@ class Service:
         attempt: dict[str, Any] = {"t": time.time(), "kind": "reload",
                                    "path": str(source) if source else None}
 
+        file_sets = [False]
+
         def prepare() -> Prepared:
             new = self.preparer.prepare_config(self.cfg, self.axes, source, self.confinement)
             live = self.live_profile
-            if live is None or new.cfg.profile is not None:
+            file_sets[0] = new.cfg.profile is not None
+            if live is None or file_sets[0]:
                 return new  # none chosen live, or the file names its own
             if live not in new.cfg.profiles:
                 log.warning("profile %s (chosen live) is not defined in the reloaded config: "
-                            "no profile active", live)
+                            "dropped, no profile active", live)
                 return new
-            log.info("profile %s (chosen live) kept: the reloaded config sets none", live)
-            return self.preparer.prepare_profile(new.cfg, new.axes, live)
+            try:
+                kept = self.preparer.prepare_profile(new.cfg, new.axes, live)
+            except ConfigError as exc:
+                log.warning("profile %s (chosen live) does not fit the reloaded config (%s): "
+                            "dropped, the file's settings apply", live, exc)
+                return new
+            log.warning("profile %s (chosen live) applied over the reloaded config, which sets "
+                        "none (`motcomp profile none` returns to the file's tuning)", live)
+            return kept
 
         out = self._attempt(attempt, prepare, "reload")
-        if out["ok"] and (self.cfg.profile is None or self.cfg.profile != self.live_profile):
+        if out["ok"] and (file_sets[0] or self.cfg.profile is None):
             self.live_profile = None  # the file's choice (or none) is in force now
         if out["ok"] and path and source != self.config_path:
             log.info("config in force is now %s (was %s): SIGHUP and reload re-read it",
