@@ -55,6 +55,11 @@ class TransportError(MotcompError):
     """Opening, sending on or decoding from a transport (zenoh, CAN, file) failed."""
 
 
+class NoAnswerError(TransportError):
+    """A queryable received a query but did not answer it in time (zenoh's own ``Timeout``
+    reply): the request may still be served later."""
+
+
 class FrameError(TransportError, ValueError):
     """One wire frame is malformed, of the wrong type or out of range.
 

@@ -15,7 +15,7 @@ import msgpack
 
 from motcomp.cli._common import positive_float, print_json, remaining
 from motcomp.core.axes import AXES, ROTATIONAL
-from motcomp.errors import ServiceError
+from motcomp.errors import NoAnswerError, ServiceError
 from motcomp.io.zenoh_io import (
     NoPeerError,
     ZenohEndpoints,
@@ -95,20 +95,26 @@ def _ask(session: Any, ep: ZenohEndpoints, key: str, payload: bytes | None,
 
     A query that no queryable matches returns at once with no reply (nobody connected yet, or
     an endpoint that is down): it is asked again until the timeout, so that a service still
-    starting is waited for and the message below is said after the full wait.
+    starting is waited for and the message below is said after the full wait.  A query the
+    service took and did not answer in time is not asked again (a request may still be served).
 
     Raises
     ------
     NoPeerError
         No reply within ``timeout_s`` (naming the endpoints, the key and whether any zenoh
-        peer was connected).
+        peer was connected, or that the service took the query and did not answer).
     """
     t_end = time.monotonic() + timeout_s
+    late = False
     while True:
         remaining = t_end - time.monotonic()
         if remaining <= 0:
             break
-        replies = query(session, key, payload, remaining)
+        try:
+            replies = query(session, key, payload, remaining)
+        except NoAnswerError:  # taken and not answered in time: not sent again (a request
+            late = True        # may still be served: sent twice, it could be served twice)
+            break
         if replies:
             out = msgpack.unpackb(replies[0])
             if not isinstance(out, dict):
@@ -116,9 +122,14 @@ def _ask(session: Any, ep: ZenohEndpoints, key: str, payload: bytes | None,
             return out
         time.sleep(min(0.1, max(0.0, t_end - time.monotonic())))
     peers = len(list(session.info.peers_zid())) + len(list(session.info.routers_zid()))
+    within = f"within {timeout_s if asked_s is None else asked_s:g} s"
+    if late:
+        raise NoPeerError(
+            f"no reply from the service at {ep.describe()} (key {key}) {within}: it received "
+            "the query but did not answer in time (busy or stalled); a request may still be "
+            "served: check `motcomp status`")
     raise NoPeerError(
-        f"no reply from the service at {ep.describe()} (key {key}) within "
-        f"{timeout_s if asked_s is None else asked_s:g} s; "
+        f"no reply from the service at {ep.describe()} (key {key}) {within}; "
         + (f"{peers} zenoh peer(s) connected, but none answers on this key (another service, "
            "admin off, or an access-control rule that drops the query?)" if peers
            else "no zenoh peer was reachable"))

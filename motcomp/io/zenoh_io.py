@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from motcomp.core.tick import TickOutput
-from motcomp.errors import ConfigError, TransportError
+from motcomp.errors import ConfigError, NoAnswerError, TransportError
 from motcomp.io.wire import encode_output
 
 __all__ = [
@@ -253,18 +253,29 @@ ZENOH_TIMEOUT = "Timeout"
 
 def query(session: Any, key: str, payload: bytes | None = None, timeout_s: float = 2.0
           ) -> list[bytes]:
-    """Payloads of the replies to a query: none if nobody answered within ``timeout_s`` (no
-    queryable, or one that did not answer in time); an error reply from the queryable raises
-    TransportError."""
+    """Payloads of the replies to a query: none if no queryable matched.
+
+    Raises
+    ------
+    NoAnswerError
+        A queryable matched but did not answer within ``timeout_s`` (and none other did).
+    TransportError
+        The queryable replied with an error.
+    """
     out: list[bytes] = []
     kwargs: dict[str, Any] = {"timeout": timeout_s}
     if payload is not None:
         kwargs["payload"] = payload
+    late = False
     for reply in session.get(key, **kwargs):
         if reply.ok is not None:
             out.append(reply.ok.payload.to_bytes())
-        elif (err := reply.err.payload.to_string()) != ZENOH_TIMEOUT:
+        elif (err := reply.err.payload.to_string()) == ZENOH_TIMEOUT:
+            late = True
+        else:
             raise TransportError(f"query {key}: {err}")
+    if late and not out:
+        raise NoAnswerError(f"query {key}: received, not answered within {timeout_s:g} s")
     return out
 
 
