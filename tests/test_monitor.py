@@ -543,9 +543,10 @@ def test_status_delay_of_a_running_service_agrees_with_the_recording(tmp_path: P
 
 
 def test_a_delay_of_a_window_the_host_starved_is_not_valid() -> None:
-    """Over the status' last window the loop missed more than MAX_MISSED_SHARE of its deadlines:
-    a delay the monitor found valid is marked not valid, the reason said; below, kept."""
-    from motcomp.runtime.monitor import MAX_MISSED_SHARE, starved_out
+    """Over the status' last window the loop missed more than MAX_JUDGED_MISSED_SHARE of its
+    deadlines: a delay the monitor found valid is marked not valid, the reason said; below,
+    kept."""
+    from motcomp.runtime.monitor import MAX_JUDGED_MISSED_SHARE, starved_out
 
     def axes() -> dict[str, dict[str, object]]:
         return {"rails_y": {"apparent_delay_ms": 24.5, "delay_valid": True, "delay_reason": ""},
@@ -553,7 +554,7 @@ def test_a_delay_of_a_window_the_host_starved_is_not_valid() -> None:
                             "delay_reason": "no feedback"}}
 
     kept = axes()
-    starved_out(kept, MAX_MISSED_SHARE)
+    starved_out(kept, MAX_JUDGED_MISSED_SHARE)
     assert kept == axes()
     starved = axes()
     starved_out(starved, 0.52)

@@ -404,11 +404,11 @@ def test_the_supervisor_judges_a_window_without_its_end_as_adding_no_time() -> N
 
 @pytest.mark.parametrize("missed", [0.1, 0.3])
 def test_a_window_the_host_starved_is_not_informative(missed: float) -> None:
-    """A window in which the loop missed more than MAX_MISSED_SHARE of its deadlines is not
+    """A window in which the loop missed more than MAX_JUDGED_MISSED_SHARE of its deadlines is not
     judged, its reason says so (an unchanged hexapod read 5.5 ms late at 45-55 % missed); at
     10 % the estimate is judged."""
     from motcomp.config import load_config, resolve_axes
-    from motcomp.runtime.monitor import MAX_MISSED_SHARE
+    from motcomp.runtime.monitor import MAX_JUDGED_MISSED_SHARE
     from motcomp.runtime.supervise import Supervisor
 
     sup = Supervisor(SupervisionConfig(), resolve_axes(load_config(config_file("motcomp.toml"))))
@@ -421,8 +421,8 @@ def test_a_window_the_host_starved_is_not_informative(missed: float) -> None:
         fig = {**_fig(10.0), "model": model}
         sup._judge({"rails_y": fig}, 15.0)
         assert fig["missed_share"] == pytest.approx(missed, abs=1e-4)
-        assert fig["informative"] is (missed <= MAX_MISSED_SHARE), fig
-        if missed > MAX_MISSED_SHARE:
+        assert fig["informative"] is (missed <= MAX_JUDGED_MISSED_SHARE), fig
+        if missed > MAX_JUDGED_MISSED_SHARE:
             assert fig["reason"].startswith("the loop missed 30 % of its deadlines"), fig
     finally:
         sup.close()

@@ -313,10 +313,12 @@ def _run_from_status(args: argparse.Namespace) -> int:
     if not isinstance(est, dict):
         raise DataError(f"{where}: {axis}: no estimate yet ({fig.get('reason') or 'waiting'})")
     informative = bool(fig.get("informative"))
-    when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(float(st.get("t", 0.0))))
+    end = fig.get("to_t")
+    when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(
+        float(end) if isinstance(end, int | float) else float(st.get("t", 0.0))))
     comments = [
-        f"# Estimated by motcomp's model supervision from ordinary driving ({where}, {when}),",
-        f"# {taken}:",
+        f"# Estimated by motcomp's model supervision from ordinary driving ({where}),",
+        f"# {taken}, ending {when}:",
         f"# {fig['to_t'] - fig['from_t']:.0f} s window, judged at {fig['at_hz']:.2f} Hz; "
         f"identified {est['identified']}; the model explains {100 * est['explained']:.2f} %.",
         f"# Td {est['Td_ms']:.2f} +- {est['Td_se_ms']:.2f} ms, "
@@ -343,7 +345,8 @@ def _run_from_status(args: argparse.Namespace) -> int:
         raise ConfigError(f"--out {out}: cannot write the fragment: {exc.strerror or exc}"
                           ) from None
     if args.json:
-        print_json({"axis": axis, "fragment": str(path), "spec": est["spec"], **fig})
+        print_json({"axis": axis, "fragment": str(path), "spec": est["spec"], **fig,
+                    "taken": taken})
     else:
         print("\n".join(comments))
         print(f"wrote {path}")

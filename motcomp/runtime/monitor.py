@@ -94,8 +94,8 @@ __all__ = [
     "FEEDBACK_STALE_S",
     "LAG_RANGE_S",
     "MAX_FEEDBACK_BYTES",
+    "MAX_JUDGED_MISSED_SHARE",
     "MAX_LIMITED_SHARE",
-    "MAX_MISSED_SHARE",
     "MAX_WINDOW_S",
     "MIN_CORRELATION",
     "MIN_FEEDBACK_COVERAGE",
@@ -126,7 +126,7 @@ MIN_CORRELATION = 0.9
 MAX_LIMITED_SHARE = 0.25
 """A delay measured while the limiter acted on more of the window's ticks is not valid: the
 platform then follows the limits, not the compensation (a 256 ms "delay" at 82 %)."""
-MAX_MISSED_SHARE = 0.2
+MAX_JUDGED_MISSED_SHARE = 0.2
 """A window in which the loop missed more than this share of its deadlines judges nothing -- no
 valid delay here, no informative estimate in supervision: its stalls are cut out, but between
 them a loop that starved ticks late and the figures carry it (an unchanged hexapod read 5.5 ms
@@ -185,15 +185,15 @@ def _axis_row(frame: dict[str, Any], key: str) -> list[float]:
 
 def starved_out(axes: dict[str, dict[str, Any]], missed_share: float) -> None:
     """Mark each valid delay of ``axes`` (:meth:`MotionMonitor.report`'s) not valid, with the
-    reason, where the loop missed more than :data:`MAX_MISSED_SHARE` of its deadlines."""
-    if not missed_share > MAX_MISSED_SHARE:
+    reason, where the loop missed more than :data:`MAX_JUDGED_MISSED_SHARE` of its deadlines."""
+    if not missed_share > MAX_JUDGED_MISSED_SHARE:
         return
     for fig in axes.values():
         if fig.get("delay_valid"):
             fig["delay_valid"] = False
             fig["delay_reason"] = (f"the loop missed {100 * missed_share:.0f} % of its "
-                                   f"deadlines (more than {100 * MAX_MISSED_SHARE:g} %): the "
-                                   "host starved it")
+                                   f"deadlines (more than {100 * MAX_JUDGED_MISSED_SHARE:g} %): "
+                                   "the figure carries its stalls")
 
 
 class MotionMonitor:

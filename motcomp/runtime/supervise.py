@@ -34,7 +34,7 @@ from motcomp.core.axes import AXES
 from motcomp.core.models import ProcessModel
 from motcomp.runtime import child
 from motcomp.runtime.estimate import EstimateSettings, LiveWindow
-from motcomp.runtime.monitor import MAX_MISSED_SHARE
+from motcomp.runtime.monitor import MAX_JUDGED_MISSED_SHARE
 
 __all__ = ["ALARM_LOG_S", "BLIND_AFTER_S", "CONFIDENCE_Z", "CPU_SHARE_MAX", "MIN_RUN",
            "DriftJudge", "Supervisor", "settings_of"]
@@ -161,7 +161,8 @@ _NEEDS = (
 def _kind(reason: str) -> str:
     """The kind of a reason a window was not judged for (a key of :data:`_NEEDS`), or
     ``"other"``."""
-    for key, words in (("stalls", ("stalls of the host",)), ("uncertain", ("uncertain",)),
+    for key, words in (("stalls", ("stalls of the host", "of its deadlines")),
+                       ("uncertain", ("uncertain",)),
                        ("limiter", ("the limiter acted",)), ("explains", ("explains",)),
                        ("feedback", ("feedback", "no outputs"))):
         if any(w in reason for w in words):
@@ -541,11 +542,12 @@ class Supervisor:
             fig["missed_share"] = missed  # the loop's stalls are cut out of the estimate
             if fig.get("informative"):
                 share = limited[AXES.index(axis)] if limited else 0.0
-                if missed is not None and missed > MAX_MISSED_SHARE:
+                if missed is not None and missed > MAX_JUDGED_MISSED_SHARE:
                     fig["informative"] = False
                     fig["reason"] = (f"the loop missed {100 * missed:.0f} % of its deadlines "
-                                     f"over the window (more than {100 * MAX_MISSED_SHARE:g} %):"
-                                     " the host starved it")
+                                     "over the window (more than "
+                                     f"{100 * MAX_JUDGED_MISSED_SHARE:g} %):"
+                                     " the figures carry its stalls")
                 elif share > self.cfg.max_limited_share:
                     fig["informative"] = False
                     fig["reason"] = (f"the limiter acted on {100 * share:.0f} % of the ticks "
