@@ -66,21 +66,21 @@ Rules for edge cases
   and so between two consecutive outputs however many periods apart (docs/WIRE.md, "The
   limits across missed ticks").  A stall longer than ``MAX_CATCH_UP`` periods is caught up
   over its last ones.  One output per call, never a burst.
-* Input loss (the shaper's mode ``stale`` or ``parking``, catch-up steps included): at the
-  first such tick every driven axis gets a window (:meth:`Compensator.open_window
-  <motcomp.core.compensator.Compensator.open_window>`): the hull of its command ``p``, its
-  braking point ``p + v |v| / (2 a_max)`` (``v`` the command's velocity) and the reference,
-  widened by each later reference and the reach of its motion (the ramp to neutral is never
-  blocked nor braked: :meth:`~motcomp.core.compensator.Compensator.widen_window`); its limiter
-  brakes at the window's edge as at an end stop, its target is the shaper's reference (the PID
-  starts over at rest on it, the prediction is held off at once; both run on, unused, as in
-  bypass) and, once braked, its speed is at most the ramp's (``ramp_speed``).  So no axis,
-  compensated, predicted or bypassed, travels beyond ``v^2 / (2 a_max)`` in the direction of
-  its velocity at the loss, or beyond the held reference where that lies further (plus
-  rounding, and the limiter's catch of a ramp it meets from behind: ``a_max h^2``), it only returns towards the held reference during the hold, and it
-  ramps to neutral at the ramp's speed (tests/test_input_loss.py).  The window is removed when
-  the input is live again (``rejoin``: compensation switches back on as out of a bypass, from
-  the command being sent: :class:`~motcomp.core.compensator.Compensator`).
+* Input loss (the shaper's mode ``stale`` or ``parking``, catch-up steps included): at the first
+  such tick every driven axis gets a window (:meth:`Compensator.open_window
+  <motcomp.core.compensator.Compensator.open_window>`): the hull of its command ``p``, its braking
+  point ``p + v |v| / (2 a_max)`` (``v`` the command's velocity) and the reference, widened by
+  each later reference and the reach of its motion (the ramp to neutral is never blocked nor
+  braked: :meth:`~motcomp.core.compensator.Compensator.widen_window`); its limiter brakes at the
+  window's edge as at an end stop, its target is the shaper's reference (the PID starts over at
+  rest on it, the prediction is held off at once; both run on, unused, as in bypass) and, once
+  braked, its speed is at most the ramp's (``ramp_speed``). So no axis, compensated, predicted or
+  bypassed, travels beyond ``v^2 / (2 a_max)`` in the direction of its velocity at the loss, or
+  beyond the held reference where that lies further (plus rounding, and the limiter's catch of a
+  ramp it meets from behind: ``a_max h^2``), it only returns towards the held reference during the
+  hold, and it ramps to neutral at the ramp's speed (tests/test_input_loss.py). The window is
+  removed when the input is live again (``rejoin``: compensation switches back on as out of a
+  bypass, from the command being sent: :class:`~motcomp.core.compensator.Compensator`).
 * Envelope: every command of the compensator (catch-up steps included) goes through the
   envelope guard (:mod:`motcomp.core.envelope`, ``TickParams.envelope``, built from the
   config's hardware envelope by :func:`motcomp.config.tick_params`), a no-op while the limiter
