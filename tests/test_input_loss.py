@@ -7,12 +7,10 @@ added), hex_z predicted with its PID bypassed (the example's).  When the input i
 stale, with the command at ``p`` moving at ``v`` (``s`` the sign of ``v``), for every later
 tick of the episode::
 
-    s (u - p) <= max(v^2 / (2 a_max), max over the references r since then of s (r - p))
-                 + MOVE_SHARE a_max h^2 + SLACK
+    s (u - p) <= max(v^2 / (2 a_max), max over the references r since then of s (r - p)) + SLACK
 
-(the braking distance, widened only by the ramp to neutral, and the limiter's catch of a ramp it
-follows from behind: a step it may overshoot by up to ``a_max h^2``, 6 um on the rails); every
-command within the axis' limits from the start of the run
+(the braking distance, widened only by the ramp to neutral); every command within the axis'
+limits from the start of the run
 (:func:`tests.test_saturation.check_sequence`); the axis at neutral, at rest, at the end of the
 ramp.  The hold then the ramp: until ``hold_s`` after
 ``stale``, once braked (its velocity no longer the way it went) the command only comes back
@@ -20,8 +18,10 @@ to the held reference (no ramp before ``hold_s``); its speed stays within the ra
 (``ramp_speed_fraction x vel_max``), or within braking at ``a_max`` from its speed at the stale
 instant while above it.  An axis back on the held reference when the hold ends follows the ramp
 to neutral as it is (its acceleration within the ramp's, a quarter of ``a_max``): the window
-takes in the ramp's reach, so its edge never brakes the command (it did, at up to ``a_max``
-for 10-45 ms, when it took in only the reference itself).
+takes in the ramp's reach where the command follows the ramp, so its edge never brakes it (it
+did, at up to ``a_max`` for 10-45 ms, when it took in only the reference itself); a command
+catching the ramp keeps the edge at the reference (with the reach it passed the ramp by 6.5 um:
+the parking example below).
 
 On the previous behaviour (no window) the travel bound fails for the compensated rails_y: on 14
 stops (speeds 0.8-1.2, stops at 3.7-8.05 s) it ran 0.015-0.107 m beyond the bound, its speed
@@ -165,8 +165,7 @@ def assert_path_to_rest(ep: Episode, i: int, hold: bool = True) -> float:
     """The property of the module docstring for axis ``i`` (without the hold: parking);
     returns the worst excess travel."""
     excess, _ = excess_travel(ep, i)
-    catch = MOVE_SHARE * ep.state.comp.limits.a_max[i] * H * H
-    assert excess <= catch + SLACK, f"{AXES[i]}: {excess:.6f} m beyond the bound"
+    assert excess <= SLACK, f"{AXES[i]}: {excess:.6f} m beyond the bound"
     u = ep.u[:, i]
     check_sequence(u, 0.0, ep.state.comp.limits, H, i)
     assert abs(u[-1]) < 1e-9 and abs(u[-1] - u[-2]) < 1e-12, \
@@ -212,6 +211,7 @@ def test_the_path_to_rest_after_an_input_loss_is_bounded(speed: float, stop_s: f
 @settings(max_examples=5, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(speed=st.sampled_from(SPEEDS), stop_s=st.floats(FIRST_STOP_S, LAST_STOP_S - 0.01))
 @example(speed=1.0, stop_s=8.05)
+@example(speed=0.8, stop_s=5.593446496682622)  # the reach for a command catching the ramp: 6.5 um
 def test_parking_mid_motion_is_bounded_alike(speed: float, stop_s: float) -> None:
     """Parking requested mid-slalom (the sender going on): the same bound, limits, speed and
     rest at neutral, without the hold."""

@@ -358,29 +358,34 @@ class Compensator:
             self._set_window(i, min(u, stop, r), max(u, stop, r))
 
     def widen_window(self, reference: Sequence[float]) -> None:
-        """Widen each open window to take in ``reference`` and, where the command is not ahead
-        of it, the reach of its motion: one more step of it and its braking distance at half
-        ``a_max``, ``r + v h + v |v| / a_max`` (``v`` its velocity since the last call, at most
-        the ramp's peak speed).  A
-        target moving on at the window's very edge would be braked there as at an end stop, at
-        ``a_max``: the reach keeps a ramp to neutral feasible, so a command on it or behind it
-        follows it as it is, never braked; a command ahead of it is braked to it at the edge.
-        Allocates only when a bound moves."""
+        """Widen each open window to take in ``reference`` and, where the command follows it
+        (on the last one, at a speed from which this step is within ``a_max``), the reach of
+        its motion: one more step of it and its braking distance at half ``a_max``,
+        ``r + v h + v |v| / a_max`` (``v`` its velocity since the last call, at most the ramp's
+        peak speed).  A target moving on at the window's very edge would be braked there as at
+        an end stop, at ``a_max``: the reach keeps a ramp to neutral feasible, so a command that
+        follows it passes it as it is, never braked and never beyond it; a command that does not
+        (braking, returning, catching up) keeps the edge at the reference.  Allocates only when
+        a bound moves."""
         for i, win in enumerate(self._window):
             if win is not None:
                 r = reference[i]
                 step = r - self._window_ref[i]
                 self._window_ref[i] = r
-                lim = self._lim[i]  # lim[0] = h, lim[1] = 1 / h, lim[8] = 1 / (2 a_max)
-                # a ramp moves at most at its peak speed: a step beyond (the reference brought
-                # within the limits at the ramp's start, a stall's catch-up) is no speed
-                cap = self._window_speed[i] * lim[0]
-                if step > cap:
-                    step = cap
-                elif step < -cap:
-                    step = -cap
-                reach = r if step * (self._u[i] - r) > 0.0 else (
-                    r + step + step * abs(step) * lim[1] * lim[1] * 2.0 * lim[8])
+                lim = self._lim[i]  # h, 1 / h, ..., lim[5] = a_max h, lim[8] = 1 / (2 a_max)
+                h = lim[0]
+                # on the reference, at a speed from which its step is within a_max: the limiter
+                # passes it as it is if the edge lets it (else it keeps the edge at the
+                # reference, which brakes a command that would pass it)
+                if self.deviation[i] != 0.0 or abs(step - self._v[i] * h) > lim[5] * h:
+                    reach = r
+                else:
+                    # a ramp moves at most at its peak speed: a step beyond (the reference
+                    # brought within the limits at the ramp's start, a stall's catch-up) is no
+                    # speed
+                    cap = self._window_speed[i] * h
+                    step = cap if step > cap else -cap if step < -cap else step
+                    reach = r + step + step * abs(step) * lim[1] * lim[1] * 2.0 * lim[8]
                 lo, hi = (r, reach) if reach >= r else (reach, r)
                 if lo < win[2] or hi > win[3]:
                     self._set_window(i, min(lo, win[2]), max(hi, win[3]))

@@ -76,11 +76,11 @@ Rules for edge cases
   rest on it, the prediction is held off at once; both run on, unused, as in bypass) and, once
   braked, its speed is at most the ramp's (``ramp_speed``). So no axis, compensated, predicted or
   bypassed, travels beyond ``v^2 / (2 a_max)`` in the direction of its velocity at the loss, or
-  beyond the held reference where that lies further (plus rounding, and the limiter's catch of a
-  ramp it meets from behind: ``a_max h^2``), it only returns towards the held reference during the
-  hold, and it ramps to neutral at the ramp's speed (tests/test_input_loss.py). The window is
-  removed when the input is live again (``rejoin``: compensation switches back on as out of a
-  bypass, from the command being sent: :class:`~motcomp.core.compensator.Compensator`).
+  beyond the held reference where that lies further (plus rounding), it only returns towards the
+  held reference during the hold, and it ramps to neutral at the ramp's speed
+  (tests/test_input_loss.py). The window is removed when the input is live again (``rejoin``:
+  compensation switches back on as out of a bypass, from the command being sent:
+  :class:`~motcomp.core.compensator.Compensator`).
 * Envelope: every command of the compensator (catch-up steps included) goes through the
   envelope guard (:mod:`motcomp.core.envelope`, ``TickParams.envelope``, built from the
   config's hardware envelope by :func:`motcomp.config.tick_params`), a no-op while the limiter
