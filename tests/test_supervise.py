@@ -320,19 +320,20 @@ def _status(informative: bool) -> dict[str, object]:
 
 def test_identify_from_a_saved_status_writes_the_fragment(tmp_path: Path) -> None:
     saved = tmp_path / "status.json"
+
+    def from_status(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(motcomp_cmd("identify", str(saved), "--from-status", *args),
+                              capture_output=True, text=True, env=subprocess_env(), timeout=60)
+
     saved.write_text(json.dumps(_status(True)))
-    p = subprocess.run(motcomp_cmd("identify", str(saved), "--from-status", "--out",
-                                   str(tmp_path / "retune")), capture_output=True, text=True,
-                       env=subprocess_env(), timeout=60)
+    p = from_status("--out", str(tmp_path / "retune"))
     assert p.returncode == 0, p.stderr
     text = (tmp_path / "retune" / "rails_y.toml").read_text()
     assert '[axes.rails_y]\nmodel = "p1d:K=1.001,Td=0.0276,Tp1=0.186"' in text
     assert "residual delay +10.00 +- 0.20 ms" in text
     # not informative: no fragment, exit 2, the reason said
     saved.write_text(json.dumps(_status(False)))
-    p = subprocess.run(motcomp_cmd("identify", str(saved), "--from-status", "--axis", "rails_y",
-                                   "--out", str(tmp_path / "again")), capture_output=True,
-                       text=True, env=subprocess_env(), timeout=60)
+    p = from_status("--axis", "rails_y", "--out", str(tmp_path / "again"))
     assert p.returncode == 2 and "not informative (no motion)" in p.stderr, p.stderr
     assert not (tmp_path / "again").exists()
     # the latest window told nothing, an earlier one did: that one is taken, and said
@@ -343,17 +344,14 @@ def test_identify_from_a_saved_status_writes_the_fragment(tmp_path: Path) -> Non
         "reason": "5 stalls of the host cut out 13.8 s of the window"}
     del st["model_mismatch"]["axes"]["rails_y"]["estimate"]  # type: ignore[index]
     saved.write_text(json.dumps(st))
-    p = subprocess.run(motcomp_cmd("identify", str(saved), "--from-status", "--out",
-                                   str(tmp_path / "earlier")), capture_output=True, text=True,
-                       env=subprocess_env(), timeout=60)
+    p = from_status("--out", str(tmp_path / "earlier"))
     assert p.returncode == 0, p.stderr
     text = (tmp_path / "earlier" / "rails_y.toml").read_text()
     assert 'model = "p1d:K=1.001,Td=0.0276,Tp1=0.186"' in text
     assert "the last informative window (the latest is not: 5 stalls" in " ".join(
         ln.lstrip("# ") for ln in text.splitlines()), text
     saved.write_text(json.dumps({"t": 1.0}))
-    p = subprocess.run(motcomp_cmd("identify", str(saved), "--from-status"),
-                       capture_output=True, text=True, env=subprocess_env(), timeout=60)
+    p = from_status()
     assert p.returncode != 0 and "no model_mismatch block" in p.stderr, p.stderr
 
 
