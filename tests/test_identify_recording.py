@@ -76,6 +76,9 @@ def test_identifies_the_bypassed_stretch_as_a_user_runs_it(mixed: Path, tmp_path
     assert params["Td"] == pytest.approx(RAILS.Td, abs=1e-3)
     assert params["Tp1"] == pytest.approx(RAILS.Tp1, rel=0.05)
     assert rep["phase_delay_0p2hz_ms"] == pytest.approx(200.0, abs=3.0)
+    # the pairing's phase over the window: the synthesizer stamps its feedback 0.3 ms after the
+    # tick whose output is in force (time stamps quantised to 0.24 us)
+    assert rep["data"]["conditions"]["pairing_phase_ms"] == pytest.approx(0.3, abs=1e-3)
     # the gaps: three without feedback and one where the outputs were lost, bridged
     gaps = rep["data"]["gaps"]
     assert gaps["count"] == 4 and gaps["longest_ms"] == pytest.approx(21.0, abs=0.5)
@@ -256,6 +259,12 @@ def test_the_run_s_conditions_come_from_the_recorded_status() -> None:
     assert (c["service_ticks"], c["service_missed"]) == (17_100, 2_000)
     assert c["service_missed_share"] == pytest.approx(2_000 / 19_100)
     assert c["platform_setpoint_age_ms"] == 1.25
+    # the report: the age, the pairing's phase and their difference inside the fitted Td
+    from motcomp.ident.report import _window_text
+    text = _window_text({"window": None, "gaps": {"count": 0},
+                         "conditions": {**c, "pairing_phase_ms": 0.75}})
+    assert ("applied its setpoints 1.25 ms after their t (median), 0.75 ms of it the pairing's "
+            "phase (the model's hold): 0.50 ms of the stack's delay inside the fitted Td.") in text
     assert len(c["warnings"]) == 1 and "missed 2000 of 19100 deadlines" in c["warnings"][0]
     quiet = SimpleNamespace(status=[frame(100.0, 1000, 0), frame(120.0, 20_990, 10)])
     c = run_conditions(quiet, 100.2, 119.8)  # type: ignore[arg-type]

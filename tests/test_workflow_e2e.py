@@ -33,6 +33,10 @@ pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 PRESET_TD, PRESET_TP1 = 0.0175, 0.1858
 SLALOM_HZ = 40.0 / 3.6 / (2 * 18.0)
 """The built-in slalom's weave: 40 km/h past cones 18 m apart (motcomp.design.timedomain)."""
+MAX_TD_ERROR_S = 1e-3
+"""The identified delay against the drawn one plus the stack's share (docs/IDENTIFICATION.md):
+the fit's scatter between runs (up to 0.25 ms seen) and up to half a cycle where the hop to the
+platform sometimes outlasts the tick phase and sometimes not (the medians read 0 or 1 cycle)."""
 MAX_PHASE_STDERR_MS = 1.0
 """The slalom is judged against its 3 ms bound where the identification states its phase delay
 (at 0.2 Hz) to within this standard error: a third of the bound."""
@@ -140,15 +144,17 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
     # the P1D fit against the drawn truth, and P1D selected for it
     assert rep["selected"] == "p1d", (rep["reason"], truth)
     assert abs(p1d["Tp1"] / tp1 - 1) <= 0.05, (p1d, truth, fragment.read_text())
-    # the platform as the service's stamps see it: the drawn delay plus the transport and the
-    # simulator's tick phase, which the simulator measures (each setpoint's age when applied)
-    age = re.search(r"applied (\S+) ms after their t \(median",
-                    (tmp_path / "hil.log").read_text())
-    assert age, (tmp_path / "hil.log").read_text()[-2000:]
-    seen_td = td + float(age.group(1)) / 1e3
+    # the platform as the service's stamps see it: the drawn delay plus each setpoint's age when
+    # the simulator applied it (the transport and its tick phase); the fit reads the pairing's
+    # phase as the model's hold, the rest of the age as delay (docs/SUPERVISION.md)
+    c = rep["data"]["conditions"]
+    age, phase = c["platform_setpoint_age_ms"], c["pairing_phase_ms"]
+    assert 0.0 <= phase <= 1.0 and 0.0 < age < 5.0, c
+    seen_td = td + age / 1e3
+    fitted_td = seen_td - phase / 1e3
     print(f"identified Td {p1d['Td'] * 1e3:.2f} ms; drawn {td * 1e3:.2f} ms + the stack's "
-          f"{age.group(1)} ms")
-    assert abs(p1d["Td"] - seen_td) <= 1e-3, (p1d, truth, age.group(0))
+          f"{age:.2f} - {phase:.2f} ms")
+    assert abs(p1d["Td"] - fitted_td) <= MAX_TD_ERROR_S, (p1d, truth, c)
     s = read_session(rec)
     assert s.inputs is not None and s.feedback is not None
     y_axis = 1  # rails_y

@@ -706,6 +706,8 @@ AXIS_LISTERS[".mcap"] = _list_mcap
 
 @register_loader(".mcap")
 def _load_mcap(path: Path, axis: str | None, clock: str) -> RawRecording:
+    from motcomp.record.session import pairing_phase_ms
+
     session = _session(path)
     src = session.name
     spans = _output_spans(session)
@@ -730,6 +732,12 @@ def _load_mcap(path: Path, axis: str | None, clock: str) -> RawRecording:
 
     def cmd_at(times: FloatArray) -> tuple[FloatArray, np.ndarray]:
         return session.command_in_force(axis, times + cols.start_s, clock)
+    def conditions_at(a: float, b: float) -> dict[str, Any]:
+        out = run_conditions(session, a + cols.start_s, b + cols.start_s)
+        inside = (t >= a) & (t <= b)
+        if inside.any():
+            out["pairing_phase_ms"] = pairing_phase_ms(cols.t[inside], cols.t_cmd[inside])
+        return out
     hint = None
     span = str(session.metadata.get("excitation_window", "")).split()
     if len(span) == 2 and session.metadata.get("excitation_axis") == axis:
@@ -740,15 +748,15 @@ def _load_mcap(path: Path, axis: str | None, clock: str) -> RawRecording:
                         limited=cols.limited, warnings=tuple(warnings), cmd_at=cmd_at,
                         band_hz=_reference_band(session, axis, hint, cols.start_s),
                         within_hint=hint,
-                        conditions_at=lambda a, b: run_conditions(session, a + cols.start_s,
-                                                                  b + cols.start_s))
+                        conditions_at=conditions_at)
 
 
 def run_conditions(session: Session, t0: float, t1: float) -> dict[str, Any]:
     """How the run went between ``t0`` and ``t1`` (the recording's clock, s), from the service
     status frames it recorded (one before and one after the window at best): the deadlines the
     service's loop missed, and the platform's own figures (its setpoint age: the stack's delay,
-    which an identified ``Td`` includes).  ``warnings`` name what makes the fit doubtful."""
+    which an identified ``Td`` includes beyond the pairing's phase).  ``warnings`` name what
+    makes the fit doubtful."""
     frames = [st for _, st in session.status
               if isinstance(st.get("t"), int | float) and isinstance(st.get("ticks"), int)
               and isinstance(st.get("missed_ticks"), int)]

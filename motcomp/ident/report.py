@@ -114,10 +114,20 @@ def _window_text(d: dict[str, Any]) -> str:
         text += (f"  The service missed {c['service_missed']} of "
                  f"{c['service_ticks'] + c['service_missed']} deadlines meanwhile "
                  f"({100 * c['service_missed_share']:.2f} %)")
-        age = c.get("platform_setpoint_age_ms")
-        text += (f"; the platform applied its setpoints {age:.2f} ms after their t (median: the "
-                 "stack's delay, inside the fitted Td)." if age is not None else ".")
+        text += _stack_text(c.get("platform_setpoint_age_ms"), c.get("pairing_phase_ms"))
     return text
+
+
+def _stack_text(age: float | None, phase: float | None) -> str:
+    """The stack's share of the fitted delay: the platform's setpoint age less the pairing's
+    phase, which the model's hold holds (docs/SUPERVISION.md, "The stack's share")."""
+    if age is None:
+        return "."
+    text = f"; the platform applied its setpoints {age:.2f} ms after their t (median"
+    if phase is None:
+        return text + ": the stack's delay)."
+    return (text + f"), {phase:.2f} ms of it the pairing's phase (the model's hold): "
+            f"{age - phase:.2f} ms of the stack's delay inside the fitted Td.")
 
 
 TREMOR_HZ = (10.0, 20.0)

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import queue
 import re
 import threading
@@ -131,6 +132,14 @@ def output_in_force(to: np.ndarray, lost_from: np.ndarray, times: np.ndarray
     k = np.searchsorted(to, times, side="right") - 1
     known = (k >= 0) & (times < lost_from[np.maximum(k, 0)])
     return k, known
+
+
+def pairing_phase_ms(t: np.ndarray, t_in_force: np.ndarray) -> float:
+    """The pairing's phase (ms): the median time from the output in force to the sample it is
+    paired with (``t``; nan if none).  It is part of the stack's delay that a fit on the paired
+    samples reads as the model's hold, not as ``Td`` (docs/SUPERVISION.md, "The stack's
+    share"); the median, as a stall holds an old output in force."""
+    return float(np.median(t - t_in_force)) * 1e3 if t.size else math.nan
 
 
 @dataclass
@@ -267,7 +276,8 @@ class Session:
         limited = sat_count[k + 1] - sat_count[np.minimum(k_prev + 1, k)] > 0
         bypassed = (flags[k] & bypass_bit) != 0
         start = min(float(to[0]), float(tf[0])) if tf.size else float(to[0])
-        return IdentificationColumns(axis=axis, clock=clock, t=tf, cmd=cmd[k], acc=acc,
+        return IdentificationColumns(axis=axis, clock=clock, t=tf, cmd=cmd[k], t_cmd=to[k],
+                                     acc=acc,
                                      bypassed=bypassed, limited=limited, feedback_index=fb_index,
                                      start_s=start, unknown=unknown)
 
@@ -295,6 +305,8 @@ class IdentificationColumns:
     """Feedback time (s, on ``clock``)."""
     cmd: np.ndarray
     """Output position in force (m or rad)."""
+    t_cmd: np.ndarray
+    """That output's time (s, on ``clock``): ``t - t_cmd`` is the pairing's phase."""
     acc: np.ndarray
     """Measured acceleration (m/s^2 or rad/s^2)."""
     bypassed: np.ndarray

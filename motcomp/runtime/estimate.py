@@ -42,7 +42,7 @@ import numpy as np
 
 from motcomp.core.models import P1D, ProcessModel
 from motcomp.jsonsafe import finite
-from motcomp.record.session import output_in_force
+from motcomp.record.session import output_in_force, pairing_phase_ms
 
 __all__ = ["MAX_CORRELATION", "EstimateSettings", "LiveWindow", "estimate_axis", "mismatch"]
 
@@ -324,8 +324,8 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
         out["reason"] = f"no feedback acceleration of {axis} in the window"
         return out
     k, known = output_in_force(t_out, np.full(t_out.size, np.inf), t_fb)
-    if known.any():  # the median: a stall of the loop holds an old output in force
-        out["pairing_phase_ms"] = float(np.median(t_fb[known] - t_out[k[known]])) * 1e3
+    if known.any():
+        out["pairing_phase_ms"] = pairing_phase_ms(t_fb[known], t_out[k[known]])
     t_fb, acc = t_fb[known], acc[known]
     span = float(t_fb[-1] - t_fb[0]) if t_fb.size else 0.0
     out["span_s"] = span
