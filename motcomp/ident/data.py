@@ -732,6 +732,7 @@ def _load_mcap(path: Path, axis: str | None, clock: str) -> RawRecording:
 
     def cmd_at(times: FloatArray) -> tuple[FloatArray, np.ndarray]:
         return session.command_in_force(axis, times + cols.start_s, clock)
+
     def conditions_at(a: float, b: float) -> dict[str, Any]:
         out = run_conditions(session, a + cols.start_s, b + cols.start_s)
         inside = (t >= a) & (t <= b)

@@ -120,7 +120,8 @@ def _window_text(d: dict[str, Any]) -> str:
 
 def _stack_text(age: float | None, phase: float | None) -> str:
     """The stack's share of the fitted delay: the platform's setpoint age less the pairing's
-    phase, which the model's hold holds (docs/SUPERVISION.md, "The stack's share")."""
+    phase, which the fit reads as the model's hold (docs/SUPERVISION.md, "The stack's
+    share")."""
     if age is None:
         return "."
     text = f"; the platform applied its setpoints {age:.2f} ms after their t (median"
