@@ -263,8 +263,9 @@ def test_the_run_s_conditions_come_from_the_recorded_status() -> None:
     from motcomp.ident.report import _window_text
     text = _window_text({"window": None, "gaps": {"count": 0},
                          "conditions": {**c, "pairing_phase_ms": 0.75}})
-    assert ("applied its setpoints 1.25 ms after their t (median), 0.75 ms of it the pairing's "
-            "phase (the model's hold): 0.50 ms of the stack's delay inside the fitted Td.") in text
+    assert ("applied its setpoints 1.25 ms after their t (median), the pairing's phase 0.75 ms "
+            "(the model's hold, outside the fitted Td): +0.50 ms of the stack's delay inside the "
+            "fitted Td.") in text
     assert len(c["warnings"]) == 1 and "missed 2000 of 19100 deadlines" in c["warnings"][0]
     quiet = SimpleNamespace(status=[frame(100.0, 1000, 0), frame(120.0, 20_990, 10)])
     c = run_conditions(quiet, 100.2, 119.8)  # type: ignore[arg-type]

@@ -33,6 +33,8 @@ pytestmark = pytest.mark.slow
 
 TD_MS, TP1_MS = 24.0, 130.0
 """The platform's rails_y, unlike the example config's model (17.5 ms, 186 ms)."""
+CYCLE_MS = 1.0
+"""The platform's cycle (tools/wire_platform.py's default rate, 1 kHz)."""
 
 
 def cli(*args: str, timeout: float = 300.0) -> subprocess.CompletedProcess[str]:
@@ -93,7 +95,8 @@ def test_the_workflow_by_hand_identifies_a_platform_written_from_the_contract(
     # the model's hold -- plus the cycle by which the second difference it sends as acc is
     # centred before its t (docs/WIRE.md, docs/SUPERVISION.md "The stack's share")
     c = rep["data"]["conditions"]
-    share_ms = c["platform_setpoint_age_ms"] - c["pairing_phase_ms"] + 1.0
+    assert "platform_setpoint_age_ms" in c and "pairing_phase_ms" in c, c
+    share_ms = c["platform_setpoint_age_ms"] - c["pairing_phase_ms"] + CYCLE_MS
     print(f"identified Td {fit['Td'] * 1e3:.2f} ms, Tp1 {fit['Tp1'] * 1e3:.1f} ms; drawn "
           f"{TD_MS:g} + the stack's {share_ms:.2f} ms, {TP1_MS:g} ms")
     assert fit["Td"] * 1e3 == pytest.approx(TD_MS + share_ms, abs=1.0), (fit, c)

@@ -35,7 +35,7 @@ SLALOM_HZ = 40.0 / 3.6 / (2 * 18.0)
 """The built-in slalom's weave: 40 km/h past cones 18 m apart (motcomp.design.timedomain)."""
 MAX_TD_ERROR_S = 1e-3
 """The identified delay against the drawn one plus the stack's share (docs/IDENTIFICATION.md):
-the fit's scatter between runs (up to 0.25 ms seen) and up to half a cycle where the hop to the
+the fit's scatter between runs (up to 0.38 ms seen) and up to half a cycle where the hop to the
 platform sometimes outlasts the tick phase and sometimes not (the medians read 0 or 1 cycle)."""
 MAX_PHASE_STDERR_MS = 1.0
 """The slalom is judged against its 3 ms bound where the identification states its phase delay
@@ -101,6 +101,9 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
         ident_run = p
         rep = json.loads(p.stdout)
         p1d = rep["models"]["p1d"]["params"]
+        c = rep["data"]["conditions"]
+        age, phase = c.get("platform_setpoint_age_ms"), c.get("pairing_phase_ms")
+        assert age is not None and phase is not None, f"identify reports no age or phase: {c}"
         # the same file identified offline, without options, gives the same answer: the
         # recording holds the excitation's window and the reference's band
         q = cli("identify", str(tmp_path / "live.mcap"), "--axis", "rails_y", "--out",
@@ -109,8 +112,9 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
         assert json.loads(q.stdout)["models"]["p1d"]["params"] == p1d
         # 2. design from the fragment, written as a fragment of the config
         design = tmp_path / "design.toml"
-        # identified through the stack: the design cancels the input's playback lag on top
-        lag_ms = load_config(config_file("motcomp.toml")).input.playback_lag_s * 1e3
+        # identified through the stack: the design cancels the input's playback lag on top, and
+        # the pairing's phase, which the fitted Td does not hold (docs/TUNING.md)
+        lag_ms = load_config(config_file("motcomp.toml")).input.playback_lag_s * 1e3 + phase
         p = cli("design", "--plant", str(fragment), "--rule", "optimal", "--out", str(design),
                 "--input-lag-ms", f"{lag_ms:g}", "--quiet")
         assert p.returncode == 0, p.stderr
@@ -147,8 +151,6 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
     # the platform as the service's stamps see it: the drawn delay plus each setpoint's age when
     # the simulator applied it (the transport and its tick phase); the fit reads the pairing's
     # phase as the model's hold, the rest of the age as delay (docs/SUPERVISION.md)
-    c = rep["data"]["conditions"]
-    age, phase = c["platform_setpoint_age_ms"], c["pairing_phase_ms"]
     assert 0.0 <= phase <= 1.0 and 0.0 < age < 5.0, c
     seen_td = td + age / 1e3
     fitted_td = seen_td - phase / 1e3
@@ -165,10 +167,11 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
     grid = np.arange(max(ti[0], tf[0]) + 0.5, min(ti[-1], tf[-1]) - 0.5, 1e-3)
     delay = estimate_delay(np.interp(grid, ti, ri), np.interp(grid, tf, yf), 1000.0,
                            min_lag_s=-0.1, max_lag_s=0.5)
-    # the compensator cancels its model's lag: what is left is the platform's (as the stamps
-    # see it) less the identified model's, at the slalom's frequency -- the identification's
-    # error, whatever the host did to it; the compensation itself adds nothing (within 1 ms)
-    left = p1d_lag_s(seen_td, tp1) - p1d_lag_s(p1d["Td"], p1d["Tp1"])
+    # the compensator cancels its model's lag and the input lag it was designed for: what is
+    # left is the platform's (as the stamps see it) less the identified model's and the
+    # pairing's phase, at the slalom's frequency -- the identification's error, whatever the
+    # host did to it; the compensation itself adds nothing (within 1 ms)
+    left = p1d_lag_s(seen_td, tp1) - p1d_lag_s(p1d["Td"], p1d["Tp1"]) - phase / 1e3
     print(f"slalom apparent delay {delay * 1e3:.2f} ms with {truth}; the model's error leaves "
           f"{left * 1e3:.2f} ms (its phase delay at 0.2 Hz +- "
           f"{rep['phase_delay_0p2hz_ms_stderr']:.2f} ms)")

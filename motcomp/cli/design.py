@@ -122,8 +122,9 @@ def _add_input_chain(p: argparse.ArgumentParser) -> None:
     p.add_argument("--input-lag-ms", type=non_negative_float, default=0.0, metavar="MS",
                    help="lag of the input reconstruction before the compensator, cancelled "
                         "with the platform's delay: the config's input.playback_lag_s (1.7 ms; "
-                        "`motcomp status` shows it as input lag) for a model identified through "
-                        "the stack, plus the platform's setpoint age for a preset (default 0)")
+                        "`motcomp status` shows it as input lag), plus the pairing's phase "
+                        "identify reports for a model identified through the stack, or the "
+                        "platform's setpoint age for a preset (default 0)")
     p.add_argument("--input-band-hz", type=non_negative_float, default=BAND_HZ_DEFAULT,
                    metavar="HZ",
                    help="the service's reference band limit (input.band_hz; default "

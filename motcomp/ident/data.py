@@ -736,8 +736,8 @@ def _load_mcap(path: Path, axis: str | None, clock: str) -> RawRecording:
     def conditions_at(a: float, b: float) -> dict[str, Any]:
         out = run_conditions(session, a + cols.start_s, b + cols.start_s)
         inside = (t >= a) & (t <= b)
-        if inside.any():
-            out["pairing_phase_ms"] = pairing_phase_ms(cols.t[inside], cols.t_cmd[inside])
+        if clock == "frame" and inside.any():  # the log clock's times are receipts
+            out["pairing_phase_ms"] = pairing_phase_ms(cols.t[inside], cols.t_out[inside])
         return out
     hint = None
     span = str(session.metadata.get("excitation_window", "")).split()
@@ -756,7 +756,7 @@ def run_conditions(session: Session, t0: float, t1: float) -> dict[str, Any]:
     """How the run went between ``t0`` and ``t1`` (the recording's clock, s), from the service
     status frames it recorded (one before and one after the window at best): the deadlines the
     service's loop missed, and the platform's own figures (its setpoint age: the stack's delay,
-    which an identified ``Td`` includes beyond the pairing's phase).  ``warnings`` name what
+    which an identified ``Td`` includes less the pairing's phase).  ``warnings`` name what
     makes the fit doubtful."""
     frames = [st for _, st in session.status
               if isinstance(st.get("t"), int | float) and isinstance(st.get("ticks"), int)

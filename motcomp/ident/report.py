@@ -127,8 +127,8 @@ def _stack_text(age: float | None, phase: float | None) -> str:
     text = f"; the platform applied its setpoints {age:.2f} ms after their t (median"
     if phase is None:
         return text + ": the stack's delay)."
-    return (text + f"), {phase:.2f} ms of it the pairing's phase (the model's hold): "
-            f"{age - phase:.2f} ms of the stack's delay inside the fitted Td.")
+    return (text + f"), the pairing's phase {phase:.2f} ms (the model's hold, outside the "
+            f"fitted Td): {age - phase:+.2f} ms of the stack's delay inside the fitted Td.")
 
 
 TREMOR_HZ = (10.0, 20.0)

@@ -276,7 +276,7 @@ class Session:
         limited = sat_count[k + 1] - sat_count[np.minimum(k_prev + 1, k)] > 0
         bypassed = (flags[k] & bypass_bit) != 0
         start = min(float(to[0]), float(tf[0])) if tf.size else float(to[0])
-        return IdentificationColumns(axis=axis, clock=clock, t=tf, cmd=cmd[k], t_cmd=to[k],
+        return IdentificationColumns(axis=axis, clock=clock, t=tf, cmd=cmd[k], t_out=to[k],
                                      acc=acc,
                                      bypassed=bypassed, limited=limited, feedback_index=fb_index,
                                      start_s=start, unknown=unknown)
@@ -305,8 +305,9 @@ class IdentificationColumns:
     """Feedback time (s, on ``clock``)."""
     cmd: np.ndarray
     """Output position in force (m or rad)."""
-    t_cmd: np.ndarray
-    """That output's time (s, on ``clock``): ``t - t_cmd`` is the pairing's phase."""
+    t_out: np.ndarray
+    """That output's time (s, on ``clock``): on the frame clock, ``t - t_out`` is the
+    pairing's phase."""
     acc: np.ndarray
     """Measured acceleration (m/s^2 or rad/s^2)."""
     bypassed: np.ndarray
