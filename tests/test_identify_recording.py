@@ -84,6 +84,8 @@ def test_identifies_the_bypassed_stretch_as_a_user_runs_it(mixed: Path, tmp_path
     assert gaps["count"] == 4 and gaps["longest_ms"] == pytest.approx(21.0, abs=0.5)
     assert [round(g["start_s"] - T0) for g in gaps["first"]] == [15, 18, 20, 25]
     assert any("left out: the recording lost the outputs in force" in w for w in rep["warnings"])
+    fragment = (tmp_path / "out" / "rails_y.toml").read_text()
+    assert "--input-lag-ms = the config's input.playback_lag_s + 0.30 ms, the pairing's" in fragment
     md = (tmp_path / "out" / "report.md").read_text()
     assert f"Window {win['start_s']:.2f}-{win['end_s']:.2f} s of the recording" in md
     assert "4 gap(s) without data bridged by linear interpolation (longest 21.0 ms" in md

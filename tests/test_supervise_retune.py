@@ -86,7 +86,7 @@ def _status(informative: bool, td_ms: float, td_se_ms: float) -> dict[str, Any]:
            "at_hz": 0.4, "model": "p1d:K=1,Td=0.0175,Tp1=0.1857683128", "estimate": est,
            "reason": "" if informative else "the residual delay is uncertain (+-8.90 ms > 1 ms)",
            "residual_delay_ms": 60.0, "residual_delay_se_ms": 8.9, "gain_error": 0.02,
-           "gain_error_se": 0.01}
+           "gain_error_se": 0.01, "pairing_phase_ms": 0.42}
     return {"t": 1.0e9, "model_mismatch": {"axes": {"rails_y": fig}}}
 
 
@@ -108,6 +108,9 @@ def test_an_implausible_estimate_is_refused_and_forced_only_with_a_mark(tmp_path
     assert p.returncode == 0, p.stderr
     text = (tmp_path / "a" / "rails_y.toml").read_text()
     assert "# FORCED (--force) although: not informative" in text
+    # the input lag to design it with: the playback lag plus the pairing's phase
+    assert ("# Design it with --input-lag-ms = the config's input.playback_lag_s + 0.42 ms, the "
+            "pairing's phase (outside this Td: docs/TUNING.md).") in text
     assert 'forced = { model = "p1d:K=1.02,Td=0.141,Tp1=0.05", why = "not informative' in text
     site = tmp_path / "site.toml"
     site.write_text(f'include = ["{config_file("motcomp.toml")}", "a/rails_y.toml"]\n'

@@ -268,7 +268,7 @@ def _run_from_status(args: argparse.Namespace) -> int:
     import json
     import time
 
-    from motcomp.ident.report import model_fragment
+    from motcomp.ident.report import input_lag_comment, model_fragment
 
     if args.data is not None:
         try:
@@ -328,6 +328,7 @@ def _run_from_status(args: argparse.Namespace) -> int:
         f"# Against the model then in force ({fig['model']}): residual delay "
         f"{fig['residual_delay_ms']:+.2f} +- {fig['residual_delay_se_ms']:.2f} ms, gain error "
         f"{100 * fig['gain_error']:+.2f} % in the band.",
+        *input_lag_comment(fig.get("pairing_phase_ms")),
     ]
     out = args.out or Path(f"retune_{axis}")
     refusals = ([] if informative else [f"not informative ({fig.get('reason')})"]) + [

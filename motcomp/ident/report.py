@@ -14,6 +14,7 @@ left half-written.  matplotlib is imported only in :func:`write_figures`.
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import tempfile
 from pathlib import Path
@@ -291,7 +292,18 @@ def config_fragment(ident: Identification, axis: str | None = None,
         if k != ident.selected:
             lines.append(f"# Also fitted: {f.model.spec()} (validation fit "
                          f"{f.fit_percent:.2f} %, AIC {f.aic:.1f})")
+    lines += input_lag_comment((d.get("conditions") or {}).get("pairing_phase_ms"))
     return model_fragment(t1["axis"], rep["model_spec"], lines, forced)
+
+
+def input_lag_comment(phase_ms: Any) -> list[str]:
+    """The comment line naming the input lag to design a model identified through the stack
+    with: the playback lag plus the pairing's phase, which its Td does not hold
+    (docs/TUNING.md); none without a phase."""
+    if not isinstance(phase_ms, int | float) or not math.isfinite(phase_ms):
+        return []
+    return [f"# Design it with --input-lag-ms = the config's input.playback_lag_s + "
+            f"{phase_ms:.2f} ms, the pairing's phase (outside this Td: docs/TUNING.md)."]
 
 
 def model_fragment(axis: str, spec: str, comments: list[str], forced: str | None = None) -> str:
