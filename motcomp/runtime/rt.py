@@ -19,6 +19,9 @@ that opens the session.
   takes longer than that to leave.  A loop that sleeps between ticks then wakes on time and on
   warmer caches (with 0, idle CPUs poll; on a virtual machine its virtual CPUs stop halting).
   The file is root's by default; docs/DEPLOYMENT.md gives the service's user access to it.
+  Only a cpuidle driver honours the request: on a kernel without one (``current_driver``
+  ``none``, as on some virtual machines) idle CPUs halt whatever is asked, and the report says
+  so (:func:`idle_driver`).
 - *Subnormals* are flushed to zero in the loop thread (:mod:`motcomp.core.fpmode`).
 """
 
@@ -28,15 +31,18 @@ import ctypes
 import os
 import platform
 import struct
+from pathlib import Path
 
 from motcomp.config import SLICE_MAX_US, SLICE_MIN_US, LoopConfig
 from motcomp.core.fpmode import flush_subnormals
 
-__all__ = ["CPU_LATENCY_DEVICE", "get_slice_us", "hold_cpu_latency", "pin_to_cpu", "schedule_loop",
-           "set_realtime", "set_slice"]
+__all__ = ["CPUIDLE_DIR", "CPU_LATENCY_DEVICE", "get_slice_us", "hold_cpu_latency", "idle_driver",
+           "pin_to_cpu", "schedule_loop", "set_realtime", "set_slice"]
 
 CPU_LATENCY_DEVICE = "/dev/cpu_dma_latency"
 """The kernel's CPU latency QoS: a request holds while its file descriptor stays open."""
+CPUIDLE_DIR = "/sys/devices/system/cpu/cpuidle"
+"""The kernel's cpuidle subsystem in sysfs: ``current_driver`` names the driver of idle states."""
 
 _SYSCALLS = {"x86_64": (314, 315), "aarch64": (274, 275)}
 """(sched_setattr, sched_getattr) system call numbers."""
@@ -128,11 +134,35 @@ def pin_to_cpu(cpu: int) -> str:
     return f"pinned to CPU {cpu}"
 
 
-def hold_cpu_latency(latency_us: int, device: str = CPU_LATENCY_DEVICE) -> tuple[str, int | None]:
+def idle_driver(cpuidle_dir: str = CPUIDLE_DIR, cmdline: str = "/proc/cmdline") -> str | None:
+    """How this machine's idle CPUs wait, where that makes a wake-up latency request moot: why
+    none can take effect, or None where a cpuidle driver honours it (or sysfs does not say).
+
+    Without a cpuidle driver the kernel idles a CPU the architecture's default way (``hlt`` on
+    x86: on a virtual machine its virtual CPU halts and exits to the host), whatever is asked;
+    with ``idle=poll`` on its command line every idle CPU polls already."""
+    try:
+        args = Path(cmdline).read_text().split()
+    except OSError:
+        args = []
+    if "idle=poll" in args:
+        return "idle CPUs poll already (idle=poll)"
+    base = Path(cpuidle_dir)
+    try:
+        driver = (base / "current_driver").read_text().strip()
+    except OSError:
+        # a kernel without cpuidle has no such directory beside its CPUs'
+        return "no cpuidle driver" if base.parent.is_dir() and not base.exists() else None
+    return "no cpuidle driver" if driver == "none" else None
+
+
+def hold_cpu_latency(latency_us: int, device: str = CPU_LATENCY_DEVICE,
+                     cpuidle_dir: str = CPUIDLE_DIR) -> tuple[str, int | None]:
     """Ask that no CPU take longer than ``latency_us`` to wake from idle while the returned file
     descriptor stays open (-1: leave the system's setting; ``(report, None)``).  Returns what
-    happened and the descriptor to close when the request should end (None where nothing is
-    held).  The request ends with the process in any case."""
+    happened -- including that the request cannot take effect on this machine
+    (:func:`idle_driver`) -- and the descriptor to close when the request should end (None
+    where nothing is held).  The request ends with the process in any case."""
     if latency_us < 0:
         return "CPU wake-up latency left to the system", None
     try:
@@ -146,7 +176,13 @@ def hold_cpu_latency(latency_us: int, device: str = CPU_LATENCY_DEVICE) -> tuple
     except OSError as exc:
         os.close(fd)
         return f"CPU wake-up latency not held ({device}: {exc.strerror})", None
-    return f"CPU wake-up latency at most {latency_us} us (the system's now {held} us)", fd
+    report = f"CPU wake-up latency at most {latency_us} us (the system's now {held} us)"
+    moot = idle_driver(cpuidle_dir)
+    if moot is not None:
+        report += f", without effect: {moot}"
+        if moot.startswith("no "):
+            report += ", idle CPUs halt (docs/DEPLOYMENT.md)"
+    return report, fd
 
 
 def schedule_loop(loop: LoopConfig) -> tuple[str, int | None]:
