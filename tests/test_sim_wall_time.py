@@ -20,7 +20,7 @@ from motcomp.core.models import P1D
 from motcomp.io.wire import encode_output
 from motcomp.io.zenoh_io import ZenohEndpoints, free_tcp_port, loopback, open_session
 from motcomp.sim import source as source_mod
-from motcomp.sim.hil import HilConfig, HilPlatform
+from motcomp.sim.hil import AGE_WINDOW_S, HilConfig, HilPlatform
 from motcomp.sim.platform import Accelerometer
 
 RATE = 1000.0
@@ -199,10 +199,20 @@ def test_the_setpoints_age_when_applied_is_measured() -> None:
     plat.catch_up(1, 11 / RATE)  # the stall's period starts at 10 / RATE: the frame is 0.3 ms old
     assert plat.setpoint_age_mean_s == pytest.approx(3e-4, abs=1e-12)
     assert plat.age_n == 11
-    # the median, rounded to 10 us, is what a fit sees: a few late frames move only the mean
+    # the median is what a fit sees: a few late frames move only the mean
     assert plat.setpoint_age_s == pytest.approx(3e-4, abs=1e-12)
     for k in range(12, 16):
         plat.take_frame(encode_output(k, k / RATE - 0.04, k, [0.0] * len(AXES), []))
         plat.step(k / RATE)
     assert plat.setpoint_age_mean_s == pytest.approx((11 * 3e-4 + 4 * 0.04) / 15, abs=1e-12)
     assert plat.setpoint_age_s == pytest.approx(3e-4, abs=1e-12)
+    # both are over the frames applied in the last AGE_WINDOW_S, up to the newest: a host that
+    # got slower shows in the figures within that time, whatever came before
+    k0 = 16
+    last = k0 + round(AGE_WINDOW_S * RATE) + 5
+    for k in range(k0, last + 1):
+        plat.take_frame(encode_output(k, k / RATE - 2e-3, k, [0.0] * len(AXES), []))
+        plat.step(k / RATE)
+    assert plat.age_n == 15 + last + 1 - k0
+    assert plat.setpoint_age_s == pytest.approx(2e-3, abs=1e-12)
+    assert plat.setpoint_age_mean_s == pytest.approx(2e-3, abs=1e-12)

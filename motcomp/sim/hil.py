@@ -42,9 +42,9 @@ __all__ = ["Drift", "HilConfig", "HilPlatform", "default_truth", "parse_drift", 
 log = logging.getLogger("motcomp.hil")
 
 AXIS_INDEX = {axis: i for i, axis in enumerate(AXES)}
-AGE_BIN_S = 1e-5
-"""Resolution of the setpoint age's histogram (10 us); :data:`AGE_BINS` of them span 0.1 s."""
-AGE_BINS = 10_000
+AGE_WINDOW_S = 10.0
+"""The setpoint age's figures are over the frames applied in the last this many seconds (up to
+the newest: docs/WIRE.md, "the last seconds")."""
 
 
 def default_truth() -> tuple[list[ProcessModel], np.ndarray, np.ndarray, np.ndarray]:
@@ -162,14 +162,13 @@ class HilPlatform:
         self.bad = 0
         self.caught_up = 0
         """Periods simulated after a stall of the simulator's own loop."""
-        self.age_sum = 0.0
         self.age_n = 0
-        self.age_hist = np.zeros(AGE_BINS, dtype=np.int64)
-        """Sum, count and histogram (ages rounded to :data:`AGE_BIN_S`; below 0 and beyond the
-        last bin counted in the end bins) of the setpoint frames' ages when applied: the
-        period's start minus the frame's ``t`` (the service's tick), i.e. the transport and this
-        loop's tick phase that the platform adds to the delay of its truth model, as the
-        service's stamps see it."""
+        """Setpoint frames whose age was counted, since the start."""
+        self._ages: deque[tuple[float, float]] = deque()
+        """``(applied at, age)`` of the frames applied over the last :data:`AGE_WINDOW_S`: the
+        age is the period's start minus the frame's ``t`` (the service's tick), i.e. the
+        transport and this loop's tick phase that the platform adds to the delay of its truth
+        model, as the service's stamps see it."""
         self._max_catch_up = max(1, round(self.max_catch_up_s * cfg.rate_hz))
         self._period_s = 1.0 / cfg.rate_hz
         self._queue: deque[tuple[float, dict[str, float]]] = deque()
@@ -235,25 +234,24 @@ class HilPlatform:
             self.take_axes(pos)
             self._judge_speed(t_frame)
             if math.isfinite(at):
-                age = at - t_frame
-                self.age_sum += age
+                ages = self._ages
+                ages.append((at, at - t_frame))
                 self.age_n += 1
-                self.age_hist[min(max(round(age / AGE_BIN_S), 0), AGE_BINS - 1)] += 1
+                while ages[0][0] < at - AGE_WINDOW_S:
+                    ages.popleft()
 
     @property
     def setpoint_age_s(self) -> float:
-        """Median age of the setpoint frames when applied, rounded to :data:`AGE_BIN_S` (nan
-        before any): the typical delay the stack adds, which a fit sees; a stall's
-        few late frames move the mean, not this."""
-        if not self.age_n:
-            return math.nan
-        k = int(np.searchsorted(np.cumsum(self.age_hist), (self.age_n + 1) // 2))
-        return k * AGE_BIN_S
+        """Median age of the setpoint frames applied over the last :data:`AGE_WINDOW_S` (nan
+        before any): the typical delay the stack adds, which a fit sees; a stall's few late
+        frames move the mean, not this."""
+        return float(np.median([a for _, a in self._ages])) if self._ages else math.nan
 
     @property
     def setpoint_age_mean_s(self) -> float:
-        """Mean age of the setpoint frames when applied (nan before any)."""
-        return self.age_sum / self.age_n if self.age_n else math.nan
+        """Mean age of the setpoint frames applied over the last :data:`AGE_WINDOW_S` (nan
+        before any)."""
+        return math.fsum(a for _, a in self._ages) / len(self._ages) if self._ages else math.nan
 
     def _judge_speed(self, t_frame: float) -> None:
         now_sp = list(self.setpoint)
@@ -392,7 +390,8 @@ def summary_text(status: dict[str, Any], how: str = "stopped") -> str:
             f"{status['frames']} ({status['bad_frames']} bad)")
     age = status.get("setpoint_age_ms", math.nan)
     if math.isfinite(age):
-        text += (f", applied {age:.2f} ms after their t (median; mean "
+        text += (f", applied {age:.2f} ms after their t (median of the last "
+                 f"{AGE_WINDOW_S:g} s; mean "
                  f"{status.get('setpoint_age_mean_ms', math.nan):.2f} ms)")
     can = status.get("can")
     if can is not None:
