@@ -292,3 +292,46 @@ def test_frames_missing_from_the_recording_are_explained(tmp_path: Path,
     else:
         assert "either the sender skipped them (harmless) or the recorder lost" in notes
         assert "record the status key too" in notes
+
+
+def test_a_restarted_sender_and_a_recording_begun_mid_run_lose_no_frames(tmp_path: Path) -> None:
+    """A sender that starts its ``seq`` over after a pause (as every ``motcomp source`` run
+    does), recorded from within the pause: the frame the service held when the recording began
+    was taken before it, and the new run's numbers repeat the old run's -- neither is a frame
+    the recorder lost.  A hole in the second run is still found, though the first run carried
+    the same numbers."""
+    from motcomp.record.mcapio import ScanResult, iter_records
+    from motcomp.record.recorder import SessionWriter
+    from motcomp.replay.offline import replay_files
+    from motcomp.replay.synth import SynthOptions, synthesize
+
+    mid = tmp_path / "mid.mcap"
+    synthesize(mid, CFG, SynthOptions(duration_s=9.0, seed=3, axes=("rails_y",),
+                                      gaps=[(5.5, 1.0)], restart_after_gaps=True,
+                                      record_from_s=6.0))
+    (fr,) = replay_files([mid], [None])
+    notes = " ".join(fr.runs[0].plan.notes)
+    assert "warm start" in notes and "not in the recording" not in notes, notes
+
+    full = tmp_path / "full.mcap"
+    synthesize(full, CFG, SynthOptions(duration_s=5.0, seed=3, axes=("rails_y",),
+                                       gaps=[(2.0, 0.5)], restart_after_gaps=True))
+    (fr,) = replay_files([full], [None])
+    assert not [n for n in fr.runs[0].plan.notes if "not in the recording" in n]
+    res = ScanResult(full)
+    records = list(iter_records(full, result=res))
+    (_, _, cfg_json), = res.attachments
+    holed = tmp_path / "holed.mcap"
+    inputs = 0
+    with SessionWriter(holed, sorted({r.topic for r in records}), None, cfg_json, flush_s=0,
+                       fsync=False) as w:
+        for rec in records:
+            if rec.topic == "sim/motion/setpoint":
+                inputs += 1
+                if 2100 + 300 <= inputs < 2100 + 330:  # numbers 300-329 of the second run
+                    continue
+            w.write_raw(rec.topic, rec.log_ns, rec.publish_ns, rec.sequence, rec.data)
+    (fr,) = replay_files([holed], [None])
+    notes = " ".join(fr.runs[0].plan.notes)
+    assert "30 sequence numbers between the first and the last input frame the service used " \
+           "are not in the recording" in notes, notes

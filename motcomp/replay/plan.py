@@ -307,13 +307,19 @@ def _from_outputs(session: Session, cfg: ServiceConfig, params: TickParams, run:
         cand = np.arange(lo[k], hi[k])
         before = cand[slog[cand] <= out_log[k] + 10**9]
         pick[k] = before[-1] if before.size else cand[0]
+    if dup.size or not np.all(inp.seq[1:] > inp.seq[:-1]):
+        _arrived_in_order(found, pick, lo, hi, slog, out_log)
     frame[changed[found]] = order[pick[found]]
+    at = np.where(found, order[pick], -1)
+    if warm and want.size and not found[0]:
+        # the frame in force when the recording began, taken before it: not the recorder's loss
+        want, at, found = want[1:], at[1:], found[1:]
     missing_frames = int((~found).sum())
     if missing_frames:
         notes.append(f"{missing_frames} input frames the service used are not in the "
                      "recording (the recorder lost them): their ticks see no new input here, so "
                      "the replay departs from the recorded outputs after them; " + _RECORD_BETTER)
-    holes = _seq_holes(inp.seq, want)
+    holes = _seq_holes(inp.seq, want, at)
     if holes:
         notes.append(_holes_note(holes, _superseded(session, log_ns)))
     # frames consumed in ticks the recorder lost: by arrival time (mapped to the tick clock),
@@ -416,13 +422,42 @@ def _holes_note(holes: int, superseded: int | None) -> str:
             "the recording has no service status to tell which: record the status key too")
 
 
-def _seq_holes(seq: np.ndarray, used: np.ndarray) -> int:
-    """Sequence numbers within ``[min(used), max(used)]`` that no recorded frame carries."""
-    if not used.size:
-        return 0
-    lo, hi = int(used.min()), int(used.max())
-    have = np.unique(seq[(seq >= lo) & (seq <= hi)]).size
-    return hi - lo + 1 - have
+def _arrived_in_order(found: np.ndarray, pick: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                      slog: np.ndarray, out_log: np.ndarray) -> None:
+    """Hold the frames picked for the used numbers of a sender that restarted (its numbers
+    repeat) to the order the service took them in: none arrived before the one used before it.
+    A pick that did not (the earlier run's frame of a number the recorder lost) is replaced by
+    the latest candidate that did, arriving before its output plus 1 s, or marked not found
+    (in place).  ``lo:hi`` are each number's candidates, ``slog`` their log times."""
+    last = -1
+    for k in np.flatnonzero(found).tolist():
+        if slog[pick[k]] < last:
+            ok = [c for c in range(int(lo[k]), int(hi[k])) if slog[c] >= last
+                  and (out_log[k] == 0 or slog[c] <= out_log[k] + 10**9)]
+            if not ok:
+                found[k] = False
+                continue
+            pick[k] = ok[-1]
+        last = int(slog[pick[k]])
+
+
+def _seq_holes(seq: np.ndarray, used: np.ndarray, at: np.ndarray) -> int:
+    """Sequence numbers that no recorded frame carries within the span of each sender run's
+    used ones.  ``used``, in tick order, splits into runs where it regresses (a restarted
+    sender starts its ``seq`` over); ``at`` is the index in ``seq`` of each used frame (-1: not
+    recorded), and a run's recorded frames those of the recorded runs (``seq`` split likewise,
+    in the recording's order) that hold its found ones."""
+    holes = 0
+    cuts = np.flatnonzero(np.diff(used) < 0) + 1
+    rec_run = np.concatenate([[0], np.cumsum(np.diff(seq) < 0)]) if seq.size else seq
+    for run, idx in zip(np.split(used, cuts), np.split(at, cuts), strict=True):
+        if not run.size:
+            continue
+        lo, hi = int(run.min()), int(run.max())
+        found = idx[idx >= 0]
+        mine = seq[np.isin(rec_run, rec_run[found])] if found.size else seq[:0]
+        holes += hi - lo + 1 - np.unique(mine[(mine >= lo) & (mine <= hi)]).size
+    return holes
 
 
 def _assign_by_arrival(frame: np.ndarray, now_ns: np.ndarray, rows: np.ndarray,

@@ -49,6 +49,8 @@ class SynthOptions:
     """``(time_s, periods)``: the loop overruns by that many periods."""
     gaps: list[tuple[float, float]] = field(default_factory=list)
     """``(start_s, length_s)``: the source is silent."""
+    restart_after_gaps: bool = False
+    """After each gap the sender starts its ``seq`` over at 0 (a restarted sender)."""
     bypass: list[tuple[float, bool, tuple[str, ...]]] = field(default_factory=list)
     """``(time_s, on, axes)``: an admin bypass request."""
     steps: list[tuple[float, str, float]] = field(default_factory=list)
@@ -107,18 +109,25 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
     transit = rng.uniform(*opts.transit_us, n_src) * 1e3
     arrival = MONO0_NS + np.round((0.2 + t_src) * 1e9 + transit).astype(np.int64)
     frames: list[tuple[int, bytes]] = []  # (arrival ns, payload)
+    first = np.zeros(n_src, np.int64)  # the index of the sender run's first sample
+    if opts.restart_after_gaps:
+        starts = np.flatnonzero(keep & ~np.concatenate([[True], keep[:-1]]))
+        first[starts] = starts
+        first = np.maximum.accumulate(first)
     for k in np.flatnonzero(keep).tolist():
+        seq = k - int(first[k])
         carried = (("rails_x", "rails_y") if opts.partial_every and k % opts.partial_every == 0
                    else opts.axes)
         pos = {a: float(sig[a][k]) for a in carried if a in sig}
         if opts.no_t_every and k % opts.no_t_every == 0:
-            payload = msgpack.packb({"seq": k, "pos": pos})
+            payload = msgpack.packb({"seq": seq, "pos": pos})
         else:
-            payload = encode_input(k, float(t_sender[k]), pos)
+            payload = encode_input(seq, float(t_sender[k]), pos)
         frames.append((int(arrival[k]), payload))
         if opts.bad_every and k % opts.bad_every == 0:
-            bad = [msgpack.packb({"seq": k, "pos": {"rails_x": float("nan")}}), b"\xc1",
-                   msgpack.packb({"seq": k + 1, "pos": {"rails_q": 0.0}})][k // opts.bad_every % 3]
+            bad = [msgpack.packb({"seq": seq, "pos": {"rails_x": float("nan")}}), b"\xc1",
+                   msgpack.packb({"seq": seq + 1, "pos": {"rails_q": 0.0}})][
+                k // opts.bad_every % 3]
             frames.append((int(arrival[k]) + 1000, bad))
     frames.sort(key=lambda f: f[0])
     # the loop's deadlines: a grid with stalls
