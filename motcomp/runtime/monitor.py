@@ -38,7 +38,11 @@ The delay, step by step (``h`` = :data:`BIN_S`)
    is resampled linearly from those mean instants onto the bin centres (so the sampling
    phase of the two streams within a bin biases nothing; empty bins are bridged).
 2. The window ``[A, B)`` of the feedback: its last ``window_s`` (at most :data:`MAX_WINDOW_S`)
-   such that ``r`` is known over ``[A - max_lag, B - min_lag)`` (:data:`LAG_RANGE_S`).
+   such that ``r`` is known, and live, over ``[A - max_lag, B - min_lag)``
+   (:data:`LAG_RANGE_S`): a tick that was not live (the input's start-up or resume blend, a
+   stale input, parking: the tick's mode) moves the platform otherwise than by the compensated
+   reference, so the window holds the last span of live ticks only, as far as it lies within
+   the last ``window_s``.
 3. From ``d = 0``: ``r(t - d)`` over ``[A, B)`` (linear between bins) and ``y``, each with its
    weighted mean removed and tapered by the same Tukey window (cosine edges over
    :data:`TAPER_FRACTION` of it), go to ``estimate_delay`` (lags within the range); ``d`` grows
@@ -52,9 +56,11 @@ The delay, step by step (``h`` = :data:`BIN_S`)
 
 Validity (``delay_valid`` false, ``delay_reason`` says which; the value is None unless a delay
 was computed): no feedback yet, or none for :data:`FEEDBACK_STALE_S`; less than
-:data:`MIN_SPAN_S` of feedback; the axis in fewer than :data:`MIN_FEEDBACK_COVERAGE` of the
-bins; the reference's standard deviation over the window below :data:`MIN_MOTION_FRACTION` of
-the axis range; the feedback constant, the correlation's peak on the edge of the lags, or no
+:data:`MIN_SPAN_S` of feedback (of live input: after a start or a resume, the first
+``max_lag + MIN_SPAN_S`` after the blend; once the input stops, from ``window_s`` less
+``MIN_SPAN_S`` after); the axis in fewer than :data:`MIN_FEEDBACK_COVERAGE` of the bins;
+the reference's standard deviation over the window below :data:`MIN_MOTION_FRACTION` of the
+axis range; the feedback constant, the correlation's peak on the edge of the lags, or no
 convergence; ``delay_corr`` below :data:`MIN_CORRELATION`; the limiter acting on more than
 :data:`MAX_LIMITED_SHARE` of the window's ticks (the value is still given).
 
@@ -242,6 +248,11 @@ class MotionMonitor:
         self._t_in = np.zeros(self._cap, dtype=np.int64)
         self._ru = np.zeros((self._cap, 2 * N_AXES))
         self._n = 0
+        self._live: tuple[int | None, int | None] = (None, None)
+        """The last span of live ticks: the input instants of the last tick before it that was
+        not (None: none was) and of the first after it (None: live now)."""
+        self._was_live = False
+        self._not_live_ns: int | None = None
         # feedback subscriber's thread -> main thread
         self._inbox: deque[tuple[int, bytes]] = deque(maxlen=1 << 14)
         self.fb_dropped = 0
@@ -265,12 +276,23 @@ class MotionMonitor:
                                                                       (0,) * N_AXES)])
 
     # --- the loop thread ------------------------------------------------------------------
-    def record(self, t_ns: int, ref: list[float], u: list[float], lag_ns: int = 0) -> None:
+    def record(self, t_ns: int, ref: list[float], u: list[float], lag_ns: int = 0,
+               live: bool = True) -> None:
         """One tick at ``t_ns``: the input ``ref`` at the instant ``t_ns - lag_ns`` and the
-        command ``u`` the tick sent (lists in :data:`AXES` order)."""
+        command ``u`` the tick sent (lists in :data:`AXES` order); ``live`` False for a tick
+        whose mode was not (start-up or resume blend, stale input, parking)."""
         k = self._n % self._cap
         self._t[k] = t_ns
         self._t_in[k] = t_ns - lag_ns
+        if live:
+            if not self._was_live:  # a live span starts
+                self._was_live = True
+                self._live = (self._not_live_ns, None)
+        else:
+            if self._was_live:  # it ends
+                self._was_live = False
+                self._live = (self._live[0], t_ns - lag_ns)
+            self._not_live_ns = t_ns - lag_ns
         self._ru[k] = ref + u
         self._n += 1
 
@@ -455,6 +477,18 @@ class MotionMonitor:
             return f"no feedback for {silent:.1f} s"
         end = min(r_end + self._lo, y_end)
         start = max(end - round(self.window_s * 1e9 / b), r_first + self._hi, y_first)
+        # the reference live over [A - max_lag, B - min_lag)
+        live_from, live_to = self._live
+        clipped = False
+        if live_from is not None and live_from // b + 1 + self._hi > start:
+            start, clipped = live_from // b + 1 + self._hi, True
+        if live_to is not None and live_to // b + self._lo < end:
+            end, clipped = live_to // b + self._lo, True
+        if clipped and (end - start) * b < MIN_SPAN_S * 1e9:
+            return (f"{max(0, end - start) * b / 1e9:.1f} s of feedback on live input in the "
+                    f"last {self.window_s:g} s (needs {MIN_SPAN_S:g} s; left out: the input's "
+                    "start-up or resume blend and the next "
+                    f"{LAG_RANGE_S[1]:g} s, a stale input, parking)")
         if (end - start) * b < MIN_SPAN_S * 1e9:
             return (f"{max(0, end - start) * b / 1e9:.1f} s of feedback and reference so far "
                     f"(needs {MIN_SPAN_S:g} s)")

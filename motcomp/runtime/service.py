@@ -309,7 +309,8 @@ class Service:
                 taken = t_end
         out = step(self.state, self.params, now_ns, payload, skipped, taken)
         shaper = self.state.shaper
-        self.monitor.record(now_ns, shaper.played, out.u, round(shaper.played_lag_s * 1e9))
+        self.monitor.record(now_ns, shaper.played, out.u, round(shaper.played_lag_s * 1e9),
+                            not out.mode)
         t_wall = self._t_wall0 + (now_ns - self._t_mono0) / 1e9
         t_io = perf()
         for port in self._ports:
