@@ -89,12 +89,23 @@ class _Trace:
     t: list[float] = field(default_factory=list)
     pos: dict[str, list[float]] = field(default_factory=dict)
     seq: list[int] = field(default_factory=list)
+    sat: dict[str, list[float]] = field(default_factory=dict)
+    """Per axis, the ``t`` of the frames flagged ``sat:<axis>`` (output frames)."""
 
-    def add(self, t: float, pos: dict[str, float], seq: int = -1) -> None:
+    def add(self, t: float, pos: dict[str, float], seq: int = -1,
+            flags: Any = ()) -> None:
         self.t.append(t)
         self.seq.append(seq)
         for a, v in pos.items():
             self.pos.setdefault(a, []).append(v)
+        for f in flags if isinstance(flags, list) else ():
+            if isinstance(f, str) and f.startswith("sat:"):
+                self.sat.setdefault(f[4:], []).append(t)
+
+    def flagged(self, axis: str, t0: float, t1: float) -> int:
+        """Frames flagged ``sat:<axis>`` with ``t`` in ``[t0, t1]``."""
+        t = np.asarray(self.sat.get(axis, []))
+        return int(((t >= t0) & (t <= t1)).sum())
 
     def window(self, axis: str, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
         t = np.asarray(self.t)
@@ -148,7 +159,8 @@ class DemoResult:
 
     delays: dict[str, dict[str, float]]
     saturation: dict[str, dict[str, int]]
-    """Ticks the service flagged saturated, per axis and phase."""
+    """Ticks the service flagged saturated, per axis and phase (its counters, the whole phase:
+    the motion and the second after it, when the input stops)."""
     command: dict[str, dict[str, CommandFigures]]
     """The command's smoothness, live and ideal, per axis and phase."""
     frames: dict[str, OutputFrames]
@@ -174,6 +186,24 @@ class DemoResult:
     later where the service's prefilters reached full weight later."""
     unmeasured: dict[str, str] = field(default_factory=dict)
     """Why a delay could not be measured, by ``"<axis> <phase>"`` (its delay is NaN)."""
+    saturation_motion: dict[str, dict[str, int]] = field(default_factory=dict)
+    """Of :attr:`saturation`, the recorded output frames flagged over the motion."""
+
+
+def stop_text(res: DemoResult) -> str:
+    """The saturation flags after each phase's motion, when its input stopped (the service's
+    counters over the phase less the recorded frames' over the motion)."""
+    after = {a: {ph: n - res.saturation_motion.get(a, {}).get(ph, 0) for ph, n in per.items()}
+             for a, per in res.saturation.items() if res.saturation_motion.get(a)}
+    after = {a: per for a, per in after.items() if any(n > 0 for n in per.values())}
+    if not after:
+        return ""
+    counts = ", ".join(f"{a} " + " / ".join(str(per.get(ph, 0)) for ph in PHASES)
+                       for a, per in after.items())
+    return ("  After the motion, as the input stopped (the phase's counters less the above; "
+            f"{' / '.join(PHASES)}): {counts}: the input lost, a compensated axis returns to "
+            "the held reference, at its acceleration limit for a few ticks where its command "
+            "was off that reference (docs/DEPLOYMENT.md, \"What happens when the input stops\").")
 
 
 def _spawn(args: list[str], log: Path) -> subprocess.Popen[bytes]:
@@ -189,7 +219,8 @@ def _drain(sub: Any, trace: _Trace, count: list[int]) -> None:
     while (s := sub.try_recv()) is not None:
         try:
             frame = msgpack.unpackb(s.payload.to_bytes())
-            trace.add(float(frame["t"]), frame["pos"], int(frame.get("seq", -1)))
+            trace.add(float(frame["t"]), frame["pos"], int(frame.get("seq", -1)),
+                      frame.get("flags", ()))
             count[0] += 1
         except (ValueError, KeyError, TypeError, msgpack.UnpackException):
             pass
@@ -492,8 +523,11 @@ def run_demo(out_dir: Path, quiet: bool = False, keep_logs: bool = True) -> Demo
     frames = {ph: g.frames for ph, g in grids.items()}
     fig, panels = _figure(setpoints, feedback, grids, ideal, motion, delays, acc_limit, command,
                           out_dir / "demo.png")
+    saturation_motion = {axis: {ph: commands.flagged(axis, *motion[ph]) for ph in motion}
+                         for axis in axes}
     result = DemoResult(delays, saturation, command, frames, acc_limit, motion, stale, status,
-                        hil_status, codes, fig, phases, panels, figures_from, unmeasured)
+                        hil_status, codes, fig, phases, panels, figures_from, unmeasured,
+                        saturation_motion)
     if not keep_logs:
         for f in logs.iterdir():
             f.unlink()
@@ -551,7 +585,7 @@ def report(res: DemoResult) -> str:
                 f"{name:<15} {ph:<5} {_ms(delay):>7} {gained:>7}  {_g(live_hf):>8} "
                 f"{_g(ideal_hf):>8} {_ratio(ratio):>6}  {_g(live_j):>7} {_g(ideal_j):>7}  "
                 f"{_pct(at):>8} {_pct(ideal_at):>8}  "
-                f"{res.saturation.get(axis, {}).get(ph, 0):>5}")
+                f"{res.saturation_motion.get(axis, {}).get(ph, 0):>5}")
     for key, why in res.unmeasured.items():
         lines.extend(_wrap(f"{key}: delay not measured ({why})."))
     starved = loop_kept_from_cpu(res.status)
@@ -602,11 +636,11 @@ def report(res: DemoResult) -> str:
                         f"{acted}." if acted else "")),
               *_wrap("sat flags: ticks at which the service's limiter kept an axis' command "
                      "within its limits or away from the compensated target (flag sat:<axis>), "
-                     "from its counters, whole phase.  The compensator amplifies the high "
-                     "frequencies of its input (20x above 10 Hz on the example rails), so "
-                     "irregular input timing -- stalls and jitter of the processes on a busy "
-                     "machine -- reaches the acceleration limit: the ideal columns show what "
-                     "evenly timed input gives."),
+                     "over the motion, from the recorded output frames.  The compensator "
+                     "amplifies the high frequencies of its input (20x above 10 Hz on the "
+                     "example rails), so irregular input timing -- stalls and jitter of the "
+                     "processes on a busy machine -- reaches the acceleration limit: the ideal "
+                     "columns show what evenly timed input gives." + stop_text(res)),
               *_wrap(f"Command frames over the motion, off / on: {per_phase('ticks')} ticks, "
                      f"{per_phase('recorded')} recorded, {per_phase('lost')} lost (gaps in seq), "
                      f"{per_phase('unsent')} not sent (missed deadlines); the spectral figures "
