@@ -716,8 +716,11 @@ def optimal_markdown(block: dict[str, Any]) -> list[str]:
         f"| max sensitivity Ms | {c['max_sensitivity']:g} | {v['ms']:.2f} | {ms_flag} |",
         f"| largest pole modulus (discrete loop) | < 1 | {v['max_pole_modulus']:.5f} | |",
         "",
-        f"Uncompensated: {block['uncompensated_delay_ms']:.1f} ms; gain "
-        f"{block['best_gain_ms']:.1f} ms. Recommendation: **{block['recommendation']}**"
+        f"Uncompensated: {block['uncompensated_delay_ms']:.1f} ms; "
+        + ("the PID alone gains " if for_chain else "gain ")
+        + f"{block['best_gain_ms']:.1f} ms"
+        + (" (the chain's figures are above)" if for_chain else "")
+        + f". Recommendation: **{block['recommendation']}**"
         + (" (delay-dominated plant)." if block["delay_dominated"] else "."),
     ]
     if "robust" in block:
