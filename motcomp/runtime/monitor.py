@@ -12,9 +12,12 @@ Three figures for ``motcomp status`` (why and how: docs/DEPLOYMENT.md, "Motion q
     (:attr:`motcomp.core.tick.TickState.acted`).
 ``hf_acc_rms``, ``jerk_rms``, ``acc_peak``
     :func:`motcomp.core.quality.command_quality` of the command ``u`` sent over the last
-    :data:`COMMAND_WINDOW_S`, taken on the loop's period grid from the tick instants (linear
-    between ticks: a missed tick is bridged rather than read as a jump of the command; the
-    status' ``missed_ticks`` counts those).
+    :data:`COMMAND_WINDOW_S`, taken on the loop's period grid from the tick instants, over
+    the stretches of consecutive ticks (:func:`motcomp.core.quality.command_quality_over`): a
+    missed tick is neither read as a jump of the command nor bridged (a straight line over it
+    reads the command's own acceleration as a jerk of ``a / h``: 350-550 m/s^3 for the rails'
+    ordinary driving at 1.5-5 % missed, against 3-8 on the ticks sent); None without a stretch
+    of four ticks.
 
 Threads and cost: the loop thread calls :meth:`MotionMonitor.record` once per tick (a row written
 into a preallocated ring: under a microsecond): the input as the shaper plays it back
@@ -89,7 +92,7 @@ from typing import Any
 import numpy as np
 
 from motcomp.core.axes import AXES, AXIS_INDEX, N_AXES
-from motcomp.core.quality import command_quality, estimate_delay
+from motcomp.core.quality import command_quality_over, estimate_delay, stretches
 from motcomp.core.tick import MAX_ERROR_CHARS
 from motcomp.errors import ConfigError, FrameError
 from motcomp.io.wire import decode_feedback
@@ -383,6 +386,7 @@ class MotionMonitor:
         t_y, fidx = self._feedback_instants(arrived, self._fsent[fidx], fidx)
         window = self._window(t_in, t_y, arrived)
         cmd = self._command_grid(t_r)
+        parts = self._ticked(t_r, cmd[0]) if cmd is not None else []
         axes: dict[str, Any] = {}
         for i, axis in enumerate(AXES):
             if not driven[i]:
@@ -408,7 +412,8 @@ class MotionMonitor:
                 if cmd is not None:
                     grid, first = cmd
                     u = np.interp(grid, t_r[first:], ru[first:, len(cols) + col[i]])
-                    fig.update(command_quality(u, self.rate_hz).as_dict())
+                    q = command_quality_over(u, parts, self.rate_hz).as_dict()
+                    fig.update({k: v if math.isfinite(v) else None for k, v in q.items()})
             except Exception as exc:  # a figure must never stop the status
                 fig["delay_reason"] = f"internal: {type(exc).__name__}: {str(exc)[:80]}"
             axes[axis] = fig
@@ -433,6 +438,14 @@ class MotionMonitor:
         grid = last - period * np.arange(n - 1, -1, -1, dtype=np.int64)
         first = max(int(np.searchsorted(t_r, grid[0], side="right")) - 1, 0)
         return grid, first
+
+    def _ticked(self, t_r: np.ndarray, grid: np.ndarray) -> list[slice]:
+        """The stretches of ``grid`` whose every point has a tick within half a period: a
+        missed deadline (no tick) splits them, and nothing is bridged over it."""
+        half = round(0.5e9 / self.rate_hz)
+        pos = np.clip(np.searchsorted(t_r, grid), 1, t_r.size - 1)
+        near = np.minimum(np.abs(t_r[pos] - grid), np.abs(grid - t_r[pos - 1])) <= half
+        return stretches(near)
 
     def _limited_share(self, now_ns: int, ticks: int, acted: Sequence[int]
                        ) -> list[float] | None:
