@@ -719,7 +719,7 @@ def _figure(sp: _Trace, fb: _Trace, grids: dict[str, _Command], ideal: dict[str,
         for ph, (m0, m1) in motion.items():
             tf, y = fb.window(axis, *_phase_span((m0, m1)))
             d = delays.get(axis, {}).get(ph, float("nan"))
-            lag = f"{d * 1e3:.0f} ms" if math.isfinite(d) else "delay not measured"
+            lag = f"{round(d * 1e3) + 0:d} ms" if math.isfinite(d) else "delay not measured"
             ax.plot(tf - m0, y, color[ph], lw=1, label=f"platform, {ph} ({lag})")
         finish(ax, axis, "position", f"position ({unit(axis)})",
                "setpoint and platform feedback")

@@ -171,7 +171,7 @@ def test_the_cpu_latency_request_holds_while_its_descriptor_is_open() -> None:
         assert 0 <= system <= 7
         held = f"CPU wake-up latency at most 7 us (the system's now {system} us)"
         moot = idle_driver()  # this machine's idle: the request may be moot
-        assert report == held if moot is None else report.startswith(f"{held}, without effect: "
+        assert report == held if moot is None else report.startswith(f"{held}, held but moot here: "
                                                                      f"{moot}")
     finally:
         os.close(fd)
@@ -208,8 +208,8 @@ def test_the_latency_request_says_when_no_idle_driver_can_honour_it(tmp_path: Pa
                                   cpuidle_dir=cpuidle(tmp_path / "d", "none"))
     assert fd is not None
     os.close(fd)
-    assert report == ("CPU wake-up latency at most 0 us (the system's now 0 us), without "
-                      "effect: no cpuidle driver, idle CPUs halt (docs/DEPLOYMENT.md)")
+    assert report == ("CPU wake-up latency at most 0 us (the system's now 0 us), held but moot "
+                      "here: no cpuidle driver, idle CPUs halt (docs/DEPLOYMENT.md)")
     if "idle=poll" not in Path("/proc/cmdline").read_text().split():
         report, fd = hold_cpu_latency(0, device=str(device),
                                       cpuidle_dir=cpuidle(tmp_path / "e", "haltpoll"))

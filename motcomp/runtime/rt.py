@@ -179,7 +179,7 @@ def hold_cpu_latency(latency_us: int, device: str = CPU_LATENCY_DEVICE,
     report = f"CPU wake-up latency at most {latency_us} us (the system's now {held} us)"
     moot = idle_driver(cpuidle_dir)
     if moot is not None:
-        report += f", without effect: {moot}"
+        report += f", held but moot here: {moot}"
         if moot.startswith("no "):
             report += ", idle CPUs halt (docs/DEPLOYMENT.md)"
     return report, fd
