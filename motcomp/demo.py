@@ -188,19 +188,19 @@ class DemoResult:
     """Why a delay could not be measured, by ``"<axis> <phase>"`` (its delay is NaN)."""
     saturation_motion: dict[str, dict[str, int]] = field(default_factory=dict)
     """Of :attr:`saturation`, the recorded output frames flagged over the motion."""
+    saturation_stop: dict[str, dict[str, int]] = field(default_factory=dict)
+    """The recorded output frames flagged after the motion, as its input stopped."""
 
 
 def stop_text(res: DemoResult) -> str:
-    """The saturation flags after each phase's motion, when its input stopped (the service's
-    counters over the phase less the recorded frames' over the motion)."""
-    after = {a: {ph: n - res.saturation_motion.get(a, {}).get(ph, 0) for ph, n in per.items()}
-             for a, per in res.saturation.items() if res.saturation_motion.get(a)}
-    after = {a: per for a, per in after.items() if any(n > 0 for n in per.values())}
+    """The saturation flags after each phase's motion, when its input stopped (recorded
+    output frames)."""
+    after = {a: per for a, per in res.saturation_stop.items() if any(per.values())}
     if not after:
         return ""
     counts = ", ".join(f"{a} " + " / ".join(str(per.get(ph, 0)) for ph in PHASES)
                        for a, per in after.items())
-    return ("  After the motion, as the input stopped (the phase's counters less the above; "
+    return ("  After the motion, as the input stopped (recorded frames, "
             f"{' / '.join(PHASES)}): {counts}: the input lost, a compensated axis returns to "
             "the held reference, at its acceleration limit for a few ticks where its command "
             "was off that reference (docs/DEPLOYMENT.md, \"What happens when the input stops\").")
@@ -525,9 +525,12 @@ def run_demo(out_dir: Path, quiet: bool = False, keep_logs: bool = True) -> Demo
                           out_dir / "demo.png")
     saturation_motion = {axis: {ph: commands.flagged(axis, *motion[ph]) for ph in motion}
                          for axis in axes}
+    saturation_stop = {axis: {ph: commands.flagged(axis, math.nextafter(motion[ph][1], math.inf),
+                                                   phases[ph][1]) for ph in motion}
+                       for axis in axes}
     result = DemoResult(delays, saturation, command, frames, acc_limit, motion, stale, status,
                         hil_status, codes, fig, phases, panels, figures_from, unmeasured,
-                        saturation_motion)
+                        saturation_motion, saturation_stop)
     if not keep_logs:
         for f in logs.iterdir():
             f.unlink()

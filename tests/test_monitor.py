@@ -323,6 +323,20 @@ def test_missed_ticks_are_left_out_not_read_as_jumps_nor_bridged() -> None:
     assert command_quality(u_y[-2002:], 1000.0).hf_acc_rms > 10  # tick after tick
 
 
+def test_input_synchronous_ticks_are_one_stretch_until_a_deadline_is_missed() -> None:
+    """Ticks on input arrival come 0.5-1.25 periods apart, off the grid: no miss, one
+    stretch; a gap of two periods is a miss and cuts it."""
+    m = MotionMonitor(rate_hz=1000.0, window_s=10.0)
+    rng = np.random.default_rng(3)
+    t_r = T0 + np.cumsum(rng.uniform(0.5, 1.25, 3000) * MS).astype(np.int64)
+    grid = t_r[-1] - MS * np.arange(2001, -1, -1, dtype=np.int64)
+    assert m._ticked(t_r, grid) == [slice(0, 2002)]
+    k = int(np.searchsorted(t_r, grid[1000]))
+    holed = np.delete(t_r, k)  # one tick missed
+    parts = m._ticked(holed, grid)
+    assert len(parts) == 2 and sum(pt.stop - pt.start for pt in parts) >= 2002 - 3, parts
+
+
 # --- feedback frames: any bytes ----------------------------------------------------------------
 HOSTILE: list[bytes] = [
     b"", b"\xc1junk", msgpack.packb([1, 2]), msgpack.packb({"t": 0.0, "pos": {}}),

@@ -321,17 +321,28 @@ def test_a_restarted_sender_and_a_recording_begun_mid_run_lose_no_frames(tmp_pat
     res = ScanResult(full)
     records = list(iter_records(full, result=res))
     (_, _, cfg_json), = res.attachments
-    holed = tmp_path / "holed.mcap"
-    inputs = 0
-    with SessionWriter(holed, sorted({r.topic for r in records}), None, cfg_json, flush_s=0,
-                       fsync=False) as w:
-        for rec in records:
-            if rec.topic == "sim/motion/setpoint":
-                inputs += 1
-                if 2100 + 300 <= inputs < 2100 + 330:  # numbers 300-329 of the second run
-                    continue
-            w.write_raw(rec.topic, rec.log_ns, rec.publish_ns, rec.sequence, rec.data)
-    (fr,) = replay_files([holed], [None])
-    notes = " ".join(fr.runs[0].plan.notes)
+
+    def holed(name: str, lost: range) -> str:
+        """The recording without the input frames numbered ``lost`` (1-based, in order)."""
+        path = tmp_path / name
+        inputs = 0
+        with SessionWriter(path, sorted({r.topic for r in records}), None, cfg_json,
+                           flush_s=0, fsync=False) as w:
+            for rec in records:
+                if rec.topic == "sim/motion/setpoint":
+                    inputs += 1
+                    if inputs in lost:
+                        continue
+                w.write_raw(rec.topic, rec.log_ns, rec.publish_ns, rec.sequence, rec.data)
+        (fr,) = replay_files([path], [None])
+        return " ".join(fr.runs[0].plan.notes)
+
+    # numbers 399-428 of the second run (the first run's frames of those numbers are older):
+    notes = holed("second.mcap", range(2400, 2430))
     assert "30 sequence numbers between the first and the last input frame the service used " \
            "are not in the recording" in notes, notes
+    assert "30 input frames the service used are not in the recording" in notes, notes
+    # number 1500 of the first run, which the second run reaches later: its frame is not the
+    # one, and the first run's later numbers stay found
+    notes = holed("first.mcap", range(1501, 1502))
+    assert "1 input frames the service used are not in the recording" in notes, notes

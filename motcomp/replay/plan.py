@@ -425,15 +425,19 @@ def _holes_note(holes: int, superseded: int | None) -> str:
 def _arrived_in_order(found: np.ndarray, pick: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                       slog: np.ndarray, out_log: np.ndarray) -> None:
     """Hold the frames picked for the used numbers of a sender that restarted (its numbers
-    repeat) to the order the service took them in: none arrived before the one used before it.
-    A pick that did not (the earlier run's frame of a number the recorder lost) is replaced by
-    the latest candidate that did, arriving before its output plus 1 s, or marked not found
-    (in place).  ``lo:hi`` are each number's candidates, ``slog`` their log times."""
+    repeat) to the order and the time the service took them in: none arrived before the one
+    used before it, nor later than its output plus 1 s.  A pick that did not (another run's
+    frame of a number the recorder lost) is replaced by the latest candidate that did, or
+    marked not found (in place), and moves nothing on.  ``lo:hi`` are each number's
+    candidates, ``slog`` their log times, ``out_log`` each output's (0: not recorded)."""
     last = -1
+
+    def fits(c: int, k: int) -> bool:
+        return bool(slog[c] >= last and (out_log[k] == 0 or slog[c] <= out_log[k] + 10**9))
+
     for k in np.flatnonzero(found).tolist():
-        if slog[pick[k]] < last:
-            ok = [c for c in range(int(lo[k]), int(hi[k])) if slog[c] >= last
-                  and (out_log[k] == 0 or slog[c] <= out_log[k] + 10**9)]
+        if not fits(int(pick[k]), k):
+            ok = [c for c in range(int(lo[k]), int(hi[k])) if fits(c, k)]
             if not ok:
                 found[k] = False
                 continue

@@ -59,12 +59,12 @@ The delay, step by step (``h`` = :data:`BIN_S`)
 
 Validity (``delay_valid`` false, ``delay_reason`` says which; the value is None unless a delay
 was computed): no feedback yet, or none for :data:`FEEDBACK_STALE_S`; less than
-:data:`MIN_SPAN_S` of feedback (of live input: after a start or a resume, the first
-``max_lag + MIN_SPAN_S`` after the blend; once the input stops, from ``window_s`` less
-``MIN_SPAN_S`` after); the axis in fewer than :data:`MIN_FEEDBACK_COVERAGE` of the bins;
-the reference's standard deviation over the window below :data:`MIN_MOTION_FRACTION` of the
-axis range; the feedback constant, the correlation's peak on the edge of the lags, or no
-convergence; ``delay_corr`` below :data:`MIN_CORRELATION`; the limiter acting on more than
+:data:`MIN_SPAN_S` of feedback (of live input: after a start or a resume, the first ``max_lag -
+min_lag + MIN_SPAN_S`` (2.7 s) after the blend; once the input stops, from ``window_s`` less
+``MIN_SPAN_S`` after); the axis in fewer than :data:`MIN_FEEDBACK_COVERAGE` of the bins; the
+reference's standard deviation over the window below :data:`MIN_MOTION_FRACTION` of the axis
+range; the feedback constant, the correlation's peak on the edge of the lags, or no convergence;
+``delay_corr`` below :data:`MIN_CORRELATION`; the limiter acting on more than
 :data:`MAX_LIMITED_SHARE` of the window's ticks (the value is still given).
 
 Feedback frames (docs/WIRE.md ``{"t", "pos", "acc"}``): any bytes are accepted by
@@ -367,7 +367,7 @@ class MotionMonitor:
         """
         self.drain()
         share = self._limited_share(now_ns, ticks, acted)
-        n = self._n
+        n, live = self._n, self._live  # (the live span as of the ticks read)
         m = min(n, self._report_rows)
         idx = np.arange(n - m, n) % self._cap
         t_r = self._t[idx]
@@ -384,7 +384,7 @@ class MotionMonitor:
         fidx = np.arange(fn - fm, fn) % self._fcap
         arrived = self._ft[fidx]
         t_y, fidx = self._feedback_instants(arrived, self._fsent[fidx], fidx)
-        window = self._window(t_in, t_y, arrived)
+        window = self._window(t_in, t_y, arrived, live)
         cmd = self._command_grid(t_r)
         parts = self._ticked(t_r, cmd[0]) if cmd is not None else []
         axes: dict[str, Any] = {}
@@ -440,12 +440,14 @@ class MotionMonitor:
         return grid, first
 
     def _ticked(self, t_r: np.ndarray, grid: np.ndarray) -> list[slice]:
-        """The stretches of ``grid`` whose every point has a tick within half a period: a
-        missed deadline (no tick) splits them, and nothing is bridged over it."""
-        half = round(0.5e9 / self.rate_hz)
+        """The stretches of ``grid`` with no missed deadline in them: each point is a tick's
+        instant or lies between two ticks at most 1.5 periods apart (input-synchronous ticks
+        come 0.5-1.25 periods apart; a missed deadline leaves two), so nothing is bridged over
+        a miss."""
         pos = np.clip(np.searchsorted(t_r, grid), 1, t_r.size - 1)
-        near = np.minimum(np.abs(t_r[pos] - grid), np.abs(grid - t_r[pos - 1])) <= half
-        return stretches(near)
+        after, before = t_r[pos], t_r[pos - 1]
+        ok = (after - before <= round(1.5e9 / self.rate_hz)) | (after == grid) | (before == grid)
+        return stretches(ok)
 
     def _limited_share(self, now_ns: int, ticks: int, acted: Sequence[int]
                        ) -> list[float] | None:
@@ -475,8 +477,8 @@ class MotionMonitor:
             t, fidx = t[order], fidx[order]
         return t, fidx
 
-    def _window(self, t_r: np.ndarray, t_y: np.ndarray, arrived: np.ndarray
-                ) -> tuple[int, int] | str:
+    def _window(self, t_r: np.ndarray, t_y: np.ndarray, arrived: np.ndarray,
+                live: tuple[int | None, int | None] = (None, None)) -> tuple[int, int] | str:
         """The feedback window ``(A, B)`` in absolute bins (step 2), or why there is none."""
         if t_y.size == 0:
             return "no feedback received"
@@ -491,7 +493,7 @@ class MotionMonitor:
         end = min(r_end + self._lo, y_end)
         start = max(end - round(self.window_s * 1e9 / b), r_first + self._hi, y_first)
         # the reference live over [A - max_lag, B - min_lag)
-        live_from, live_to = self._live
+        live_from, live_to = live
         clipped = False
         if live_from is not None and live_from // b + 1 + self._hi > start:
             start, clipped = live_from // b + 1 + self._hi, True

@@ -157,7 +157,8 @@ def idle_driver(cpuidle_dir: str = CPUIDLE_DIR, cmdline: str = "/proc/cmdline") 
 
 
 def hold_cpu_latency(latency_us: int, device: str = CPU_LATENCY_DEVICE,
-                     cpuidle_dir: str = CPUIDLE_DIR) -> tuple[str, int | None]:
+                     cpuidle_dir: str = CPUIDLE_DIR, cmdline: str = "/proc/cmdline"
+                     ) -> tuple[str, int | None]:
     """Ask that no CPU take longer than ``latency_us`` to wake from idle while the returned file
     descriptor stays open (-1: leave the system's setting; ``(report, None)``).  Returns what
     happened -- including that the request cannot take effect on this machine
@@ -177,7 +178,7 @@ def hold_cpu_latency(latency_us: int, device: str = CPU_LATENCY_DEVICE,
         os.close(fd)
         return f"CPU wake-up latency not held ({device}: {exc.strerror})", None
     report = f"CPU wake-up latency at most {latency_us} us (the system's now {held} us)"
-    moot = idle_driver(cpuidle_dir)
+    moot = idle_driver(cpuidle_dir, cmdline)
     if moot is not None:
         report += f", held but moot here: {moot}"
         if moot.startswith("no "):

@@ -45,6 +45,8 @@ AXIS_INDEX = {axis: i for i, axis in enumerate(AXES)}
 AGE_WINDOW_S = 10.0
 """The setpoint age's figures are over the frames applied in the last this many seconds (up to
 the newest: docs/WIRE.md, "the last seconds")."""
+AGE_RING = 1 << 15
+"""Frames whose age is kept (10 s of setpoints at up to 3.2 kHz; beyond, the newest)."""
 
 
 def default_truth() -> tuple[list[ProcessModel], np.ndarray, np.ndarray, np.ndarray]:
@@ -164,9 +166,10 @@ class HilPlatform:
         """Periods simulated after a stall of the simulator's own loop."""
         self.age_n = 0
         """Setpoint frames whose age was counted, since the start."""
-        self._ages: deque[tuple[float, float]] = deque()
-        """``(applied at, age)`` of the frames applied over the last :data:`AGE_WINDOW_S`: the
-        age is the period's start minus the frame's ``t`` (the service's tick), i.e. the
+        self._age_at = np.full(AGE_RING, -np.inf)
+        self._ages = np.zeros(AGE_RING)
+        """A ring of when the newest frames were applied and their ages: the age is the
+        period's start minus the frame's ``t`` (the service's tick), i.e. the
         transport and this loop's tick phase that the platform adds to the delay of its truth
         model, as the service's stamps see it."""
         self._max_catch_up = max(1, round(self.max_catch_up_s * cfg.rate_hz))
@@ -234,24 +237,32 @@ class HilPlatform:
             self.take_axes(pos)
             self._judge_speed(t_frame)
             if math.isfinite(at):
-                ages = self._ages
-                ages.append((at, at - t_frame))
+                k = self.age_n % AGE_RING
+                self._age_at[k] = at
+                self._ages[k] = at - t_frame
                 self.age_n += 1
-                while ages[0][0] < at - AGE_WINDOW_S:
-                    ages.popleft()
 
     @property
     def setpoint_age_s(self) -> float:
         """Median age of the setpoint frames applied over the last :data:`AGE_WINDOW_S` (nan
         before any): the typical delay the stack adds, which a fit sees; a stall's few late
         frames move the mean, not this."""
-        return float(np.median([a for _, a in self._ages])) if self._ages else math.nan
+        recent = self._recent_ages()
+        return float(np.median(recent)) if recent.size else math.nan
 
     @property
     def setpoint_age_mean_s(self) -> float:
         """Mean age of the setpoint frames applied over the last :data:`AGE_WINDOW_S` (nan
         before any)."""
-        return math.fsum(a for _, a in self._ages) / len(self._ages) if self._ages else math.nan
+        recent = self._recent_ages()
+        return float(np.mean(recent)) if recent.size else math.nan
+
+    def _recent_ages(self) -> np.ndarray:
+        """The ages of the frames applied over the last :data:`AGE_WINDOW_S` up to the newest."""
+        if not self.age_n:
+            return self._ages[:0]
+        newest = self._age_at[(self.age_n - 1) % AGE_RING]
+        return self._ages[self._age_at >= newest - AGE_WINDOW_S]
 
     def _judge_speed(self, t_frame: float) -> None:
         now_sp = list(self.setpoint)
