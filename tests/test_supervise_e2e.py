@@ -48,7 +48,7 @@ WINDOW_S = 15.0
 """The example config's supervision.window_s."""
 LAG_MS = 1.7
 """The example config's input.playback_lag_s, which a design for a model identified through
-the stack cancels (docs/SUPERVISION.md)."""
+the stack cancels, with the pairing's phase the fragment names (docs/SUPERVISION.md)."""
 SETTLED_SE_MS = 0.4
 """The residual delay's standard error of the estimate a retune is taken from."""
 
@@ -195,8 +195,13 @@ def test_an_outside_platform_off_its_model_is_seen_retuned_and_its_drift_seen(
                         fragment = tmp_path / "retune" / "rails_y.toml"
                         assert "forced" not in fragment.read_text()
                         design = tmp_path / "design.toml"
+                        # the playback lag and the pairing's phase, as the fragment says
+                        # (docs/SUPERVISION.md, "Retune from the estimate")
+                        phase = re.search(r"input\.playback_lag_s \+ ([0-9.]+) ms",
+                                          fragment.read_text())
+                        lag_ms = LAG_MS + (float(phase.group(1)) if phase else 0.0)
                         p = cli("design", "--plant", str(fragment), "--rule", "optimal",
-                                "--input-lag-ms", f"{LAG_MS:g}", "--out", str(design),
+                                "--input-lag-ms", f"{lag_ms:g}", "--out", str(design),
                                 "--quiet")
                         assert p.returncode == 0, p.stderr
                         site_config(site, fragment, design)
