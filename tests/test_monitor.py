@@ -330,11 +330,11 @@ def test_input_synchronous_ticks_are_one_stretch_until_a_deadline_is_missed() ->
     rng = np.random.default_rng(3)
     t_r = T0 + np.cumsum(rng.uniform(0.5, 1.25, 3000) * MS).astype(np.int64)
     grid = t_r[-1] - MS * np.arange(2001, -1, -1, dtype=np.int64)
-    assert m._ticked(t_r, grid) == [slice(0, 2002)]
+    assert m._ticked(t_r, grid).all()
     k = int(np.searchsorted(t_r, grid[1000]))
     holed = np.delete(t_r, k)  # one tick missed
-    parts = m._ticked(holed, grid)
-    assert len(parts) == 2 and sum(pt.stop - pt.start for pt in parts) >= 2002 - 3, parts
+    missed = np.flatnonzero(~m._ticked(holed, grid))
+    assert 1 <= missed.size <= 2 and abs(int(missed[0]) - 1000) <= 1, missed
 
 
 # --- feedback frames: any bytes ----------------------------------------------------------------

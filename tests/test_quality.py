@@ -11,6 +11,7 @@ from motcomp.core.quality import (
     HF_RESOLUTION,
     at_acc_limit,
     command_quality,
+    command_quality_masked,
     command_quality_over,
     estimate_delay,
     hf_rms,
@@ -154,3 +155,22 @@ def test_hf_within_is_the_ratio_plus_the_resolution() -> None:
     assert hf_within(0.0, 0.0, 2.0) and hf_within(1e-4, 0.0, 2.0)
     assert not hf_within(1.01e-4, 0.0, 2.0)
     assert hf_within(2.1e-3, 1e-3, 2.0) and not hf_within(2.11e-3, 1e-3, 2.0)
+
+
+def test_masked_command_quality_leaves_a_missing_sample_out() -> None:
+    """Every sample there: :func:`command_quality` exactly.  A sine with every 50th sample
+    missing: the jerk and peak of the whole stencils are the sine's own (closed form), the
+    high frequencies stay near zero; a straight line over the gaps reads a jerk of a/h."""
+    rate, w, amp = 1000.0, 2 * math.pi * 0.4, 0.2
+    t = np.arange(2002) / rate
+    u = amp * np.sin(w * t)
+    assert command_quality_masked(u, np.ones(u.size, bool), rate) == command_quality(u, rate)
+    ok = np.arange(u.size) % 50 != 49
+    q = command_quality_masked(np.where(ok, u, 0.0), ok, rate)  # the missing values unused
+    jerk = -amp * w ** 3 * np.cos(w * t)
+    assert q.jerk_rms == pytest.approx(math.sqrt(np.mean(jerk ** 2)), rel=0.02)
+    assert q.acc_peak == pytest.approx(amp * w ** 2 * np.abs(np.sin(w * t)).max(), rel=0.01)
+    assert q.hf_acc_rms < 1e-3 * amp * w ** 2
+    bridged = np.interp(np.arange(u.size), np.flatnonzero(ok), u[ok])
+    assert command_quality(bridged, rate).jerk_rms > 50 * q.jerk_rms
+    assert math.isnan(command_quality_masked(u, np.zeros(u.size, bool), rate).jerk_rms)

@@ -194,8 +194,10 @@ def test_the_latency_request_says_when_no_idle_driver_can_honour_it(tmp_path: Pa
     quiet.write_text("console=ttyS0 quiet\n")
     for driver in ("haltpoll", "intel_idle", "acpi_idle"):
         assert idle_driver(cpuidle(tmp_path / driver, driver), str(quiet)) is None
-    assert idle_driver(cpuidle(tmp_path / "a", "none"), str(quiet)) == "no cpuidle driver"
-    assert idle_driver(cpuidle(tmp_path / "b", None), str(quiet)) == "no cpuidle driver"
+    assert idle_driver(cpuidle(tmp_path / "a", "none"), str(quiet)) == (
+        "no cpuidle driver, idle CPUs halt (docs/DEPLOYMENT.md)")
+    assert idle_driver(cpuidle(tmp_path / "b", None), str(quiet)) == (
+        "no cpuidle driver, idle CPUs halt (docs/DEPLOYMENT.md)")
     assert idle_driver(str(tmp_path / "no-sysfs" / "cpuidle"), str(quiet)) is None  # unknown
     polling = tmp_path / "poll"
     polling.write_text("console=ttyS0 idle=poll quiet\n")

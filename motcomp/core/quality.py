@@ -203,6 +203,37 @@ def command_quality(u: ArrayLike, rate_hz: float, above_hz: float = HF_ABOVE_HZ
                           acc_peak=float(np.max(np.abs(acc))))
 
 
+def command_quality_masked(u: ArrayLike, ok: ArrayLike, rate_hz: float,
+                           above_hz: float = HF_ABOVE_HZ) -> CommandQuality:
+    """:class:`CommandQuality` of ``u`` where ``ok`` marks the samples that are the command's
+    (False: a missed tick on the grid), in a few vectorised passes (the service's status
+    computes it beside its loop).  The jerk and the peak come from the differences whose
+    samples all are, nothing bridged; the high-frequency figure from the whole acceleration
+    series, a difference that is not interpolated in acceleration from its neighbours (a
+    straight line in position over a missing sample would read the command's acceleration as
+    a jerk of ``a / h``).  NaN without a whole third difference."""
+    x = np.asarray(u, dtype=float)
+    have = np.asarray(ok, dtype=bool)
+    nan = math.nan
+    if x.size < 4:
+        return CommandQuality(nan, nan, nan)
+    acc = np.diff(x, 2) * rate_hz ** 2
+    acc_ok = have[:-2] & have[1:-1] & have[2:]
+    jerk_ok = acc_ok[:-1] & acc_ok[1:]
+    if not jerk_ok.any():
+        return CommandQuality(nan, nan, nan)
+    jerk = np.diff(acc)[jerk_ok] * rate_hz
+    if not acc_ok.all():
+        k = np.arange(acc.size)
+        acc_f = acc.copy()
+        acc_f[~acc_ok] = np.interp(k[~acc_ok], k[acc_ok], acc[acc_ok])
+    else:
+        acc_f = acc
+    return CommandQuality(hf_acc_rms=hf_rms(acc_f, rate_hz, above_hz),
+                          jerk_rms=float(math.sqrt(np.mean(jerk * jerk))),
+                          acc_peak=float(np.max(np.abs(acc[acc_ok]))))
+
+
 def stretches(have: ArrayLike) -> list[slice]:
     """The runs of consecutive True in ``have`` (e.g. the ticks a frame was recorded for)."""
     h = np.concatenate([[False], np.asarray(have, dtype=bool), [False]])

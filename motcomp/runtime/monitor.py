@@ -12,12 +12,12 @@ Three figures for ``motcomp status`` (why and how: docs/DEPLOYMENT.md, "Motion q
     (:attr:`motcomp.core.tick.TickState.acted`).
 ``hf_acc_rms``, ``jerk_rms``, ``acc_peak``
     :func:`motcomp.core.quality.command_quality` of the command ``u`` sent over the last
-    :data:`COMMAND_WINDOW_S`, taken on the loop's period grid from the tick instants, over
-    the stretches of consecutive ticks (:func:`motcomp.core.quality.command_quality_over`): a
-    missed tick is neither read as a jump of the command nor bridged (a straight line over it
-    reads the command's own acceleration as a jerk of ``a / h``: 350-550 m/s^3 for the rails'
-    ordinary driving at 1.5-5 % missed, against 3-8 on the ticks sent); None without a stretch
-    of four ticks.
+    :data:`COMMAND_WINDOW_S`, taken on the loop's period grid from the tick instants, the
+    grid's points at missed deadlines marked (:func:`motcomp.core.quality.command_quality_masked`):
+    a missed tick is neither read as a jump of the command nor bridged in position (a straight
+    line over it reads the command's own acceleration as a jerk of ``a / h``: 350-550 m/s^3 for
+    the rails' ordinary driving at 1.5-5 % missed, against 3-8 on the ticks sent); None without
+    four consecutive ticks.
 
 Threads and cost: the loop thread calls :meth:`MotionMonitor.record` once per tick (a row written
 into a preallocated ring: under a microsecond): the input as the shaper plays it back
@@ -92,7 +92,7 @@ from typing import Any
 import numpy as np
 
 from motcomp.core.axes import AXES, AXIS_INDEX, N_AXES
-from motcomp.core.quality import command_quality_over, estimate_delay, stretches
+from motcomp.core.quality import command_quality_masked, estimate_delay
 from motcomp.core.tick import MAX_ERROR_CHARS
 from motcomp.errors import ConfigError, FrameError
 from motcomp.io.wire import decode_feedback
@@ -386,7 +386,7 @@ class MotionMonitor:
         t_y, fidx = self._feedback_instants(arrived, self._fsent[fidx], fidx)
         window = self._window(t_in, t_y, arrived, live)
         cmd = self._command_grid(t_r)
-        parts = self._ticked(t_r, cmd[0]) if cmd is not None else []
+        ticked = self._ticked(t_r, cmd[0]) if cmd is not None else None
         axes: dict[str, Any] = {}
         for i, axis in enumerate(AXES):
             if not driven[i]:
@@ -409,10 +409,10 @@ class MotionMonitor:
                             f"the limiter acted on {100 * share[i]:.0f} % of the ticks (more "
                             f"than {100 * MAX_LIMITED_SHARE:g} %): the platform follows its "
                             "limits, not the compensation")
-                if cmd is not None:
+                if cmd is not None and ticked is not None:
                     grid, first = cmd
                     u = np.interp(grid, t_r[first:], ru[first:, len(cols) + col[i]])
-                    q = command_quality_over(u, parts, self.rate_hz).as_dict()
+                    q = command_quality_masked(u, ticked, self.rate_hz).as_dict()
                     fig.update({k: v if math.isfinite(v) else None for k, v in q.items()})
             except Exception as exc:  # a figure must never stop the status
                 fig["delay_reason"] = f"internal: {type(exc).__name__}: {str(exc)[:80]}"
@@ -439,15 +439,14 @@ class MotionMonitor:
         first = max(int(np.searchsorted(t_r, grid[0], side="right")) - 1, 0)
         return grid, first
 
-    def _ticked(self, t_r: np.ndarray, grid: np.ndarray) -> list[slice]:
-        """The stretches of ``grid`` with no missed deadline in them: each point is a tick's
-        instant or lies between two ticks at most 1.5 periods apart (input-synchronous ticks
-        come 0.5-1.25 periods apart; a missed deadline leaves two), so nothing is bridged over
-        a miss."""
+    def _ticked(self, t_r: np.ndarray, grid: np.ndarray) -> np.ndarray:
+        """Per point of ``grid``, whether no deadline was missed there: it is a tick's instant
+        or lies between two ticks at most 1.5 periods apart (input-synchronous ticks come
+        0.5-1.25 periods apart; a missed deadline leaves two)."""
         pos = np.clip(np.searchsorted(t_r, grid), 1, t_r.size - 1)
         after, before = t_r[pos], t_r[pos - 1]
-        ok = (after - before <= round(1.5e9 / self.rate_hz)) | (after == grid) | (before == grid)
-        return stretches(ok)
+        return np.asarray((after - before <= round(1.5e9 / self.rate_hz)) | (after == grid)
+                          | (before == grid))
 
     def _limited_share(self, now_ns: int, ticks: int, acted: Sequence[int]
                        ) -> list[float] | None:

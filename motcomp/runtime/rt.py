@@ -44,6 +44,8 @@ CPU_LATENCY_DEVICE = "/dev/cpu_dma_latency"
 CPUIDLE_DIR = "/sys/devices/system/cpu/cpuidle"
 """The kernel's cpuidle subsystem in sysfs: ``current_driver`` names the driver of idle states."""
 
+_NO_DRIVER = "no cpuidle driver, idle CPUs halt (docs/DEPLOYMENT.md)"
+
 _SYSCALLS = {"x86_64": (314, 315), "aarch64": (274, 275)}
 """(sched_setattr, sched_getattr) system call numbers."""
 
@@ -152,8 +154,8 @@ def idle_driver(cpuidle_dir: str = CPUIDLE_DIR, cmdline: str = "/proc/cmdline") 
         driver = (base / "current_driver").read_text().strip()
     except OSError:
         # a kernel without cpuidle has no such directory beside its CPUs'
-        return "no cpuidle driver" if base.parent.is_dir() and not base.exists() else None
-    return "no cpuidle driver" if driver == "none" else None
+        return _NO_DRIVER if base.parent.is_dir() and not base.exists() else None
+    return _NO_DRIVER if driver == "none" else None
 
 
 def hold_cpu_latency(latency_us: int, device: str = CPU_LATENCY_DEVICE,
@@ -181,8 +183,6 @@ def hold_cpu_latency(latency_us: int, device: str = CPU_LATENCY_DEVICE,
     moot = idle_driver(cpuidle_dir, cmdline)
     if moot is not None:
         report += f", held but moot here: {moot}"
-        if moot.startswith("no "):
-            report += ", idle CPUs halt (docs/DEPLOYMENT.md)"
     return report, fd
 
 
