@@ -43,7 +43,6 @@ import zenoh
 AXES = ("rails_x", "rails_y", "hex_x", "hex_y", "hex_z", "hex_roll", "hex_pitch", "hex_yaw")
 DEFAULT_TRUTH_MS = {a: (20.0, 150.0 if a == "rails_y" else 50.0) for a in AXES}
 AGE_WINDOW_S = 10.0
-SPIN_S = 150e-6  # the last part of each wait is spent spinning (yielding the GIL) for precision
 TIMEOUT_S = 1.0  # no setpoint for this long: say so, and keep holding the last one
 
 
@@ -275,8 +274,10 @@ class Platform:
                 print(f"wire_platform: {axis} truth now TD = {td:g} ms, TP1 = {tp1:g} ms "
                       f"({deadline - start:.2f} s after the start, at epoch "
                       f"{wall_time_at(deadline):.3f} s)", file=sys.stderr, flush=True)
+            # one sleep, no spin: a cycle that wakes late still takes only the frames stamped
+            # on arrival before its start, and its feedback carries the start as `t`
             while (wait := deadline - time.perf_counter()) > 0:
-                time.sleep(wait - SPIN_S if wait > SPIN_S + 1e-4 else 0)  # sleep(0) yields
+                time.sleep(wait)
             late = int((time.perf_counter() - deadline) / self.h)
             for _ in range(late):  # a stall: stay on wall time without a burst of feedback
                 self._cycle(k, deadline, publish=False)
