@@ -30,6 +30,7 @@ import argparse
 import collections
 import json
 import math
+import os
 import signal
 import sys
 import threading
@@ -38,7 +39,12 @@ from typing import Any
 
 import msgpack
 import numpy as np
-import zenoh
+
+# all of zenoh's tasks on one thread (zenoh's ZENOH_RUNTIME; the environment may say otherwise):
+# at 1 kHz its receiving, transmitting and accepting threads cost more than the work they share
+os.environ.setdefault("ZENOH_RUNTIME", "(rx: (handover: app), acc: (handover: app), "
+                      "tx: (handover: app), net: (handover: app))")
+import zenoh  # after the runtime's setting
 
 AXES = ("rails_x", "rails_y", "hex_x", "hex_y", "hex_z", "hex_roll", "hex_pitch", "hex_yaw")
 DEFAULT_TRUTH_MS = {a: (20.0, 150.0 if a == "rails_y" else 50.0) for a in AXES}
