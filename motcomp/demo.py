@@ -694,10 +694,16 @@ def _figure(sp: _Trace, fb: _Trace, grids: dict[str, _Command], ideal: dict[str,
     import matplotlib.pyplot as plt
 
     rails: list[str] = [a for a in ("rails_y", "rails_x") if a in sp.pos]
-    hexa: list[str] = [a for a in ("hex_z", "hex_roll") if a in sp.pos]
+    hexa: list[str] = [a for a in SIGNAL_OF if a.startswith("hex_") and a in sp.pos]
     rows = (3 if rails else 0) + (1 if hexa else 0)
-    cols = max(len(rails), len(hexa), 1)
-    fig, grid = plt.subplots(rows, cols, figsize=(7.5 * cols, 3.1 * rows), squeeze=False)
+    # a grid of len(rails) x len(hexa) columns: each rails panel spans len(hexa) of them, each
+    # hexapod panel len(rails), so both rows fill the figure's width
+    n_r, n_h = max(len(rails), 1), max(len(hexa), 1)
+    fig = plt.figure(figsize=(7.5 * max(len(rails), 1), 3.1 * rows))
+    gs = fig.add_gridspec(rows, n_r * n_h)
+    grid = [[fig.add_subplot(gs[r, c * n_h:(c + 1) * n_h]) for c in range(len(rails))]
+            for r in range(3 if rails else 0)]
+    hex_row = [fig.add_subplot(gs[rows - 1, c * n_r:(c + 1) * n_r]) for c in range(len(hexa))]
     color = {"off": "C0", "on": "C3"}
     span = max(m[1] - m[0] for m in motion.values())
     panels: list[str] = []
@@ -757,10 +763,7 @@ def _figure(sp: _Trace, fb: _Trace, grids: dict[str, _Command], ideal: dict[str,
         finish(ax, axis, "acceleration", f"acceleration ({u_unit}/s^2)",
                "command acceleration (second difference on the tick grid)")
     for col, axis in enumerate(hexa):
-        positions(grid[rows - 1][col], axis)
-    for panel in grid.flat:
-        if not panel.has_data():
-            panel.set_visible(False)
+        positions(hex_row[col], axis)
     fig.tight_layout()
     fig.savefig(path, dpi=100, metadata={"Description": "; ".join(panels)})
     plt.close(fig)

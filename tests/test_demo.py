@@ -151,7 +151,7 @@ def test_demo_figure_shows_the_command(demo: DemoResult) -> None:
     want = {f"{a} {what}" for a in RAILS for what in
             ("position (m)", "command (m)", "acceleration (m/s^2)")}
     assert want <= set(demo.panels), demo.panels
-    assert "hex_roll position (rad)" in demo.panels
+    assert "hex_roll position (rad)" in demo.panels and "hex_pitch position (rad)" in demo.panels
     with Image.open(demo.figure) as png:  # the file written is the one with these panels
         assert png.info["Description"] == "; ".join(demo.panels)
 
