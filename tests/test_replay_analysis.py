@@ -271,9 +271,12 @@ def test_frames_missing_from_the_recording_are_explained(tmp_path: Path,
                 inputs += 1
                 if 1500 <= inputs < 1540:
                     continue
-            if rec.topic == "motcomp/status" and superseded is not None:
+            if rec.topic == "motcomp/status":
                 st = msgpack.unpackb(data)
-                st["frames"]["superseded"] = superseded if st["t"] > 1_750_000_002 else 0
+                if superseded is None:  # a service that did not count them
+                    del st["frames"]["superseded"]
+                else:
+                    st["frames"]["superseded"] = superseded if st["t"] > 1_750_000_002 else 0
                 data = msgpack.packb(st)
             w.write_raw(rec.topic, rec.log_ns, rec.publish_ns, rec.sequence, data)
     (fr,) = replay_files([holed], [None])
@@ -346,3 +349,65 @@ def test_a_restarted_sender_and_a_recording_begun_mid_run_lose_no_frames(tmp_pat
     # one, and the first run's later numbers stay found
     notes = holed("first.mcap", range(1501, 1502))
     assert "1 input frames the service used are not in the recording" in notes, notes
+
+
+def test_a_frame_the_service_never_received_is_found_and_the_replay_is_bit_for_bit(
+        tmp_path: Path) -> None:
+    """Two input frames the recorder holds never reached the service (its link dropped them;
+    the service counts them superseded): the outputs cannot say which, the replay finds them by
+    where it departs from the recorded outputs, leaves them out and is the service again, bit
+    for bit -- for every config it replays, in one process or in workers."""
+    from motcomp.replay.engine import run_ticks
+    from motcomp.replay.offline import config_for, plan_for, read_for_replay, replay_files
+    from motcomp.replay.synth import SynthOptions, synthesize
+
+    path = tmp_path / "dropped.mcap"
+    synthesize(path, CFG, SynthOptions(duration_s=6.0, seed=5, axes=("rails_y", "hex_z"),
+                                       service_misses=[2.0005, 4.2115]))  # seq 2001, 4212
+    s = read_for_replay(path)
+    cfg, _, _ = config_for(s, None)
+    axes = resolve_axes(cfg)
+    assert s.outputs is not None and s.inputs is not None
+    # without the search the replay takes the two frames and departs from the recording
+    bare = plan_for(s, cfg, axes, absent=False)
+    rows_of = np.flatnonzero(bare.output >= 0)
+    rec = s.outputs.pos[bare.output[rows_of]]
+    assert not np.array_equal(run_ticks(bare, s.inputs, cfg).u[rows_of], rec)
+    # with it: the two frames named, left out, and the replay equal to the recording
+    (fr,) = replay_files([path], [None, config_file("motcomp.toml")])
+    run = fr.runs[0]
+    wanted = tuple(int(np.searchsorted(s.inputs.seq, k)) for k in (2001, 4212))
+    assert run.plan.absent == wanted, (run.plan.absent, run.plan.notes)
+    notes = " ".join(run.plan.notes)
+    assert "2 input frames the recorder holds never reached the service (seq 2001, 4212; " \
+           "2 by its status' count)" in notes, notes
+    assert "departs" not in notes, notes
+    assert np.array_equal(run.result.u[rows_of], rec)
+    assert all(r.report.axes[0].max_diff == 0.0 for r in fr.runs if r.recorded_config)
+    # the other config leaves them out too, and the workers give the same
+    assert fr.runs[1].plan.absent == wanted
+    (par,) = replay_files([path], [None, config_file("motcomp.toml")], jobs=2)
+    for a, b in zip(fr.runs, par.runs, strict=True):
+        assert a.plan.absent == b.plan.absent
+        assert np.array_equal(a.result.u, b.result.u, equal_nan=True)
+
+
+def test_a_replay_that_departs_from_the_recording_names_where(tmp_path: Path) -> None:
+    """A recorded output the replay does not reproduce, where the service counted no frame
+    superseded: the replay says from which output on, and by how much."""
+    from motcomp.replay.offline import config_for, read_for_replay, replay_offline
+    from motcomp.replay.synth import SynthOptions, synthesize
+
+    path = tmp_path / "clean.mcap"
+    synthesize(path, CFG, SynthOptions(duration_s=4.0, seed=2, axes=("rails_y",)))
+    s = read_for_replay(path)
+    (clean,) = replay_offline(s, [config_for(s, None)])
+    assert not [n for n in clean.plan.notes if "departs" in n], clean.plan.notes
+    assert s.outputs is not None
+    k = 2500
+    s.outputs.pos[k, AXES.index("rails_y")] += 1e-9  # what the replay cannot have computed
+    (run,) = replay_offline(s, [config_for(s, None)])
+    (note,) = [n for n in run.plan.notes if "departs" in n]
+    assert (f"departs from the recorded outputs from output seq {int(s.outputs.seq[k])} "
+            in note and "by up to 1e-09 in axis units" in note
+            and "the service missed no input frame the recorder got" in note), note

@@ -85,8 +85,11 @@ def initial_position(plan: TickPlan, inp: InputStream, axes: ResolvedAxes,
 
 
 def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
-              progress: Callable[[float], None] | None = None) -> EngineResult:
-    """Run the plan through the tick (see the module docstring).
+              progress: Callable[[float], None] | None = None,
+              until_row: int | None = None) -> EngineResult:
+    """Run the plan through the tick (see the module docstring), up to ``until_row`` (the
+    rows from it on are left NaN: a trial).  The frames of :attr:`TickPlan.absent` are left
+    out of their ticks.
 
     A warm plan starts at rest at :func:`initial_position`, with no start-up blend until the
     first frame is accepted.  Catch-up rows must be consecutive periods ending just before a
@@ -108,6 +111,10 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
     emit = plan.emit
     ticks = np.flatnonzero(emit)
     skipped = _skipped(plan, ticks)
+    if until_row is not None:
+        skipped = skipped[ticks < until_row]
+        ticks = ticks[ticks < until_row]
+    absent = frozenset(plan.absent)
     # what happens between ticks, by tick number: parking, then a bypass switch
     hooks: dict[int, list[Callable[[], None]]] = {}
 
@@ -166,8 +173,8 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
                     for fn in hook:
                         fn()
                 o = lo[i]
-                frames = ([data[bounds[k]:bounds[k + 1]] for k in range(o, hi[i])] if o >= 0
-                          else None)
+                frames = ([data[bounds[k]:bounds[k + 1]] for k in range(o, hi[i])
+                           if not absent or k not in absent] if o >= 0 else None)
                 out = step(state, current, now_l[i], frames, skip_l[i], now_l[i] + rx_l[i])
                 if warm_pending and state.accepted:
                     warm_pending = False

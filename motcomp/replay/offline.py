@@ -18,11 +18,14 @@ from __future__ import annotations
 
 import multiprocessing
 import time
+import weakref
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from motcomp.config import ResolvedAxes, ServiceConfig, config_hash, load_config, resolve_axes
 from motcomp.errors import ConfigError
@@ -31,8 +34,8 @@ from motcomp.replay.analysis import ReplayReport, analyse
 from motcomp.replay.engine import EngineResult, run_ticks
 from motcomp.replay.plan import TickPlan, build_plan
 
-__all__ = ["FEEDBACK_WINDOWS", "FileReplay", "ReplayRun", "config_for", "plan_for",
-           "read_for_replay", "replay_files", "replay_offline"]
+__all__ = ["FEEDBACK_WINDOWS", "FileReplay", "ReplayRun", "config_for", "departure_note",
+           "find_absent", "plan_for", "read_for_replay", "replay_files", "replay_offline"]
 
 FEEDBACK_WINDOWS = (12, 40.0)
 """Feedback is read in this many windows of this length (s) on long recordings: the recorded
@@ -86,9 +89,142 @@ def config_for(session: Session, path: str | Path | None) -> tuple[ServiceConfig
     return cfg, f"recorded config {config_hash(cfg)}", True
 
 
+ABSENT_MAX = 16
+"""Most input frames :func:`find_absent` leaves out of a replay."""
+ABSENT_LOOKBACK_S = 0.25
+"""How far before a departure from the recorded outputs the frame that explains it is looked
+for (the reference plays a frame some ms after it is taken: ``input.playback_lag_s``)."""
+ABSENT_TRIAL_ROWS = 2000
+"""A trial replay runs this many rows past the departure it tries to explain."""
+ABSENT_BUDGET = 8
+"""The trials of a search run at most this many times the plan's rows in all."""
+
+_ABSENT: dict[int, dict[int, tuple[tuple[int, ...], list[str]]]] = {}
+""":func:`find_absent`'s answers by ``id`` of the session (dropped with it) and run."""
+
+
+def find_absent(session: Session, run: int = 0) -> tuple[tuple[int, ...], list[str]]:
+    """The recorded input frames that never reached the service, and notes, found where the
+    replay of the recorded config departs from the recorded outputs, bit for bit.
+
+    A frame the recorder got but the service did not (a link that dropped it) shows in no
+    output: the next frame's ``src_seq`` covers it, and the service counts it superseded.  So
+    when the service's status counts any, each departure is explained, if it can be, by the
+    frame whose absence from one of the ticks that took several frames just before it moves the
+    departure furthest on (trial replays); the frames found are left out of every config's
+    replay (:func:`plan_for`).  A departure that no such frame explains is named in a note.
+    Cached per session and run; ``((), [])`` where the service missed none the recorder got
+    (:attr:`TickPlan.unreceived`) or the recording cannot tell (no recorded config, no outputs
+    with the loop's clock, a warm start).
+    """
+    cache = _ABSENT.get(id(session))
+    if cache is None:
+        cache = _ABSENT[id(session)] = {}
+        weakref.finalize(session, _ABSENT.pop, id(session), None)
+    if run in cache:
+        return cache[run]
+    found: tuple[tuple[int, ...], list[str]] = ((), [])
+    cfg = session.config()
+    if cfg is not None:
+        axes = resolve_axes(cfg)
+        plan = plan_for(session, cfg, axes, run, absent=False)
+        if plan.unreceived and _comparable(session, plan):
+            found = _search_absent(session, plan, cfg, axes)
+    cache[run] = found
+    return found
+
+
+def _comparable(session: Session, plan: TickPlan) -> bool:
+    """The plan's commands can be held to the recorded ones bit for bit."""
+    return (session.outputs is not None and session.inputs is not None and not plan.warm
+            and plan.method.startswith("outputs+clock"))
+
+
+def _departure(session: Session, plan: TickPlan, axes: ResolvedAxes, res: EngineResult
+               ) -> tuple[int, float] | None:
+    """The first row whose command differs from the recorded one (bit for bit, the driven
+    axes), and the largest difference from there; None where none does."""
+    assert session.outputs is not None
+    rows = np.flatnonzero(plan.output >= 0)
+    driven = np.asarray(axes.driven, dtype=bool)
+    u = res.u[rows][:, driven]
+    d = np.abs(u - session.outputs.pos[plan.output[rows]][:, driven])
+    bad = np.flatnonzero(np.isfinite(u).all(axis=1) & (d > 0).any(axis=1))
+    if not bad.size:
+        return None
+    return int(rows[bad[0]]), float(np.nanmax(d[bad[0]:]))
+
+
+def departure_note(session: Session, plan: TickPlan, axes: ResolvedAxes, res: EngineResult
+                   ) -> str | None:
+    """Where the replay of the recorded config departs from the recorded outputs, in words
+    (None where it does not, or cannot be held to them)."""
+    if not _comparable(session, plan):
+        return None
+    dep = _departure(session, plan, axes, res)
+    if dep is None:
+        return None
+    assert session.outputs is not None
+    row, worst = dep
+    seq = int(session.outputs.seq[plan.output[row]])
+    t = (int(plan.now_ns[row]) - int(plan.now_ns[0])) / 1e9
+    why = (f"which no input frame it may have missed explains ({plan.unreceived} by its "
+           "status' count)" if plan.unreceived else
+           "and nothing in the recording says why (by its status, the service missed no input "
+           "frame the recorder got)")
+    return (f"the replay departs from the recorded outputs from output seq {seq} ({t:.3f} s "
+            f"into the run; by up to {worst:.3g} in axis units), {why}")
+
+
+def _search_absent(session: Session, plan: TickPlan, cfg: ServiceConfig, axes: ResolvedAxes
+                   ) -> tuple[tuple[int, ...], list[str]]:
+    assert session.inputs is not None and plan.frame_lo is not None
+    inp, lo = session.inputs, plan.frame_lo
+    res = run_ticks(plan, inp, cfg)
+    dep = _departure(session, plan, axes, res)
+    took = np.flatnonzero(plan.emit & (plan.frame > lo) & (lo >= 0))
+    lookback = round(ABSENT_LOOKBACK_S * 1e9 / plan.period_ns)
+    absent: list[int] = []
+    budget = ABSENT_BUDGET * plan.rows
+    while dep is not None and len(absent) < min(plan.unreceived, ABSENT_MAX):
+        first = dep[0]
+        best: tuple[float, int] | None = None
+        for r in took[(took <= first) & (took >= first - lookback)][::-1]:
+            for k in range(int(lo[r]), int(plan.frame[r])):  # not the last: the output names it
+                until = first + ABSENT_TRIAL_ROWS
+                if budget < until:
+                    break
+                budget -= until
+                trial = replace(plan, absent=tuple(sorted([*absent, k])))
+                d = _departure(session, trial, axes, run_ticks(trial, inp, cfg, until_row=until))
+                reach = np.inf if d is None else float(d[0])
+                if reach > first and (best is None or reach > best[0]):
+                    best = (reach, k)
+        if best is None:
+            break
+        absent.append(best[1])
+        plan = replace(plan, absent=tuple(sorted(absent)))
+        res = run_ticks(plan, inp, cfg)
+        dep = _departure(session, plan, axes, res)
+    notes = []
+    if absent:
+        seqs = ", ".join(str(int(inp.seq[k])) for k in sorted(absent))
+        n = len(absent)
+        notes.append(f"{n} input frame{'s' if n > 1 else ''} the recorder holds never reached "
+                     f"the service (seq {seqs}; {plan.unreceived} by its status' count): "
+                     f"the replay goes without {'them' if n > 1 else 'it'}, as the service "
+                     "did")
+    note = departure_note(session, plan, axes, res)
+    if note is not None:
+        notes.append(note)
+    return tuple(sorted(absent)), notes
+
+
 def plan_for(session: Session, cfg: ServiceConfig, axes: ResolvedAxes, run: int = 0,
-             bypass: str = "recorded") -> TickPlan:
-    """The plan of ``session`` for ``cfg`` (recorded ticks when the rates agree)."""
+             bypass: str = "recorded", absent: bool = True) -> TickPlan:
+    """The plan of ``session`` for ``cfg`` (recorded ticks when the rates agree); with
+    ``absent``, the input frames that never reached the service left out
+    (:func:`find_absent`)."""
     plan = build_plan(session, cfg, axes, run)
     if plan.method.startswith("outputs") and round(1e9 / cfg.loop.rate_hz) != plan.period_ns:
         plan = build_plan(session, cfg, axes, run, use_outputs=False)
@@ -100,6 +236,10 @@ def plan_for(session: Session, cfg: ServiceConfig, axes: ResolvedAxes, run: int 
     if len(hashes) > 1:
         plan.notes.append(f"the service's config changed during the recording (hashes "
                           f"{', '.join(hashes)}): replayed with one config throughout")
+    if absent and plan.method.startswith("outputs"):
+        frames, notes = find_absent(session, run)
+        plan.absent = frames
+        plan.notes.extend(notes)
     return plan
 
 
@@ -121,6 +261,10 @@ def replay_offline(session: Session, configs: list[tuple[ServiceConfig, str, boo
         t1 = time.perf_counter()
         assert session.inputs is not None
         res = run_ticks(plan, session.inputs, cfg, sub)
+        if recorded and bypass == "recorded" and not plan.unreceived:  # else find_absent
+            note = departure_note(session, plan, axes, res)
+            if note is not None:
+                plan.notes.append(note)
         t2 = time.perf_counter()
         rep = analyse(session, plan, res, cfg, axes, label, recorded)
         t3 = time.perf_counter()

@@ -96,6 +96,13 @@ class TickPlan:
     """The recorded service's loop computed with subnormals flushed to zero (its status'
     ``realtime`` says so; a recording of a version before, or of a CPU without the mode, did
     not).  Without a status: as the service does now."""
+    unreceived: int = 0
+    """Input frames the recorder got that never reached the service, by the count of the
+    service's status (the rise of its ``superseded`` over the run less the numbers the recording
+    lacks); 0 where it cannot tell."""
+    absent: tuple[int, ...] = ()
+    """Those of them found (indices into the recording's inputs): the ticks leave them out
+    (:func:`motcomp.replay.offline.find_absent`)."""
 
     def __post_init__(self) -> None:
         if self.frame_lo is None:
@@ -320,8 +327,10 @@ def _from_outputs(session: Session, cfg: ServiceConfig, params: TickParams, run:
                      "recording (the recorder lost them): their ticks see no new input here, so "
                      "the replay departs from the recorded outputs after them; " + _RECORD_BETTER)
     holes = _seq_holes(inp.seq, want, at)
+    superseded = _superseded(session, log_ns)
     if holes:
-        notes.append(_holes_note(holes, _superseded(session, log_ns)))
+        notes.append(_holes_note(holes, superseded))
+    unreceived = max(0, superseded - holes) if superseded is not None else 0
     # frames consumed in ticks the recorder lost: by arrival time (mapped to the tick clock),
     # newer than the frame in use before the gap and older than the one in use after it
     lost = np.flatnonzero((row_src == -2) | (row_src == -3))
@@ -370,7 +379,8 @@ def _from_outputs(session: Session, cfg: ServiceConfig, params: TickParams, run:
     rx = np.where(output >= 0, out.rx[np.maximum(output, 0)], 0) if out.rx.size else None
     return TickPlan(now_ns, frame, output, emit, bypass0, events, park, warm, method, period,
                     missing_frames, notes, holes, by_axes, rx_ns=rx,
-                    flushed=recorded_flushed(st for _, st in session.status))
+                    flushed=recorded_flushed(st for _, st in session.status),
+                    unreceived=unreceived)
 
 
 def recorded_flushed(status: Iterable[dict[str, Any]]) -> bool:
@@ -409,9 +419,8 @@ def _holes_note(holes: int, superseded: int | None) -> str:
     if superseded is not None and superseded > holes:
         return (f"{head}, but the service missed {superseded} (its status' superseded count): "
                 f"{superseded - holes} frames the recorder received never reached the service "
-                "(dropped on its link, under load), and the replay reads them: near them it "
-                "may differ from the recorded outputs at the rounding of a floating-point "
-                "number, growing with the compensator's dynamics (see 'max |replay-rec|')")
+                "(dropped on its link, under load): the replay looks for them where it departs "
+                "from the recorded outputs (docs/REPLAY.md)")
     if superseded is not None:
         return (f"{head}, and the service received {holes - superseded} of them (its status "
                 f"counted {superseded} superseded): the recorder lost those, so the replay "

@@ -76,6 +76,9 @@ class SynthOptions:
     :func:`motion`."""
     feedback_gaps: list[tuple[float, float]] = field(default_factory=list)
     """``(start_s, length_s)``: the platform sends no feedback."""
+    service_misses: list[float] = field(default_factory=list)
+    """Source instants (s): the sample due first at or after each never reaches the service
+    (its link dropped it); the recorder gets it."""
 
 
 def motion(t: np.ndarray, axis: str, amplitude: float = 1.0) -> np.ndarray:
@@ -109,6 +112,8 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
     transit = rng.uniform(*opts.transit_us, n_src) * 1e3
     arrival = MONO0_NS + np.round((0.2 + t_src) * 1e9 + transit).astype(np.int64)
     frames: list[tuple[int, bytes]] = []  # (arrival ns, payload)
+    missed = {int(np.searchsorted(t_src, ts)) for ts in opts.service_misses}
+    dropped: set[bytes] = set()  # the payloads the service's link dropped
     first = np.zeros(n_src, np.int64)  # the index of the sender run's first sample
     if opts.restart_after_gaps:
         starts = np.flatnonzero(keep & ~np.concatenate([[True], keep[:-1]]))
@@ -124,6 +129,8 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
         else:
             payload = encode_input(seq, float(t_sender[k]), pos)
         frames.append((int(arrival[k]), payload))
+        if k in missed:
+            dropped.add(payload)
         if opts.bad_every and k % opts.bad_every == 0:
             bad = [msgpack.packb({"seq": seq, "pos": {"rails_x": float("nan")}}), b"\xc1",
                    msgpack.packb({"seq": seq + 1, "pos": {"rails_q": 0.0}})][
@@ -142,6 +149,7 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
     fi = 0
     parked_from = None
     out_msgs: list[tuple[int, bytes]] = []
+    superseded: list[int] = []  # the service's count after each tick
     with subnormals_flushed() as flushed:  # the loop's mode
         for j, dl in enumerate(deadlines.tolist()):
             t_rel = (dl - MONO0_NS) / 1e9 - 0.2
@@ -151,10 +159,12 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
                                    for a, b in zip(AXES, state.comp.bypass, strict=True)])
             payloads = []  # every frame that arrived since the last tick, as the service reads
             while fi < len(frames) and frames[fi][0] <= dl:
-                payloads.append(frames[fi][1])
+                if frames[fi][1] not in dropped:
+                    payloads.append(frames[fi][1])
                 fi += 1
             skipped = int((dl - deadlines[j - 1]) // period - 1) if j else 0
             out = step(state, params, dl, payloads, skipped)
+            superseded.append(state.superseded)
             out_msgs.append((dl, encode_output(out.seq, WALL0 + (dl - MONO0_NS) / 1e9, out.src_seq,
                                                out.u, out.flags)))
             if opts.park_at_s is not None and parked_from is None and t_rel >= opts.park_at_s:
@@ -185,15 +195,17 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
             "config": {"hash": config_hash(cfg), "version": 1, "path": None},
             "rate_hz": cfg.loop.rate_hz, "ticks": state.ticks,
             "driven": [a for a, d in zip(AXES, axes.driven, strict=True) if d],
-            "frames": {"received": state.received, "accepted": state.accepted,
-                       "rejected_by_reason": dict(state.rejected_by_reason)},
             "saturation": dict(zip(AXES, state.sat, strict=True)),
             "realtime": f"synthetic session; {flushed}"}
         st["clock"] = ({"wall0": WALL0, "mono0_ns": MONO0_NS,
                         "grid0_ns": None if cfg.loop.sync_to_input else grid0,
                         "period_ns": period} if opts.clock_in_status else None)
+        counts = {"received": state.received, "accepted": state.accepted,
+                  "rejected_by_reason": dict(state.rejected_by_reason)}
         for s in range(int(opts.duration_s) + 1):
             st["t"] = WALL0 + s + 0.5
+            j = min(int((s + 0.5) * cfg.loop.rate_hz), len(superseded) - 1)  # its tick
+            st["frames"] = {**counts, "superseded": superseded[j] if j >= 0 else 0}
             msgs.append((round((WALL0 + s + 0.5) * 1e9), DEFAULT_KEYS["status"],
                          msgpack.packb(st)))
     msgs.sort(key=lambda x: x[0])
