@@ -699,7 +699,7 @@ def _figure(sp: _Trace, fb: _Trace, grids: dict[str, _Command], ideal: dict[str,
     # a grid of len(rails) x len(hexa) columns: each rails panel spans len(hexa) of them, each
     # hexapod panel len(rails), so both rows fill the figure's width
     n_r, n_h = max(len(rails), 1), max(len(hexa), 1)
-    fig = plt.figure(figsize=(7.5 * max(len(rails), 1), 3.1 * rows))
+    fig = plt.figure(figsize=(max(7.5 * len(rails), 5.0 * len(hexa), 7.5), 3.1 * rows))
     gs = fig.add_gridspec(rows, n_r * n_h)
     grid = [[fig.add_subplot(gs[r, c * n_h:(c + 1) * n_h]) for c in range(len(rails))]
             for r in range(3 if rails else 0)]

@@ -352,11 +352,13 @@ def test_a_restarted_sender_and_a_recording_begun_mid_run_lose_no_frames(tmp_pat
 
 
 def test_a_frame_the_service_never_received_is_found_and_the_replay_is_bit_for_bit(
-        tmp_path: Path) -> None:
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Two input frames the recorder holds never reached the service (its link dropped them;
     the service counts them superseded): the outputs cannot say which, the replay finds them by
     where it departs from the recorded outputs, leaves them out and is the service again, bit
-    for bit -- for every config it replays, in one process or in workers."""
+    for bit -- and so does another config's replay, in one process or in workers.  Limited to
+    one frame, the search finds one and says why the replay still departs."""
+    from motcomp.replay import offline
     from motcomp.replay.engine import run_ticks
     from motcomp.replay.offline import config_for, plan_for, read_for_replay, replay_files
     from motcomp.replay.synth import SynthOptions, synthesize
@@ -364,32 +366,42 @@ def test_a_frame_the_service_never_received_is_found_and_the_replay_is_bit_for_b
     path = tmp_path / "dropped.mcap"
     synthesize(path, CFG, SynthOptions(duration_s=6.0, seed=5, axes=("rails_y", "hex_z"),
                                        service_misses=[2.0005, 4.2115]))  # seq 2001, 4212
+    other = tmp_path / "other.toml"  # the same rate, another tuning
+    other.write_text(f'include = ["{config_file("motcomp.toml")}"]\n[axes.rails_y]\n'
+                     "bypass = true\n")
     s = read_for_replay(path)
     cfg, _, _ = config_for(s, None)
     axes = resolve_axes(cfg)
     assert s.outputs is not None and s.inputs is not None
     # without the search the replay takes the two frames and departs from the recording
     bare = plan_for(s, cfg, axes, absent=False)
-    rows_of = np.flatnonzero(bare.output >= 0)
-    rec = s.outputs.pos[bare.output[rows_of]]
-    assert not np.array_equal(run_ticks(bare, s.inputs, cfg).u[rows_of], rec)
+    assert bare.superseded == 2
+    rows = np.flatnonzero(bare.output >= 0)
+    rec = s.outputs.pos[bare.output[rows]]
+    assert not np.array_equal(run_ticks(bare, s.inputs, cfg).u[rows], rec)
     # with it: the two frames named, left out, and the replay equal to the recording
-    (fr,) = replay_files([path], [None, config_file("motcomp.toml")])
-    run = fr.runs[0]
+    (fr,) = replay_files([path], [None, other])
+    run, second = fr.runs
     wanted = tuple(int(np.searchsorted(s.inputs.seq, k)) for k in (2001, 4212))
     assert run.plan.absent == wanted, (run.plan.absent, run.plan.notes)
     notes = " ".join(run.plan.notes)
     assert "2 input frames the recorder holds never reached the service (seq 2001, 4212; " \
-           "2 by its status' count)" in notes, notes
+           "its status counted 2 superseded)" in notes, notes
     assert "departs" not in notes, notes
-    assert np.array_equal(run.result.u[rows_of], rec)
-    assert all(r.report.axes[0].max_diff == 0.0 for r in fr.runs if r.recorded_config)
-    # the other config leaves them out too, and the workers give the same
-    assert fr.runs[1].plan.absent == wanted
-    (par,) = replay_files([path], [None, config_file("motcomp.toml")], jobs=2)
+    assert np.array_equal(run.result.u[rows], rec)
+    assert run.recorded_config and run.report.axes[0].max_diff == 0.0
+    assert not second.recorded_config and second.plan.absent == wanted
+    (par,) = replay_files([path], [None, other], jobs=2)
     for a, b in zip(fr.runs, par.runs, strict=True):
-        assert a.plan.absent == b.plan.absent
+        assert a.plan.absent == b.plan.absent and a.plan.notes == b.plan.notes
         assert np.array_equal(a.result.u, b.result.u, equal_nan=True)
+    # at most one frame: found, and the departure the other leaves is named with the reason
+    monkeypatch.setattr(offline, "ABSENT_MAX", 1)
+    (one,) = replay_files([path], [None])
+    notes = " ".join(one.runs[0].plan.notes)
+    assert len(one.runs[0].plan.absent) == 1 and "1 input frame the recorder holds" in notes
+    assert "which the search for input frames the service never received did not explain " \
+           "(it stops at 1 frame; its status counted 2 superseded)" in notes, notes
 
 
 def test_a_replay_that_departs_from_the_recording_names_where(tmp_path: Path) -> None:
@@ -410,4 +422,4 @@ def test_a_replay_that_departs_from_the_recording_names_where(tmp_path: Path) ->
     (note,) = [n for n in run.plan.notes if "departs" in n]
     assert (f"departs from the recorded outputs from output seq {int(s.outputs.seq[k])} "
             in note and "by up to 1e-09 in axis units" in note
-            and "the service missed no input frame the recorder got" in note), note
+            and "the service's status counted no input frame superseded" in note), note

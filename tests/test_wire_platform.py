@@ -103,3 +103,12 @@ def test_the_workflow_by_hand_identifies_a_platform_written_from_the_contract(
     assert fit["Tp1"] * 1e3 == pytest.approx(TP1_MS, rel=0.05), fit
     assert fit["K"] == pytest.approx(1.0, abs=0.02), fit
     assert (tmp_path / "ident" / "rails_y.toml").is_file()
+
+
+def test_the_contract_s_platform_runs_zenoh_on_one_thread_as_the_commands_do() -> None:
+    """The platform cannot import motcomp (it is written from the contract alone): its zenoh
+    runtime setting is a copy of the commands', held equal here."""
+    from motcomp.io.zenoh_io import ONE_THREAD
+    from tests.test_supervise_retune import _wire_platform
+
+    assert _wire_platform().ONE_THREAD == ONE_THREAD

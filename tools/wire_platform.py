@@ -39,12 +39,13 @@ from typing import Any
 
 import msgpack
 import numpy as np
+import zenoh
 
-# all of zenoh's tasks on one thread (zenoh's ZENOH_RUNTIME; the environment may say otherwise):
-# at 1 kHz its receiving, transmitting and accepting threads cost more than the work they share
-os.environ.setdefault("ZENOH_RUNTIME", "(rx: (handover: app), acc: (handover: app), "
-                      "tx: (handover: app), net: (handover: app))")
-import zenoh  # after the runtime's setting
+ONE_THREAD = ("(rx: (handover: app), acc: (handover: app), tx: (handover: app), "
+              "net: (handover: app))")
+"""zenoh's ZENOH_RUNTIME for all of its tasks on one thread, set at the start unless the
+environment says otherwise: at 1 kHz its receiving, transmitting and accepting threads cost more
+than the work they share."""
 
 AXES = ("rails_x", "rails_y", "hex_x", "hex_y", "hex_z", "hex_roll", "hex_pitch", "hex_yaw")
 DEFAULT_TRUTH_MS = {a: (20.0, 150.0 if a == "rails_y" else 50.0) for a in AXES}
@@ -335,6 +336,7 @@ def main() -> int:
     usr1 = threading.Event()
     signal.signal(signal.SIGUSR1, lambda *_: usr1.set())
 
+    os.environ.setdefault("ZENOH_RUNTIME", ONE_THREAD)  # before zenoh's runtime starts
     conf = zenoh.Config.from_file(args.zenoh_config) if args.zenoh_config else zenoh.Config()
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("scouting/multicast/enabled", "false")

@@ -162,12 +162,20 @@ def _summary(args: argparse.Namespace, fr: FileReplay, several: bool, wall_s: fl
         "read_s": fr.read_s,
         "speedup": sim_s / wall_s if wall_s > 0 else math.inf,
         "warnings": fr.warnings,
-        "notes": base.plan.notes,
+        "notes": _notes(fr),
         "rejected_frames": base.result.rejected,
         "runs": [dict(r.report.as_dict(), timings=r.timings, rejected_frames=r.result.rejected)
                  for r in fr.runs],
         "figures": figures,
     }
+
+
+def _notes(fr: FileReplay) -> list[str]:
+    """The notes of every run of a recording, each once, in order."""
+    out: list[str] = []
+    for r in fr.runs:
+        out += [n for n in r.plan.notes if n not in out]
+    return out
 
 
 def _print_report(fr: FileReplay, summary: dict[str, Any]) -> None:
@@ -180,7 +188,7 @@ def _print_report(fr: FileReplay, summary: dict[str, Any]) -> None:
     for r in fr.runs:
         if r.result.rejected:
             lines.append(f"frames rejected by the tick ({r.label}): {r.result.rejected}")
-    lines += [f"note: {n}" for n in base.plan.notes]
+    lines += [f"note: {n}" for n in _notes(fr)]
     print(report_text([r.report for r in fr.runs], lines))
     if any(not r.recorded_config for r in fr.runs):
         print("\n(differences from the recorded outputs are meaningful for the recorded "

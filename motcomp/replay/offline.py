@@ -30,12 +30,13 @@ import numpy as np
 from motcomp.config import ResolvedAxes, ServiceConfig, config_hash, load_config, resolve_axes
 from motcomp.errors import ConfigError
 from motcomp.record.session import Session, read_session
-from motcomp.replay.analysis import ReplayReport, analyse
+from motcomp.replay.analysis import ReplayReport, analyse, flush_subnormal
 from motcomp.replay.engine import EngineResult, run_ticks
 from motcomp.replay.plan import TickPlan, build_plan
 
-__all__ = ["FEEDBACK_WINDOWS", "FileReplay", "ReplayRun", "config_for", "departure_note",
-           "find_absent", "plan_for", "read_for_replay", "replay_files", "replay_offline"]
+__all__ = ["FEEDBACK_WINDOWS", "Absent", "FileReplay", "ReplayRun", "comparable", "config_for",
+           "departure_note", "find_absent", "plan_for", "read_for_replay", "replay_files",
+           "replay_offline"]
 
 FEEDBACK_WINDOWS = (12, 40.0)
 """Feedback is read in this many windows of this length (s) on long recordings: the recorded
@@ -95,27 +96,38 @@ ABSENT_LOOKBACK_S = 0.25
 """How far before a departure from the recorded outputs the frame that explains it is looked
 for (the reference plays a frame some ms after it is taken: ``input.playback_lag_s``)."""
 ABSENT_TRIAL_ROWS = 2000
-"""A trial replay runs this many rows past the departure it tries to explain."""
+"""A trial replay runs from the start to this many rows past the departure it tries to
+explain."""
 ABSENT_BUDGET = 8
 """The trials of a search run at most this many times the plan's rows in all."""
 
-_ABSENT: dict[int, dict[int, tuple[tuple[int, ...], list[str]]]] = {}
+
+@dataclass(frozen=True)
+class Absent:
+    """What :func:`find_absent` found: the frames, its note, and why it stopped with the replay
+    still departing (None if it does not)."""
+
+    frames: tuple[int, ...] = ()
+    note: str | None = None
+    stopped: str | None = None
+
+
+_ABSENT: dict[int, dict[int, Absent]] = {}
 """:func:`find_absent`'s answers by ``id`` of the session (dropped with it) and run."""
 
 
-def find_absent(session: Session, run: int = 0) -> tuple[tuple[int, ...], list[str]]:
-    """The recorded input frames that never reached the service, and notes, found where the
-    replay of the recorded config departs from the recorded outputs, bit for bit.
+def find_absent(session: Session, run: int = 0) -> Absent:
+    """The recorded input frames that never reached the service, found where the replay of the
+    recorded config departs from the recorded outputs, bit for bit.
 
     A frame the recorder got but the service did not (a link that dropped it) shows in no
     output: the next frame's ``src_seq`` covers it, and the service counts it superseded.  So
-    when the service's status counts any, each departure is explained, if it can be, by the
-    frame whose absence from one of the ticks that took several frames just before it moves the
-    departure furthest on (trial replays); the frames found are left out of every config's
-    replay (:func:`plan_for`).  A departure that no such frame explains is named in a note.
-    Cached per session and run; ``((), [])`` where the service missed none the recorder got
-    (:attr:`TickPlan.unreceived`) or the recording cannot tell (no recorded config, no outputs
-    with the loop's clock, a warm start).
+    when the service's status counts any (:attr:`TickPlan.superseded`), each departure is
+    explained, if it can be, by the frame whose absence from one of the ticks that took several
+    frames just before it moves the departure furthest on (trial replays); at most as many as
+    the status counted.  The frames found are left out of the replay of every config at the
+    recording's rate (:func:`plan_for`).  Cached per session and run; nothing found where the
+    status counted none or the recording cannot be held to (:func:`comparable`).
     """
     cache = _ABSENT.get(id(session))
     if cache is None:
@@ -123,21 +135,25 @@ def find_absent(session: Session, run: int = 0) -> tuple[tuple[int, ...], list[s
         weakref.finalize(session, _ABSENT.pop, id(session), None)
     if run in cache:
         return cache[run]
-    found: tuple[tuple[int, ...], list[str]] = ((), [])
+    found = Absent()
     cfg = session.config()
     if cfg is not None:
         axes = resolve_axes(cfg)
         plan = plan_for(session, cfg, axes, run, absent=False)
-        if plan.unreceived and _comparable(session, plan):
+        if plan.superseded and comparable(session, plan):
             found = _search_absent(session, plan, cfg, axes)
     cache[run] = found
     return found
 
 
-def _comparable(session: Session, plan: TickPlan) -> bool:
-    """The plan's commands can be held to the recorded ones bit for bit."""
-    return (session.outputs is not None and session.inputs is not None and not plan.warm
-            and plan.method.startswith("outputs+clock"))
+def comparable(session: Session, plan: TickPlan) -> bool:
+    """The plan's commands can be held to the recorded ones bit for bit: the loop's clock on
+    its grid, every output and every input frame the service used recorded, one config, no
+    warm start."""
+    return (session.outputs is not None and session.inputs is not None
+            and plan.method == "outputs+clock" and not plan.warm and plan.missing_frames == 0
+            and not bool(np.any(plan.emit & (plan.output < 0)))
+            and len(session.config_hashes()) <= 1)
 
 
 def _departure(session: Session, plan: TickPlan, axes: ResolvedAxes, res: EngineResult
@@ -152,14 +168,15 @@ def _departure(session: Session, plan: TickPlan, axes: ResolvedAxes, res: Engine
     bad = np.flatnonzero(np.isfinite(u).all(axis=1) & (d > 0).any(axis=1))
     if not bad.size:
         return None
-    return int(rows[bad[0]]), float(np.nanmax(d[bad[0]:]))
+    return int(rows[bad[0]]), flush_subnormal(float(np.nanmax(d[bad[0]:])))
 
 
-def departure_note(session: Session, plan: TickPlan, axes: ResolvedAxes, res: EngineResult
-                   ) -> str | None:
-    """Where the replay of the recorded config departs from the recorded outputs, in words
-    (None where it does not, or cannot be held to them)."""
-    if not _comparable(session, plan):
+def departure_note(session: Session, plan: TickPlan, axes: ResolvedAxes, res: EngineResult,
+                   run: int = 0) -> str | None:
+    """Where the replay of the recorded config (``res``, with the recorded bypass) departs from
+    the recorded outputs, in words; None where it does not, or cannot be held to them (other
+    notes say why)."""
+    if not comparable(session, plan):
         return None
     dep = _departure(session, plan, axes, res)
     if dep is None:
@@ -168,32 +185,49 @@ def departure_note(session: Session, plan: TickPlan, axes: ResolvedAxes, res: En
     row, worst = dep
     seq = int(session.outputs.seq[plan.output[row]])
     t = (int(plan.now_ns[row]) - int(plan.now_ns[0])) / 1e9
-    why = (f"which no input frame it may have missed explains ({plan.unreceived} by its "
-           "status' count)" if plan.unreceived else
-           "and nothing in the recording says why (by its status, the service missed no input "
-           "frame the recorder got)")
+    if plan.superseded is None:
+        why = ("and the recording cannot tell why (fewer than two status frames in the run: no "
+               "count of the input frames the service never took)")
+    elif plan.superseded == 0:
+        why = ("and nothing in the recording says why (the service's status counted no input "
+               "frame superseded)")
+    else:
+        stopped = find_absent(session, run).stopped or "no recorded config to search with"
+        why = (f"which the search for input frames the service never received did not explain "
+               f"({stopped}; its status counted {plan.superseded} superseded)")
     return (f"the replay departs from the recorded outputs from output seq {seq} ({t:.3f} s "
             f"into the run; by up to {worst:.3g} in axis units), {why}")
 
 
 def _search_absent(session: Session, plan: TickPlan, cfg: ServiceConfig, axes: ResolvedAxes
-                   ) -> tuple[tuple[int, ...], list[str]]:
+                   ) -> Absent:
     assert session.inputs is not None and plan.frame_lo is not None
+    assert plan.superseded is not None
     inp, lo = session.inputs, plan.frame_lo
-    res = run_ticks(plan, inp, cfg)
-    dep = _departure(session, plan, axes, res)
+    dep = _departure(session, plan, axes, run_ticks(plan, inp, cfg))
     took = np.flatnonzero(plan.emit & (plan.frame > lo) & (lo >= 0))
     lookback = round(ABSENT_LOOKBACK_S * 1e9 / plan.period_ns)
     absent: list[int] = []
     budget = ABSENT_BUDGET * plan.rows
-    while dep is not None and len(absent) < min(plan.unreceived, ABSENT_MAX):
+    most = min(plan.superseded, ABSENT_MAX)
+    stopped: str | None = None
+    while dep is not None:
+        if len(absent) >= most:
+            stopped = (f"it stops at {most} frame{'s' if most > 1 else ''}"
+                       if most == ABSENT_MAX else
+                       "as many frames found as the status counted")
+            break
         first = dep[0]
         best: tuple[float, int] | None = None
+        spent = False
         for r in took[(took <= first) & (took >= first - lookback)][::-1]:
             for k in range(int(lo[r]), int(plan.frame[r])):  # not the last: the output names it
                 until = first + ABSENT_TRIAL_ROWS
                 if budget < until:
+                    spent = True
                     break
+                if k in absent:
+                    continue
                 budget -= until
                 trial = replace(plan, absent=tuple(sorted([*absent, k])))
                 d = _departure(session, trial, axes, run_ticks(trial, inp, cfg, until_row=until))
@@ -201,23 +235,20 @@ def _search_absent(session: Session, plan: TickPlan, cfg: ServiceConfig, axes: R
                 if reach > first and (best is None or reach > best[0]):
                     best = (reach, k)
         if best is None:
+            stopped = ("its trial budget was spent" if spent else
+                       "no frame of the ticks before it explains it")
             break
         absent.append(best[1])
         plan = replace(plan, absent=tuple(sorted(absent)))
-        res = run_ticks(plan, inp, cfg)
-        dep = _departure(session, plan, axes, res)
-    notes = []
+        dep = _departure(session, plan, axes, run_ticks(plan, inp, cfg))
+    note = None
     if absent:
         seqs = ", ".join(str(int(inp.seq[k])) for k in sorted(absent))
         n = len(absent)
-        notes.append(f"{n} input frame{'s' if n > 1 else ''} the recorder holds never reached "
-                     f"the service (seq {seqs}; {plan.unreceived} by its status' count): "
-                     f"the replay goes without {'them' if n > 1 else 'it'}, as the service "
-                     "did")
-    note = departure_note(session, plan, axes, res)
-    if note is not None:
-        notes.append(note)
-    return tuple(sorted(absent)), notes
+        note = (f"{n} input frame{'s' if n > 1 else ''} the recorder holds never reached the "
+                f"service (seq {seqs}; its status counted {plan.superseded} superseded): the "
+                f"replay goes without {'them' if n > 1 else 'it'}, as the service did")
+    return Absent(tuple(sorted(absent)), note, stopped)
 
 
 def plan_for(session: Session, cfg: ServiceConfig, axes: ResolvedAxes, run: int = 0,
@@ -236,10 +267,11 @@ def plan_for(session: Session, cfg: ServiceConfig, axes: ResolvedAxes, run: int 
     if len(hashes) > 1:
         plan.notes.append(f"the service's config changed during the recording (hashes "
                           f"{', '.join(hashes)}): replayed with one config throughout")
-    if absent and plan.method.startswith("outputs"):
-        frames, notes = find_absent(session, run)
-        plan.absent = frames
-        plan.notes.extend(notes)
+    if absent and plan.superseded and plan.method.startswith("outputs"):
+        found = find_absent(session, run)
+        plan.absent = found.frames
+        if found.note is not None:
+            plan.notes.append(found.note)
     return plan
 
 
@@ -261,8 +293,8 @@ def replay_offline(session: Session, configs: list[tuple[ServiceConfig, str, boo
         t1 = time.perf_counter()
         assert session.inputs is not None
         res = run_ticks(plan, session.inputs, cfg, sub)
-        if recorded and bypass == "recorded" and not plan.unreceived:  # else find_absent
-            note = departure_note(session, plan, axes, res)
+        if recorded and bypass == "recorded":
+            note = departure_note(session, plan, axes, res, run)
             if note is not None:
                 plan.notes.append(note)
         t2 = time.perf_counter()

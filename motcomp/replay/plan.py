@@ -96,13 +96,13 @@ class TickPlan:
     """The recorded service's loop computed with subnormals flushed to zero (its status'
     ``realtime`` says so; a recording of a version before, or of a CPU without the mode, did
     not).  Without a status: as the service does now."""
-    unreceived: int = 0
-    """Input frames the recorder got that never reached the service, by the count of the
-    service's status (the rise of its ``superseded`` over the run less the numbers the recording
-    lacks); 0 where it cannot tell."""
+    superseded: int | None = None
+    """The rise of the service's status' ``frames.superseded`` over the run: ``seq`` numbers it
+    never took -- the sender skipped them, a link dropped them, or the service rejected the
+    frame --; None without two status frames in the run."""
     absent: tuple[int, ...] = ()
-    """Those of them found (indices into the recording's inputs): the ticks leave them out
-    (:func:`motcomp.replay.offline.find_absent`)."""
+    """Recorded input frames (indices into the recording's inputs) found to have never reached
+    the service: the ticks leave them out (:func:`motcomp.replay.offline.find_absent`)."""
 
     def __post_init__(self) -> None:
         if self.frame_lo is None:
@@ -330,7 +330,6 @@ def _from_outputs(session: Session, cfg: ServiceConfig, params: TickParams, run:
     superseded = _superseded(session, log_ns)
     if holes:
         notes.append(_holes_note(holes, superseded))
-    unreceived = max(0, superseded - holes) if superseded is not None else 0
     # frames consumed in ticks the recorder lost: by arrival time (mapped to the tick clock),
     # newer than the frame in use before the gap and older than the one in use after it
     lost = np.flatnonzero((row_src == -2) | (row_src == -3))
@@ -380,7 +379,7 @@ def _from_outputs(session: Session, cfg: ServiceConfig, params: TickParams, run:
     return TickPlan(now_ns, frame, output, emit, bypass0, events, park, warm, method, period,
                     missing_frames, notes, holes, by_axes, rx_ns=rx,
                     flushed=recorded_flushed(st for _, st in session.status),
-                    unreceived=unreceived)
+                    superseded=superseded)
 
 
 def recorded_flushed(status: Iterable[dict[str, Any]]) -> bool:
@@ -419,8 +418,8 @@ def _holes_note(holes: int, superseded: int | None) -> str:
     if superseded is not None and superseded > holes:
         return (f"{head}, but the service missed {superseded} (its status' superseded count): "
                 f"{superseded - holes} frames the recorder received never reached the service "
-                "(dropped on its link, under load): the replay looks for them where it departs "
-                "from the recorded outputs (docs/REPLAY.md)")
+                "(dropped on its link, under load) or were rejected by it: where the replay can "
+                "be held to the recorded outputs, it looks for them (docs/REPLAY.md)")
     if superseded is not None:
         return (f"{head}, and the service received {holes - superseded} of them (its status "
                 f"counted {superseded} superseded): the recorder lost those, so the replay "

@@ -77,7 +77,7 @@ class SynthOptions:
     feedback_gaps: list[tuple[float, float]] = field(default_factory=list)
     """``(start_s, length_s)``: the platform sends no feedback."""
     service_misses: list[float] = field(default_factory=list)
-    """Source instants (s): the sample due first at or after each never reaches the service
+    """Source instants (s): the first sample sent at or after each never reaches the service
     (its link dropped it); the recorder gets it."""
 
 
@@ -111,9 +111,10 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
     t_sender = WALL0 + 0.2 + t_src * (1 + opts.drift)
     transit = rng.uniform(*opts.transit_us, n_src) * 1e3
     arrival = MONO0_NS + np.round((0.2 + t_src) * 1e9 + transit).astype(np.int64)
-    frames: list[tuple[int, bytes]] = []  # (arrival ns, payload)
-    missed = {int(np.searchsorted(t_src, ts)) for ts in opts.service_misses}
-    dropped: set[bytes] = set()  # the payloads the service's link dropped
+    frames: list[tuple[int, bytes, bool]] = []  # (arrival ns, payload, the service gets it)
+    sent = np.flatnonzero(keep)
+    missed = {int(sent[np.searchsorted(sent, np.searchsorted(t_src, ts))])
+              for ts in opts.service_misses}
     first = np.zeros(n_src, np.int64)  # the index of the sender run's first sample
     if opts.restart_after_gaps:
         starts = np.flatnonzero(keep & ~np.concatenate([[True], keep[:-1]]))
@@ -128,14 +129,12 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
             payload = msgpack.packb({"seq": seq, "pos": pos})
         else:
             payload = encode_input(seq, float(t_sender[k]), pos)
-        frames.append((int(arrival[k]), payload))
-        if k in missed:
-            dropped.add(payload)
+        frames.append((int(arrival[k]), payload, k not in missed))
         if opts.bad_every and k % opts.bad_every == 0:
             bad = [msgpack.packb({"seq": seq, "pos": {"rails_x": float("nan")}}), b"\xc1",
                    msgpack.packb({"seq": seq + 1, "pos": {"rails_q": 0.0}})][
                 k // opts.bad_every % 3]
-            frames.append((int(arrival[k]) + 1000, bad))
+            frames.append((int(arrival[k]) + 1000, bad, True))
     frames.sort(key=lambda f: f[0])
     # the loop's deadlines: a grid with stalls
     grid0 = MONO0_NS - 37_000
@@ -159,7 +158,7 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
                                    for a, b in zip(AXES, state.comp.bypass, strict=True)])
             payloads = []  # every frame that arrived since the last tick, as the service reads
             while fi < len(frames) and frames[fi][0] <= dl:
-                if frames[fi][1] not in dropped:
+                if frames[fi][2]:
                     payloads.append(frames[fi][1])
                 fi += 1
             skipped = int((dl - deadlines[j - 1]) // period - 1) if j else 0
@@ -178,7 +177,7 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
         return round(WALL0 * 1e9) + (mono - MONO0_NS)
 
     msgs: list[tuple[int, str, bytes]] = []
-    for arr, payload in frames:
+    for arr, payload, _ in frames:
         msgs.append((wall_ns(arr) + 20_000, DEFAULT_KEYS["input"], payload))
     lost: set[int] = set()
     for ts, count in opts.lose_outputs:
