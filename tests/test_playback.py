@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 
 from motcomp.core.axes import AXIS_INDEX
-from motcomp.core.interp import fade_transition
+from motcomp.core.interp import fade_transition, pole_transition
 from motcomp.core.playback import (
     BIN_S,
+    DELAY_POLE_FACTOR,
+    DELAY_POLES,
     MAX_DRIFT,
     OFFSET_BINS,
     SETTLE_S,
@@ -111,20 +113,32 @@ def test_the_need_is_the_spacings_quantile_and_stalls_are_left_out() -> None:
     assert pb.need == before
 
 
-def test_the_delay_follows_its_target_through_the_triple_pole() -> None:
-    """A step of the target: the delay meets it as ``1 - e^(-wt) (1 + wt + (wt)^2/2)``,
-    w = 6 / SETTLE_S, to rounding (the exact transition per tick)."""
+def test_the_delay_follows_its_target_through_the_pole() -> None:
+    """A step of the target: the delay meets it as ``1 - e^(-wt) sum_{k<5} (wt)^k / k!``
+    (the critically damped pole of order 5), w = 9 / SETTLE_S, to rounding (the exact
+    transition per tick): within 6 % after SETTLE_S, and its fourth difference -- the
+    reference's jerk rate at a constant speed -- never steps at the target's step."""
+    assert (DELAY_POLES, DELAY_POLE_FACTOR) == (5, 9.0)
     pb = Playback()
     pb.on_sample(0.0, 0.001, 1e-3, 1e-3)
     now = 0.001
     assert pb.step(now, 0.002) == pytest.approx(0.003, abs=1e-15)
-    w = 6.0 / SETTLE_S
+    w = 9.0 / SETTLE_S
+    ds = []
     for k in range(1, 2001):
         d = pb.step(now + k * 1e-3, 0.005)  # the target moves 3 ms
         wt = w * k * 1e-3
-        expected = 0.006 - 0.003 * math.exp(-wt) * (1.0 + wt + 0.5 * wt * wt)
+        expected = 0.006 - 0.003 * math.exp(-wt) * sum(wt ** i / math.factorial(i)
+                                                       for i in range(5))
         assert d == pytest.approx(expected, abs=1e-12)
+        ds.append(d)
+        if k == round(SETTLE_S * 1e3):
+            assert 0.006 - d <= 0.06 * 0.003
     assert abs(pb.step(now + 2.001, 0.005) - 0.006) < 0.003 * 0.001
+    # the first ticks after the step: the delay moves as (wt)^5 / 5!, no lower power
+    d5 = np.array(ds[:5]) - 0.003
+    k = np.arange(1, 6)
+    np.testing.assert_allclose(d5, 0.003 * (w * k * 1e-3) ** 5 / 120, rtol=0.05)
 
 
 def test_the_transition_is_the_exponential_of_the_triple_pole() -> None:
@@ -137,6 +151,19 @@ def test_the_transition_is_the_exponential_of_the_triple_pole() -> None:
     a = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-w**3, -3 * w * w, -3 * w]])
     np.testing.assert_allclose(np.array(fade_transition(dt, blend)).reshape(3, 3),
                                expm(a * dt), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("order", [1, 2, 3, 4, 5, 6])
+def test_the_pole_transition_is_the_exponential_of_its_companion(order: int) -> None:
+    """pole_transition(dt, w, n) equals expm of the companion matrix of (s + w)^n."""
+    from scipy.linalg import expm
+
+    w, dt = 9.0, 0.0137
+    a = np.zeros((order, order))
+    a[np.arange(order - 1), np.arange(1, order)] = 1.0
+    a[-1, :] = [-math.comb(order, c) * w ** (order - c) for c in range(order)]
+    np.testing.assert_allclose(np.array(pole_transition(dt, w, order)).reshape(order, order),
+                               expm(a * dt), rtol=1e-11, atol=1e-11)
 
 
 def _jittery_run(p: ShaperParams, seconds: float, seed: int, pauses: list[tuple[float, float]],

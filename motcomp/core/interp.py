@@ -34,7 +34,7 @@ from motcomp.core.minjerk import min_jerk, min_jerk_rate
 
 __all__ = ["FIX_FLOOR", "HISTORY", "ROUNDING_SLOPE", "STENCIL_S", "Curve", "Knot", "Transition",
            "beyond_rounding", "extrapolate", "fade_transition", "float32_ulp", "hermite", "knot",
-           "quintic", "segment", "stencil", "value_ulp"]
+           "pole_transition", "quintic", "segment", "stencil", "value_ulp"]
 
 STENCIL_S: Final = 5e-3
 """A knot's derivatives are taken from samples at least this far apart (the sample itself from
@@ -217,39 +217,60 @@ def beyond_rounding(ds: float, v: float, slope: float, t_res: float, spacing: fl
     return ds - e if ds > e else ds + e if ds < -e else 0.0
 
 
-def fade_transition(dt: float, blend_s: float) -> tuple[float, ...]:
-    """``exp(A dt)`` (row-major 3x3) of a correction's (value, rate, acceleration) under a
-    critically damped triple pole at ``-w``, ``w = FIX_POLE_FACTOR / blend_s``:
-    ``exp(-w dt) (I + N dt + N^2 dt^2 / 2)``, ``N = A + w I`` nilpotent."""
-    w = FIX_POLE_FACTOR / blend_s
+def pole_transition(dt: float, w: float, order: int) -> tuple[float, ...]:
+    """``exp(A dt)`` (row-major, ``order`` x ``order``) of a state -- a value and its first
+    ``order - 1`` derivatives -- under a critically damped pole of that order at ``-w``:
+    ``exp(-w dt) sum_k (N dt)^k / k!`` over ``k < order``, ``N = A + w I`` nilpotent (``A``
+    the companion matrix of ``(s + w)^order``)."""
+    n = order
+    nm = [0.0] * (n * n)
+    for r in range(n - 1):
+        nm[r * n + r] = w
+        nm[r * n + r + 1] = 1.0
+    for c in range(n):
+        nm[(n - 1) * n + c] = -math.comb(n, c) * w ** (n - c)
+    nm[(n - 1) * n + n - 1] += w
     e = math.exp(-w * dt)
-    h, h2 = dt, 0.5 * dt * dt
-    n = [w, 1.0, 0.0, 0.0, w, 1.0, -w ** 3, -3.0 * w * w, -2.0 * w]
-    phi: list[float] = []
-    for r in range(3):
-        for c in range(3):
-            n2 = 0.0
-            for k in range(3):
-                n2 += n[3 * r + k] * n[3 * k + c]
-            phi.append(e * ((1.0 if r == c else 0.0) + n[3 * r + c] * h + n2 * h2))
+    term = [1.0 if r == c else 0.0 for r in range(n) for c in range(n)]
+    phi = [e * x for x in term]
+    for k in range(1, n):
+        nxt = [0.0] * (n * n)
+        for r in range(n):
+            for c in range(n):
+                acc = 0.0
+                for j in range(n):
+                    acc += term[r * n + j] * nm[j * n + c]
+                nxt[r * n + c] = acc * dt / k
+        term = nxt
+        for i in range(n * n):
+            phi[i] += e * term[i]
     return tuple(phi)
+
+
+def fade_transition(dt: float, blend_s: float) -> tuple[float, ...]:
+    """:func:`pole_transition` of a correction's (value, rate, acceleration): the critically
+    damped triple pole at ``-FIX_POLE_FACTOR / blend_s``."""
+    return pole_transition(dt, FIX_POLE_FACTOR / blend_s, 3)
 
 
 @mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class Transition:
-    """:func:`fade_transition` of the last ``(dt, blend_s)`` asked, ``dt`` rounded to the ns
+    """:func:`pole_transition` of the pole of ``order`` at ``-factor / settle_s`` (by default
+    :func:`fade_transition`'s) for the last ``(dt, settle_s)`` asked, ``dt`` rounded to the ns
     (a tick's ``dt`` repeats; its float differs at rounding)."""
 
-    def __init__(self) -> None:
+    def __init__(self, order: int = 3, factor: float = FIX_POLE_FACTOR) -> None:
+        self.order = order
+        self.factor = factor
         self.dt_ns = -1
         self.blend_s = 0.0
         self.phi: tuple[float, ...] = ()
 
-    def of(self, dt: float, blend_s: float) -> tuple[float, ...]:
+    def of(self, dt: float, settle_s: float) -> tuple[float, ...]:
         ns = round(dt * 1e9)
-        if ns != self.dt_ns or blend_s != self.blend_s:
-            self.dt_ns, self.blend_s = ns, blend_s
-            self.phi = fade_transition(ns * 1e-9, blend_s)
+        if ns != self.dt_ns or settle_s != self.blend_s:
+            self.dt_ns, self.blend_s = ns, settle_s
+            self.phi = pole_transition(ns * 1e-9, self.factor / settle_s, self.order)
         return self.phi
 
 

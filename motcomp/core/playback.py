@@ -31,9 +31,11 @@ reference is the input at the sender instant ``now - D`` (plus the configured le
              1 kHz sender) is played back exactly that far behind, and the design's delay
              holds; a slower or irregular one lags by its spacing (the status shows the
              excess)
-    D        follows ``offset + lag`` through a critically damped triple pole at
-             SETTLE_POLE / settle_s: continuous to its second derivative (the reference's
-             acceleration never steps), a change of its target within 6 % after settle_s
+    D        follows ``offset + lag`` through a critically damped pole of order DELAY_POLES
+             (5) at DELAY_POLE_FACTOR / SETTLE_S: continuous to its fourth derivative (a
+             step of the target -- a new smallest transit -- never steps the reference's
+             jerk nor its rate, which the compensator amplifies above the band), a change of
+             its target within 6 % after SETTLE_S
     restart  (a new timeline: the first frame, a rejoin): offset and spacing from the new
              samples; D starts at its target at the first tick that has two samples.  The
              offset is *settled* once a bin is complete: until then it may rest on one frame
@@ -55,8 +57,8 @@ from mypy_extensions import mypyc_attr
 
 from motcomp.core.interp import Transition
 
-__all__ = ["BIN_S", "DRIFT_BINS", "MAX_DRIFT", "OFFSET_BINS", "SETTLE_S", "Playback",
-           "median_slope", "min_transit"]
+__all__ = ["BIN_S", "DELAY_POLES", "DELAY_POLE_FACTOR", "DRIFT_BINS", "MAX_DRIFT", "OFFSET_BINS",
+           "SETTLE_S", "Playback", "median_slope", "min_transit"]
 
 BIN_S = 0.1
 OFFSET_BINS = 100
@@ -72,8 +74,12 @@ STALL_PERIODS = 4.0
 """The spacing the lag covers: the 90th percentile of the last 64 intervals per seq step,
 stalls (longer than four periods) left out."""
 SETTLE_S = 1.0
-"""The playback delay's triple pole settles a change of its target within 6 % in this time
-(its pole at 6 / SETTLE_S)."""
+"""The playback delay settles a change of its target within 6 % in this time."""
+DELAY_POLES = 5
+DELAY_POLE_FACTOR = 9.0
+"""The playback delay follows its target through a critically damped pole of order DELAY_POLES
+at DELAY_POLE_FACTOR / SETTLE_S: a change of its target within 6 % after SETTLE_S (5.5 %), and
+the delay continuous to its fourth derivative (docs/TUNING.md, "Input reconstruction")."""
 
 
 def _median(v: list[float]) -> float:
@@ -119,10 +125,9 @@ class Playback:
         self._sorted: list[float] = []  # the same, sorted
         self.delay: float | None = None
         """The playback delay (s; None before it starts)."""
-        self._rate = 0.0  # its first and second derivatives
-        self._acc = 0.0
+        self._deriv = [0.0] * (DELAY_POLES - 1)  # its first DELAY_POLES - 1 derivatives
         self._at: float | None = None  # loop instant of the last step
-        self._phi = Transition()  # the triple pole over one tick
+        self._phi = Transition(DELAY_POLES, DELAY_POLE_FACTOR)  # the pole over one tick
 
     def restart(self) -> None:
         """A new timeline: forget the offset, the spacing and the delay."""
@@ -203,14 +208,21 @@ class Playback:
         at = self._at
         self._at = now
         if d is None or at is None:
-            self.delay, self._rate, self._acc = target, 0.0, 0.0
+            self.delay = target
+            self._deriv = [0.0] * (DELAY_POLES - 1)
             return target
         dt = now - at
         if dt <= 0.0:
             return d
         phi = self._phi.of(dt, SETTLE_S)
-        e, r, a = d - target, self._rate, self._acc
-        self.delay = target + phi[0] * e + phi[1] * r + phi[2] * a
-        self._rate = phi[3] * e + phi[4] * r + phi[5] * a
-        self._acc = phi[6] * e + phi[7] * r + phi[8] * a
+        n = DELAY_POLES
+        x = [d - target, *self._deriv]
+        y = [0.0] * n
+        for r in range(n):
+            acc = 0.0
+            for c in range(n):
+                acc += phi[r * n + c] * x[c]
+            y[r] = acc
+        self.delay = target + y[0]
+        self._deriv = y[1:]
         return self.delay

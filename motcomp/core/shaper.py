@@ -47,7 +47,7 @@ each with its own contract and tests:
                                    rounding read as the values show
     :mod:`motcomp.core.playback`   how far behind to play: the smallest transit plus
                                    ``max(playback_lag_s, the samples' spacing)``, reached
-                                   through a triple pole that settles in a second
+                                   through a fifth-order pole that settles in a second
     :mod:`motcomp.core.interp`     each axis' curve: quintic Hermite between samples, the
                                    newest sample's cubic beyond it (for ``max_extrapolation_s``
                                    or 1.5 input periods, then its parabola), a correction faded
