@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import fcntl
 import os
 import resource
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Generator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import IO, Any, cast
 
 import pytest
 
@@ -20,13 +23,94 @@ ROOT = Path(__file__).resolve().parent.parent
 
 RAILS = P1D(K=1.0, Td=0.0175, Tp1=0.1857683128)
 
-_CPU_USE = pytest.StashKey[list[tuple[str, float, float, float]]]()
+_CPU_START = pytest.StashKey[tuple[float, float, float]]()
+_LOCK = pytest.StashKey["_SuiteLock"]()
+_LOCK_DIR_KEY = pytest.StashKey[Path]()
+_LOCK_DIR = "motcomp_lock_dir"
+
+ALONE_HELPERS = ("HostProbe", "judge_realtime", "skip_if_starved")
+"""A test module that imports one of these judges what the host held while it ran: its tests
+run with no other test of the suite beside them (as do those marked ``alone``)."""
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--cpu-over", type=float, default=None, metavar="S",
                      help="list the tests that used more than S seconds of CPU: the test's "
                           "process and the child processes it waited for (docs/TESTING.md)")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """On several workers (pytest-xdist's ``-n``), the controller makes the directory of the
+    workers' shared lock; each worker opens the lock."""
+    if hasattr(config, "workerinput"):
+        where = config.workerinput.get(_LOCK_DIR)
+        if where:
+            config.stash[_LOCK] = _SuiteLock(Path(where))
+    elif getattr(config.option, "numprocesses", None):
+        config.stash[_LOCK_DIR_KEY] = Path(tempfile.mkdtemp(prefix="motcomp-tests-"))
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node: Any) -> None:
+    """pytest-xdist: each worker gets the lock's directory."""
+    where = node.config.stash.get(_LOCK_DIR_KEY, None)
+    if where is not None:
+        node.workerinput[_LOCK_DIR] = str(where)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    if (lock := config.stash.get(_LOCK, None)) is not None:
+        lock.release()
+    if (where := config.stash.get(_LOCK_DIR_KEY, None)) is not None:
+        shutil.rmtree(where, ignore_errors=True)
+
+
+class _SuiteLock:
+    """The workers' shared lock, taken per test module: shared by ordinary modules, exclusive
+    for a module whose tests run alone.  A module waiting to run alone holds the gate, so no
+    other module starts meanwhile (the ones running finish first)."""
+
+    def __init__(self, where: Path) -> None:
+        self._gate: IO[str] = (where / "gate").open("a")
+        self._lock: IO[str] = (where / "lock").open("a")
+        self.module: str | None = None
+
+    def take(self, module: str, alone: bool) -> None:
+        if module == self.module:
+            return
+        self.release()
+        fcntl.flock(self._gate, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(self._lock, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+        finally:
+            fcntl.flock(self._gate, fcntl.LOCK_UN)
+        self.module = module
+
+    def release(self) -> None:
+        if self.module is not None:
+            fcntl.flock(self._lock, fcntl.LOCK_UN)
+            self.module = None
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The modules that run alone first (each worker collects the same order): the others then
+    run side by side to the end."""
+    modules: dict[Any, bool] = {}
+    for item in items:
+        module = getattr(item, "module", None)
+        alone = modules.get(module, False) or item.get_closest_marker("alone") is not None
+        modules[module] = alone or any(name in vars(module) for name in ALONE_HELPERS) \
+            if module is not None else False
+    for module, alone in modules.items():
+        if module is not None:
+            module._motcomp_alone = alone
+    items.sort(key=lambda it: not modules.get(getattr(it, "module", None), False))
+
+
+def runs_alone(item: pytest.Item) -> bool:
+    """Whether ``item``'s module runs with no other test beside it: it imports one of
+    :data:`ALONE_HELPERS`, or one of its tests is marked ``alone``."""
+    return bool(getattr(getattr(item, "module", None), "_motcomp_alone", False))
 
 
 def _cpu_s() -> tuple[float, float]:
@@ -38,16 +122,39 @@ def _cpu_s() -> tuple[float, float]:
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None
                             ) -> Generator[None, None, None]:
-    """With ``--cpu-over``: each test's wall time and CPU (its setup and teardown included)."""
-    if item.config.getoption("--cpu-over") is None:
-        yield
-        return
-    own0, kids0 = _cpu_s()
-    wall0 = time.monotonic()
+    """On several workers, the module's share of the suite lock first; with ``--cpu-over``,
+    the test's wall time and CPU from here to the end of its teardown."""
+    if (lock := item.config.stash.get(_LOCK, None)) is not None:
+        lock.take(item.nodeid.split("::")[0], runs_alone(item))
+    if item.config.getoption("--cpu-over") is not None:
+        item.stash[_CPU_START] = (time.monotonic(), *_cpu_s())
     yield
-    own1, kids1 = _cpu_s()
-    item.config.stash.setdefault(_CPU_USE, []).append(
-        (item.nodeid, time.monotonic() - wall0, own1 - own0, kids1 - kids0))
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]
+                              ) -> Generator[None, Any, None]:
+    """With ``--cpu-over``: the test's wall time and CPU (its setup and teardown included) on
+    its teardown's report, which reaches the controller from a worker too."""
+    outcome = yield
+    if call.when != "teardown" or (start := item.stash.get(_CPU_START, None)) is None:
+        return
+    own, kids = _cpu_s()
+    outcome.get_result().user_properties.append(
+        ("cpu", (time.monotonic() - start[0], own - start[1], kids - start[2])))
+
+
+_CPU_ROWS: list[tuple[str, float, float, float]] = []
+"""(test, wall time, its own CPU, its children's) from each test's teardown report."""
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    if report.when != "teardown":
+        return
+    for name, value in report.user_properties:
+        if name == "cpu":
+            wall, own, kids = (float(v) for v in cast(tuple[float, float, float], value))
+            _CPU_ROWS.append((report.nodeid, wall, own, kids))
 
 
 def pytest_terminal_summary(terminalreporter: Any, exitstatus: int,
@@ -55,7 +162,7 @@ def pytest_terminal_summary(terminalreporter: Any, exitstatus: int,
     limit = config.getoption("--cpu-over")
     if limit is None:
         return
-    rows = config.stash.get(_CPU_USE, [])
+    rows = _CPU_ROWS
     over = sorted((r for r in rows if r[2] + r[3] > limit), key=lambda r: -(r[2] + r[3]))
     tr = terminalreporter
     tr.section(f"tests that used more than {limit:g} s of CPU")
@@ -144,8 +251,8 @@ def ran_in_plain_python(request: pytest.FixtureRequest) -> bool:
 
     if not native.ACTIVE.startswith("compiled"):
         return False
-    p = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                        request.node.nodeid],
+    p = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n",
+                        "0", request.node.nodeid],
                        cwd=ROOT, env={**os.environ, native.PURE_ENV: "1"}, capture_output=True,
                        text=True, timeout=600)
     assert p.returncode == 0, f"in the plain Python tick:\n{p.stdout[-4000:]}\n{p.stderr[-2000:]}"

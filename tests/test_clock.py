@@ -316,6 +316,7 @@ def _paced(work_us: int, hog: bool, seconds: float = 2.0) -> DeadlineClock:
     return clocks[0]
 
 
+@pytest.mark.alone  # its loops' waits for the CPU are theirs and the hog's only
 @pytest.mark.skipif(not hasattr(clock_mod.os, "sched_setaffinity"), reason="Linux only")
 def test_on_a_real_cpu_a_hog_s_misses_are_the_host_s_and_an_overrun_s_the_loop_s() -> None:
     from motcomp.runtime.clock import run_delay_reader
