@@ -27,6 +27,7 @@ _CPU_START = pytest.StashKey[tuple[float, float, float]]()
 _LOCK = pytest.StashKey["_SuiteLock"]()
 _LOCK_DIR_KEY = pytest.StashKey[Path]()
 _LOCK_DIR = "motcomp_lock_dir"
+_ALONE = pytest.StashKey[set[str]]()
 
 ALONE_HELPERS = ("HostProbe", "judge_realtime", "skip_if_starved")
 """A test module that imports one of these judges what the host held while it ran: its tests
@@ -48,6 +49,35 @@ def pytest_configure(config: pytest.Config) -> None:
             config.stash[_LOCK] = _SuiteLock(Path(where))
     elif getattr(config.option, "numprocesses", None):
         config.stash[_LOCK_DIR_KEY] = Path(tempfile.mkdtemp(prefix="motcomp-tests-"))
+
+
+def idle_cpus(seconds: float = 0.5) -> float:
+    """How many of the host's CPUs were idle over ``seconds`` (/proc/stat: idle and I/O wait
+    over all time; the host's CPU count if it cannot be read)."""
+    def sample() -> tuple[int, int]:
+        with open("/proc/stat") as f:
+            v = [int(x) for x in f.readline().split()[1:]]
+        return v[3] + v[4], sum(v[:8])
+
+    n = os.cpu_count() or 1
+    try:
+        idle0, total0 = sample()
+        time.sleep(seconds)
+        idle1, total1 = sample()
+    except (OSError, ValueError, IndexError):
+        return float(n)
+    return n * (idle1 - idle0) / max(1, total1 - total0)
+
+
+@pytest.hookimpl(optionalhook=True, tryfirst=True)
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
+    """``-n auto``: a worker per CPU this process may use that the host leaves idle (a CPU hog
+    beside the suite takes one), at least one; PYTEST_XDIST_AUTO_NUM_WORKERS overrides."""
+    if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS"):
+        return None
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (
+        os.cpu_count() or 1)
+    return max(1, min(usable, int(idle_cpus() + 0.5)))
 
 
 @pytest.hookimpl(optionalhook=True)
@@ -95,22 +125,24 @@ class _SuiteLock:
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """The modules that run alone first (each worker collects the same order): the others then
     run side by side to the end."""
-    modules: dict[Any, bool] = {}
+    alone: set[str] = set()
     for item in items:
         module = getattr(item, "module", None)
-        alone = modules.get(module, False) or item.get_closest_marker("alone") is not None
-        modules[module] = alone or any(name in vars(module) for name in ALONE_HELPERS) \
-            if module is not None else False
-    for module, alone in modules.items():
-        if module is not None:
-            module._motcomp_alone = alone
-    items.sort(key=lambda it: not modules.get(getattr(it, "module", None), False))
+        if item.get_closest_marker("alone") is not None or (
+                module is not None and any(name in vars(module) for name in ALONE_HELPERS)):
+            alone.add(_module_of(item))
+    config.stash[_ALONE] = alone
+    items.sort(key=lambda it: _module_of(it) not in alone)
+
+
+def _module_of(item: pytest.Item) -> str:
+    return item.nodeid.split("::")[0]
 
 
 def runs_alone(item: pytest.Item) -> bool:
     """Whether ``item``'s module runs with no other test beside it: it imports one of
     :data:`ALONE_HELPERS`, or one of its tests is marked ``alone``."""
-    return bool(getattr(getattr(item, "module", None), "_motcomp_alone", False))
+    return _module_of(item) in item.config.stash.get(_ALONE, set())
 
 
 def _cpu_s() -> tuple[float, float]:
@@ -125,7 +157,7 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None
     """On several workers, the module's share of the suite lock first; with ``--cpu-over``,
     the test's wall time and CPU from here to the end of its teardown."""
     if (lock := item.config.stash.get(_LOCK, None)) is not None:
-        lock.take(item.nodeid.split("::")[0], runs_alone(item))
+        lock.take(_module_of(item), runs_alone(item))
     if item.config.getoption("--cpu-over") is not None:
         item.stash[_CPU_START] = (time.monotonic(), *_cpu_s())
     yield
