@@ -263,13 +263,13 @@ class Transition:
         self.order = order
         self.factor = factor
         self.dt_ns = -1
-        self.blend_s = 0.0
+        self.settle_s = 0.0
         self.phi: tuple[float, ...] = ()
 
     def of(self, dt: float, settle_s: float) -> tuple[float, ...]:
         ns = round(dt * 1e9)
-        if ns != self.dt_ns or settle_s != self.blend_s:
-            self.dt_ns, self.blend_s = ns, settle_s
+        if ns != self.dt_ns or settle_s != self.settle_s:
+            self.dt_ns, self.settle_s = ns, settle_s
             self.phi = pole_transition(ns * 1e-9, self.factor / settle_s, self.order)
         return self.phi
 

@@ -125,7 +125,8 @@ class Playback:
         self._sorted: list[float] = []  # the same, sorted
         self.delay: float | None = None
         """The playback delay (s; None before it starts)."""
-        self._deriv = [0.0] * (DELAY_POLES - 1)  # its first DELAY_POLES - 1 derivatives
+        self._x = [0.0] * DELAY_POLES  # its distance to the target, then its first derivatives
+        self._y = [0.0] * DELAY_POLES  # scratch for the next state (a tick allocates nothing)
         self._at: float | None = None  # loop instant of the last step
         self._phi = Transition(DELAY_POLES, DELAY_POLE_FACTOR)  # the pole over one tick
 
@@ -207,22 +208,24 @@ class Playback:
         d = self.delay
         at = self._at
         self._at = now
+        x = self._x
+        n = DELAY_POLES
         if d is None or at is None:
             self.delay = target
-            self._deriv = [0.0] * (DELAY_POLES - 1)
+            for r in range(n):
+                x[r] = 0.0
             return target
         dt = now - at
         if dt <= 0.0:
             return d
         phi = self._phi.of(dt, SETTLE_S)
-        n = DELAY_POLES
-        x = [d - target, *self._deriv]
-        y = [0.0] * n
+        x[0] = d - target
+        y = self._y
         for r in range(n):
             acc = 0.0
             for c in range(n):
                 acc += phi[r * n + c] * x[c]
             y[r] = acc
+        self._x, self._y = y, x
         self.delay = target + y[0]
-        self._deriv = y[1:]
         return self.delay
