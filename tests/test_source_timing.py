@@ -233,9 +233,12 @@ def test_jitter_shows_in_the_arrival_times_and_a_seed_reproduces_it(tmp_path: Pa
         lateness = np.full(200, np.nan)
         lateness[k] = late
         runs.append(lateness)
-        # uniform over 0-4 ms plus transport (~0.1-0.5 ms): spread over the bound, never early
+        # uniform over 0-4 ms plus transport: never early, spread over the bound (the middle
+        # 80 % of U[0, 4 ms] spans 3.2 ms; a transport that adds the same to every frame, or
+        # a host that delays some more, leaves it as wide or wider)
         assert late.min() > -0.3e-3
-        assert np.percentile(late, 10) < 1.2e-3 and np.percentile(late, 90) > 2.8e-3
+        spread = np.percentile(late, 90) - np.percentile(late, 10)
+        assert spread > 2.6e-3, spread
     transport = runs[0] - expected / 1e9
     ok = np.isfinite(transport)
     assert np.percentile(transport[ok], 50) < 1e-3
