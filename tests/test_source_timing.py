@@ -210,6 +210,7 @@ def sample_index(frame: dict[str, Any]) -> int:
     return round(frame["pos"]["rails_x"] * 1000)
 
 
+@pytest.mark.alone  # the frames' arrival against the sender's schedule, to 1-2 ms
 def test_jitter_shows_in_the_arrival_times_and_a_seed_reproduces_it(tmp_path: Path) -> None:
     """100 Hz, jitter 0-4 ms, seed 11: each frame arrives (nominal instant + its scheduled
     jitter + transport) and carries its nominal instant; the same seed gives the same lateness
@@ -250,6 +251,7 @@ def test_jitter_shows_in_the_arrival_times_and_a_seed_reproduces_it(tmp_path: Pa
     assert same > 0.6 and other < 0.4, (same, other)
 
 
+@pytest.mark.alone  # the frames' arrival against the sender's schedule, to 1-2 ms
 def test_stalls_send_the_frames_due_in_a_burst_without_t(tmp_path: Path) -> None:
     """50 Hz, no jitter, stalls of 40-60 ms about every 0.4 s, seed 4, ``--no-t``: no frame
     carries ``t``; the frames a stall held arrive together at its end, 40-60 ms after the first
