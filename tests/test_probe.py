@@ -79,6 +79,29 @@ def test_a_service_s_loop_kept_from_its_cpu_is_the_host_s_doing(
         assert "the platform's loop missed" in str(loop_kept_from_cpu(platform))
 
 
+def test_since_an_earlier_status_only_the_deadlines_between_count() -> None:
+    # 600 of the first 10 000 deadlines waited for a CPU (6 %: kept), none of the next 10 000
+    early = {"ticks": 9_400, "missed_ticks": 600, "missed_waiting_cpu": 600,
+             "platform": {"ticks": 10_000, "missed_ticks": 0, "missed_waiting_cpu": 0}}
+    late = {"ticks": 19_400, "missed_ticks": 600, "missed_waiting_cpu": 600,
+            "platform": {"ticks": 20_000, "missed_ticks": 0, "missed_waiting_cpu": 0}}
+    assert loop_kept_from_cpu(early) is not None
+    assert loop_kept_from_cpu(late) is None  # 3 % since the start: held
+    assert loop_kept_from_cpu(late, since=early) is None  # nothing missed in between
+    # the reverse: a quiet start, then 1 800 of the next 10 000 (18 %; 9 % since the start)
+    worse = {**late, "ticks": 18_200, "missed_ticks": 1_800, "missed_waiting_cpu": 1_800}
+    start = {**early, "ticks": 10_000, "missed_ticks": 0, "missed_waiting_cpu": 0}
+    why = loop_kept_from_cpu(worse, since={**worse, "ticks": 8_200, "missed_ticks": 1_800,
+                                          "missed_waiting_cpu": 1_800})
+    assert why is None  # the same misses before and after: none in between
+    why = loop_kept_from_cpu(worse, since=start)
+    assert why is not None and "missed 1800 of 10000 deadlines (18.0 %)" in why
+    # the platform's own loop, between two statuses
+    plat = {**late, "platform": {"ticks": 18_800, "missed_ticks": 1_200,
+                                 "missed_waiting_cpu": 1_200}}
+    assert "the platform's loop missed 1200 of 10000" in str(loop_kept_from_cpu(plat, since=early))
+
+
 def test_an_identification_the_product_warned_about_is_not_judged() -> None:
     import subprocess
 

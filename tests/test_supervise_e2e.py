@@ -33,7 +33,7 @@ from motcomp.core.models import parse_model
 from motcomp.errors import TransportError
 from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loopback, open_session
 from motcomp.runtime.estimate import mismatch
-from motcomp.runtime.probe import HostProbe
+from motcomp.runtime.probe import HostProbe, loop_kept_from_cpu
 from tests.conftest import ROOT, judge_realtime, motcomp_cmd, site_config, subprocess_env
 from tests.test_service_process import process, wait_status
 
@@ -67,6 +67,15 @@ def status(session: Any) -> dict[str, Any]:
 
 def truth(td_ms: float) -> Any:
     return parse_model(f"p1d:K=1,Td={td_ms / 1e3:g},Tp1={TRUTH_MS[1] / 1e3:g}")
+
+
+def held(ok: bool, now: dict[str, Any] | None, since: dict[str, Any]) -> bool | None:
+    """``ok``, or None (not judged) where it failed while the host kept the service's loop or
+    its platform's from their CPU over the stretch between the statuses ``since`` and ``now``
+    (the product's own figures then wait for the host: its estimates leave out the stalls)."""
+    if ok or now is None:
+        return ok
+    return None if loop_kept_from_cpu(now, since) is not None else False
 
 
 def log_instant(log: Path, text: str, after: float = 0.0) -> float | None:
@@ -145,7 +154,9 @@ def test_an_outside_platform_off_its_model_is_seen_retuned_and_its_drift_seen(
     p_svc, p_plat = free_tcp_port(), free_tcp_port()
     svc_ep, plat_ep = loopback(p_svc), loopback(p_plat)
     site = site_config(tmp_path / "site.toml")
-    late: list[tuple[str, bool, Any]] = []  # what depends on the host's timing: judged last
+    # what depends on the host's timing, judged last: (what, ok, figures); ok None where the
+    # host did not hold the loops' rate over that figure's own stretch (not judged)
+    late: list[tuple[str, bool | None, Any]] = []
     plat_log = tmp_path / "platform.log"
     with HostProbe() as probe, plat_log.open("wb") as fh:
         plat = subprocess.Popen(
@@ -162,6 +173,7 @@ def test_an_outside_platform_off_its_model_is_seen_retuned_and_its_drift_seen(
                 with process(["source", "--signal", "driving", "--repeat", "3", "--quiet",
                               "-e", svc_ep], tmp_path / "src.log") as src:
                     t_src = time.time()
+                    at_src = watch.read("off")
                     # 1. the platform 8 ms off its model: the alarm
                     while time.time() - t_src < 30.0 + WINDOW_S + 15.0:
                         time.sleep(1.0)
@@ -169,8 +181,10 @@ def test_an_outside_platform_off_its_model_is_seen_retuned_and_its_drift_seen(
                             break
                     alarm = log_instant(tmp_path / "svc.log", "rails_y: model mismatch starts")
                     late.append(("the alarm within 30 s of driving plus one window",
-                                 alarm is not None and alarm - t_src <= 30.0 + WINDOW_S,
-                                 (alarm and alarm - t_src, watch.windows("off"))))
+                                 held(alarm is not None and alarm - t_src <= 30.0 + WINDOW_S,
+                                      watch.last, at_src),
+                                 (alarm and alarm - t_src, watch.windows("off"),
+                                  loop_kept_from_cpu(watch.last or {}, at_src))))
                     # 2. the retune, from a settled estimate as an operator would take it
                     t_end = time.time() + 30.0
                     while True:
@@ -235,6 +249,7 @@ def test_an_outside_platform_off_its_model_is_seen_retuned_and_its_drift_seen(
                         # 3. the drift
                         plat.send_signal(signal.SIGUSR1)
                         t_drift = time.time()
+                        at_drift = watch.read("drifted")
                         # until the alarm and a window of the drifted truth alone (ending a
                         # window's length after it): on one core the alarm came 0.6 s before
                         # the first, and the estimate after the drift had nothing to judge
@@ -252,8 +267,10 @@ def test_an_outside_platform_off_its_model_is_seen_retuned_and_its_drift_seen(
                         seen_at = log_instant(tmp_path / "svc.log",
                                               "rails_y: model mismatch starts", t_truth)
                         late.append(("the +10 ms drift seen within 30 s",
-                                     seen_at is not None and seen_at - t_truth <= 30.0,
-                                     (seen_at and seen_at - t_truth, watch.windows("drifted"))))
+                                     held(seen_at is not None and seen_at - t_truth <= 30.0,
+                                          watch.last, at_drift),
+                                     (seen_at and seen_at - t_truth, watch.windows("drifted"),
+                                      loop_kept_from_cpu(watch.last or {}, at_drift))))
                         errs = watch.errors_ms("drifted", TRUTH_MS[0] + DRIFT_MS,
                                                t_truth + WINDOW_S)
                         late.append(("after the drift, the estimate within 1 ms of the truth "
@@ -281,5 +298,8 @@ def test_an_outside_platform_off_its_model_is_seen_retuned_and_its_drift_seen(
         print({k: (round(v, 2) if isinstance(v, float) else v) for k, v in r.items()})
     judge_realtime(probe.result, "the supervision's figures on the outside platform",
                    watch.last)
-    failed = [(what, data) for what, ok, data in late if not ok]
+    failed = [(what, data) for what, ok, data in late if ok is False]
     assert not failed, failed
+    unjudged = [f"{what}: {data[-1]}" for what, ok, data in late if ok is None]
+    if unjudged:
+        pytest.skip(f"not judged ({'; '.join(unjudged)})")

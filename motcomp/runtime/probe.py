@@ -70,9 +70,11 @@ class HostClock:
                 f"(<= {MAX_STALL_MS:g} ms)")
 
 
-def loop_kept_from_cpu(status: Mapping[str, Any]) -> str | None:
+def loop_kept_from_cpu(status: Mapping[str, Any], since: Mapping[str, Any] | None = None
+                       ) -> str | None:
     """Why the host did not hold the rate of a service's loop or of its platform's, from the
-    service's status (counts since start), or None if it held both or the status cannot tell:
+    service's status (counts since start; with ``since``, an earlier status of the same
+    service, the deadlines between the two), or None if it held both or the status cannot tell:
     the loop missed more than :data:`MAX_MISSED_SHARE` of its deadlines while it waited for a
     CPU that other threads held (``missed_waiting_cpu``,
     :attr:`motcomp.runtime.clock.DeadlineClock.missed_waiting`), or the platform's loop did
@@ -82,11 +84,15 @@ def loop_kept_from_cpu(status: Mapping[str, Any]) -> str | None:
     The bare clock of :class:`HostProbe` needs next to no CPU, so a scheduler that shares a
     saturated CPU fairly still gives it its deadlines; a loop that needs a third of a CPU then
     waits.  Misses of a loop's own (its work, a lock) do not count here."""
-    for who, counts in (("the service's loop", status),
-                        ("the platform's loop", status.get("platform") or {})):
+    before = since or {}
+    for who, counts, base in (
+            ("the service's loop", status, before),
+            ("the platform's loop", status.get("platform") or {}, before.get("platform") or {})):
         waiting = counts.get("missed_waiting_cpu")
-        missed = int(counts.get("missed_ticks") or 0)
-        due = int(counts.get("ticks") or 0) + missed
+        if waiting is not None:
+            waiting -= base.get("missed_waiting_cpu") or 0
+        missed = int(counts.get("missed_ticks") or 0) - int(base.get("missed_ticks") or 0)
+        due = int(counts.get("ticks") or 0) - int(base.get("ticks") or 0) + missed
         if waiting is not None and due > 0 and waiting > MAX_MISSED_SHARE * due:
             return (f"{who} missed {waiting:g} of {due} deadlines ({100 * waiting / due:.1f} %)"
                     f" waiting for a CPU that other threads held (a host that holds the rate: "
