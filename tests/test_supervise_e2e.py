@@ -98,16 +98,22 @@ class Watch:
         self.rows: list[dict[str, Any]] = []
         self.last: dict[str, Any] | None = None
 
-    def read(self, phase: str) -> dict[str, Any]:
-        """The status now (a row), or the last one when the service did not answer in time
-        (a stall of this loaded host: the next read tries again)."""
+    def now(self) -> dict[str, Any]:
+        """The status now, or the last one when the service did not answer in time (a stall
+        of this loaded host: the next read tries again)."""
         try:
-            st = status(self.session)
+            self.last = status(self.session)
         except TransportError:
             if self.last is None:
                 raise
-            return self.last
-        self.last = st
+        return self.last
+
+    def read(self, phase: str) -> dict[str, Any]:
+        """:meth:`now`, as a row of ``phase``."""
+        last = self.last
+        st = self.now()
+        if st is last:
+            return st
         f = st["model_mismatch"]["axes"]["rails_y"]
         plat = st.get("platform") or {}
         q = st["axes_quality"]["rails_y"]
@@ -173,7 +179,7 @@ def test_an_outside_platform_off_its_model_is_seen_retuned_and_its_drift_seen(
                 with process(["source", "--signal", "driving", "--repeat", "3", "--quiet",
                               "-e", svc_ep], tmp_path / "src.log") as src:
                     t_src = time.time()
-                    at_src = watch.read("off")
+                    at_src = watch.now()
                     # 1. the platform 8 ms off its model: the alarm
                     while time.time() - t_src < 30.0 + WINDOW_S + 15.0:
                         time.sleep(1.0)
@@ -249,7 +255,7 @@ def test_an_outside_platform_off_its_model_is_seen_retuned_and_its_drift_seen(
                         # 3. the drift
                         plat.send_signal(signal.SIGUSR1)
                         t_drift = time.time()
-                        at_drift = watch.read("drifted")
+                        at_drift = watch.now()
                         # until the alarm and a window of the drifted truth alone (ending a
                         # window's length after it): on one core the alarm came 0.6 s before
                         # the first, and the estimate after the drift had nothing to judge
