@@ -40,19 +40,14 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                           "process and the child processes it waited for (docs/TESTING.md)")
 
 
-COLLECTING = "<collecting>"
-"""What a worker holds the lock for, shared, from its start to its first test: its collection
-(importing every test module) takes a CPU, so no module runs alone before every worker's ends."""
-
-
 def pytest_configure(config: pytest.Config) -> None:
     """On several workers (pytest-xdist's ``-n``), the controller makes the directory of the
-    workers' shared lock; each worker opens the lock and holds it for its collection."""
+    workers' shared lock; each worker opens it.  pytest-xdist gives no worker a test before every
+    worker has collected, so the workers' collections never run beside a test."""
     if hasattr(config, "workerinput"):
         where = config.workerinput.get(_LOCK_DIR)
         if where:
-            lock = config.stash[_LOCK] = _SuiteLock(Path(where))
-            lock.take(COLLECTING, alone=False)
+            config.stash[_LOCK] = _SuiteLock(Path(where))
     elif getattr(config.option, "numprocesses", None):
         config.stash[_LOCK_DIR_KEY] = Path(tempfile.mkdtemp(prefix="motcomp-tests-"))
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import threading
 from pathlib import Path
 
-from tests.conftest import COLLECTING, _SuiteLock
+from tests.conftest import _SuiteLock
 
 
 def test_a_module_alone_waits_for_those_running_and_holds_back_those_to_come(tmp_path: Path
@@ -64,34 +64,4 @@ def test_the_same_module_takes_nothing_again(tmp_path: Path) -> None:
     assert done.wait(10)
     t.join(10)
     a.release()
-    b.release()
-
-
-def test_no_module_runs_alone_while_a_worker_collects(tmp_path: Path) -> None:
-    a, b = _SuiteLock(tmp_path), _SuiteLock(tmp_path)
-    a.take(COLLECTING, alone=False)
-    b.take(COLLECTING, alone=False)
-    started = threading.Event()
-
-    def first() -> None:  # a's collection ended; its first module runs alone
-        a.take("m1", alone=True)
-        started.set()
-
-    t = threading.Thread(target=first)
-    t.start()
-    assert not started.wait(0.3)  # b still collects (and importing takes a CPU)
-    second = threading.Event()
-
-    def then() -> None:  # b's collection ended: m1 first, m2 behind it
-        b.take("m2", alone=False)
-        second.set()
-
-    u = threading.Thread(target=then)
-    u.start()
-    assert started.wait(10)
-    assert not second.wait(0.3)
-    a.release()
-    assert second.wait(10)
-    t.join(10)
-    u.join(10)
     b.release()

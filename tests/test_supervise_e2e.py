@@ -69,13 +69,12 @@ def truth(td_ms: float) -> Any:
     return parse_model(f"p1d:K=1,Td={td_ms / 1e3:g},Tp1={TRUTH_MS[1] / 1e3:g}")
 
 
-def held(ok: bool, now: dict[str, Any] | None, since: dict[str, Any]) -> bool | None:
+def held(ok: bool, host: str | None) -> bool | None:
     """``ok``, or None (not judged) where it failed while the host kept the service's loop or
-    its platform's from their CPU over the stretch between the statuses ``since`` and ``now``
-    (the product's own figures then wait for the host: its estimates leave out the stalls)."""
-    if ok or now is None:
-        return ok
-    return None if loop_kept_from_cpu(now, since) is not None else False
+    its platform's from their CPU over the figure's stretch (``host``: why, from
+    :func:`loop_kept_from_cpu` over the statuses at the stretch's start and end); the product's
+    own figures then wait for the host: its estimates leave out the stalls."""
+    return ok if ok or host is None else None
 
 
 def log_instant(log: Path, text: str, after: float = 0.0) -> float | None:
@@ -186,11 +185,11 @@ def test_an_outside_platform_off_its_model_is_seen_retuned_and_its_drift_seen(
                         if watch.read("off")["model_mismatch"]["axes"]["rails_y"]["alarm"]:
                             break
                     alarm = log_instant(tmp_path / "svc.log", "rails_y: model mismatch starts")
+                    host = loop_kept_from_cpu(watch.last or {}, at_src)
                     late.append(("the alarm within 30 s of driving plus one window",
                                  held(alarm is not None and alarm - t_src <= 30.0 + WINDOW_S,
-                                      watch.last, at_src),
-                                 (alarm and alarm - t_src, watch.windows("off"),
-                                  loop_kept_from_cpu(watch.last or {}, at_src))))
+                                      host),
+                                 (alarm and alarm - t_src, watch.windows("off"), host)))
                     # 2. the retune, from a settled estimate as an operator would take it
                     t_end = time.time() + 30.0
                     while True:
@@ -272,11 +271,12 @@ def test_an_outside_platform_off_its_model_is_seen_retuned_and_its_drift_seen(
                         t_truth = float(m.group(1))
                         seen_at = log_instant(tmp_path / "svc.log",
                                               "rails_y: model mismatch starts", t_truth)
+                        host = loop_kept_from_cpu(watch.last or {}, at_drift)
                         late.append(("the +10 ms drift seen within 30 s",
                                      held(seen_at is not None and seen_at - t_truth <= 30.0,
-                                          watch.last, at_drift),
+                                          host),
                                      (seen_at and seen_at - t_truth, watch.windows("drifted"),
-                                      loop_kept_from_cpu(watch.last or {}, at_drift))))
+                                      host)))
                         errs = watch.errors_ms("drifted", TRUTH_MS[0] + DRIFT_MS,
                                                t_truth + WINDOW_S)
                         late.append(("after the drift, the estimate within 1 ms of the truth "
