@@ -227,11 +227,16 @@ class Session:
                 seen.setdefault(cfg["hash"])
         return list(seen)
 
-    def command_in_force(self, axis: str, times: np.ndarray, clock: str = "frame"
-                         ) -> tuple[np.ndarray, np.ndarray]:
+    def command_in_force(self, axis: str, times: np.ndarray, clock: str = "frame",
+                         bridge_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """``(cmd, known)``: the output position of ``axis`` in force at each of ``times`` (s
         on ``clock``, see :meth:`identification_columns`), and whether it is known (NaN where
         not: before the first output, or where the recorder lost outputs).
+
+        With ``bridge_s`` > 0, outputs the recorder lost between two it kept at most
+        ``bridge_s`` apart are taken on the line joining those two, at instants spread evenly
+        between them (``known`` stays False there): off the lost commands by at most
+        ``a bridge_s**2 / 8`` for an axis whose acceleration stays within ``a``.
 
         Raises
         ------
@@ -239,8 +244,20 @@ class Session:
             If the session lacks outputs or feedback, the axis or the clock is unknown.
         """
         to, cmd, _, lost_from = self._outputs_of(axis, clock)
-        k, known = output_in_force(to, lost_from, np.asarray(times, dtype=float))
-        return np.where(known, cmd[np.maximum(k, 0)], np.nan), known
+        times = np.asarray(times, dtype=float)
+        k, known = output_in_force(to, lost_from, times)
+        k0 = np.maximum(k, 0)
+        out = np.where(known, cmd[k0], np.nan)
+        if bridge_s > 0 and to.size > 1:
+            k1 = np.minimum(k0 + 1, to.size - 1)
+            span = to[k1] - to[k0]
+            b = np.flatnonzero(~known & (k >= 0) & (k0 + 1 < to.size) & (span <= bridge_s))
+            if b.size:
+                step = lost_from[k0[b]] - to[k0[b]]  # the period of the outputs in the span
+                j = np.floor((times[b] - to[k0[b]]) / step)  # the lost output in force
+                frac = np.clip(j / np.round(span[b] / step), 0.0, 1.0)  # of the seq step
+                out[b] = cmd[k0[b]] + (cmd[k1[b]] - cmd[k0[b]]) * frac
+        return out, known
 
     def identification_columns(self, axis: str, clock: str = "frame") -> IdentificationColumns:
         """What the platform received and what it did, per feedback sample of ``axis``.

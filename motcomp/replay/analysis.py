@@ -55,6 +55,7 @@ import numpy as np
 
 from motcomp.config import ResolvedAxes, ServiceConfig, tick_params
 from motcomp.core.axes import AXES
+from motcomp.core.models import ProcessModel, simulate_axis
 from motcomp.core.saturation import at_rest, axis_constants, limit_axis
 from motcomp.errors import ConfigError, DataError
 from motcomp.jsonsafe import finite
@@ -187,6 +188,25 @@ is read in: :data:`motcomp.replay.offline.FEEDBACK_WINDOWS`); closer, it is inte
 PREROLL_S = 5.0
 """Simulated windows start this much earlier, so the platform model's initial transient is
 gone when the window begins (the models' time constants are well below a second)."""
+LOST_BRIDGE_S = 0.02
+"""Outputs the recorder lost between two it kept at most this far apart are bridged by the
+line joining those two (:meth:`Session.command_in_force`): off the lost commands by at most
+``a T**2 / 8``, 0.3 mm at rails_y's 6 m/s^2 over 20 ms.  A recorder on a loaded host loses
+a few outputs a second; the model check would otherwise restart its model at each loss."""
+SETTLE_FRACTION = 0.01
+"""A model started at rest at a run's first command is taken to have forgotten that start once
+its step response stays within this part of its gain (:func:`settle_samples`)."""
+
+
+def settle_samples(model: ProcessModel, rate_hz: float) -> int:
+    """Samples at ``rate_hz`` after which the unit step response of ``model`` stays within
+    :data:`SETTLE_FRACTION` of its gain (at most :data:`PREROLL_S`): how long a model started at
+    rest at a command it was not resting at takes to forget that start."""
+    n = int(PREROLL_S * rate_hz)
+    y = simulate_axis(model, np.ones(n), rate_hz, initial=0.0)
+    gain = model.gain
+    off = np.flatnonzero(np.abs(y - gain) > SETTLE_FRACTION * max(abs(gain), 1e-12))
+    return n if not off.size else min(n, int(off[-1]) + 1)
 
 
 ALIGN_STEPS = 10
@@ -297,8 +317,6 @@ _TINY = float(np.finfo(float).tiny)
 def analyse(session: Session, plan: TickPlan, res: EngineResult, cfg: ServiceConfig,
             axes: ResolvedAxes, label: str, recorded_config: bool = True) -> ReplayReport:
     """The report of one replay (see the module docstring)."""
-    from motcomp.sim.platform import simulate_axis
-
     rate = 1e9 / plan.period_ns
     pre = int(PREROLL_S * rate)
     emit = plan.emit
@@ -382,8 +400,6 @@ def _model_against_platform(session: Session, reports: list[AxisReport], axes: R
     """The config's platform models against the recorded platform, both driven by the recorded
     commands (the module docstring); fills ``platform_lag_ms``, ``model_lag_ms``,
     ``model_fit``, or ``model_check`` with the reason it cannot be judged."""
-    from motcomp.sim.platform import simulate_axis
-
     out, fb = session.outputs, session.feedback
     for rep in reports:
         if out is None or not len(out):
@@ -408,7 +424,9 @@ def _model_against_platform(session: Session, reports: list[AxisReport], axes: R
         # stretches of feedback without a gap (a busy platform skips cycles: up to a few
         # hundred ms); windows in them where the commands are known
         brk = np.flatnonzero(np.diff(t_fb) > FEEDBACK_GAP_S) + 1
+        settle = settle_samples(axes.plants[a], rate)
         spans = []
+        lost_cut = False
         t_out = np.sort(out.t[out.valid & np.isfinite(out.t)])
         for s0, s1 in zip(np.concatenate([[0], brk]).tolist(),
                           np.concatenate([brk, [t_fb.size]]).tolist(), strict=True):
@@ -421,9 +439,16 @@ def _model_against_platform(session: Session, reports: list[AxisReport], axes: R
             g = _uniform(float(t_out[k0]) + AFTER_TICK_S, t_fb[s1 - 1], rate)
             if g.size < MIN_WINDOW_S * rate or not known_all[s0:s1].any():
                 continue
-            cmd, _ = session.command_in_force(rep.axis, g)
-            unknown = np.flatnonzero(~np.isfinite(cmd))
-            for w in _windows(np.isfinite(cmd), rate):  # each from the known run it is in
+            cmd, _ = session.command_in_force(rep.axis, g, bridge_s=LOST_BRIDGE_S)
+            known = np.isfinite(cmd)
+            unknown = np.flatnonzero(~known)
+            # a window starts `settle` samples into its run of known commands: the model starts
+            # there at rest at the run's first command, which the platform need not be
+            i = np.arange(g.size)
+            run_start = np.maximum.accumulate(np.where(known & ~np.r_[False, known[:-1]], i, 0))
+            ws = _windows(known & (i - run_start >= settle), rate)
+            lost_cut |= unknown.size > 0 and not ws
+            for w in ws:
                 k = int(np.searchsorted(unknown, w.start))
                 spans.append((g, cmd, s0, s1, w, int(unknown[k - 1]) + 1 if k else 0))
         if len(spans) > MAX_WINDOWS:
@@ -447,8 +472,13 @@ def _model_against_platform(session: Session, reports: list[AxisReport], axes: R
             e = v - (y_m - y_m.mean())
             fits.append(1.0 - float(np.dot(e, e)) / float(np.dot(v, v)))
         if not plat:
-            rep.model_check = ("the recorded commands do not move this axis where the platform's "
-                               "feedback was recorded")
+            rep.model_check = (
+                f"the recorder lost outputs too often: no {settle / rate + MIN_WINDOW_S:.1f} s "
+                f"with every command known (losses over {LOST_BRIDGE_S * 1e3:g} ms are not "
+                f"bridged); record where the recorder gets its CPU"
+                if lost_cut and not spans else
+                "the recorded commands do not move this axis where the platform's feedback was "
+                "recorded")
             continue
         rep.platform_lag_ms, rep.model_lag_ms = _median_ms(plat), _median_ms(model)
         rep.model_fit = float(np.median(fits))
