@@ -467,6 +467,28 @@ def test_info_summarises_a_recording(tmp_path: Path) -> None:
     assert p.returncode == 0
     assert "bypass     rails_x: on at 1.20 s, off at 2.20 s" in p.stdout, p.stdout
     assert "sim/motion/setpoint" in p.stdout and "0.301 s at 1.70 s" in p.stdout
+    assert "(rates and gaps on the frames' own t)" in p.stdout
+
+
+def test_info_tells_a_stalled_recorder_from_a_gap_in_the_frames(tmp_path: Path) -> None:
+    """A recorder its host stalled for 115 ms receives the frames late and in a burst: not a
+    gap in what was sent, nor a faster rate (taken on the receive times, a loaded host's
+    recording read 1007.6 Hz and a 0.115 s gap on every key); said apart, as the recorder's."""
+    from motcomp.cli.info import format_info, summarise
+
+    path = tmp_path / "s.mcap"
+    cfg = load_config(config_file("motcomp.toml"))
+    synthesize(path, cfg, SynthOptions(duration_s=3.0, recorder_stalls=[(1.0, 0.115)]))
+    info = summarise(path)
+    for k in info["keys"]:
+        if k["role"] in ("input", "output", "feedback"):
+            assert k["clock"] == "frame" and k["gaps"]["count"] == 0, k
+            assert k["rate_hz"] == pytest.approx(1000.0, abs=0.05), k
+    stall = info["recorder_stall"]
+    assert stall["longest_s"] == pytest.approx(0.115, abs=0.002)
+    assert stall["at_s"] == pytest.approx(1.2, abs=0.01)  # (the loop's 0 is 0.2 s in)
+    text = format_info(info)
+    assert "recorder: received nothing for 0.11" in text and "at 1.20 s" in text, text
 
 
 def test_info_warns_about_an_unfinished_recording(tmp_path: Path) -> None:

@@ -3,7 +3,11 @@
 Duration, the keys with their message counts, rates and gaps, the recorded config's hash, and
 the mode switches the service's output flags show (bypass per axis on/off, stale, rejoin and
 parking episodes, saturated outputs per axis); a warning if the file is unfinished.  Times are
-seconds from the first message of the recording (the recorder's receive times).
+seconds from the first message of the recording (the recorder's receive times).  A key's rate
+and gaps are taken on its frames' own ``t`` where they carry one (the input's, the outputs',
+the feedback's): a recorder its host stalled receives the frames late and in a burst, which is
+not a gap in what was sent nor a faster rate.  How long the recorder itself received nothing is
+shown apart (``recorder_stall``).
 """
 
 from __future__ import annotations
@@ -53,17 +57,49 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _gaps(log_ns: np.ndarray, t0_ns: int, gap_s: float | None) -> dict[str, Any]:
-    if log_ns.size < 2:
+def _gaps(t_s: np.ndarray, at_s: np.ndarray, gap_s: float | None) -> dict[str, Any]:
+    """Gaps between the instants ``t_s`` (sorted), each placed on the recording's timeline at
+    ``at_s`` of the message before it."""
+    if t_s.size < 2:
         return {"count": 0, "longest_s": 0.0, "longest_at_s": None, "threshold_s": gap_s}
-    d = np.diff(np.sort(log_ns)) / 1e9
+    d = np.diff(t_s)
     limit = gap_s if gap_s is not None else max(MIN_GAP_S, GAP_PERIODS * float(np.median(d)))
     big = np.flatnonzero(d > limit)
     if not big.size:
         return {"count": 0, "longest_s": 0.0, "longest_at_s": None, "threshold_s": limit}
     k = int(big[np.argmax(d[big])])
-    return {"count": int(big.size), "longest_s": float(d[k]),
-            "longest_at_s": float((np.sort(log_ns)[k] - t0_ns) / 1e9), "threshold_s": limit}
+    return {"count": int(big.size), "longest_s": float(d[k]), "longest_at_s": float(at_s[k]),
+            "threshold_s": limit}
+
+
+RATE_SPAN = 10
+"""A key's rate is taken over spans of this many intervals (:func:`_rate_hz`)."""
+
+
+def _rate_hz(inst: np.ndarray) -> float:
+    """``RATE_SPAN`` over the median time of ``RATE_SPAN`` consecutive intervals of the sorted
+    instants ``inst`` (fewer if there are fewer): a gap or a burst moves the median little, and
+    the median's quantum shrinks as much (a frame's ``t`` in seconds since the epoch is rounded
+    to 0.24 us: 0.02 % of a millisecond on one interval)."""
+    k = max(1, min(RATE_SPAN, inst.size - 1))
+    if inst.size < 2:
+        return 0.0
+    med = float(np.median(inst[k:] - inst[:-k]))
+    return k / med if med > 0 else 0.0
+
+
+def _own_clock(log_ns: np.ndarray, t: np.ndarray | None, t0_ns: int
+               ) -> tuple[np.ndarray, np.ndarray, str]:
+    """``(instants, their places on the timeline, clock)`` of a key's messages in the order of
+    their instants: the frames' own ``t`` (s) where at least half carry a finite one (those
+    that do), else the receive times; places are receive times from ``t0_ns`` (s)."""
+    at = (log_ns - t0_ns) / 1e9
+    if t is not None and t.size == log_ns.size and 2 * np.count_nonzero(np.isfinite(t)) >= t.size:
+        ok = np.isfinite(t)
+        order = np.argsort(t[ok], kind="stable")
+        return t[ok][order], at[ok][order], "frame"
+    order = np.argsort(log_ns, kind="stable")
+    return at[order], at[order], "receive"
 
 
 def _intervals(on: np.ndarray, t_s: np.ndarray) -> list[list[float | None]]:
@@ -88,30 +124,38 @@ def summarise(path: Path, gap_s: float | None = None) -> dict[str, Any]:
     from motcomp.record.session import read_session
 
     s = read_session(path, acc=False, publish=False)
-    streams: dict[str, tuple[str, np.ndarray]] = {}
+    streams: dict[str, tuple[str, np.ndarray, np.ndarray | None]] = {}
     for role, st in (("input", s.inputs), ("output", s.outputs), ("feedback", s.feedback)):
         if st is not None:
-            streams[st.key] = (role, st.log_ns)
+            streams[st.key] = (role, st.log_ns, st.t)
     if s.status:
-        streams[s.keys["status"]] = ("status", np.array([n for n, _ in s.status], np.int64))
+        streams[s.keys["status"]] = ("status", np.array([n for n, _ in s.status], np.int64),
+                                     None)
     for key, raw in s.other.items():
-        streams[key] = ("", raw.log_ns)
-    firsts = [int(ns.min()) for _, ns in streams.values() if ns.size]
-    lasts = [int(ns.max()) for _, ns in streams.values() if ns.size]
+        streams[key] = ("", raw.log_ns, None)
+    firsts = [int(ns.min()) for _, ns, _ in streams.values() if ns.size]
+    lasts = [int(ns.max()) for _, ns, _ in streams.values() if ns.size]
     t0 = min(firsts) if firsts else 0
     duration = (max(lasts) - t0) / 1e9 if lasts else 0.0
     keys = []
     order = {"input": 0, "output": 1, "feedback": 2, "status": 3}
-    for key, (role, ns) in sorted(streams.items(), key=lambda kv: (order.get(kv[1][0], 4),
-                                                                   kv[0])):
-        span = (int(ns.max()) - int(ns.min())) / 1e9 if ns.size > 1 else 0.0
-        median = float(np.median(np.diff(np.sort(ns)))) / 1e9 if ns.size > 1 else 0.0
-        keys.append({"key": key, "role": role, "messages": int(ns.size),
-                     "rate_hz": 1.0 / median if median > 0 else 0.0,
-                     "mean_rate_hz": (ns.size - 1) / span if span > 0 else 0.0,
+    for key, (role, ns, t) in sorted(streams.items(), key=lambda kv: (order.get(kv[1][0], 4),
+                                                                      kv[0])):
+        inst, at, clock = _own_clock(ns, t, t0)
+        span = float(inst[-1] - inst[0]) if inst.size > 1 else 0.0
+        keys.append({"key": key, "role": role, "messages": int(ns.size), "clock": clock,
+                     "rate_hz": _rate_hz(inst),
+                     "mean_rate_hz": (inst.size - 1) / span if span > 0 else 0.0,
                      "first_s": (int(ns.min()) - t0) / 1e9 if ns.size else None,
                      "last_s": (int(ns.max()) - t0) / 1e9 if ns.size else None,
-                     "gaps": _gaps(ns, t0, gap_s)})
+                     "gaps": _gaps(inst, at, gap_s)})
+    every = np.sort(np.concatenate([ns for _, ns, _ in streams.values()])) if streams else \
+        np.zeros(0, np.int64)
+    stall = None
+    if every.size > 1:
+        k = int(np.argmax(np.diff(every)))
+        stall = {"longest_s": float(every[k + 1] - every[k]) / 1e9,
+                 "at_s": float(every[k] - t0) / 1e9}
     modes: dict[str, Any] = {"bypass": {}, "stale": [], "rejoin": [], "parking": [],
                              "saturated_outputs": {}}
     out = s.outputs
@@ -141,6 +185,7 @@ def summarise(path: Path, gap_s: float | None = None) -> dict[str, Any]:
         "platform": _last_platform(s.status),
         "model_mismatch": _mismatch(s.status, t0),
         "keys": keys,
+        "recorder_stall": stall,
         "modes": modes,
         "truncated": s.truncated,
         "warnings": list(s.warnings),
@@ -211,13 +256,23 @@ def format_info(info: dict[str, Any]) -> str:
         plat = info["platform"]
         lines.append(platform_line(plat, float(plat.get("status_t", 0.0))))
     lines.append(f"{'key':<28}{'role':<10}{'messages':>9}{'rate Hz':>10}{'gaps':>6}  longest gap")
-    # (rate: one over the median interval; mean_rate_hz in the JSON counts the gaps in)
+    # (rate: _rate_hz, a median; mean_rate_hz in the JSON counts the gaps in)
     for k in info["keys"]:
         g = k["gaps"]
         longest = (f"{g['longest_s']:.3f} s at {g['longest_at_s']:.2f} s" if g["count"] else "-")
         rate = f"{k['rate_hz']:.1f}" if math.isfinite(k["rate_hz"]) else "-"
         lines.append(f"{k['key']:<28}{k['role'] or '-':<10}{k['messages']:>9}{rate:>10}"
                      f"{g['count']:>6}  {longest}")
+    clocks = {k["clock"] for k in info["keys"] if k["role"] in ("input", "output", "feedback")}
+    if clocks:
+        lines.append("(rates and gaps on the frames' own t" + (
+            "; a key whose frames carry none on the receive times)" if "receive" in clocks
+            else ")"))
+    stall = info.get("recorder_stall")
+    if stall and stall["longest_s"] > MIN_GAP_S:
+        lines.append(f"recorder: received nothing for {stall['longest_s']:.3f} s at "
+                     f"{stall['at_s']:.2f} s (the longest stretch; where the frames' t show no "
+                     f"gap there, its host stalled it and the frames came in a burst)")
     modes = info["modes"]
     if any(k["messages"] for k in info["keys"] if k["role"] == "output"):
         lines.append("mode switches (output flags):")

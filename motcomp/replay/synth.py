@@ -79,6 +79,9 @@ class SynthOptions:
     service_misses: list[float] = field(default_factory=list)
     """Source instants (s): the first sample sent at or after each never reaches the service
     (its link dropped it); the recorder gets it."""
+    recorder_stalls: list[tuple[float, float]] = field(default_factory=list)
+    """``(start_s, length_s)`` on the loop's timeline: the recorder's host stalls it, and what
+    it would have received meanwhile it receives at the stall's end, in order."""
 
 
 def motion(t: np.ndarray, axis: str, amplitude: float = 1.0) -> np.ndarray:
@@ -207,6 +210,9 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
             st["frames"] = {**counts, "superseded": superseded[j] if j >= 0 else 0}
             msgs.append((round((WALL0 + s + 0.5) * 1e9), DEFAULT_KEYS["status"],
                          msgpack.packb(st)))
+    for start, length in opts.recorder_stalls:
+        s0, s1 = round((WALL0 + 0.2 + start) * 1e9), round((WALL0 + 0.2 + start + length) * 1e9)
+        msgs = [(s1 if s0 <= ns < s1 else ns, key, payload) for ns, key, payload in msgs]
     msgs.sort(key=lambda x: x[0])
     t_rec = round((WALL0 + 0.2 + opts.record_from_s) * 1e9) if opts.record_from_s else 0
     cfg_json = json.dumps(cfg.model_dump(mode="json")).encode()
