@@ -354,8 +354,9 @@ def test_a_starved_loop_says_so_and_the_platform_s_stack_delay_is_shown(tmp_path
                                                                          ) -> None:
     """The service stopped for 30 ms of every 100 ms (SIGSTOP/SIGCONT: a host that takes its
     CPU; a CPU hog beside it no longer does, the loop's short slice wins it back): the deadlines
-    it misses are logged at WARNING and flagged in the status; the platform's own figure of the
-    stack's delay (hil's setpoint age) is in the status and its table."""
+    it misses are logged at WARNING and flagged in the status -- from the first seconds, before
+    the first window closes, as that window so far; the platform's own figure of the stack's
+    delay (hil's setpoint age) is in the status and its table."""
     p_hil, p_svc = free_tcp_port(), free_tcp_port()
     stop = threading.Event()
 
@@ -373,6 +374,9 @@ def test_a_starved_loop_says_so_and_the_platform_s_stack_delay_is_shown(tmp_path
         starve = threading.Thread(target=thief, args=(svc.pid,), daemon=True)
         starve.start()
         try:
+            time.sleep(2.0)
+            first = cli("status", "-e", loopback(p_svc), "--json", "--timeout", "5")
+            first_table = cli("status", "-e", loopback(p_svc), "--timeout", "5").stdout
             log = wait_for_text(tmp_path / "svc.log", "deadlines over the last", svc,
                                 timeout=40.0)
         finally:
@@ -384,6 +388,12 @@ def test_a_starved_loop_says_so_and_the_platform_s_stack_delay_is_shown(tmp_path
         st = json.loads(p.stdout)
         table = cli("status", "-e", loopback(p_svc)).stdout
     assert "WARNING" in log and "the host does not give the loop its CPU" in log, log
+    assert first.returncode == 0, first.stderr
+    early = json.loads(first.stdout)["deadlines"]
+    assert early["open"] and early["degraded"] and early["windows_degraded"] == 0, early
+    assert early["window_s"] < 10 and early["due"] > 0 and early["share"] > 0.02, early
+    assert "s (so far)" in first_table and "DEGRADED" in first_table, first_table
+    assert "open" not in st["deadlines"]  # a closed window since
     assert st["deadlines"]["windows_degraded"] >= 1, st["deadlines"]
     assert st["deadlines"]["due"] > 0
     assert st["platform"]["setpoint_age_ms"] > 0, st["platform"]

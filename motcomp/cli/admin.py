@@ -272,9 +272,10 @@ def format_status(st: dict[str, Any]) -> str:
     dl = st.get("deadlines") or {}
     if dl.get("due"):
         share = 100 * float(dl.get("share", 0))
+        over = (f"over the first {float(dl.get('window_s', 0)):.1f} s (so far)" if dl.get("open")
+                else f"over the last {float(dl.get('window_s', 0)):.0f} s")
         lines.append(f"deadlines   missed {dl.get('missed', 0)}{waiting_text(dl, 'missed')} of "
-                     f"{dl['due']} over the last {float(dl.get('window_s', 0)):.0f} s "
-                     f"({share:.1f} %)"
+                     f"{dl['due']} {over} ({share:.1f} %)"
                      + ("  DEGRADED: the host does not give the loop its CPU"
                         if dl.get("degraded") else ""))
     plat = st.get("platform")

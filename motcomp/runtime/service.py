@@ -231,6 +231,8 @@ class Service:
                                            "missed_waiting_cpu": 0, "share": 0.0,
                                            "degraded": False, "windows_degraded": 0}
         """The last closed window's deadlines (:meth:`_judge_deadlines`)."""
+        self._deadline_window = (time.monotonic(), 0, 0, 0)
+        """The open window's start: instant, ticks, missed and waiting."""
         self.rt_report = ""
         self._loop_error: BaseException | None = None
         self._source: InputPort | None = None
@@ -460,7 +462,9 @@ class Service:
             "ticks": st.ticks,
             "missed_ticks": clock.missed if clock else 0,
             "missed_waiting_cpu": clock.missed_waiting if clock else 0,
-            "deadlines": dict(self._deadlines),
+            "deadlines": (dict(self._deadlines) if self._deadlines["due"] or clock is None else
+                          {**self._window_figures(self._deadline_window, time.monotonic())[0],
+                           "windows_degraded": 0, "open": True}),
             "loop": self.stats.snapshot(),
             "loop_window_s": self.cfg.status.window_s,
             "frames": {"received": st.received, "accepted": st.accepted,
@@ -530,33 +534,40 @@ class Service:
         return {"feedback": {"key": self.cfg.feedback.key, **rep["feedback"]},
                 "quality": window, "axes_quality": rep["axes"]}
 
-    def _judge_deadlines(self, window: tuple[float, int, int, int], now: float
-                         ) -> tuple[float, int, int, int]:
-        """Close a deadline window: the status' ``deadlines`` block, and a WARNING when more
-        than :data:`~motcomp.runtime.clock.DEGRADED_MISSED_SHARE` of its deadlines were missed,
-        saying how many of them the loop spent waiting for a CPU (the host's doing)."""
+    def _window_figures(self, window: tuple[float, int, int, int], now: float
+                        ) -> tuple[dict[str, Any], tuple[float, int, int, int]]:
+        """The deadlines of the window that began at ``window`` (instant, ticks, missed and
+        waiting then) up to ``now``, and the counts at ``now`` (the next window's start)."""
         t0, ticks0, missed0, waiting0 = window
         clock = self._clock
         ticks, missed = self.state.ticks, clock.missed if clock else 0
         waiting = (clock.missed_waiting or 0) if clock else 0
         due = (ticks - ticks0) + (missed - missed0)
         share = (missed - missed0) / due if due > 0 else 0.0
-        degraded = share > DEGRADED_MISSED_SHARE
         known = clock is not None and clock.missed_waiting is not None
-        self._deadlines = {"window_s": round(now - t0, 3), "due": due,
-                           "missed": missed - missed0,
-                           "missed_waiting_cpu": waiting - waiting0 if known else None,
-                           "share": share, "degraded": degraded,
-                           "windows_degraded": self._deadlines.get("windows_degraded", 0)
-                           + int(degraded)}
-        if degraded:
-            why = (f", {waiting - waiting0} of them while the loop waited for a CPU that other "
-                   "threads held (docs/DEPLOYMENT.md, \"Missed deadlines\")" if known else "")
+        return ({"window_s": round(now - t0, 3), "due": due, "missed": missed - missed0,
+                 "missed_waiting_cpu": waiting - waiting0 if known else None,
+                 "share": share, "degraded": share > DEGRADED_MISSED_SHARE},
+                (now, ticks, missed, waiting))
+
+    def _judge_deadlines(self, window: tuple[float, int, int, int], now: float
+                         ) -> tuple[float, int, int, int]:
+        """Close a deadline window: the status' ``deadlines`` block, and a WARNING when more
+        than :data:`~motcomp.runtime.clock.DEGRADED_MISSED_SHARE` of its deadlines were missed,
+        saying how many of them the loop spent waiting for a CPU (the host's doing)."""
+        fig, then = self._window_figures(window, now)
+        self._deadlines = {**fig, "windows_degraded": self._deadlines.get("windows_degraded", 0)
+                           + int(fig["degraded"])}
+        if fig["degraded"]:
+            waiting = fig["missed_waiting_cpu"]
+            why = (f", {waiting} of them while the loop waited for a CPU that other threads "
+                   "held (docs/DEPLOYMENT.md, \"Missed deadlines\")" if waiting is not None
+                   else "")
             log.warning("missed %d of %d deadlines over the last %.0f s (%.1f %%)%s: the host "
                         "does not give the loop its CPU; delays, command smoothness and "
-                        "identification are degraded until it does", missed - missed0, due,
-                        now - t0, 100 * share, why)
-        return now, ticks, missed, waiting
+                        "identification are degraded until it does", fig["missed"], fig["due"],
+                        now - window[0], 100 * fig["share"], why)
+        return then
 
     def tick_clock(self) -> dict[str, Any] | None:
         """How output ``t`` maps back to the loop's own tick instants (None before the loop
@@ -892,7 +903,7 @@ class Service:
         ready = False
         seen = ModeLog(self.state)
         clamps, clamps_logged = 0, -math.inf
-        window = (time.monotonic(), 0, 0, 0)  # start, ticks, missed and waiting at its start
+        window = self._deadline_window = (time.monotonic(), 0, 0, 0)
         while not self.loop_done.is_set():
             self.loop_done.wait(0.02)
             now = time.monotonic()
@@ -910,7 +921,7 @@ class Service:
                            if n})
                 clamps, clamps_logged = self.state.envelope_clamps, now
             if now - window[0] >= DEADLINE_WINDOW_S and self._clock is not None:
-                window = self._judge_deadlines(window, now)
+                window = self._deadline_window = self._judge_deadlines(window, now)
             healthy = self.state.ticks > 0 and now - self.last_tick_mono < 0.25
             if healthy and not ready:
                 ready = True
