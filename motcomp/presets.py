@@ -12,9 +12,12 @@ writes ``<axis>.toml``) or a whole service config: the axis' ``model`` (or ``[de
 
 from __future__ import annotations
 
+import math
+import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
@@ -25,7 +28,8 @@ from motcomp.errors import ConfigError
 from motcomp.limits_config import LimitsConfig, axis_limits
 from motcomp.resources import config_dir
 
-__all__ = ["DEFAULT_AXIS", "PlantSource", "Preset", "list_presets", "load_preset", "plant_source"]
+__all__ = ["DEFAULT_AXIS", "PlantSource", "Preset", "input_lag_comment", "list_presets",
+           "load_preset", "pairing_phase_of", "plant_source"]
 
 DEFAULT_AXIS = "rails_y"
 """The axis a design is for when nothing names one (a model spec, or a preset that has it)."""
@@ -125,6 +129,9 @@ class PlantSource:
     axis: str
     limits: AxisLimits | None
     label: str
+    pairing_phase_ms: float | None = None
+    """For a fragment identified through the stack: the pairing's phase its comment names
+    (:func:`input_lag_comment`), which the design's input lag adds to the playback lag."""
 
 
 def plant_source(plant: str | None = None, model: str | None = None,
@@ -198,4 +205,25 @@ def _fragment_source(path: Path, raw: dict[str, object], axis: str | None) -> Pl
             limits = axis_limits({axis: LimitsConfig(**given)})
         except ConfigError as exc:
             raise ConfigError(f"{path}: axes.{axis}: {exc}") from None
-    return PlantSource(parse_model(spec), axis, limits, path.name)
+    return PlantSource(parse_model(spec), axis, limits, path.name,
+                       pairing_phase_of(path.read_text()))
+
+
+_INPUT_LAG_HINT = re.compile(r"^# Design it with --input-lag-ms = the config's "
+                             r"input\.playback_lag_s \+ (-?[0-9.]+) ms", re.M)
+
+
+def input_lag_comment(phase_ms: Any) -> list[str]:
+    """The comment line naming the input lag to design a model identified through the stack
+    with: the playback lag plus the pairing's phase, which its Td does not hold
+    (docs/TUNING.md); none without a phase.  :func:`pairing_phase_of` reads it back."""
+    if not isinstance(phase_ms, int | float) or not math.isfinite(phase_ms):
+        return []
+    return [f"# Design it with --input-lag-ms = the config's input.playback_lag_s + "
+            f"{phase_ms:.2f} ms, the pairing's phase (outside this Td: docs/TUNING.md)."]
+
+
+def pairing_phase_of(text: str) -> float | None:
+    """The pairing's phase (ms) a fragment's :func:`input_lag_comment` names, or None."""
+    m = _INPUT_LAG_HINT.search(text)
+    return float(m.group(1)) if m else None

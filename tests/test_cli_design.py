@@ -215,3 +215,34 @@ def test_pareto_with_prediction_draws_both_curves(tmp_path: Path) -> None:
     assert points["pid"]["series"] == "bypass"  # delay-dominated: the PID is not worth it
     assert points["prediction"]["worst_delay_ms"] < 10.0 < points["pid"]["worst_delay_ms"]
     assert "With and without the predictive prefilter" in (out / "pareto.md").read_text()
+
+
+def test_a_fragment_identified_through_the_stack_is_designed_with_its_input_lag(
+        tmp_path: Path) -> None:
+    """The fragment ``identify`` writes for a model identified through the stack names the
+    pairing's phase its Td does not hold: without ``--input-lag-ms`` the design takes the
+    config's default playback lag (1.7 ms) plus that phase, and says so; an explicit value,
+    0 included, is taken as given; a fragment without the comment is designed with none."""
+    from motcomp.presets import input_lag_comment, pairing_phase_of
+
+    for phase in (0.43, -0.2, 1.0):
+        assert pairing_phase_of("\n".join(["# x", *input_lag_comment(phase), "[axes.y]"])) \
+            == pytest.approx(phase, abs=0.005)
+    assert input_lag_comment(float("nan")) == [] and pairing_phase_of("# nothing") is None
+    model = 'model = "p1d:K=1,Td=0.0215,Tp1=0.293"\n'
+    hinted = tmp_path / "rails_y.toml"
+    hinted.write_text("\n".join(["# Identified by motcomp identify", *input_lag_comment(0.43),
+                                 "[axes.rails_y]", model]))
+    bare = tmp_path / "bare.toml"
+    bare.write_text("[axes.rails_y]\n" + model)
+    lags = {}
+    for name, path, extra in (("hinted", hinted, ()), ("explicit", hinted, ("--input-lag-ms", "0")),
+                              ("bare", bare, ())):
+        p = run("design", "--plant", str(path), "--rule", "zn", "--json", *extra)
+        assert p.returncode == 0, p.stderr
+        lags[name] = (json.loads(p.stdout)["input_playback_lag_ms"], p.stderr)
+    assert lags["hinted"][0] == pytest.approx(1.7 + 0.43)
+    assert "input lag 2.13 ms: input.playback_lag_s's default 1.7 ms plus the pairing's phase " \
+        "0.43 ms that rails_y.toml names" in lags["hinted"][1]
+    assert lags["explicit"][0] == 0.0 and "input lag" not in lags["explicit"][1]
+    assert lags["bare"][0] == 0.0 and "input lag" not in lags["bare"][1]

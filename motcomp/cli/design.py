@@ -18,6 +18,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from motcomp.cli._common import add_plant_args, non_negative_float, print_json, rate_arg
+from motcomp.config import InputConfig
 from motcomp.core.bandlimit import BAND_HZ_DEFAULT
 from motcomp.core.models import P1D, parse_model
 from motcomp.design.optimal import Constraints, OptimalOptions, Uncertainty
@@ -119,12 +120,14 @@ def _add_common(p: argparse.ArgumentParser) -> None:
 
 
 def _add_input_chain(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--input-lag-ms", type=non_negative_float, default=0.0, metavar="MS",
+    p.add_argument("--input-lag-ms", type=non_negative_float, default=None, metavar="MS",
                    help="lag of the input reconstruction before the compensator, cancelled "
                         "with the platform's delay: the config's input.playback_lag_s (1.7 ms; "
                         "`motcomp status` shows it as input lag), plus the pairing's phase "
                         "identify reports for a model identified through the stack, or the "
-                        "platform's setpoint age for a preset (default 0)")
+                        "platform's setpoint age for a preset (default: for a fragment whose "
+                        "comment names the pairing's phase, input.playback_lag_s' default plus "
+                        "that phase; else 0)")
     p.add_argument("--input-band-hz", type=non_negative_float, default=BAND_HZ_DEFAULT,
                    metavar="HZ",
                    help="the service's reference band limit (input.band_hz; default "
@@ -192,7 +195,28 @@ def _source(args: argparse.Namespace) -> PlantSource:
         presets = ", ".join(list_presets())
         raise ConfigError(f"--plant {plant!r}: --plant takes a preset name ({presets}) or a "
                           f".toml file; a model spec goes with --model: --model {plant}")
-    return plant_source(plant, args.model, args.axis)
+    source = plant_source(plant, args.model, args.axis)
+    if getattr(args, "input_lag_ms", 0.0) is None:
+        args.input_lag_ms = default_input_lag_ms(source)
+        if source.pairing_phase_ms is not None:
+            print(f"input lag {args.input_lag_ms:.2f} ms: input.playback_lag_s's default "
+                  f"{PLAYBACK_LAG_DEFAULT_S * 1e3:g} ms plus the pairing's phase "
+                  f"{source.pairing_phase_ms:.2f} ms that {source.label} names (give "
+                  "--input-lag-ms for a config with another playback lag)", file=sys.stderr)
+    return source
+
+
+PLAYBACK_LAG_DEFAULT_S = InputConfig.model_fields["playback_lag_s"].default
+"""The service config's default ``input.playback_lag_s`` (the example config's)."""
+
+
+def default_input_lag_ms(source: PlantSource) -> float:
+    """The input lag (ms) to design ``source`` with when none is given: for a model identified
+    through the stack, the playback lag plus the pairing's phase its fragment names (its Td
+    holds neither: docs/TUNING.md); else 0."""
+    if source.pairing_phase_ms is None:
+        return 0.0
+    return max(0.0, PLAYBACK_LAG_DEFAULT_S * 1e3 + source.pairing_phase_ms)
 
 
 def _internal(args: argparse.Namespace) -> P1D | None:

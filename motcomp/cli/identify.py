@@ -268,7 +268,8 @@ def _run_from_status(args: argparse.Namespace) -> int:
     import json
     import time
 
-    from motcomp.ident.report import input_lag_comment, model_fragment
+    from motcomp.ident.report import model_fragment
+    from motcomp.presets import input_lag_comment
 
     if args.data is not None:
         try:

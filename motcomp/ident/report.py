@@ -14,7 +14,6 @@ left half-written.  matplotlib is imported only in :func:`write_figures`.
 from __future__ import annotations
 
 import json
-import math
 import shutil
 import tempfile
 from pathlib import Path
@@ -27,6 +26,7 @@ from motcomp.errors import ConfigError
 from motcomp.ident.data import Recording
 from motcomp.ident.fit import Identification, ModelFit
 from motcomp.jsonsafe import finite
+from motcomp.presets import input_lag_comment
 
 __all__ = ["config_fragment", "markdown", "model_fragment", "report_json", "table1",
            "table1_markdown", "write_figures", "write_report", "write_reports"]
@@ -294,16 +294,6 @@ def config_fragment(ident: Identification, axis: str | None = None,
                          f"{f.fit_percent:.2f} %, AIC {f.aic:.1f})")
     lines += input_lag_comment((d.get("conditions") or {}).get("pairing_phase_ms"))
     return model_fragment(t1["axis"], rep["model_spec"], lines, forced)
-
-
-def input_lag_comment(phase_ms: Any) -> list[str]:
-    """The comment line naming the input lag to design a model identified through the stack
-    with: the playback lag plus the pairing's phase, which its Td does not hold
-    (docs/TUNING.md); none without a phase."""
-    if not isinstance(phase_ms, int | float) or not math.isfinite(phase_ms):
-        return []
-    return [f"# Design it with --input-lag-ms = the config's input.playback_lag_s + "
-            f"{phase_ms:.2f} ms, the pairing's phase (outside this Td: docs/TUNING.md)."]
 
 
 def model_fragment(axis: str, spec: str, comments: list[str], forced: str | None = None) -> str:
