@@ -477,7 +477,11 @@ def test_info_summarises_a_recording(tmp_path: Path) -> None:
     assert p.returncode == 0
     assert "bypass     rails_x: on at 1.20 s, off at 2.20 s" in p.stdout, p.stdout
     assert "sim/motion/setpoint" in p.stdout and "0.301 s at 1.70 s" in p.stdout
-    assert "(rates and gaps on the frames' own t)" in p.stdout
+    assert "(lost: the seq numbers missing; rates and gaps on the frames' own t)" in p.stdout
+    assert keys["platform/setpoint"]["lost"] == 100  # the recorder lost them
+    assert keys["sim/motion/setpoint"]["lost"] == 300  # (the synthetic source numbers its
+    # samples, sent or not: its 0.3 s of silence skips 300)
+    assert keys["platform/feedback"]["lost"] is None and keys["motcomp/status"]["lost"] is None
 
 
 def test_info_tells_a_stalled_recorder_from_a_gap_in_the_frames(tmp_path: Path) -> None:

@@ -72,6 +72,17 @@ def _gaps(t_s: np.ndarray, at_s: np.ndarray, gap_s: float | None) -> dict[str, A
             "threshold_s": limit}
 
 
+def _lost(seq: np.ndarray) -> int:
+    """Frames missing from a key whose ``seq`` counts the frames sent (in the order received):
+    the numbers skipped by each step forward of at most ``MAX_SEQ_STEP`` (a larger step, or one
+    back, is another sender or a restarted one: docs/WIRE.md)."""
+    from motcomp.core.tick import MAX_SEQ_STEP
+
+    d = np.diff(seq.astype(np.int64))
+    skip = d[(d > 1) & (d <= MAX_SEQ_STEP)]
+    return int(np.sum(skip - 1))
+
+
 RATE_SPAN = 10
 """A key's rate is taken over spans of this many intervals (:func:`_rate_hz`)."""
 
@@ -125,9 +136,13 @@ def summarise(path: Path, gap_s: float | None = None) -> dict[str, Any]:
 
     s = read_session(path, acc=False, publish=False)
     streams: dict[str, tuple[str, np.ndarray, np.ndarray | None]] = {}
+    lost: dict[str, int] = {}
     for role, st in (("input", s.inputs), ("output", s.outputs), ("feedback", s.feedback)):
         if st is not None:
             streams[st.key] = (role, st.log_ns, st.t)
+    for st in (s.inputs, s.outputs):
+        if st is not None:
+            lost[st.key] = _lost(st.seq)
     if s.status:
         streams[s.keys["status"]] = ("status", np.array([n for n, _ in s.status], np.int64),
                                      None)
@@ -144,6 +159,7 @@ def summarise(path: Path, gap_s: float | None = None) -> dict[str, Any]:
         inst, at, clock = _own_clock(ns, t, t0)
         span = float(inst[-1] - inst[0]) if inst.size > 1 else 0.0
         keys.append({"key": key, "role": role, "messages": int(ns.size), "clock": clock,
+                     "lost": lost.get(key),
                      "rate_hz": _rate_hz(inst),
                      "mean_rate_hz": (inst.size - 1) / span if span > 0 else 0.0,
                      "first_s": (int(ns.min()) - t0) / 1e9 if ns.size else None,
@@ -255,17 +271,19 @@ def format_info(info: dict[str, Any]) -> str:
 
         plat = info["platform"]
         lines.append(platform_line(plat, float(plat.get("status_t", 0.0))))
-    lines.append(f"{'key':<28}{'role':<10}{'messages':>9}{'rate Hz':>10}{'gaps':>6}  longest gap")
+    lines.append(f"{'key':<28}{'role':<10}{'messages':>9}{'lost':>7}{'rate Hz':>10}{'gaps':>6}"
+                 "  longest gap")
     # (rate: _rate_hz, a median; mean_rate_hz in the JSON counts the gaps in)
     for k in info["keys"]:
         g = k["gaps"]
         longest = (f"{g['longest_s']:.3f} s at {g['longest_at_s']:.2f} s" if g["count"] else "-")
         rate = f"{k['rate_hz']:.1f}" if math.isfinite(k["rate_hz"]) else "-"
-        lines.append(f"{k['key']:<28}{k['role'] or '-':<10}{k['messages']:>9}{rate:>10}"
-                     f"{g['count']:>6}  {longest}")
+        lost_n = "-" if k.get("lost") is None else str(k["lost"])
+        lines.append(f"{k['key']:<28}{k['role'] or '-':<10}{k['messages']:>9}{lost_n:>7}"
+                     f"{rate:>10}{g['count']:>6}  {longest}")
     clocks = {k["clock"] for k in info["keys"] if k["role"] in ("input", "output", "feedback")}
     if clocks:
-        lines.append("(rates and gaps on the frames' own t" + (
+        lines.append("(lost: the seq numbers missing; rates and gaps on the frames' own t" + (
             "; a key whose frames carry none on the receive times)" if "receive" in clocks
             else ")"))
     stall = info.get("recorder_stall")

@@ -126,7 +126,7 @@ def _offline(args: argparse.Namespace) -> int:
     several = len(args.files) > 1
     summaries = []
     t0 = time.perf_counter()
-    with Progress("replaying", 1.0, quiet=args.quiet) as bar:
+    with Progress("replaying", 1.0, quiet=args.quiet, counts=False) as bar:
         for fr in replay_files(args.files, configs, args.jobs, args.run, args.bypass,
                                bar.update):
             summaries.append(_summary(args, fr, several, time.perf_counter() - t0))

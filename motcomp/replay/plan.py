@@ -391,7 +391,7 @@ def recorded_flushed(status: Iterable[dict[str, Any]]) -> bool:
 
 _RECORD_BETTER = ("to record every frame, run `motcomp record` where it gets its CPU (not "
                   "beside a busy service on two cores) and check its summary's 'dropped (queue "
-                  "full)'; frames lost before they reached it show as gaps in `motcomp info`")
+                  "full)'; frames lost before they reached it show in `motcomp info` (lost)")
 
 
 def _superseded(session: Session, log_ns: np.ndarray) -> int | None:
