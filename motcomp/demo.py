@@ -452,12 +452,13 @@ def run_demo(out_dir: Path, quiet: bool = False, keep_logs: bool = True) -> Demo
                 admin("bypass", {"on": bypass})  # every driven axis / those compensated
                 sat0, stale0, _ = counters()
                 say(f"phase {phase}: compensation {'OFF (bypass)' if bypass else 'ON'} "
-                    f"(rails: PID; hexapod: prediction), {duration:.1f} s of motion")
+                    f"(rails: PID; hexapod: prediction), {duration:.1f} s of motion "
+                    f"({duration + 2.0:.1f} s with the source's start and the platform settling)")
                 t0 = time.time()
                 src = _spawn(["source", "--signal", "demo", "--seq-start", str(seq), "-e",
                               loopback(p_svc), "-e", loopback(p_me), "-l", loopback(p_src),
                               "--lead-in", "0.5"], logs / f"source-{phase}.log")
-                with Progress(f"phase {phase}", duration + 2.0, quiet=quiet) as bar:
+                with Progress(f"phase {phase}", duration + 2.0, quiet=quiet, unit="s") as bar:
                     polled = 0.0
                     while src.poll() is None:
                         time.sleep(0.05)
