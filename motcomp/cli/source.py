@@ -48,8 +48,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "progress on stderr (a bar on a terminal, a line every 5 s otherwise).  "
                     "--jitter-us, --stall-every-s/--stall-ms and --no-t make it a realistic, "
                     "imperfect sender: each frame's t stays its sample's nominal instant; the "
-                    "frames due during a stall go out in a burst when it ends, as a vehicle "
-                    "model catching up does.")
+                    "frames due during such a stall go out in a burst when it ends, as a "
+                    "vehicle model catching up does.  A stall this process did not ask for (its "
+                    "host kept it from its CPU for a period or more) is not caught up: the "
+                    "samples whose instants passed are not sent, as a vehicle model on wall "
+                    "time skips them, and the summary counts them ('not sent'); seq counts the "
+                    "frames sent.")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--signal", choices=SIGNALS,
                    help="built-in motion: slalom (rails_y, 22 s), lanechange (rails_y: 1.5 m "
