@@ -88,6 +88,13 @@ def test_confinement_refuses_without_reading(tmp_path: Path) -> None:
     assert c.check(files["etc"] / "top.toml") == (files["etc"] / "top.toml").resolve()
     with pytest.raises(ConfigError, match="cannot read"):
         c.check(files["etc"] / "nothing.toml")
+    # a missing include names the file including it, as `motcomp config check` does
+    (files["etc"] / "typo.toml").write_text('include = ["base.toml", "desing.toml"]\n')
+    with pytest.raises(ConfigError) as err:
+        c.check(files["etc"] / "typo.toml")
+    assert str(err.value) == (f"{(files['etc'] / 'desing.toml').resolve()}: cannot read: No such "
+                              f"file or directory (included by "
+                              f"{(files['etc'] / 'typo.toml').resolve()})")
 
 
 def test_confinement_counts_files(tmp_path: Path) -> None:

@@ -109,10 +109,10 @@ class Confinement:
             A file outside the confinement, not a regular file, too large, or too many files.
         """
         top = self.locate(path, what)
-        todo = [top]
+        todo: list[tuple[Path, Path | None]] = [(top, None)]  # a file, and the file including it
         seen: set[Path] = set()
         while todo:
-            real = todo.pop()
+            real, by = todo.pop()
             if real in seen:
                 continue  # a cycle: read_toml names it
             seen.add(real)
@@ -123,9 +123,13 @@ class Confinement:
                 data = tomllib.loads(self.read(real).decode())
             except (UnicodeDecodeError, tomllib.TOMLDecodeError):
                 continue
+            except ConfigError as exc:
+                if by is None:
+                    raise
+                raise ConfigError(f"{exc} (included by {by})") from None
             inc = data.get("include", [])
             names = [inc] if isinstance(inc, str) else inc if isinstance(inc, list) else []
             for name in names:
                 if isinstance(name, str):
-                    todo.append(self.locate(real.parent / name, f"{real}: include"))
+                    todo.append((self.locate(real.parent / name, f"{real}: include"), real))
         return top
