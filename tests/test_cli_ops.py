@@ -298,6 +298,14 @@ def test_status_table_from_a_status_map() -> None:
     text = format_status(st)
     assert "1000 Hz  ticks 1234  missed 2 (1 waiting for a CPU)" in text
     assert "deadlines   missed 512 (500 waiting for a CPU) of 10000 over the last 10 s" in text
+    # the reference's band limits, each with the axes it holds where they differ
+    narrow, wide = {"band_hz": 48.0, "delay_ms": 7.01}, {"band_hz": 64.0, "delay_ms": 5.26}
+    st["input"] = {"reconstruction": "smooth", "period_ms": 1.0, "lag_ms": 1.7,
+                   "band": {"rails_x": narrow, "rails_y": narrow, "hex_roll": wide}}
+    assert ("band limit 48 Hz (7.01 ms) on rails_x, rails_y; 64 Hz (5.26 ms) on hex_roll "
+            "(design --input-band-hz") in format_status(st)
+    st["input"]["band"] = {"rails_x": narrow, "rails_y": narrow}
+    assert "band limit 48 Hz (7.01 ms) (design --input-band-hz" in format_status(st)
     assert "its loop missed 3 ticks (0 waiting for a CPU)" in text
     assert "received 100  accepted 97  rejected 3 (decode 1, range 2)  superseded 1" in text
     assert "now 0.00 s  total 1.50 s  episodes 2" in text

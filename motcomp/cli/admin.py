@@ -306,11 +306,13 @@ def format_status(st: dict[str, Any]) -> str:
                      f"{float(inp.get('period_ms', 0.0)):.2f} ms  lag "
                      f"{float(inp.get('lag_ms', 0.0)):.2f} ms (design --input-lag-ms)"
                      + (f"  lead {float(inp['lead_ms']):.2f} ms" if inp.get("lead_ms") else ""))
-        bands = sorted({(float(b["band_hz"]), float(b["delay_ms"]))
-                        for b in (inp.get("band") or {}).values()})
+        bands: dict[tuple[float, float], list[str]] = {}
+        for axis, b in (inp.get("band") or {}).items():
+            bands.setdefault((float(b["band_hz"]), float(b["delay_ms"])), []).append(axis)
         if bands:
-            lines.append("            band limit " + ", ".join(
-                f"{hz:g} Hz ({ms:.2f} ms)" for hz, ms in bands)
+            lines.append("            band limit " + "; ".join(
+                f"{hz:g} Hz ({ms:.2f} ms)" + (f" on {', '.join(axes)}" if len(bands) > 1 else "")
+                for (hz, ms), axes in sorted(bands.items()))
                 + " (design --input-band-hz; its delay is cancelled with the lag)")
     if (st.get("frames") or {}).get("received", 1) == 0:
         lines.append(f"stale       waiting for a first frame ({st.get('stale_s', 0.0):.2f} s)")
