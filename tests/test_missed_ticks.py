@@ -211,3 +211,21 @@ def test_the_service_stopped_by_sigstop_keeps_the_limits_across_its_outputs(tmp_
     u = np.array([o[1] for o in outputs])
     assert np.diff(t).max() > 0.15, "the longest stall does not show in the outputs"
     assert_limits_across(t, u, resolve_axes(load_config(cfg)).limits, [X, Y])
+
+
+def test_degraded_windows_are_logged_once_a_minute_while_they_last() -> None:
+    """A host that starves the loop for minutes: the first degraded 10 s window is logged at
+    once, then one a minute, each saying how many went unlogged; the first window that holds
+    again after unlogged ones says so, and the next degraded one is logged at once."""
+    from motcomp.runtime.service import DEGRADED_LOG_EVERY_S, DegradedLog
+
+    assert DEGRADED_LOG_EVERY_S == 60.0
+    d = DegradedLog()
+    said = [d.window(True, 10.0 * k) for k in range(1, 15)]  # 10-140 s, all degraded
+    assert [(k, s) for k, s in enumerate(said, 1) if s] == [
+        (1, ("warning", 0)), (7, ("warning", 5)), (13, ("warning", 5))]
+    assert d.window(False, 150.0) == ("kept", 1)  # the window at 140 s went unlogged
+    assert d.window(False, 160.0) is None
+    assert d.window(True, 170.0) == ("warning", 0)  # a new episode: at once
+    assert d.window(False, 180.0) is None  # nothing went unlogged
+    assert d.window(True, 190.0) == ("warning", 0)

@@ -51,7 +51,8 @@ from half a period of 1 kHz to the transport's spread in about half a second."""
 
 DEGRADED_MISSED_SHARE = 0.02
 """A loop that missed more than this share of its deadlines over a stretch is degraded there:
-the service logs it (a WARNING per window, its status' ``deadlines``) and an identification of
+the service logs it (a WARNING, at most one a minute while it lasts; its status' ``deadlines``
+counts every window) and an identification of
 that stretch warns (docs/DEPLOYMENT.md, docs/IDENTIFICATION.md)."""
 INPUT_GRACE = 25
 """Input-synchronous mode: after a tick on an input, the own clock waits this percentage of a

@@ -92,7 +92,7 @@ from motcomp.runtime.stats import LoopStats
 from motcomp.runtime.supervise import Supervisor
 from motcomp.runtime.systemd import Notifier
 
-__all__ = ["Service"]
+__all__ = ["DegradedLog", "Service"]
 
 log = logging.getLogger("motcomp.service")
 
@@ -113,7 +113,36 @@ MAX_PLATFORM_STATUS_BYTES = 65536
 DEADLINE_WINDOW_S = 10.0
 """The status' ``deadlines`` block counts the deadlines missed over windows this long; one
 with more than :data:`~motcomp.runtime.clock.DEGRADED_MISSED_SHARE` of them missed is logged
-at WARNING (one line per window at most)."""
+at WARNING (:class:`DegradedLog`)."""
+DEGRADED_LOG_EVERY_S = 60.0
+"""While windows stay degraded, a WARNING at most this often (:class:`DegradedLog`)."""
+
+
+class DegradedLog:
+    """Which degraded deadline windows are logged: the first at once, then at most one a
+    :data:`DEGRADED_LOG_EVERY_S` while they go on, saying how many were not logged in between;
+    and, when a window holds again after unlogged ones, one line saying so.  A host that
+    starves the loop for an hour logs 60 lines, not 360; the status counts every window."""
+
+    def __init__(self) -> None:
+        self.logged_at = -math.inf
+        self.unlogged = 0
+
+    def window(self, degraded: bool, now: float) -> tuple[str, int] | None:
+        """``("warning" | "kept", unlogged windows before it)`` to log for a window closed at
+        ``now`` (monotonic s), or None."""
+        if degraded:
+            if now - self.logged_at < DEGRADED_LOG_EVERY_S:
+                self.unlogged += 1
+                return None
+            before, self.unlogged, self.logged_at = self.unlogged, 0, now
+            return "warning", before
+        if self.unlogged:
+            before, self.unlogged = self.unlogged, 0
+            self.logged_at = -math.inf
+            return "kept", before
+        self.logged_at = -math.inf
+        return None
 
 
 def _hand_over() -> None:
@@ -233,6 +262,7 @@ class Service:
         """The last closed window's deadlines (:meth:`_judge_deadlines`)."""
         self._deadline_window = (time.monotonic(), 0, 0, 0)
         """The open window's start: instant, ticks, missed and waiting."""
+        self._degraded_log = DegradedLog()
         self.rt_report = ""
         self._loop_error: BaseException | None = None
         self._source: InputPort | None = None
@@ -558,15 +588,22 @@ class Service:
         fig, then = self._window_figures(window, now)
         self._deadlines = {**fig, "windows_degraded": self._deadlines.get("windows_degraded", 0)
                            + int(fig["degraded"])}
-        if fig["degraded"]:
+        said = self._degraded_log.window(fig["degraded"], now)
+        if said is not None and said[0] == "warning":
             waiting = fig["missed_waiting_cpu"]
             why = (f", {waiting} of them while the loop waited for a CPU that other threads "
                    "held (docs/DEPLOYMENT.md, \"Missed deadlines\")" if waiting is not None
                    else "")
+            more = (f" ({said[1]} more degraded window(s) of {DEADLINE_WINDOW_S:g} s since the "
+                    "last such warning)" if said[1] else "")
             log.warning("missed %d of %d deadlines over the last %.0f s (%.1f %%)%s: the host "
                         "does not give the loop its CPU; delays, command smoothness and "
-                        "identification are degraded until it does", fig["missed"], fig["due"],
-                        now - window[0], 100 * fig["share"], why)
+                        "identification are degraded until it does%s", fig["missed"],
+                        fig["due"], now - window[0], 100 * fig["share"], why, more)
+        elif said is not None:
+            log.info("the loop kept its deadlines again over the last %.0f s (%.1f %% missed), "
+                     "after %d degraded window(s) not logged since the last warning",
+                     now - window[0], 100 * fig["share"], said[1])
         return then
 
     def tick_clock(self) -> dict[str, Any] | None:
