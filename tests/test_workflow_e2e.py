@@ -80,7 +80,7 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
         # 1. identification through the stack
         ident = tmp_path / "ident"
         p = cli("identify", "--live", "--axis", "rails_y", str(tmp_path / "live.mcap"),
-                "--excite-s", "20", "--out", str(ident), "--json", "--quiet", "--no-figures",
+                "--excite-s", "20", "--out", str(ident), "--json", "--no-figures",
                 "-e", svc_ep, "-e", hil_ep)
         skip_if_starved(p, "identification on a host that starved the service")
         if p.returncode == 2 and "so nothing was excited" in p.stderr:
@@ -96,6 +96,13 @@ def test_unknown_platform_to_compensated_in_one_command_per_step(tmp_path: Path)
         assert m and int(m.group(2)) > 15000 and int(m.group(3)) == 0, p.stderr
         print(p.stderr.strip().splitlines()[0])
         assert "compensated again" in p.stderr
+        # each step says so as it starts: the probe, the bypass and recording, then the summary
+        steps = [ln for ln in p.stderr.splitlines() if ln.startswith("live: ")]
+        assert len(steps) >= 3, p.stderr
+        assert steps[0].startswith("live: watching the service for 3 s before anything moves")
+        assert steps[1].startswith("live: rails_y bypassed (compensation off); recording to ")
+        assert "a 20 s multisine at 0.5 of its limits" in steps[1], steps[1]
+        assert "excitation frames on rails_y" in steps[-1], steps
         fragment = ident / "rails_y.toml"
         model = parse_model(re.search(r'model = "([^"]+)"', fragment.read_text()).group(1))
         ident_run = p

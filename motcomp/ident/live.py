@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -143,9 +144,15 @@ def run_live(opts: LiveOptions, endpoints: ZenohEndpoints) -> LiveRun:
     """
     from motcomp.sim.source import Trajectory, publish
 
+    def say(text: str) -> None:  # each step as it starts: nothing is silent for seconds
+        if not opts.quiet:
+            print(f"live: {text}", file=sys.stderr, flush=True)
+
     with open_session(endpoints) as session:
         status = _ask(session, opts.status_key, None, opts.timeout_s)
         if opts.max_missed_share is not None and opts.probe_s > 0:
+            say(f"watching the service for {opts.probe_s:g} s before anything moves (it must "
+                f"keep {100 * (1 - opts.max_missed_share):g} % of its deadlines)")
             time.sleep(opts.probe_s)
             later = _ask(session, opts.status_key, None, opts.timeout_s)
             shares = probe_host(status, later)
@@ -179,6 +186,8 @@ def run_live(opts: LiveOptions, endpoints: ZenohEndpoints) -> LiveRun:
                 raise ServiceError(f"the service refused to bypass {opts.axis}: "
                                    f"{reply.get('error')} (is [admin] enabled?)")
             log.info("%s bypassed for the identification run", opts.axis)
+        say(f"{opts.axis} bypassed (compensation off); recording to {opts.out}, then a "
+            f"{opts.duration_s:g} s {opts.kind} at {opts.usage:g} of its limits")
         stop = threading.Event()
         rec_opts = RecordOptions(out=opts.out, keys=opts.keys, status_key=opts.status_key,
                                  status_timeout_s=opts.timeout_s)
