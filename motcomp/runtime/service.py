@@ -137,12 +137,8 @@ class DegradedLog:
                 return None
             before, self.unlogged, self.logged_at = self.unlogged, 0, now
             return "warning", before
-        if self.unlogged:
-            before, self.unlogged = self.unlogged, 0
-            self.logged_at = -math.inf
-            return "kept", before
-        self.logged_at = -math.inf
-        return None
+        before, self.unlogged, self.logged_at = self.unlogged, 0, -math.inf
+        return ("kept", before) if before else None
 
 
 def _hand_over() -> None:
@@ -582,9 +578,10 @@ class Service:
 
     def _judge_deadlines(self, window: tuple[float, int, int, int], now: float
                          ) -> tuple[float, int, int, int]:
-        """Close a deadline window: the status' ``deadlines`` block, and a WARNING when more
-        than :data:`~motcomp.runtime.clock.DEGRADED_MISSED_SHARE` of its deadlines were missed,
-        saying how many of them the loop spent waiting for a CPU (the host's doing)."""
+        """Close a deadline window: the status' ``deadlines`` block, and, as :class:`DegradedLog`
+        says, a WARNING when more than :data:`~motcomp.runtime.clock.DEGRADED_MISSED_SHARE` of
+        its deadlines were missed, saying how many of them the loop spent waiting for a CPU (the
+        host's doing)."""
         fig, then = self._window_figures(window, now)
         self._deadlines = {**fig, "windows_degraded": self._deadlines.get("windows_degraded", 0)
                            + int(fig["degraded"])}
