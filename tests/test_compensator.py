@@ -279,14 +279,22 @@ def test_bumpless_gain_change() -> None:
 
 def test_bumpless_bypass_on_and_off() -> None:
     c, r = _mid_motion()
-    out = []
+    out, moving = [], []
     for k, x in enumerate(r):
         if k == 3000:
             c.set_bypass([True])
         if k == 6000:
             c.set_bypass([False])
         out.append(c.step([x])[0])
+        moving.append(c.moving)
     out_a = np.array(out)
+    # ``moving`` says the blends: one stretch from each switch's step on, as long as the fade
+    # at least (longer for a larger gap), and nothing else
+    on = np.flatnonzero(moving)
+    first, second = on[on < 6000], on[on >= 6000]
+    assert first[0] == 3000 and second[0] == 6000
+    assert np.all(np.diff(first) == 1) and np.all(np.diff(second) == 1)
+    assert first.size >= round(c.fade_s * 1000) and second.size >= round(c.fade_s * 1000)
     d = np.abs(np.diff(out_a))
     normal = np.max(d[2000:2990])
     assert d[2999] <= 2 * normal and d[5999] <= 2 * normal

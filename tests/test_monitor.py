@@ -7,6 +7,7 @@ loopback zenoh) whose status agrees with the offline estimate of the recorded st
 from __future__ import annotations
 
 import math
+import re
 import signal
 import time
 from pathlib import Path
@@ -26,7 +27,12 @@ from motcomp.core.tick import MAX_ERROR_CHARS
 from motcomp.io.memory import MemorySink, MemorySource
 from motcomp.io.wire import encode_feedback, encode_input
 from motcomp.io.zenoh_io import ZenohEndpoints, free_tcp_port, loopback, open_session
-from motcomp.runtime.monitor import COMMAND_WINDOW_S, MAX_FEEDBACK_BYTES, MotionMonitor
+from motcomp.runtime.monitor import (
+    COMMAND_WINDOW_S,
+    FEEDBACK_STALE_S,
+    MAX_FEEDBACK_BYTES,
+    MotionMonitor,
+)
 from motcomp.runtime.probe import HostProbe
 from motcomp.runtime.service import Service
 from tests._frames import anything
@@ -499,6 +505,95 @@ def test_status_blocks_from_the_service_tick() -> None:
     hex_fig = st["axes_quality"]["hex_z"]
     assert not hex_fig["delay_valid"] and hex_fig["delay_reason"].startswith("too few feedback")
     assert st["feedback"]["received"] == n - delay_ticks and st["feedback"]["bad"] == 0
+
+
+def test_a_bypass_switch_is_never_read_as_a_mixture_of_two_delays() -> None:
+    """The service's own tick compensating rails_x and rails_y (the example config), a platform
+    that is the config's P1D model of each (so compensated, each reads a few ms), and a bypass
+    of rails_y mid-drive (its PID and prediction fade out): rails_y's delay read 4 -> 18 -> 39
+    -> ... -> 207 ms, all valid, over the window after the switch; now every valid reading after
+    it is the bypassed delay, the status says why until one is, and rails_x is untouched."""
+    import threading
+
+    svc, src, sink = make_service(bypass_y=False)
+    X = AXIS_INDEX["rails_x"]
+    models = svc.state.comp.models
+    period = 1e-3
+    delays = {i: round(models[i].Td / period) for i in (X, Y)}
+    decay = {i: math.exp(-period / models[i].Tp1) for i in (X, Y)}
+    sent: dict[int, list[float]] = {X: [], Y: []}
+    y = {X: 0.0, Y: 0.0}
+    readings: list[tuple[float, dict[str, Any], dict[str, Any]]] = []
+    switch_k = 16000
+    switcher: threading.Thread | None = None
+    for k in range(30000):
+        t = k / 1000
+        src.push(encode_input(k, t, {"rails_x": 0.3 * math.sin(2 * math.pi * 0.25 * t),
+                                     "rails_y": 0.4 * math.sin(2 * math.pi * 0.32 * t)}))
+        if k == switch_k:  # the admin's request, answered by the loop between two ticks
+            switcher = threading.Thread(target=svc.request_bypass, args=(True, ["rails_y"]))
+            switcher.start()
+            while not svc.commands:
+                time.sleep(0.001)
+        svc.tick(T0 + k * MS)
+        pos = msgpack.unpackb(sink.payloads[-1])["pos"]
+        for i, axis in ((X, "rails_x"), (Y, "rails_y")):
+            sent[i].append(pos[axis])
+            u = sent[i][k - delays[i]] if k >= delays[i] else 0.0
+            y[i] = decay[i] * y[i] + (1 - decay[i]) * models[i].K * u
+        svc.monitor.on_feedback(T0 + k * MS + MS // 2,
+                                feedback({"rails_x": y[X], "rails_y": y[Y]}, T0 + k * MS))
+        if k % 20 == 0:
+            svc.monitor.drain()
+        if k >= 12000 and k % 500 == 0:
+            rep = svc.monitor.report(T0 + k * MS, svc.state.ticks, list(svc.state.acted),
+                                     [i in (X, Y) for i in range(N_AXES)],
+                                     [RANGE[0]] * N_AXES, [RANGE[1]] * N_AXES)
+            readings.append((t, rep["axes"]["rails_x"], rep["axes"]["rails_y"]))
+    assert switcher is not None
+    switcher.join(5.0)
+    assert svc.state.comp.bypass[Y] and not svc.state.comp.bypass[X]
+    before = [fy for t, _, fy in readings if t < switch_k / 1000]
+    after = [(t, fy) for t, _, fy in readings if t > switch_k / 1000]
+    assert all(f["delay_valid"] and abs(f["apparent_delay_ms"]) < 10 for f in before), before
+    bypassed = after[-1][1]["apparent_delay_ms"]
+    assert after[-1][1]["delay_valid"] and bypassed > 150, after[-1]
+    valid = [(t, f) for t, f in after if f["delay_valid"]]
+    assert all(abs(f["apparent_delay_ms"] - bypassed) < 3.0 for _, f in valid), valid
+    # the fade (0.5 s at least), the largest lag (0.6 s) and the shortest span (2 s): then valid
+    # the fade (0.5 s, longer for a larger gap: 1.2 s here), the largest lag (0.6 s), then 2 s
+    # of span -- and a few iterations' more: a short window of a 200 ms lag may not converge
+    assert valid and valid[0][0] - switch_k / 1000 <= 6.0, after[:12]
+    waiting = [f["delay_reason"] for t, f in after if not f["delay_valid"]]
+    assert waiting and "since the axis' compensation changed" in waiting[0], waiting
+    assert all("since the axis' compensation changed" in why or why.startswith("no convergence")
+               for why in waiting), waiting
+    assert all(fx["delay_valid"] and abs(fx["apparent_delay_ms"]) < 10
+               for _, fx, _ in readings), [fx for _, fx, _ in readings]
+
+
+def test_the_service_logs_when_the_platform_feedback_stops_and_comes_back(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """The platform stopping its feedback was seen in the status only ("no feedback for 6.6 s");
+    now the service logs it once when it is FEEDBACK_STALE_S old, and once when it is back."""
+    svc, _, _ = make_service(bypass_y=True)
+    frame = feedback({"rails_y": 0.0}, T0)
+    assert svc._watch_feedback(None) is None  # no feedback yet: nothing to lose
+    svc.monitor.on_feedback(time.perf_counter_ns(), frame)
+    svc.monitor.drain()
+    with caplog.at_level("INFO", logger="motcomp.service"):
+        assert svc._watch_feedback(None) is None
+        time.sleep(FEEDBACK_STALE_S + 0.1)
+        lost = svc._watch_feedback(None)
+        assert lost is not None and svc._watch_feedback(lost) == lost  # said once
+        warned = [r for r in caplog.records if r.levelname == "WARNING"]
+        assert len(warned) == 1 and re.fullmatch(
+            r"platform feedback: none for \d\.\d s \(1 frames before\): the apparent delay "
+            r"and the model supervision wait for it", warned[0].getMessage()), caplog.text
+        svc.monitor.on_feedback(time.perf_counter_ns(), frame)
+        svc.monitor.drain()
+        assert svc._watch_feedback(lost) is None
+    assert re.search(r"platform feedback: back after \d\.\d s", caplog.text), caplog.text
 
 
 def test_status_table_shows_the_figures_with_units() -> None:

@@ -553,11 +553,14 @@ def test_a_switch_off_fades_the_prediction_over_fade_in_s() -> None:
     n, k0 = 3500, 2000
     x = sine(0.3, n)
     pred = Prediction([P], MON, RATE)
-    out, w = np.empty(n), np.empty(n)
+    out, w, moving = np.empty(n), np.empty(n), np.empty(n, dtype=int)
     for k in range(n):
         out[k] = pred.step([float(x[k])], True, k < k0)[0]
         w[k] = pred.weight[0]
+        moving[k] = pred.moving
     fade = round(MON.fade_in_s * RATE)
+    # ``moving`` says the fade, and nothing else (the fade-in at the start included)
+    np.testing.assert_array_equal(moving[k0 - 50:], (w[k0 - 50:] != w[k0 - 51:-1]).astype(int))
     assert MON.fade_in_s > 2 * MON.fade_out_s
     assert w[k0 - 1] == 1.0 and 0.4 < w[k0 + fade // 2] < 0.6 and w[k0 + fade] == 0.0
     assert pred.fallbacks == [0] and pred.predicting() == [False]

@@ -163,8 +163,15 @@ def test_reload_in_process_keeps_the_old_config_on_failure(tmp_path: Path) -> No
         r = svc.reload()
         assert r["ok"] and r["version"] == 2 and svc.config_version == 2, r
         assert r["unchanged"] is False  # another config
+        time.sleep(0.05)  # a few ticks
+        # the status' delay is measured afresh on every axis after a change of config
+        marked = list(svc.monitor._changed_ns)
+        assert all(m is not None for m in marked), marked
         again = svc.reload()  # the same file again: said (an operator meant another file?)
         assert again["ok"] and again["unchanged"] is True and svc.config_version == 3, again
+        time.sleep(0.05)  # ...but not after the same config again (rails_y may still blend)
+        assert [m for i, m in enumerate(svc.monitor._changed_ns) if i != Y] == [
+            m for i, m in enumerate(marked) if i != Y]
         assert svc.axes.gains[Y] == tune("amigo", RAILS).gains
         kept = (svc.cfg, svc.axes, svc.params, svc.config_id)
         for name, (text, *reasons) in INVALID.items():

@@ -214,10 +214,10 @@ def test_an_alarm_needs_the_whole_hold_beyond_the_bound_with_confidence() -> Non
     cfg = SupervisionConfig(delay_bound_ms=2.5, hold_s=8.0)
     j = DriftJudge(cfg)
     t = 0.0
-    for _ in range(4):  # 6 s beyond: not yet
+    for _ in range(4):  # 6 s beyond: not yet, but the state says it is beyond
         assert j.update("rails_y", _fig(5.0), t, t) is None
         t += 2.0
-    assert not j.block("rails_y")["alarm"]
+    assert not j.block("rails_y")["alarm"] and j.block("rails_y")["state"] == "exceeds"
     text = j.update("rails_y", _fig(5.0), t, t)  # 8 s: the alarm, with its numbers
     assert text and "+5.00 +- 0.20 ms" in text and "identify --from-status" in text
     assert j.block("rails_y")["state"] == "drift" and j.block("rails_y")["alarms"] == 1
@@ -237,7 +237,7 @@ def test_no_alarm_when_the_interval_reaches_the_bound_or_a_window_is_not_informa
     se = 1.0
     for k in range(20):  # beyond the bound, but not by CONFIDENCE_Z standard errors
         j.update("rails_y", _fig(2.5 + CONFIDENCE_Z * se - 0.01, se=se), 2.0 * k, 2.0 * k)
-    assert not j.block("rails_y")["alarm"]
+    assert not j.block("rails_y")["alarm"] and j.block("rails_y")["state"] == "at the bound"
     for k in range(20):  # beyond, but every other window within: never held
         j.update("rails_y", _fig(9.0 if k % 2 else 0.0), 40 + 2.0 * k, 40 + 2.0 * k)
     assert not j.block("rails_y")["alarm"] and j.block("rails_y")["alarms"] == 0
@@ -545,10 +545,10 @@ def test_an_estimate_whose_interval_holds_the_bound_moves_neither_way() -> None:
     # 2.0 +- 2 x 0.4 ms: within the bound, but its interval is not: the alarm stays
     for k in range(10):
         j.update("rails_y", _fig(2.0, se=0.4), 10 + 2.0 * k, 10 + 2.0 * k)
-    assert j.block("rails_y")["alarm"]
+    assert j.block("rails_y")["alarm"] and j.block("rails_y")["state"] == "drift"
     for k in range(4):
         j.update("rails_y", _fig(1.0, se=0.4), 40 + 2.0 * k, 40 + 2.0 * k)
-    assert not j.block("rails_y")["alarm"]
+    assert not j.block("rails_y")["alarm"] and j.block("rails_y")["state"] == "within"
 
 
 def test_the_service_process_does_not_load_what_only_the_estimator_needs() -> None:
@@ -677,7 +677,7 @@ def test_an_axis_blind_for_two_minutes_of_motion_is_said_unsupervised(
     assert block["state"] == "unsupervised" and block["unsupervised"]
     with caplog.at_level("INFO", logger="motcomp.supervise"):
         j.update("rails_y", _fig(0.3), t, t)
-    assert j.block("rails_y")["state"] == "ok" and j.block("rails_y")["blind_s"] == 0.0
+    assert j.block("rails_y")["state"] == "within" and j.block("rails_y")["blind_s"] == 0.0
     assert "supervised again" in caplog.text
 
 

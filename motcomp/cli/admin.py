@@ -301,7 +301,11 @@ def format_status(st: dict[str, Any]) -> str:
     if fr.get("last_reject"):
         lines.append(f"            last rejection: {fr['last_reject']}")
     inp = st.get("input") or {}
-    if inp:
+    if inp and not fr.get("accepted"):  # the period and the lag are the frames' own
+        lines.append(f"input       {inp.get('reconstruction', '?')}  period and lag from the "
+                     "first frames on (the config's playback lag "
+                     f"{float(inp.get('playback_lag_ms', 0.0)):.2f} ms)")
+    elif inp:
         lines.append(f"input       {inp.get('reconstruction', '?')}  period "
                      f"{float(inp.get('period_ms', 0.0)):.2f} ms  lag "
                      f"{float(inp.get('lag_ms', 0.0)):.2f} ms (design --input-lag-ms)"

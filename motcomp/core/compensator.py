@@ -299,6 +299,9 @@ class Compensator:
         self._set_models(models)
         self._set_gains(gains)
         self.flags: list[int] = [0] * n
+        self.moving = 0
+        """Bit ``i`` set: axis ``i``'s last step blended between compensation and bypass (its
+        weight or the difference it blends out still moving)."""
         self.reset(np.zeros(n) if position is None else position)
 
     # --- configuration ------------------------------------------------------------------------
@@ -663,6 +666,7 @@ class Compensator:
         flags = [0] * self.n
         dev = self.deviation
         windows = self._window
+        moving = 0
         for i, ((kp, kih, ad, q, kd, b, c), (phi, g0, g1, off0, off1), lim) in enumerate(zip(
                 self._gain_p, self._model_p, self._lim, strict=True)):
             win = windows[i]
@@ -692,6 +696,7 @@ class Compensator:
             else:
                 progress = wp[i]
                 if progress < 1.0:  # a switch (module docstring)
+                    moving |= 1 << i
                     w = min_jerk_between(wf[i], wt[i], progress)
                     progress += wstep[i]
                     wp[i] = min(progress, 1.0)
@@ -700,6 +705,7 @@ class Compensator:
                     w = ws[i]
                 progress = eps[i]
                 if progress < 1.0:
+                    moving |= 1 << i
                     e = horner(es[i], progress)
                     eps[i] = min(progress + estep[i], 1.0)
                 target = v if w >= 1.0 else r if w <= 0.0 else r + w * (v - r)
@@ -723,6 +729,7 @@ class Compensator:
             flags[i] = fl | sat
         self._k = k + 1
         self.flags = flags
+        self.moving = moving
         return out
 
     def run(self, references: ArrayLike) -> tuple[FloatArray, np.ndarray]:

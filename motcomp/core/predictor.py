@@ -283,6 +283,9 @@ class Prediction:
         """Share of the prediction in the reference per axis: 1 predicting, 0 fallen back."""
         self.fallbacks = [0] * self.n
         """Times the band monitor made each axis fall back (a switch-off is not counted)."""
+        self.moving = 0
+        """Bit ``i`` set: axis ``i``'s prediction faded in or out at the last step (its weight
+        or the offset it blends out still moving)."""
         self._configure(params, None)
 
     # --- configuration ------------------------------------------------------------------------
@@ -299,6 +302,7 @@ class Prediction:
                 if i < len(params) and params[i] == self.params[i]} if self.params else {}
         self.params = tuple(params)
         self.idx[:] = [i for i, p in enumerate(params) if p is not None]
+        self.moving = 0
         m = len(self.idx)
         order = max((p.order for p in params if p is not None), default=1)
         self._a = np.zeros((m, order, order))
@@ -435,6 +439,7 @@ class Prediction:
         off, off_p = self._offset, self._offset_progress
         fallen = self._fallen
         out = list(reference)
+        moving = 0
         for j, i in enumerate(idx):
             x = r[j]
             b0, b1, b2, a1, a2 = hp[j]
@@ -475,11 +480,13 @@ class Prediction:
                 prog[j] = 0.0
                 target[j] = want
             if prog[j] < 1.0:
+                moving |= 1 << i
                 quick = target[j] < 0.5 and (asked or not up)  # a fallback, the input lost
                 prog[j] = min(prog[j] + (inc_out if quick else inc_in), 1.0)
                 w[j] = min_jerk_between(w0[j], target[j], prog[j])
             o = 0.0
             if off_p[j] < 1.0:
+                moving |= 1 << i
                 off_p[j] = min(off_p[j] + inc_in, 1.0)
                 o = off[j] * min_jerk_weight(off_p[j])
             if finite[j]:
@@ -487,6 +494,7 @@ class Prediction:
             self.ratio[i] = ratio
             self.weight[i] = w[j]
         self._r_last = r
+        self.moving = moving
         if self._settle:
             self._settle -= 1
         return out

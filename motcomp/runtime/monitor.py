@@ -45,7 +45,10 @@ The delay, step by step (``h`` = :data:`BIN_S`)
    (:data:`LAG_RANGE_S`): a tick that was not live (the input's start-up or resume blend, a
    stale input, parking: the tick's mode) moves the platform otherwise than by the compensated
    reference, so the window holds the last span of live ticks only, as far as it lies within
-   the last ``window_s``.
+   the last ``window_s``.  Per axis likewise, the window starts as after a tick that was not
+   live after the last tick at which the axis' compensation changed (a bypass switch or a
+   reload, the blends they start, its prediction fading in or out): a window holds one way of
+   moving the platform, not a mixture of two.
 3. From ``d = 0``: ``r(t - d)`` over ``[A, B)`` (linear between bins) and ``y``, each with its
    weighted mean removed and tapered by the same Tukey window (cosine edges over
    :data:`TAPER_FRACTION` of it), go to ``estimate_delay`` (lags within the range); ``d`` grows
@@ -60,10 +63,12 @@ The delay, step by step (``h`` = :data:`BIN_S`)
 Validity (``delay_valid`` false, ``delay_reason`` says which; the value is None unless a delay
 was computed): no feedback yet, or none for :data:`FEEDBACK_STALE_S`; less than
 :data:`MIN_SPAN_S` of feedback (of live input: after a start or a resume, the first ``max_lag -
-min_lag + MIN_SPAN_S`` (2.7 s) after the blend; once the input stops, from ``window_s`` less
-``MIN_SPAN_S`` after); the axis in fewer than :data:`MIN_FEEDBACK_COVERAGE` of the bins; the
-reference's standard deviation over the window below :data:`MIN_MOTION_FRACTION` of the axis
-range; the feedback constant, the correlation's peak on the edge of the lags, or no convergence;
+min_lag + MIN_SPAN_S`` (2.7 s) after the blend -- and after an axis' change of compensation;
+once the input stops, from ``window_s`` less ``MIN_SPAN_S`` after); the axis in fewer than
+:data:`MIN_FEEDBACK_COVERAGE` of the bins; the reference's standard deviation over the window
+below :data:`MIN_MOTION_FRACTION` of the axis range; the feedback constant, the correlation's
+peak on the edge of the lags, or no convergence (the iteration of step 3 still moving by more
+than 1 % of a bin after ten steps: the motion does not tell one delay);
 ``delay_corr`` below :data:`MIN_CORRELATION`; the limiter acting on more than
 :data:`MAX_LIMITED_SHARE` of the window's ticks (the value is still given).
 
@@ -256,6 +261,10 @@ class MotionMonitor:
         not (None: none was) and of the first after it (None: live now)."""
         self._was_live = False
         self._not_live_ns: int | None = None
+        self._changed_ns: list[int | None] = [None] * N_AXES
+        """Per axis, the input instant of the last tick whose compensation was changing (a
+        bypass switch or a reload, and the blends they start; None: none was)."""
+        self._changes = 0
         # feedback subscriber's thread -> main thread
         self._inbox: deque[tuple[int, bytes]] = deque(maxlen=1 << 14)
         self.fb_dropped = 0
@@ -280,13 +289,21 @@ class MotionMonitor:
 
     # --- the loop thread ------------------------------------------------------------------
     def record(self, t_ns: int, ref: list[float], u: list[float], lag_ns: int = 0,
-               live: bool = True) -> None:
+               live: bool = True, changing: int = 0) -> None:
         """One tick at ``t_ns``: the input ``ref`` at the instant ``t_ns - lag_ns`` and the
         command ``u`` the tick sent (lists in :data:`AXES` order); ``live`` False for a tick
-        whose mode was not (start-up or resume blend, stale input, parking)."""
+        whose mode was not (start-up or resume blend, stale input, parking); bit ``i`` of
+        ``changing`` set where axis ``i``'s compensation was changing (blending between
+        compensation and bypass, its prediction fading)."""
         k = self._n % self._cap
         self._t[k] = t_ns
         self._t_in[k] = t_ns - lag_ns
+        changing |= self._changes
+        if changing:
+            self._changes = 0
+            for i in range(N_AXES):
+                if changing >> i & 1:
+                    self._changed_ns[i] = t_ns - lag_ns
         if live:
             if not self._was_live:  # a live span starts
                 self._was_live = True
@@ -298,6 +315,12 @@ class MotionMonitor:
             self._not_live_ns = t_ns - lag_ns
         self._ru[k] = ref + u
         self._n += 1
+
+    def changed(self, axes: int) -> None:
+        """The compensation of the axes whose bits are set changed at once (gains, models or
+        prediction swapped, a bypass switch): the next tick recorded is the first of the new
+        one.  Called from the loop thread, between ticks."""
+        self._changes |= axes
 
     # --- the feedback subscriber's thread -------------------------------------------------
     def on_feedback(self, t_ns: int, payload: bytes) -> None:
@@ -331,6 +354,13 @@ class MotionMonitor:
             self._fn += 1
             good += 1
         return good
+
+    def feedback_age_s(self, now_ns: int) -> float | None:
+        """Seconds from the arrival of the newest good feedback frame drained to ``now_ns``
+        (None: none yet)."""
+        if not self._fn:
+            return None
+        return (now_ns - int(self._ft[(self._fn - 1) % self._fcap])) / 1e9
 
     def _bad(self, text: str) -> None:
         self.fb_bad += 1
@@ -368,6 +398,7 @@ class MotionMonitor:
         self.drain()
         share = self._limited_share(now_ns, ticks, acted)
         n, live = self._n, self._live  # (the live span as of the ticks read)
+        changed = list(self._changed_ns)
         m = min(n, self._report_rows)
         idx = np.arange(n - m, n) % self._cap
         t_r = self._t[idx]
@@ -398,11 +429,14 @@ class MotionMonitor:
                                    "limited_share": share[i] if share else None,
                                    "hf_acc_rms": None, "jerk_rms": None, "acc_peak": None}
             try:
-                if isinstance(window, str):
-                    fig["delay_reason"] = window
+                own = window
+                if changed[i] is not None and not isinstance(window, str):
+                    own = self._window(t_in, t_y, arrived, live, changed[i])
+                if isinstance(own, str):
+                    fig["delay_reason"] = own
                 else:
                     fig.update(self._delay(t_in, ru[:, col[i]], t_y, self._fpos[fidx, i],
-                                           window, float(p_max[i]) - float(p_min[i])))
+                                           own, float(p_max[i]) - float(p_min[i])))
                     if fig["delay_valid"] and share and share[i] > MAX_LIMITED_SHARE:
                         fig["delay_valid"] = False
                         fig["delay_reason"] = (
@@ -477,8 +511,11 @@ class MotionMonitor:
         return t, fidx
 
     def _window(self, t_r: np.ndarray, t_y: np.ndarray, arrived: np.ndarray,
-                live: tuple[int | None, int | None] = (None, None)) -> tuple[int, int] | str:
-        """The feedback window ``(A, B)`` in absolute bins (step 2), or why there is none."""
+                live: tuple[int | None, int | None] = (None, None),
+                changed: int | None = None) -> tuple[int, int] | str:
+        """The feedback window ``(A, B)`` in absolute bins (step 2), or why there is none;
+        ``changed``: the input instant of the axis' last change of compensation (the window
+        starts as after a tick that was not live)."""
         if t_y.size == 0:
             return "no feedback received"
         if t_r.size == 0:
@@ -498,6 +535,13 @@ class MotionMonitor:
             start, clipped = live_from // b + 1 + self._hi, True
         if live_to is not None and live_to // b + self._lo < end:
             end, clipped = live_to // b + self._lo, True
+        if changed is not None and changed // b + 1 + self._hi > start:
+            start = changed // b + 1 + self._hi
+            if (end - start) * b < MIN_SPAN_S * 1e9:
+                return (f"{max(0, end - start) * b / 1e9:.1f} s of feedback since the axis' "
+                        f"compensation changed (needs {MIN_SPAN_S:g} s; left out: a bypass "
+                        "switch or a reload, the blends they start, a prediction's fade and "
+                        f"the next {LAG_RANGE_S[1]:g} s)")
         if clipped and (end - start) * b < MIN_SPAN_S * 1e9:
             return (f"{max(0, end - start) * b / 1e9:.1f} s of feedback on live input in the "
                     f"last {self.window_s:g} s (needs {MIN_SPAN_S:g} s; left out: the input's "

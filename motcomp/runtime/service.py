@@ -47,7 +47,7 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -82,6 +82,7 @@ from motcomp.runtime.confine import Confinement
 from motcomp.runtime.monitor import (
     BIN_S,
     COMMAND_WINDOW_S,
+    FEEDBACK_STALE_S,
     LAG_RANGE_S,
     MotionMonitor,
     starved_out,
@@ -335,10 +336,11 @@ class Service:
             io = t_end - t_io
             if self._clocked:
                 taken = t_end
-        out = step(self.state, self.params, now_ns, payload, skipped, taken)
-        shaper = self.state.shaper
+        state = self.state
+        out = step(state, self.params, now_ns, payload, skipped, taken)
+        shaper = state.shaper
         self.monitor.record(now_ns, shaper.played, out.u, round(shaper.played_lag_s * 1e9),
-                            not out.mode)
+                            not out.mode, state.comp.moving | state.pred.moving)
         t_wall = self._t_wall0 + (now_ns - self._t_mono0) / 1e9
         t_io = perf()
         for port in self._ports:
@@ -419,7 +421,7 @@ class Service:
                     off[i] = on
                     pid[i] = on or (cfg_axes.bypass[i]
                                     and (axes is None or cfg_axes.predict[i]))
-            result.extend(set_bypass(self.state, pid, off))
+            result.extend(self._set_bypass(pid, off))
             done.set()
 
         self.run_between_ticks(apply, done, "the bypass change")
@@ -428,6 +430,18 @@ class Service:
                  ", ".join(names) or "no axis", "off" if on else "on",
                  f"; {', '.join(by_prediction)}: by prediction alone, the PID bypassed by the "
                  "config" if by_prediction else "")
+        return result
+
+    def _set_bypass(self, pid: Sequence[object], off: Sequence[object]) -> list[str]:
+        """:func:`set_bypass` (on the loop thread, between ticks), the delay monitor told
+        which axes it changed."""
+        st = self.state
+        before = list(zip(st.comp.bypass, st.prediction_off, strict=True))
+        result = set_bypass(st, pid, off)
+        after = list(zip(st.comp.bypass, st.prediction_off, strict=True))
+        self.monitor.changed(sum(1 << i for i, (was, now) in enumerate(zip(before, after,
+                                                                            strict=True))
+                                 if was != now))
         return result
 
     def run_between_ticks(self, fn: Callable[[], None], done: threading.Event, what: str,
@@ -460,7 +474,9 @@ class Service:
             else:
                 comp.reconfigure(models, gains, new.axes.limits)
             comp.set_fade(new.cfg.loop.bypass_fade_s)
-            set_bypass(self.state, new.axes.bypass, [False] * len(AXES))
+            self._set_bypass(new.axes.bypass, [False] * len(AXES))
+            if new.digest != self.config_id:  # the delay is measured afresh on every axis
+                self.monitor.changed((1 << len(AXES)) - 1)
             self.params = new.params
             self.cfg = new.cfg
             self.axes = new.axes
@@ -905,6 +921,24 @@ class Service:
                                          self._clock.missed if self._clock else 0):
             log.warning("%s", text)
 
+    def _watch_feedback(self, lost_ns: int | None) -> int | None:
+        """Log when the platform's feedback stops for :data:`FEEDBACK_STALE_S` (WARNING) and
+        when it comes back (INFO); returns the arrival of the last frame before the loss, or
+        None while the feedback comes (or never came)."""
+        now = time.perf_counter_ns()
+        age = self.monitor.feedback_age_s(now)
+        if age is None:
+            return None
+        if lost_ns is None and age > FEEDBACK_STALE_S:
+            log.warning("platform feedback: none for %.1f s (%d frames before): the apparent "
+                        "delay and the model supervision wait for it", age,
+                        self.monitor.fb_received)
+            return now - round(age * 1e9)
+        if lost_ns is not None and age <= FEEDBACK_STALE_S:
+            log.info("platform feedback: back after %.1f s", (now - lost_ns) / 1e9 - age)
+            return None
+        return lost_ns
+
     def _poll_platform(self) -> None:
         """Keep the figures of the platform's newest status frame (docs/WIRE.md: those it
         reports of ``PLATFORM_FIGURES``, numbers only), with the instant it arrived."""
@@ -937,6 +971,7 @@ class Service:
         ready = False
         seen = ModeLog(self.state)
         clamps, clamps_logged = 0, -math.inf
+        feedback_lost: int | None = None
         window = self._deadline_window = (time.monotonic(), 0, 0, 0)
         while not self.loop_done.is_set():
             self.loop_done.wait(0.02)
@@ -944,6 +979,7 @@ class Service:
             self._poll_feedback()
             self._poll_platform()
             self.monitor.drain()
+            feedback_lost = self._watch_feedback(feedback_lost)
             if ready and self._t_mono0:
                 self._supervise(now)
             seen.update(self.state, self.params)

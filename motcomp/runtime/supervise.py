@@ -140,6 +140,8 @@ class _AxisState:
     last_reason: dict[str, str] = field(default_factory=dict)
     """The latest reason of each kind."""
     unsupervised: bool = False
+    verdict: str = ""
+    """The last informative estimate's: ``within``, ``exceeds`` or ``at the bound``."""
 
 
 # what each kind of reason a window is not judged for asks of the host or of the driving
@@ -181,7 +183,9 @@ class DriftJudge:
     ``hold_s`` before the last -- all exceeded; it clears when they were all within.  An
     estimate that is neither (its interval holds a bound) restarts both runs; one that is not
     informative tells nothing either way and changes neither run.  An alarm stays as it is
-    until it clears.
+    until it clears.  An axis' state is ``drift`` while its alarm is on, else the last
+    estimate's verdict: ``within``, ``exceeds`` (no alarm yet: the run is shorter than
+    ``hold_s``), ``at the bound`` (neither), or ``not informative``.
 
     An axis whose windows with motion in the band were not informative for
     :data:`BLIND_AFTER_S` is *unsupervised* (its state; a WARNING once, with the reasons and
@@ -223,9 +227,6 @@ class DriftJudge:
         st.blind_s, st.unsupervised = 0.0, False
         st.blind.clear()
         st.last_reason.clear()
-        if st.last_t is None:  # informative, but nowhere in time yet: nothing to hold
-            return None
-        t = st.last_t
         delay, gain = fig["residual_delay_ms"], fig["gain_error"]
         z_delay = CONFIDENCE_Z * fig["residual_delay_se_ms"]
         z_gain = CONFIDENCE_Z * fig["gain_error_se"]
@@ -233,6 +234,10 @@ class DriftJudge:
                    or abs(gain) - z_gain > cfg.gain_bound)
         within = (abs(delay) + z_delay <= cfg.delay_bound_ms
                   and abs(gain) + z_gain <= cfg.gain_bound)
+        st.verdict = "exceeds" if exceeds else "within" if within else "at the bound"
+        if st.last_t is None:  # informative, but nowhere in time yet: nothing to hold
+            return None
+        t = st.last_t
         if not exceeds and not within:  # the interval holds a bound: neither run goes on
             st.exceeding_since = st.within_since = None
             st.exceeding_n = st.within_n = 0
@@ -288,7 +293,7 @@ class DriftJudge:
                     "unsupervised": False}
         fig = st.last
         state = ("drift" if st.alarm else "unsupervised" if st.unsupervised
-                 else "ok" if fig.get("informative") else "not informative")
+                 else st.verdict if fig.get("informative") else "not informative")
         return {"state": state, "alarm": st.alarm, "alarm_since_t": st.alarm_since,
                 "alarms": st.alarms, "windows": st.judged, "informative_windows": st.informative,
                 "blind_s": st.blind_s, "unsupervised": st.unsupervised, **fig,
