@@ -403,6 +403,7 @@ def test_a_starved_loop_says_so_and_the_platform_s_stack_delay_is_shown(tmp_path
         st = json.loads(p.stdout)
         table = cli("status", "-e", loopback(p_svc)).stdout
     assert "WARNING" in log and "the host does not give the loop its CPU" in log, log
+    assert "%: more than 2 %)" in log, log
     assert first.returncode == 0, first.stderr
     early = json.loads(first.stdout)["deadlines"]
     assert early["open"] and early["degraded"] and early["windows_degraded"] == 0, early

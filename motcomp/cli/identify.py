@@ -442,8 +442,11 @@ def _run_live(args: argparse.Namespace) -> None:
     inside = (cols.t - cols.start_s >= t0) & (cols.t - cols.start_s <= t1)
     limited = int(cols.limited[inside].sum())
     compensated = int((~cols.bypassed[inside]).sum())
+    skipped = (f"; {run.frames_skipped} samples not sent: their instants passed while the "
+               "sender was stalled (a busy host)" if run.frames_skipped else "")
     print(f"live: {run.frames_sent} excitation frames on {args.axis} "
-          f"({run.excitation['kind']}, {args.usage:g} of its limits) recorded to {run.path}; "
+          f"({run.excitation['kind']}, {args.usage:g} of its limits) recorded to {run.path}"
+          f"{skipped}; "
           f"excitation {t0:.2f}-{t1:.2f} s; limiter acted on {limited} of {int(inside.sum())} "
           f"feedback samples, compensation on at {compensated}; axis "
           f"{'left bypassed' if run.was_bypassed else 'compensated again'}", file=sys.stderr)

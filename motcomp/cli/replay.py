@@ -126,13 +126,17 @@ def _offline(args: argparse.Namespace) -> int:
     several = len(args.files) > 1
     summaries = []
     t0 = time.perf_counter()
+    last: tuple[FileReplay, dict[str, Any]] | None = None  # its report after the progress' end
     with Progress("replaying", 1.0, quiet=args.quiet, counts=False) as bar:
         for fr in replay_files(args.files, configs, args.jobs, args.run, args.bypass,
                                bar.update):
             summaries.append(_summary(args, fr, several, time.perf_counter() - t0))
-            if not args.json:
-                _print_report(fr, summaries[-1])
+            if last is not None and not args.json:
+                _print_report(*last)
+            last = (fr, summaries[-1])
             t0 = time.perf_counter()
+    if last is not None and not args.json:
+        _print_report(*last)
     if args.json:
         print_json(summaries if several else summaries[0])
     sys.stdout.flush()

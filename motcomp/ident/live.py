@@ -85,6 +85,8 @@ class LiveRun:
     was_bypassed: bool
     excitation: dict[str, Any]
     frames_sent: int
+    frames_skipped: int = 0
+    """Samples not sent: their instants passed while the sender was stalled (a busy host)."""
 
 
 def _ask(session: Any, key: str, body: dict[str, Any] | None, timeout_s: float) -> Any:
@@ -238,4 +240,4 @@ def run_live(opts: LiveOptions, endpoints: ZenohEndpoints) -> LiveRun:
                               reply.get("error"))
     if "error" in result:
         raise ServiceError(f"recording failed: {result['error']}") from result["error"]
-    return LiveRun(opts.out, (t0, t1), was_bypassed, exc.summary(), stats.sent)
+    return LiveRun(opts.out, (t0, t1), was_bypassed, exc.summary(), stats.sent, stats.skipped)

@@ -14,7 +14,7 @@ import numpy as np
 
 from motcomp.core.axes import AXES, unit
 from motcomp.record.session import Session
-from motcomp.replay.analysis import MIN_MOTION, held_commands
+from motcomp.replay.analysis import MIN_MOTION, SETTLE_S, held_commands
 from motcomp.replay.offline import ReplayRun
 
 __all__ = ["write_plots"]
@@ -82,6 +82,10 @@ def write_plots(out_dir: Path, session: Session, runs: list[ReplayRun]) -> list[
             tb = t[rec_rows][: d.size // bins * bins].reshape(-1, bins)[:, 0]
             ax2.semilogy(tb, np.maximum(m, 1e-18), "C0", lw=1)
             ax2.set_ylabel(f"max |replayed - recorded| ({unit(name)})")
+            if plan.warm:  # the report leaves it out: the replay's state is settling there
+                ax2.axvspan(float(t[0]), float(t[0]) + SETTLE_S, color="0.85",
+                            label=f"warm start: not compared (the first {SETTLE_S:g} s)")
+                ax2.legend(loc="upper right", fontsize=7)
         else:
             bins = max(1, t.size // 4000)
             ax2.plot(t[::bins], ref[::bins, a], "k", lw=1, label="reference")

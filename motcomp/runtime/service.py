@@ -609,10 +609,11 @@ class Service:
                    else "")
             more = (f" ({said[1]} more degraded window(s) of {DEADLINE_WINDOW_S:g} s since the "
                     "last such warning)" if said[1] else "")
-            log.warning("missed %d of %d deadlines over the last %.0f s (%.1f %%)%s: the host "
-                        "does not give the loop its CPU; delays, command smoothness and "
-                        "identification are degraded until it does%s", fig["missed"],
-                        fig["due"], now - window[0], 100 * fig["share"], why, more)
+            log.warning("missed %d of %d deadlines over the last %.0f s (%.1f %%: more than "
+                        "%g %%)%s: the host does not give the loop its CPU; delays, command "
+                        "smoothness and identification are degraded until it does%s",
+                        fig["missed"], fig["due"], now - window[0], 100 * fig["share"],
+                        100 * DEGRADED_MISSED_SHARE, why, more)
         elif said is not None:
             log.info("the loop kept its deadlines again over the last %.0f s (%.1f %% missed), "
                      "after %d degraded window(s) not logged since the last warning",
