@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import re
 import signal
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -513,8 +514,6 @@ def test_a_bypass_switch_is_never_read_as_a_mixture_of_two_delays() -> None:
     of rails_y mid-drive (its PID and prediction fade out): rails_y's delay read 4 -> 18 -> 39
     -> ... -> 207 ms, all valid, over the window after the switch; now every valid reading after
     it is the bypassed delay, the status says why until one is, and rails_x is untouched."""
-    import threading
-
     svc, src, sink = make_service(bypass_y=False)
     X = AXIS_INDEX["rails_x"]
     models = svc.state.comp.models
@@ -533,8 +532,10 @@ def test_a_bypass_switch_is_never_read_as_a_mixture_of_two_delays() -> None:
         if k == switch_k:  # the admin's request, answered by the loop between two ticks
             switcher = threading.Thread(target=svc.request_bypass, args=(True, ["rails_y"]))
             switcher.start()
-            while not svc.commands:
+            asked = time.monotonic() + 10.0
+            while not svc.commands and time.monotonic() < asked:
                 time.sleep(0.001)
+            assert svc.commands, "the bypass request was not queued"
         svc.tick(T0 + k * MS)
         pos = msgpack.unpackb(sink.payloads[-1])["pos"]
         for i, axis in ((X, "rails_x"), (Y, "rails_y")):
@@ -560,7 +561,6 @@ def test_a_bypass_switch_is_never_read_as_a_mixture_of_two_delays() -> None:
     assert after[-1][1]["delay_valid"] and bypassed > 150, after[-1]
     valid = [(t, f) for t, f in after if f["delay_valid"]]
     assert all(abs(f["apparent_delay_ms"] - bypassed) < 3.0 for _, f in valid), valid
-    # the fade (0.5 s at least), the largest lag (0.6 s) and the shortest span (2 s): then valid
     # the fade (0.5 s, longer for a larger gap: 1.2 s here), the largest lag (0.6 s), then 2 s
     # of span -- and a few iterations' more: a short window of a 200 ms lag may not converge
     assert valid and valid[0][0] - switch_k / 1000 <= 6.0, after[:12]

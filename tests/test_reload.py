@@ -136,6 +136,14 @@ def running(svc: Service) -> Iterator[Run]:
     assert not errors and not thread.is_alive()
 
 
+def ticked(svc: Service, ticks: int = 3) -> None:
+    """Wait until the loop of :func:`running` ticked ``ticks`` more times."""
+    end, until = svc.state.ticks + ticks, time.monotonic() + 30.0
+    while svc.state.ticks < end:
+        assert time.monotonic() < until, "the loop stopped ticking"
+        time.sleep(0.001)
+
+
 def assert_within_limits(run: Run, svc: Service) -> None:
     lim = svc.axes.limits
     check_sequence(np.array(run.u), 0.0, AxisLimits(lim.p_min[Y:Y + 1], lim.p_max[Y:Y + 1],
@@ -163,13 +171,13 @@ def test_reload_in_process_keeps_the_old_config_on_failure(tmp_path: Path) -> No
         r = svc.reload()
         assert r["ok"] and r["version"] == 2 and svc.config_version == 2, r
         assert r["unchanged"] is False  # another config
-        time.sleep(0.05)  # a few ticks
+        ticked(svc)
         # the status' delay is measured afresh on every axis after a change of config
         marked = list(svc.monitor._changed_ns)
         assert all(m is not None for m in marked), marked
         again = svc.reload()  # the same file again: said (an operator meant another file?)
         assert again["ok"] and again["unchanged"] is True and svc.config_version == 3, again
-        time.sleep(0.05)  # ...but not after the same config again (rails_y may still blend)
+        ticked(svc)  # ...but not after the same config again (rails_y may still blend)
         assert [m for i, m in enumerate(svc.monitor._changed_ns) if i != Y] == [
             m for i, m in enumerate(marked) if i != Y]
         assert svc.axes.gains[Y] == tune("amigo", RAILS).gains
