@@ -311,8 +311,10 @@ def test_status_table_from_a_status_map() -> None:
     # before a frame is accepted the period and lag are not known yet (they read 0.00 ms)
     st["input"]["playback_lag_ms"] = 1.7
     st["frames"] = {"received": 0, "accepted": 0, "rejected": 0}
+    waiting = format_status(st)
     assert ("input       smooth  period and lag from the first frames on (the config's "
-            "playback lag 1.70 ms)") in format_status(st)
+            "playback lag 1.70 ms)") in waiting
+    assert "band limit 48 Hz (7.01 ms) (design --input-band-hz" in waiting  # the config's own
     assert "its loop missed 3 ticks (0 waiting for a CPU)" in text
     assert "received 100  accepted 97  rejected 3 (decode 1, range 2)  superseded 1" in text
     assert "now 0.00 s  total 1.50 s  episodes 2" in text

@@ -572,6 +572,34 @@ def test_a_bypass_switch_is_never_read_as_a_mixture_of_two_delays() -> None:
                for _, fx, _ in readings), [fx for _, fx, _ in readings]
 
 
+def test_a_blend_inside_a_stall_s_catch_up_is_marked() -> None:
+    """A stall of the loop whose catch-up steps hold the end of a bypass fade: the tick's last
+    step no longer blends, but the axis' change is marked at that tick (the mark was the last
+    step's only, so the window took the blend in)."""
+    svc, src, _ = make_service(bypass_y=False)
+
+    def push(k: int) -> None:
+        src.push(encode_input(k, k / 1000, {"rails_y": 0.4 * math.sin(2 * math.pi * 0.32 * k
+                                                                      / 1000)}))
+
+    for k in range(5000):
+        push(k)
+        svc.tick(T0 + k * MS)
+    pid, off = svc.state.comp.bypass, svc.state.prediction_off
+    pid[Y] = off[Y] = True
+    svc._set_bypass(pid, off)  # between two ticks, as the loop runs it
+    push(5000)
+    svc.tick(T0 + 5000 * MS)
+    assert svc.state.moving >> Y & 1  # the fade began
+    for k in range(5001, 7000):  # a 2 s stall: the frames come in a burst after it
+        push(k)
+    svc.tick(T0 + 7000 * MS, skipped=1999)
+    assert not svc.state.comp.moving >> Y & 1, "the fade lasts beyond the stall"
+    assert svc.state.moving >> Y & 1
+    lag = round(svc.state.shaper.played_lag_s * 1e9)
+    assert svc.monitor._changed_ns[Y] == T0 + 7000 * MS - lag
+
+
 def test_the_service_logs_when_the_platform_feedback_stops_and_comes_back(
         caplog: pytest.LogCaptureFixture) -> None:
     """The platform stopping its feedback was seen in the status only ("no feedback for 6.6 s");
@@ -588,12 +616,22 @@ def test_the_service_logs_when_the_platform_feedback_stops_and_comes_back(
         assert lost is not None and svc._watch_feedback(lost) == lost  # said once
         warned = [r for r in caplog.records if r.levelname == "WARNING"]
         assert len(warned) == 1 and re.fullmatch(
-            r"platform feedback: none for \d\.\d s \(1 frames before\): the apparent delay "
-            r"and the model supervision wait for it", warned[0].getMessage()), caplog.text
+            r"platform feedback: no good frame for \d\.\d s \(1 good, 0 bad so far\): the "
+            r"apparent delay and the model supervision wait for it", warned[0].getMessage()), \
+            caplog.text
         svc.monitor.on_feedback(time.perf_counter_ns(), frame)
         svc.monitor.drain()
         assert svc._watch_feedback(lost) is None
     assert re.search(r"platform feedback: back after \d\.\d s", caplog.text), caplog.text
+    # a second loss within FEEDBACK_LOG_S of that warning: at DEBUG, not another WARNING
+    caplog.clear()
+    with caplog.at_level("DEBUG", logger="motcomp.service"):
+        time.sleep(FEEDBACK_STALE_S + 0.1)
+        lost = svc._watch_feedback(None)
+        svc.monitor.on_feedback(time.perf_counter_ns(), frame)
+        svc.monitor.drain()
+        assert lost is not None and svc._watch_feedback(lost) is None
+    assert [r.levelname for r in caplog.records] == ["DEBUG", "DEBUG"], caplog.text
 
 
 def test_status_table_shows_the_figures_with_units() -> None:

@@ -301,15 +301,17 @@ def format_status(st: dict[str, Any]) -> str:
     if fr.get("last_reject"):
         lines.append(f"            last rejection: {fr['last_reject']}")
     inp = st.get("input") or {}
-    if inp and not fr.get("accepted"):  # the period and the lag are the frames' own
-        lines.append(f"input       {inp.get('reconstruction', '?')}  period and lag from the "
-                     "first frames on (the config's playback lag "
-                     f"{float(inp.get('playback_lag_ms', 0.0)):.2f} ms)")
-    elif inp:
-        lines.append(f"input       {inp.get('reconstruction', '?')}  period "
-                     f"{float(inp.get('period_ms', 0.0)):.2f} ms  lag "
-                     f"{float(inp.get('lag_ms', 0.0)):.2f} ms (design --input-lag-ms)"
-                     + (f"  lead {float(inp['lead_ms']):.2f} ms" if inp.get("lead_ms") else ""))
+    if inp:
+        lead = f"  lead {float(inp['lead_ms']):.2f} ms" if inp.get("lead_ms") else ""
+        if not fr.get("accepted"):  # the period and the lag are the frames' own
+            lines.append(f"input       {inp.get('reconstruction', '?')}  period and lag from "
+                         "the first frames on (the config's playback lag "
+                         f"{float(inp.get('playback_lag_ms', 0.0)):.2f} ms){lead}")
+        else:
+            lines.append(f"input       {inp.get('reconstruction', '?')}  period "
+                         f"{float(inp.get('period_ms', 0.0)):.2f} ms  lag "
+                         f"{float(inp.get('lag_ms', 0.0)):.2f} ms (design --input-lag-ms)"
+                         + lead)
         bands: dict[tuple[float, float], list[str]] = {}
         for axis, b in (inp.get("band") or {}).items():
             bands.setdefault((float(b["band_hz"]), float(b["delay_ms"])), []).append(axis)

@@ -131,9 +131,11 @@ def _offline(args: argparse.Namespace) -> int:
         for fr in replay_files(args.files, configs, args.jobs, args.run, args.bypass,
                                bar.update):
             summaries.append(_summary(args, fr, several, time.perf_counter() - t0))
-            if last is not None and not args.json:
-                _print_report(*last)
-            last = (fr, summaries[-1])
+            if len(summaries) < len(args.files):
+                if not args.json:
+                    _print_report(fr, summaries[-1])
+            else:
+                last = (fr, summaries[-1])
             t0 = time.perf_counter()
     if last is not None and not args.json:
         _print_report(*last)

@@ -262,6 +262,9 @@ class TickState:
         amount; :attr:`sat` counts only the saturation verdict)."""
         self.ticks = 0
         self.mode = "startup"
+        self.moving = 0
+        """Bit ``i`` set: axis ``i``'s compensation was changing at a step of the last tick, its
+        catch-up steps included (:attr:`Compensator.moving` or :attr:`Prediction.moving`)."""
         self._dev_lp = [0.0] * n
         self.bypass_flags: list[str] = []
         self._driven = tuple(driven)
@@ -327,6 +330,7 @@ def step(state: TickState, p: TickParams, now_ns: int,
             frames = payload[-1:]
         else:
             frames = payload
+    moving = 0
     if skipped > 0:  # the deadlines missed: computed on the grid, nothing sent
         period = p.period_ns
         parsed = [_parse(state, p, frame) for frame in frames]
@@ -344,6 +348,7 @@ def step(state: TickState, p: TickParams, now_ns: int,
             if m or state._windowed:
                 _window(state, sp, r, m)
             u_c = state.comp.step(_predicted(state, r, m))
+            moving |= state.comp.moving | state.pred.moving
             if env is not None:
                 state.guard.apply(env, u_c)
         for item in parsed[k:]:
@@ -356,6 +361,7 @@ def step(state: TickState, p: TickParams, now_ns: int,
     if mode or state._windowed:
         _window(state, sp, ref, mode)
     u = comp.step(_predicted(state, ref, mode))
+    state.moving = moving | comp.moving | state.pred.moving
     guarded = env is not None and state.guard.apply(env, u)
     flags = [mode] if mode else []
     limited = [False] * len(u)

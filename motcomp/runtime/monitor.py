@@ -20,7 +20,7 @@ Three figures for ``motcomp status`` (why and how: docs/DEPLOYMENT.md, "Motion q
     four consecutive ticks.
 
 Threads and cost: the loop thread calls :meth:`MotionMonitor.record` once per tick (a row written
-into a preallocated ring: under a microsecond): the input as the shaper plays it back
+into a preallocated ring: about a microsecond): the input as the shaper plays it back
 (:attr:`motcomp.core.shaper.ReferenceShaper.played`, before its averaging and band limit) at its own
 instant on the loop clock (the tick's, less the playback's lag beyond the smallest transit: the
 sample's ``t`` plus that transit), and the command ``u`` at the tick's instant; the feedback

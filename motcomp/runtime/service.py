@@ -203,6 +203,9 @@ ADMIN_RATE_HZ = 10.0
 """The admin worker starts at most this many requests a second."""
 STATUS_MAX_AGE_S = 0.1
 """A status query is answered with a status at most this old (rebuilt after an admin change)."""
+FEEDBACK_LOG_S = 60.0
+"""A loss of the platform's feedback within this long of the last one warned of is logged at
+DEBUG (a platform whose feedback comes in bursts would fill the log)."""
 SWITCH_INTERVAL_S = 0.0002
 """The interpreter's switch interval while the service runs (``sys.setswitchinterval``)."""
 RELOADS_KEPT = 10
@@ -272,6 +275,7 @@ class Service:
         """Time the last :meth:`tick` spent in transport calls (input take, sends)."""
         self._pending: list[bytes] = []
         self._feedback: Any = None  # the feedback subscriber (a ring), polled by _main
+        self._fb_warned_ns = -(2**62)  # the last WARNING of a feedback loss (perf clock)
         self._platform_sub: Any = None  # the platform's status (a ring of 1), polled by _main
         self._platform: dict[str, Any] | None = None
         """The platform's own figures from its last status frame (:meth:`_poll_platform`)."""
@@ -340,7 +344,7 @@ class Service:
         out = step(state, self.params, now_ns, payload, skipped, taken)
         shaper = state.shaper
         self.monitor.record(now_ns, shaper.played, out.u, round(shaper.played_lag_s * 1e9),
-                            not out.mode, state.comp.moving | state.pred.moving)
+                            not out.mode, state.moving)
         t_wall = self._t_wall0 + (now_ns - self._t_mono0) / 1e9
         t_io = perf()
         for port in self._ports:
@@ -923,20 +927,27 @@ class Service:
             log.warning("%s", text)
 
     def _watch_feedback(self, lost_ns: int | None) -> int | None:
-        """Log when the platform's feedback stops for :data:`FEEDBACK_STALE_S` (WARNING) and
-        when it comes back (INFO); returns the arrival of the last frame before the loss, or
-        None while the feedback comes (or never came)."""
+        """Log when no good feedback frame came for :data:`FEEDBACK_STALE_S` (WARNING; a
+        loss within :data:`FEEDBACK_LOG_S` of the last warning, and its end, at DEBUG) and
+        when it comes back (INFO); returns the arrival of the last good frame before the loss,
+        or None while the feedback comes (or never came)."""
         now = time.perf_counter_ns()
-        age = self.monitor.feedback_age_s(now)
+        mon = self.monitor
+        age = mon.feedback_age_s(now)
         if age is None:
             return None
         if lost_ns is None and age > FEEDBACK_STALE_S:
-            log.warning("platform feedback: none for %.1f s (%d frames before): the apparent "
-                        "delay and the model supervision wait for it", age,
-                        self.monitor.fb_received)
+            again = now - self._fb_warned_ns < FEEDBACK_LOG_S * 1e9
+            self._fb_warned_ns = self._fb_warned_ns if again else now
+            log.log(logging.DEBUG if again else logging.WARNING,
+                    "platform feedback: no good frame for %.1f s (%d good, %d bad so far): the "
+                    "apparent delay and the model supervision wait for it", age,
+                    mon.fb_received - mon.fb_bad, mon.fb_bad)
             return now - round(age * 1e9)
         if lost_ns is not None and age <= FEEDBACK_STALE_S:
-            log.info("platform feedback: back after %.1f s", (now - lost_ns) / 1e9 - age)
+            said = self._fb_warned_ns >= lost_ns
+            log.log(logging.INFO if said else logging.DEBUG, "platform feedback: back after "
+                    "%.1f s", (now - lost_ns) / 1e9 - age)
             return None
         return lost_ns
 
