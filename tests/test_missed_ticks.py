@@ -217,9 +217,9 @@ def test_degraded_windows_are_logged_once_a_minute_while_they_last() -> None:
     """A host that starves the loop for minutes: the first degraded 10 s window is logged at
     once, then one a minute, each saying how many went unlogged; the first window that holds
     again after unlogged ones says so, and the next degraded one is logged at once."""
-    from motcomp.runtime.service import DEGRADED_LOG_EVERY_S, DegradedLog
+    from motcomp.runtime.service import REPEAT_WARNING_S, DegradedLog
 
-    assert DEGRADED_LOG_EVERY_S == 60.0
+    assert REPEAT_WARNING_S == 60.0
     d = DegradedLog()
     said = [d.window(True, 10.0 * k) for k in range(1, 15)]  # 10-140 s, all degraded
     assert [(k, s) for k, s in enumerate(said, 1) if s] == [

@@ -623,7 +623,7 @@ def test_the_service_logs_when_the_platform_feedback_stops_and_comes_back(
         svc.monitor.drain()
         assert svc._watch_feedback(lost) is None
     assert re.search(r"platform feedback: back after \d\.\d s", caplog.text), caplog.text
-    # a second loss within FEEDBACK_LOG_S of that warning: at DEBUG, not another WARNING
+    # a second loss within REPEAT_WARNING_S of that warning: at DEBUG, not another WARNING
     caplog.clear()
     with caplog.at_level("DEBUG", logger="motcomp.service"):
         time.sleep(FEEDBACK_STALE_S + 0.1)

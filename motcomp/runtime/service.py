@@ -115,13 +115,15 @@ DEADLINE_WINDOW_S = 10.0
 """The status' ``deadlines`` block counts the deadlines missed over windows this long; one
 with more than :data:`~motcomp.runtime.clock.DEGRADED_MISSED_SHARE` of them missed is logged
 at WARNING (:class:`DegradedLog`)."""
-DEGRADED_LOG_EVERY_S = 60.0
-"""While windows stay degraded, a WARNING at most this often (:class:`DegradedLog`)."""
+REPEAT_WARNING_S = 60.0
+"""A WARNING about a condition that goes on or comes back is repeated at most this often: the
+degraded deadline windows (:class:`DegradedLog`, which counts those not logged) and the loss of
+the platform's feedback (a loss within this of the last warning is logged at DEBUG)."""
 
 
 class DegradedLog:
     """Which degraded deadline windows are logged: the first at once, then at most one a
-    :data:`DEGRADED_LOG_EVERY_S` while they go on, saying how many were not logged in between;
+    :data:`REPEAT_WARNING_S` while they go on, saying how many were not logged in between;
     and, when a window holds again after unlogged ones, one line saying so.  A host that
     starves the loop for an hour logs 60 lines, not 360; the status counts every window."""
 
@@ -133,7 +135,7 @@ class DegradedLog:
         """``("warning" | "kept", unlogged windows before it)`` to log for a window closed at
         ``now`` (monotonic s), or None."""
         if degraded:
-            if now - self.logged_at < DEGRADED_LOG_EVERY_S:
+            if now - self.logged_at < REPEAT_WARNING_S:
                 self.unlogged += 1
                 return None
             before, self.unlogged, self.logged_at = self.unlogged, 0, now
@@ -203,9 +205,6 @@ ADMIN_RATE_HZ = 10.0
 """The admin worker starts at most this many requests a second."""
 STATUS_MAX_AGE_S = 0.1
 """A status query is answered with a status at most this old (rebuilt after an admin change)."""
-FEEDBACK_LOG_S = 60.0
-"""A loss of the platform's feedback within this long of the last one warned of is logged at
-DEBUG (a platform whose feedback comes in bursts would fill the log)."""
 SWITCH_INTERVAL_S = 0.0002
 """The interpreter's switch interval while the service runs (``sys.setswitchinterval``)."""
 RELOADS_KEPT = 10
@@ -928,7 +927,7 @@ class Service:
 
     def _watch_feedback(self, lost_ns: int | None) -> int | None:
         """Log when no good feedback frame came for :data:`FEEDBACK_STALE_S` (WARNING; a
-        loss within :data:`FEEDBACK_LOG_S` of the last warning, and its end, at DEBUG) and
+        loss within :data:`REPEAT_WARNING_S` of the last warning, and its end, at DEBUG) and
         when it comes back (INFO); returns the arrival of the last good frame before the loss,
         or None while the feedback comes (or never came)."""
         now = time.perf_counter_ns()
@@ -937,7 +936,7 @@ class Service:
         if age is None:
             return None
         if lost_ns is None and age > FEEDBACK_STALE_S:
-            again = now - self._fb_warned_ns < FEEDBACK_LOG_S * 1e9
+            again = now - self._fb_warned_ns < REPEAT_WARNING_S * 1e9
             self._fb_warned_ns = self._fb_warned_ns if again else now
             log.log(logging.DEBUG if again else logging.WARNING,
                     "platform feedback: no good frame for %.1f s (%d good, %d bad so far): the "
