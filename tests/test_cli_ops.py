@@ -212,6 +212,28 @@ def test_realtime_replay_without_a_subscriber_exits_3(tmp_path: Path) -> None:
     assert "republished" not in p.stdout
 
 
+def test_realtime_replay_s_progress_spans_the_frames_it_sends(tmp_path: Path) -> None:
+    """A recording whose input stopped before the recorder: the progress runs over the
+    input's frames (1 s here), not the recording's whole span (3 s)."""
+    from motcomp.io.wire import encode_input
+    from motcomp.record.recorder import SessionWriter
+
+    path = tmp_path / "s.mcap"
+    keys = ["sim/motion/setpoint", "platform/setpoint"]
+    t0 = 1_750_000_000.0
+    with SessionWriter(path, keys, {}, b"{}", chunk_bytes=8 << 10) as w:
+        for k in range(3001):
+            t = t0 + k * 1e-3
+            if k <= 1000:
+                w.write(keys[0], round(t * 1e9), encode_input(k, t, {"rails_x": 0.0}))
+            w.write(keys[1], round(t * 1e9) + 1000,
+                    encode_output(k, t, k, [0.0] * len(AXES), []))
+    p = cli("replay", str(path), "--realtime", "-e", dead_endpoint(), "--wait-peer", "1")
+    assert p.returncode == 3, (p.stdout, p.stderr)
+    assert (f"republishing {path} (1.0 s of sim/motion/setpoint frames in the 3.0 s "
+            "recorded) at 1x") in p.stderr, p.stderr
+
+
 @pytest.mark.slow
 def test_source_shows_progress_and_says_it_was_stopped(tmp_path: Path) -> None:
     import zenoh

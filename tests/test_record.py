@@ -226,3 +226,23 @@ def test_the_summary_says_which_keys_got_nothing() -> None:
     assert f"  {fb}: 10" in text
     assert f"  {out}: nothing came (a service whose output goes over CAN alone" in text
     assert "other/**" not in text
+
+
+def test_a_topic_s_span_from_the_indexes_is_its_first_and_last_message(tmp_path: Path) -> None:
+    from motcomp.record.mcapio import topic_span
+
+    path = tmp_path / "s.mcap"
+    msgs = [(k, log, p) for k, log, p in write_mixed(tmp_path / "all.mcap", n=3000)
+            if k != KEYS[0] or log < round((T0 + 1.2) * 1e9)]  # the input stops at 1.2 s
+    with SessionWriter(path, KEYS, {}, b"{}", chunk_bytes=16 << 10) as w:
+        for key, log, payload in msgs:
+            w.write(key, log, payload)
+    read = mcap_messages(path)  # the mcap package's own reader
+    assert sum(1 for m in read if m[0] == KEYS[0]) > 100
+    for key in KEYS:
+        logs = [m[1] for m in read if m[0] == key]
+        assert topic_span(path, key) == (min(logs), max(logs)), key
+    assert topic_span(path, "no/such/key") is None
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:-40])  # no summary: no index to read
+    assert topic_span(cut, KEYS[0]) is None

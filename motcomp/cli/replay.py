@@ -88,23 +88,31 @@ def run(args: argparse.Namespace) -> int:
 
 def _realtime(args: argparse.Namespace) -> int:
     from motcomp.progress import Progress
-    from motcomp.record.mcapio import message_counts
+    from motcomp.record.mcapio import message_counts, topic_span
     from motcomp.record.session import session_parts
-    from motcomp.replay.realtime import republish
+    from motcomp.replay.realtime import input_key, republish
 
     (path,) = args.files
     parts = session_parts(path)
-    spans = [c[""] for c in map(message_counts, parts) if c is not None]
-    duration = (spans[-1][1] - spans[0][0]) / 1e9 if len(spans) == len(parts) else 0.0
+    key = args.key or input_key(parts[0])
+    summaries = [message_counts(p) for p in parts]
+    finished = [c for c in summaries if c is not None]
+    spans = [s for s in (topic_span(p, key) for p in parts) if s is not None]
+    # the progress runs over the frames republished, which may end before the recording
+    whole = len(finished) == len(parts)
+    duration = (spans[-1][1] - spans[0][0]) / 1e9 if whole and spans else 0.0
+    recorded = (finished[-1][""][1] - finished[0][""][0]) / 1e9 if whole else 0.0
     ep = endpoints_from_args(args)
     if not args.quiet:
-        print(f"motcomp replay: republishing {path}"
-              + (f" ({duration:.1f} s recorded)" if duration else "")
+        span = (f" ({duration:.1f} s of {key} frames" + (
+            f" in the {recorded:.1f} s recorded)" if recorded - duration > 0.5 else ")")
+            if duration else "")
+        print(f"motcomp replay: republishing {path}{span}"
               + f" at {args.speed:g}x ({ep.describe()})", file=sys.stderr, flush=True)
     try:
         with Progress("republishing", duration / args.speed, quiet=args.quiet or not duration,
                       unit="s", every_s=5.0) as bar:
-            stats = republish(path, ep, args.key, args.timing, args.speed, args.restamp,
+            stats = republish(path, ep, key, args.timing, args.speed, args.restamp,
                               args.lead_in, progress=lambda s: bar.update(s / args.speed),
                               wait_peer_s=args.wait_peer)
     except NoPeerError as exc:

@@ -41,7 +41,9 @@ __all__ = [
     "ScanResult",
     "iter_messages",
     "iter_records",
+    "message_counts",
     "scan",
+    "topic_span",
 ]
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -387,15 +389,13 @@ def scan(path: str | Path, topics: set[str] | None = None, batch_bytes: int = 48
     yield batcher.flush()
 
 
-OP_STATISTICS = 0x0B
+OP_CHUNK_INDEX, OP_STATISTICS = 0x08, 0x0B
 
 
-def message_counts(path: str | Path) -> dict[str, Any] | None:
-    """Messages per topic from the summary section (None if the file has no usable summary,
-    e.g. an unfinished recording); key ``""`` holds ``(first, last)`` log time."""
-    p = Path(path)
+def _summary(path: Path) -> bytes | None:
+    """The summary section of a finished file (None without a usable footer)."""
     try:
-        with p.open("rb") as f:
+        with path.open("rb") as f:
             f.seek(0, 2)
             size = f.tell()
             if size < 8 + 29 + 8:
@@ -408,16 +408,29 @@ def message_counts(path: str | Path) -> dict[str, Any] | None:
             if not 8 <= start < size:
                 return None
             f.seek(start)
-            summary = f.read(size - 8 - 29 - start)
+            return f.read(size - 8 - 29 - start)
     except OSError:
+        return None
+
+
+def _summary_records(summary: bytes) -> Iterator[tuple[int, memoryview]]:
+    o = 0
+    while o + 9 <= len(summary):
+        op, length = summary[o], _u64(summary, o + 1)
+        yield op, memoryview(summary)[o + 9:o + 9 + length]
+        o += 9 + length
+
+
+def message_counts(path: str | Path) -> dict[str, Any] | None:
+    """Messages per topic from the summary section (None if the file has no usable summary,
+    e.g. an unfinished recording); key ``""`` holds ``(first, last)`` log time."""
+    summary = _summary(Path(path))
+    if summary is None:
         return None
     topics: dict[int, str] = {}
     counts: dict[int, int] = {}
     t_first = t_last = 0
-    o = 0
-    while o + 9 <= len(summary):
-        op, length = summary[o], _u64(summary, o + 1)
-        body = memoryview(summary)[o + 9:o + 9 + length]
+    for op, body in _summary_records(summary):
         if op == OP_CHANNEL:
             ch = _channel(body)
             topics[ch.id] = ch.topic
@@ -429,7 +442,6 @@ def message_counts(path: str | Path) -> dict[str, Any] | None:
             for _ in range(n // 10):
                 counts[_u16(body, q)] = _u64(body, q + 2)
                 q += 10
-        o += 9 + length
     if not counts or not topics:
         return None
     out: dict[str, Any] = {"": (t_first, t_last)}
@@ -437,6 +449,45 @@ def message_counts(path: str | Path) -> dict[str, Any] | None:
         if cid in topics:
             out[topics[cid]] = out.get(topics[cid], 0) + n
     return out
+
+
+def topic_span(path: str | Path, topic: str) -> tuple[int, int] | None:
+    """``(first, last)`` log time of ``topic``'s messages, from the summary's chunk indexes and
+    the message indexes of the first and last chunk holding it (two small reads, not a scan).
+    None if the file has no usable summary or indexes, or no message on ``topic``."""
+    p = Path(path)
+    summary = _summary(p)
+    if summary is None:
+        return None
+    ids: set[int] = set()
+    offsets: list[tuple[int, int]] = []  # (chunk's first log time, its message index offset)
+    for op, body in _summary_records(summary):
+        if op == OP_CHANNEL:
+            ch = _channel(body)
+            if ch.topic == topic:
+                ids.add(ch.id)
+        elif op == OP_CHUNK_INDEX:
+            start_ns = _u64(body, 0)
+            n = _u32(body, 32)
+            for q in range(36, 36 + n, 10):
+                if _u16(body, q) in ids:
+                    offsets.append((start_ns, _u64(body, q + 2)))
+    if not offsets:
+        return None
+    offsets.sort()
+    times: list[int] = []
+    try:
+        with p.open("rb") as f:
+            for _, at in {offsets[0], offsets[-1]}:
+                f.seek(at)
+                head = f.read(9 + 2 + 4)
+                if len(head) < 15 or head[0] != OP_MESSAGE_INDEX:
+                    return None
+                rows = f.read(_u32(head, 11))
+                times += [_u64(rows, q) for q in range(0, len(rows) - 15, 16)]
+    except OSError:
+        return None
+    return (min(times), max(times)) if times else None
 
 
 class Record(NamedTuple):
