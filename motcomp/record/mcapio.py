@@ -40,6 +40,7 @@ __all__ = [
     "Record",
     "ScanResult",
     "iter_messages",
+    "iter_record_batches",
     "iter_records",
     "message_counts",
     "scan",
@@ -500,13 +501,12 @@ class Record(NamedTuple):
     data: bytes
 
 
-def iter_records(path: str | Path, topics: set[str] | None = None,
-                 result: ScanResult | None = None) -> Iterator[Record]:
-    """Each message (:class:`Record`) in file order, batch by batch (memory stays bounded by
-    the batch size)."""
-    for batch in scan(path, topics, batch_bytes=4 << 20, result=result):
-        if not batch:
-            continue
+def iter_record_batches(path: str | Path, topics: set[str] | None = None,
+                        result: ScanResult | None = None, batch_bytes: int = 4 << 20
+                        ) -> Iterator[list[Record]]:
+    """The messages (:class:`Record`) of each batch of about ``batch_bytes`` of chunks, in file
+    order (memory stays bounded by the batch size; empty batches are skipped)."""
+    for batch in scan(path, topics, batch_bytes=batch_bytes, result=result):
         rows = []
         for mb in batch:
             seq = mb.sequences()
@@ -514,9 +514,17 @@ def iter_records(path: str | Path, topics: set[str] | None = None,
                 rows.append((int(mb.offset[i]), Record(mb.channel.topic, int(seq[i]),
                                                        int(mb.log_ns[i]), int(mb.publish_ns[i]),
                                                        mb.payload(i))))
-        rows.sort(key=lambda r: r[0])
-        for _, rec in rows:
-            yield rec
+        if rows:
+            rows.sort(key=lambda r: r[0])
+            yield [rec for _, rec in rows]
+
+
+def iter_records(path: str | Path, topics: set[str] | None = None,
+                 result: ScanResult | None = None) -> Iterator[Record]:
+    """Each message (:class:`Record`) in file order, batch by batch (memory stays bounded by
+    the batch size)."""
+    for batch in iter_record_batches(path, topics, result):
+        yield from batch
 
 
 def iter_messages(path: str | Path, topics: set[str] | None = None,

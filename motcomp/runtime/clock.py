@@ -29,6 +29,7 @@ for, or the machine stopping it outright (a virtual CPU the hypervisor took: the
 
 from __future__ import annotations
 
+import gc
 import os
 import threading
 import time
@@ -36,8 +37,8 @@ import weakref
 from collections.abc import Callable
 
 __all__ = ["DEGRADED_MISSED_SHARE", "INPUT_GRACE", "LEAD_QUANTILE", "TIMER_SLACK_NS",
-           "WATCH_STEP_NS", "DeadlineClock", "SleepLead", "run_delay_reader", "set_timer_slack",
-           "sleep_until"]
+           "WATCH_STEP_NS", "DeadlineClock", "SleepLead", "freeze_heap", "run_delay_reader",
+           "set_timer_slack", "sleep_until"]
 
 TIMER_SLACK_NS = 1000
 """Timer slack of the thread that waits (ns): how late the kernel may end its sleeps."""
@@ -57,6 +58,15 @@ that stretch warns (docs/DEPLOYMENT.md, docs/IDENTIFICATION.md)."""
 INPUT_GRACE = 25
 """Input-synchronous mode: after a tick on an input, the own clock waits this percentage of a
 period beyond the period for the next input before it ticks without one."""
+
+
+def freeze_heap() -> None:
+    """Before a deadline loop: collect once, then move every object alive out of the cyclic
+    collector's reach (``gc.freeze``), so that its full collections scan only what the loop
+    allocates since -- one full collection of a process' imports holds the interpreter for tens
+    of milliseconds on a loaded host, whichever thread runs it (docs/REPLAY.md, "Real time")."""
+    gc.collect()
+    gc.freeze()
 
 
 def set_timer_slack(ns: int) -> bool:

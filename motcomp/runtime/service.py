@@ -37,7 +37,6 @@ Measured cost of admin work to the loop: docs/BENCHMARKS.md ("admin").
 
 from __future__ import annotations
 
-import gc
 import logging
 import math
 import os
@@ -77,7 +76,7 @@ from motcomp.core.tick import (
 from motcomp.errors import ConfigError, MotcompError, ServiceError
 from motcomp.io.ports import InputPort, OutputPort
 from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, ZenohSource, open_session
-from motcomp.runtime.clock import DEGRADED_MISSED_SHARE, DeadlineClock
+from motcomp.runtime.clock import DEGRADED_MISSED_SHARE, DeadlineClock, freeze_heap
 from motcomp.runtime.confine import Confinement
 from motcomp.runtime.monitor import (
     BIN_S,
@@ -355,8 +354,7 @@ class Service:
         try:
             loop = self.cfg.loop
             self.rt_report, latency_fd = schedule_loop(loop)
-            gc.collect()
-            gc.freeze()
+            freeze_heap()
             clock = DeadlineClock(loop.rate_hz, loop.spin_us, sleep_max_us=loop.sleep_max_us)
             self._clock = clock
             self._clocked = True

@@ -54,7 +54,13 @@ from motcomp.io.zenoh_io import (
     open_session,
     wait_for_subscriber,
 )
-from motcomp.runtime.clock import TIMER_SLACK_NS, SleepLead, set_timer_slack, sleep_until
+from motcomp.runtime.clock import (
+    TIMER_SLACK_NS,
+    SleepLead,
+    freeze_heap,
+    set_timer_slack,
+    sleep_until,
+)
 
 __all__ = ["PublishStats", "Send", "SenderTiming", "Trajectory", "band_sweep", "builtin",
            "lane_change", "load_trajectory", "publish", "send_schedule"]
@@ -555,6 +561,7 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
             stop.wait(lead_in_s)
         schedule = send_schedule(traj.rate_hz, timing)
         set_timer_slack(TIMER_SLACK_NS)  # as the service's loop: sleeps end on time
+        freeze_heap()
         perf = time.perf_counter_ns
         t_wall0, t_mono0 = time.time(), perf()
         start_ns = t_mono0 + period_ns  # sample 0 is due one period from now
