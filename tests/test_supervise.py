@@ -422,6 +422,20 @@ def test_a_window_the_host_starved_is_not_informative(missed: float) -> None:
         assert fig["informative"] is (missed <= MAX_JUDGED_MISSED_SHARE), fig
         if missed > MAX_JUDGED_MISSED_SHARE:
             assert fig["reason"].startswith("the loop missed 30 % of its deadlines"), fig
+        # an estimate the estimator itself found uncertain: the host's stalls are named first
+        # (the likely cause), the estimator's reason after them; an axis that did not move
+        # keeps its own reason (not a blind window)
+        for own in ("the residual delay is uncertain (+-2.64 ms > 1 ms)",
+                    "too little motion in the band (0.02 m/s^2 rms)"):
+            fig = {**_fig(10.0), "model": model, "informative": False, "reason": own}
+            sup._judge({"rails_y": fig}, 15.0)
+            assert fig["informative"] is False
+            if missed > MAX_JUDGED_MISSED_SHARE and not own.startswith("too little"):
+                assert fig["reason"] == ("the loop missed 30 % of its deadlines over the window "
+                                         "(more than 20 %): the figures carry its stalls "
+                                         f"(and {own})"), fig
+            else:
+                assert fig["reason"] == own, fig
     finally:
         sup.close()
 

@@ -160,6 +160,12 @@ _NEEDS = (
 )
 
 
+def _still(reason: str) -> bool:
+    """Whether a window was not judged because the axis did not move (nothing to see there:
+    not a blind window)."""
+    return reason.startswith(("too little motion", "the command is constant"))
+
+
 def _kind(reason: str) -> str:
     """The kind of a reason a window was not judged for (a key of :data:`_NEEDS`), or
     ``"other"``."""
@@ -210,7 +216,7 @@ class DriftJudge:
             st.last_t = t
         if not fig.get("informative"):
             reason = str(fig.get("reason") or "")
-            if reason.startswith(("too little motion", "the command is constant")):
+            if _still(reason):
                 return None  # the axis did not move: nothing to see, not blind
             st.blind_s += since
             st.blind[_kind(reason)] += 1
@@ -545,15 +551,18 @@ class Supervisor:
             if model is None or fig.get("model") not in (model.spec(), _p1d_spec(model)):
                 continue  # estimated against a model a reload has replaced meanwhile
             fig["missed_share"] = missed  # the loop's stalls are cut out of the estimate
-            if fig.get("informative"):
+            own = str(fig.get("reason") or "")
+            if missed is not None and missed > MAX_JUDGED_MISSED_SHARE and not _still(own):
+                # the host's stalls first: they are why the estimate is uncertain, if it is
+                fig["reason"] = (f"the loop missed {100 * missed:.0f} % of its deadlines "
+                                 f"over the window (more than {100 * MAX_JUDGED_MISSED_SHARE:g}"
+                                 " %): the figures carry its stalls"
+                                 + (f" (and {own})" if own and not fig.get("informative")
+                                    else ""))
+                fig["informative"] = False
+            elif fig.get("informative"):
                 share = limited[AXES.index(axis)] if limited else 0.0
-                if missed is not None and missed > MAX_JUDGED_MISSED_SHARE:
-                    fig["informative"] = False
-                    fig["reason"] = (f"the loop missed {100 * missed:.0f} % of its deadlines "
-                                     "over the window (more than "
-                                     f"{100 * MAX_JUDGED_MISSED_SHARE:g} %):"
-                                     " the figures carry its stalls")
-                elif share > self.cfg.max_limited_share:
+                if share > self.cfg.max_limited_share:
                     fig["informative"] = False
                     fig["reason"] = (f"the limiter acted on {100 * share:.0f} % of the ticks "
                                      f"(more than {100 * self.cfg.max_limited_share:g} %)")
