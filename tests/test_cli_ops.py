@@ -524,6 +524,35 @@ def test_info_summarises_a_recording(tmp_path: Path) -> None:
     assert keys["platform/feedback"]["lost"] is None and keys["motcomp/status"]["lost"] is None
 
 
+def test_info_says_an_axis_none_of_whose_windows_was_judged_is_not_supervised() -> None:
+    """"No alarm" on windows none of which was judged means nothing: info says so, and why the
+    last estimate was not judged; a supervised axis gets its judged windows counted."""
+    from motcomp.cli.info import _mismatch, _mismatch_text
+
+    def frame(ns: int, axis: dict[str, Any]) -> tuple[int, dict[str, Any]]:
+        return ns, {"model_mismatch": {"axes": {"rails_y": axis}}}
+
+    est = {"estimate": {"spec": "p1d:K=1.008,Td=0.0236,Tp1=0.179"}, "alarm": False}
+    blind = [frame(k * 10**9, {**est, "informative": False, "windows": k + 1,
+                               "informative_windows": 0,
+                               "reason": "the residual delay is uncertain (+-2.64 ms > 1 ms)"})
+             for k in range(23)]
+    text = _mismatch_text(_mismatch(blind, 0)["rails_y"])
+    assert text == ("not supervised: none of its 23 windows judged, no alarm possible; last "
+                    "estimate p1d:K=1.008,Td=0.0236,Tp1=0.179 (not judged: the residual delay "
+                    "is uncertain (+-2.64 ms > 1 ms))"), text
+    seen = blind + [frame(24 * 10**9, {**est, "informative": True, "windows": 24,
+                                       "informative_windows": 1})]
+    text = _mismatch_text(_mismatch(seen, 0)["rails_y"])
+    assert text == ("no mismatch alarm (1 of 24 windows judged); last estimate "
+                    "p1d:K=1.008,Td=0.0236,Tp1=0.179"), text
+    alarm = seen + [frame(25 * 10**9, {**est, "alarm": True, "informative": True,
+                                       "residual_delay_ms": 10.3, "windows": 25,
+                                       "informative_windows": 2})]
+    text = _mismatch_text(_mismatch(alarm, 0)["rails_y"])
+    assert text.startswith("mismatch alarm 1: 25.00 s-end (residual +10.3 ms); last "), text
+
+
 def test_info_tells_a_stalled_recorder_from_a_gap_in_the_frames(tmp_path: Path) -> None:
     """A recorder its host stalled for 115 ms receives the frames late and in a burst: not a
     gap in what was sent, nor a faster rate (taken on the receive times, a loaded host's

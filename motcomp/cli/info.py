@@ -242,9 +242,36 @@ def _mismatch(status: list[tuple[int, dict[str, Any]]], t0: int) -> dict[str, An
             if isinstance(fig.get("estimate"), dict):
                 last[axis] = {"spec": fig["estimate"].get("spec"),
                               "residual_delay_ms": fig.get("residual_delay_ms"),
-                              "informative": fig.get("informative"), "t_s": t}
+                              "informative": fig.get("informative"),
+                              "reason": fig.get("reason"), "t_s": t,
+                              "windows": fig.get("windows"),
+                              "informative_windows": fig.get("informative_windows")}
     return {a: {"alarms": on.get(a, []), "residual_delay_ms_at_alarm": at_start.get(a, []),
                 "last_estimate": last.get(a)} for a in sorted(set(on) | set(last))}
+
+
+def _mismatch_text(mm: dict[str, Any]) -> str:
+    """An axis' supervision in a recording: its alarms, or that none was raised and on how many
+    judged windows -- "no alarm" on windows none of which was judged is said as such -- and its
+    last estimate, with why it was not judged where it was not."""
+    runs = mm["alarms"]
+    est = mm["last_estimate"] or {}
+    windows, judged = est.get("windows"), est.get("informative_windows")
+    if runs:
+        text = f"mismatch alarm {len(runs)}: " + ", ".join(
+            f"{_span(r)} (residual {d:+.1f} ms)" if isinstance(d, int | float) else _span(r)
+            for r, d in zip(runs, mm["residual_delay_ms_at_alarm"], strict=False))
+    elif isinstance(windows, int) and judged == 0:
+        text = f"not supervised: none of its {windows} windows judged, no alarm possible"
+    else:
+        text = "no mismatch alarm" + (f" ({judged} of {windows} windows judged)"
+                                      if isinstance(windows, int) and isinstance(judged, int)
+                                      else "")
+    if est.get("spec"):
+        text += f"; last estimate {est['spec']}"
+        if est.get("informative") is False:
+            text += f" (not judged: {est['reason']})" if est.get("reason") else " (not judged)"
+    return text
 
 
 def _span(run: list[float | None]) -> str:
@@ -312,14 +339,7 @@ def format_info(info: dict[str, Any]) -> str:
         lines.append("mode switches: unknown, no output frames recorded (a service whose output "
                      "goes over CAN alone sends none on zenoh: output.transport = \"both\")")
     for axis, mm in (info.get("model_mismatch") or {}).items():
-        runs = mm["alarms"]
-        est = mm["last_estimate"] or {}
-        lines.append(f"  model      {axis}: " + (
-            f"mismatch alarm {len(runs)}: " + ", ".join(
-                f"{_span(r)} (residual {d:+.1f} ms)" if isinstance(d, int | float) else _span(r)
-                for r, d in zip(runs, mm["residual_delay_ms_at_alarm"], strict=False))
-            if runs else "no mismatch alarm")
-            + (f"; last estimate {est['spec']}" if est.get("spec") else ""))
+        lines.append(f"  model      {axis}: {_mismatch_text(mm)}")
     sat = modes["saturated_outputs"]
     lines.append("saturated outputs: " + (", ".join(f"{a} {n}" for a, n in sat.items())
                                           if sat else "none"))
