@@ -540,7 +540,9 @@ class MotionMonitor:
             if (end - start) * b < MIN_SPAN_S * 1e9:
                 return (f"{max(0, end - start) * b / 1e9:.1f} s of feedback since the axis' "
                         f"compensation changed (needs {MIN_SPAN_S:g} s; left out: a bypass "
-                        "switch or a reload, the blends they start, a prediction's fade and "
+                        "switch or a reload, the blends they start, a prediction's fade (in after "
+                        "a stale input returned, or out and in after its band monitor fell "
+                        "back) and "
                         f"the next {LAG_RANGE_S[1]:g} s)")
         if clipped and (end - start) * b < MIN_SPAN_S * 1e9:
             return (f"{max(0, end - start) * b / 1e9:.1f} s of feedback on live input in the "
