@@ -200,6 +200,16 @@ def test_source_without_a_subscriber_exits_3_naming_the_endpoint() -> None:
     assert "published" not in p.stdout
 
 
+def test_a_recording_no_peer_reached_exits_3_naming_the_endpoint(tmp_path: Path) -> None:
+    dead = dead_endpoint()
+    out = tmp_path / "empty.mcap"
+    p = cli("record", "-o", str(out), "-e", dead, "--duration", "1.5", "--status-timeout", "0")
+    assert p.returncode == 3, (p.stdout, p.stderr)
+    assert (f"no zenoh peer was reachable (connect {dead}) at any time of the recording"
+            in p.stdout), p.stdout
+    assert "recorded 0 messages" in p.stdout and out.exists()
+
+
 def test_realtime_replay_without_a_subscriber_exits_3(tmp_path: Path) -> None:
     path = tmp_path / "s.mcap"
     synthesize(path, load_config(config_file("motcomp.toml")),

@@ -68,4 +68,4 @@ def run(args: argparse.Namespace) -> int:
                          status_key=keys["status"], status_timeout_s=args.status_timeout)
     summary = record(opts, endpoints_from_args(args))
     print(summary.text(), flush=True)
-    return 0
+    return 3 if summary.unreached is not None else 0

@@ -268,10 +268,15 @@ class RecordSummary:
     """Why the recording holds no config (None: it holds the service's)."""
     keys: tuple[str, ...] = ()
     """The keys subscribed to (a key of no message is said)."""
+    unreached: str | None = None
+    """The endpoints, where no zenoh peer was connected at any time of the recording."""
 
     def text(self) -> str:
         lines = [f"recorded {sum(self.counts.values())} messages in {self.duration_s:.1f} s to "
                  + ", ".join(str(p) for p in self.parts)]
+        if self.unreached is not None:
+            lines.append(f"  no zenoh peer was reachable ({self.unreached}) at any time of the "
+                         "recording: is the service running and the endpoint right?")
         lines += [f"  {k}: {n}" for k, n in sorted(self.counts.items())]
         lines += [f"  {k}: nothing came (a service whose output goes over CAN alone sends no "
                   f"commands on zenoh: output.transport = \"both\", docs/DEPLOYMENT.md)"
@@ -385,6 +390,7 @@ def record(opts: RecordOptions, endpoints: ZenohEndpoints,
             if first is not None and settle(first):
                 watch = False
             next_ask = t0 + opts.status_retry_s
+            peer_seen, next_peers = False, t0
             log.info("recording %s to %s", ", ".join(opts.keys), writer.path)
             try:
                 while not stop.is_set():
@@ -400,9 +406,13 @@ def record(opts: RecordOptions, endpoints: ZenohEndpoints,
                         st = ask()
                         watch = not (st is not None and settle(st))
                         next_ask = time.monotonic() + opts.status_retry_s
+                    if not peer_seen and now >= next_peers:
+                        peer_seen = _connected(session)
+                        next_peers = now + 0.5
                     writer.tick()
                     stop.wait(opts.poll_s)
             finally:
+                peer_seen = peer_seen or _connected(session)
                 for s in subs:
                     s.undeclare()
                 subs = []
@@ -424,7 +434,14 @@ def record(opts: RecordOptions, endpoints: ZenohEndpoints,
             for s in subs:
                 s.undeclare()
     return RecordSummary(writer.parts, dict(writer.counts), dropped[0], time.monotonic() - t0,
-                         status, missing, tuple(opts.keys))
+                         status, missing, tuple(opts.keys),
+                         None if peer_seen else endpoints.describe())
+
+
+def _connected(session: Any) -> bool:
+    """Whether a zenoh peer or router is connected to ``session`` now."""
+    info = session.info
+    return any(True for _ in info.peers_zid()) or any(True for _ in info.routers_zid())
 
 
 def _status_of(payload: bytes) -> dict[str, Any]:
