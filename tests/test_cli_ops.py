@@ -178,6 +178,13 @@ def test_bad_endpoints_are_named() -> None:
     assert p.returncode == 2, p.stderr
     assert "zenoh: connect endpoint 'nonsense': Endpoints must be" in p.stderr
     assert ".rs:" not in p.stderr and "Traceback" not in p.stderr
+    # zenoh itself takes a port that is no number, and fails as if nobody were there
+    p = cli("status", "-e", "tcp/localhost:notaport", "--timeout", "1")
+    assert p.returncode == 2, p.stderr
+    assert ("zenoh: connect endpoint 'tcp/localhost:notaport': port 'notaport' is not a "
+            "number 0-65535") in p.stderr
+    p = cli("source", "--signal", "slalom", "-l", "udp/127.0.0.1:70000", "--wait-peer", "1")
+    assert p.returncode == 2 and "port '70000' is not a number 0-65535" in p.stderr, p.stderr
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen()
@@ -551,12 +558,12 @@ def test_info_says_an_axis_none_of_whose_windows_was_judged_is_not_supervised() 
     assert text == ("not supervised: none of its 23 windows judged, no alarm possible; last "
                     "estimate p1d:K=1.008,Td=0.0236,Tp1=0.179 (not judged: the residual delay "
                     "is uncertain (+-2.64 ms > 1 ms))"), text
-    seen = blind + [frame(24 * 10**9, {**est, "informative": True, "windows": 24,
+    seen = [*blind, frame(24 * 10**9, {**est, "informative": True, "windows": 24,
                                        "informative_windows": 1})]
     text = _mismatch_text(_mismatch(seen, 0)["rails_y"])
     assert text == ("no mismatch alarm (1 of 24 windows judged); last estimate "
                     "p1d:K=1.008,Td=0.0236,Tp1=0.179"), text
-    alarm = seen + [frame(25 * 10**9, {**est, "alarm": True, "informative": True,
+    alarm = [*seen, frame(25 * 10**9, {**est, "alarm": True, "informative": True,
                                        "residual_delay_ms": 10.3, "windows": 25,
                                        "informative_windows": 2})]
     text = _mismatch_text(_mismatch(alarm, 0)["rails_y"])

@@ -144,8 +144,32 @@ def _bad_endpoint(ep: ZenohEndpoints) -> str:
     return ""
 
 
+_PORTED = ("tcp", "udp", "tls", "quic", "ws")
+"""Locators whose address is ``host:port``."""
+
+
+def _bad_port(endpoint: str) -> str:
+    """Why an IP endpoint's port is not one (empty if it is, or the locator has no port):
+    zenoh takes ``tcp/host:word`` and fails only when it resolves it, as an unreachable peer."""
+    proto, _, rest = endpoint.partition("/")
+    if proto not in _PORTED or not rest:
+        return ""
+    address = re.split(r"[?#]", rest, maxsplit=1)[0]
+    host, colon, port = address.rpartition(":")
+    if not colon or not host or (":" in host and not host.startswith("[")):
+        return ""  # no port, or a bare IPv6 address: zenoh's own check tells
+    if not port.isdigit() or not 0 <= int(port) <= 65535:
+        return f"port {port!r} is not a number 0-65535"
+    return ""
+
+
 def _config(ep: ZenohEndpoints) -> Any:
     import zenoh
+
+    for role, endpoints in (("connect", ep.connect), ("listen", ep.listen)):
+        for e in endpoints:
+            if why := _bad_port(e):
+                raise ConfigError(f"zenoh: {role} endpoint {e!r}: {why}")
 
     try:
         cfg = zenoh.Config.from_file(ep.config_file) if ep.config_file else zenoh.Config()
