@@ -356,7 +356,12 @@ def test_status_table_from_a_status_map() -> None:
     assert "band limit 48 Hz (7.01 ms) (design --input-band-hz" in waiting  # the config's own
     assert "its loop missed 3 ticks (0 waiting for a CPU)" in text
     assert "received 100  accepted 97  rejected 3 (decode 1, range 2)  superseded 1" in text
-    assert "now 0.00 s  total 1.50 s  episodes 2" in text
+    assert "stale       no  (before: 1.50 s over 2 episode(s))" in text
+    # an episode going on is not in the total, which counts the finished ones
+    ongoing = format_status({**st, "stale_s": 8.15, "stale_total_s": 0.48, "stale_episodes": 8,
+                             "frames": {"received": 100, "accepted": 100, "rejected": 0}})
+    assert ("stale       NOW 8.15 s since the last frame (episode 8; the 7 before: 0.48 s)"
+            in ongoing), ongoing
     rows = {ln.split()[0]: ln.split()[1:] for ln in text.splitlines()}
     assert rows["compute"] == ["10.0", "20.0", "30.0", "40.0"]
     assert rows["rails_y"] == ["yes", "no", "-", "-", "7"]

@@ -323,9 +323,11 @@ def format_status(st: dict[str, Any]) -> str:
     if (st.get("frames") or {}).get("received", 1) == 0:
         lines.append(f"stale       waiting for a first frame ({st.get('stale_s', 0.0):.2f} s)")
     else:
-        lines.append(f"stale       now {st.get('stale_s', 0.0):.2f} s  total "
-                     f"{st.get('stale_total_s', 0.0):.2f} s  episodes "
-                     f"{st.get('stale_episodes', 0)}")
+        now_s, n = st.get("stale_s", 0.0), st.get("stale_episodes", 0)
+        before = f"{st.get('stale_total_s', 0.0):.2f} s"  # the finished episodes only
+        lines.append(f"stale       NOW {now_s:.2f} s since the last frame (episode {n}; the "
+                     f"{n - 1} before: {before})" if now_s > 0 and n > 0 else
+                     f"stale       no  (before: {before} over {n} episode(s))")
     env = st.get("envelope") or {}
     if env.get("clamps"):
         acted = ", ".join(f"{a} {n}" for a, n in (env.get("acted") or {}).items() if n)
