@@ -635,7 +635,8 @@ def test_stalls_that_leave_too_little_to_judge_are_said() -> None:
     _, acc = drive(MODEL, u)
     fig = estimate_axis(t[keep], u[keep], t, acc, MODEL, EstimateSettings(window_s=20.0))
     assert not fig["informative"]
-    assert fig["reason"].startswith("32 stalls of the host or the platform's link cut out")
+    assert fig["reason"].startswith("32 stretch(es) of stalls of the host or the platform's "
+                                    "link (stalls less than 0.4 s apart run together) cut out")
     assert "left to judge (needs 6.1 s)" in fig["reason"], fig["reason"]
 
 

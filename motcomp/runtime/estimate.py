@@ -345,9 +345,10 @@ def estimate_axis(t_out: np.ndarray, u_out: np.ndarray, t_fb: np.ndarray, acc: n
     out["judged_s"] = judged_s
     need = settings.min_judged * (sig.v.size / sig.rate - LEAD_IN_S)
     if np.count_nonzero(sig.judged) < 4 * sig.lags or judged_s < need:
-        out["reason"] = (f"{grid.stalls} stalls of the host or the platform's link cut out "
-                         f"{grid.cut_s:.1f} s of the window: {judged_s:.1f} s left to judge "
-                         f"(needs {need:.1f} s)" if grid.stalls else
+        out["reason"] = (f"{grid.stalls} stretch(es) of stalls of the host or the platform's "
+                         f"link (stalls less than {settings.settle_s:g} s apart run together) "
+                         f"cut out {grid.cut_s:.1f} s of the window: {judged_s:.1f} s left to "
+                         f"judge (needs {need:.1f} s)" if grid.stalls else
                          f"{span:.1f} s of data is too short")
         return out
     judged = sig.v[lead:]  # the motion: the command is known over the whole window
