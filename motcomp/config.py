@@ -625,10 +625,12 @@ def _inside_envelope(cfg: ServiceConfig, name: str, row: tuple[float, float, flo
                               f"{bound!r} (the hardware envelope, a restart key)")
 
 
-def validation_message(exc: ValidationError, root: type[BaseModel]) -> tuple[str, str]:
-    """``(dotted key, "<reason> (got <value>)")`` of the first error of validating ``root``;
-    an unknown key is named with the keys its table takes that come close ("did you mean")."""
-    err = exc.errors()[0]
+def validation_message(exc: ValidationError, root: type[BaseModel], index: int = 0
+                       ) -> tuple[str, str]:
+    """``(dotted key, "<reason> (got <value>)")`` of the ``index``-th error of validating
+    ``root``; an unknown key is named with the keys its table takes that come close ("did you
+    mean")."""
+    err = exc.errors()[index]
     loc = ".".join(str(p) for p in err["loc"])
     msg = err["msg"].removeprefix("Value error, ")
     if err["type"] == "extra_forbidden" and err["loc"]:
@@ -688,6 +690,10 @@ _KEY_PREFIX = re.compile(r"([A-Za-z_][\w-]*(?:\.[\w-]+)*): ")
 """A message that begins with the dotted key it is about (the config's own checks)."""
 
 
+MORE_ERRORS = 4
+"""A config refused names this many of its errors beyond the first."""
+
+
 def parse_config(data: dict[str, Any], source: str = "<config>",
                  origin: _Origin | None = None) -> ServiceConfig:
     """Validate a parsed TOML document (``origin``: which file holds each value, for the
@@ -707,8 +713,12 @@ def parse_config(data: dict[str, Any], source: str = "<config>",
     except ValidationError as exc:
         loc, msg = validation_message(exc, ServiceConfig)
         key = loc or (m.group(1) if (m := _KEY_PREFIX.match(msg)) else "")
-        more = f" [and {exc.error_count() - 1} more]" if exc.error_count() > 1 else ""
         at = f"{loc}: " if loc else "" if key else "<top>: "  # else the message names it
+        others = [validation_message(exc, ServiceConfig, i)
+                  for i in range(1, min(exc.error_count(), 1 + MORE_ERRORS))]
+        more = "".join(f"; also {where(k)}: {k or '<top>'}: {m}" for k, m in others) + (
+            f" [and {exc.error_count() - 1 - MORE_ERRORS} more]"
+            if exc.error_count() > 1 + MORE_ERRORS else "")
         raise ConfigError(f"{where(key)}: {at}{msg}{more}") from None
     try:
         resolve_axes(cfg)

@@ -324,6 +324,26 @@ def test_config_check_suggests_the_key_meant(tmp_path: Path, text: str, msg: str
     assert p.returncode == 2 and msg in p.stderr, p.stderr
 
 
+def test_a_config_refused_names_each_of_its_errors(tmp_path: Path) -> None:
+    """Each error, where and which value (the first few; the rest counted), not "[and 1 more]"."""
+    from motcomp.config import MORE_ERRORS
+
+    site = tmp_path / "site.toml"
+    site.write_text(f'include = ["{EXAMPLE}"]\n[axes.rails_x]\nvel_max_m_s = 20.0\n'
+                    '[axes.rails_y]\nvel_max_m_s = 30.0\n')
+    p = run("config", "check", str(site))
+    assert p.returncode == 2, p.stderr
+    assert "axes.rails_x.vel_max_m_s: lies outside [0, 10]" in p.stderr
+    assert (f"; also {site}: axes.rails_y.vel_max_m_s: lies outside [0, 10] m/s, the plausible "
+            "range of a motion platform (got 30.0)") in p.stderr, p.stderr
+    many = "".join(f"[loop]\nzz{i} = {i}\n" if i == 0 else f"zz{i} = {i}\n"
+                   for i in range(MORE_ERRORS + 3))
+    site.write_text(f'include = ["{EXAMPLE}"]\n{many}')
+    p = run("config", "check", str(site))
+    assert p.returncode == 2 and p.stderr.count("; also ") == MORE_ERRORS, p.stderr
+    assert p.stderr.rstrip().endswith(" [and 2 more]"), p.stderr
+
+
 @pytest.mark.parametrize(("text", "msg"), [
     ("[axes.rails_y]\nvel_max_m_ss = 2.0\n",
      "axes.rails_y.vel_max_m_ss: unknown key 'vel_max_m_ss'; did you mean 'vel_max_m_s'"),
