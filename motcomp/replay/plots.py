@@ -74,14 +74,14 @@ def write_plots(out_dir: Path, session: Session, runs: list[ReplayRun]) -> list[
         ax1.set_xlabel("time (s)")
         ax1.set_ylabel(unit(name))
         ax1.grid(True, alpha=0.3)
-        ax1.legend(loc="upper right", fontsize=7)
+        ax1.legend(loc="best", fontsize=7)
         if rec is not None and rec_rows.size:
             d = np.abs(res.u[rec_rows, a] - rec.pos[plan.output[rec_rows], a])
             bins = max(1, rec_rows.size // 2000)
             m = d[: d.size // bins * bins].reshape(-1, bins).max(axis=1)
             tb = t[rec_rows][: d.size // bins * bins].reshape(-1, bins)[:, 0]
             ax2.semilogy(tb, np.maximum(m, 1e-18), "C0", lw=1)
-            ax2.set_ylabel(f"max |replayed - recorded| ({unit(name)})")
+            ax2.set_ylabel(f"max |replayed - recorded| ({unit(name)})\n(equal: drawn at 1e-18)")
             if plan.warm:  # the report leaves it out: the replay's state is settling there
                 ax2.axvspan(float(t[0]), float(t[0]) + SETTLE_S, color="0.85",
                             label=f"warm start: not compared (the first {SETTLE_S:g} s)")
