@@ -49,7 +49,9 @@ def test_a_loop_kept_from_its_cpu_by_busy_processes_says_the_misses_are_the_host
             hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"],
                                      preexec_fn=on_cpu) for _ in range(15)]
             text = wait_for_text(log, "deadlines over the last", svc, timeout=40.0)
-            p = cli("status", "-e", loopback(p_svc), "--json")
+            # the service's status is built on a sixteenth of a CPU here: the query waits for
+            # it longer than the command's default 3 s (on a slow host it took longer than that)
+            p = cli("status", "-e", loopback(p_svc), "--json", "--timeout", "20")
             assert p.returncode == 0, p.stderr
             st = json.loads(p.stdout)
         finally:
