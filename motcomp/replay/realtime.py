@@ -16,7 +16,6 @@ reachable (``wait_peer_s``).
 
 from __future__ import annotations
 
-import gc
 import queue
 import signal
 import sys
@@ -41,7 +40,7 @@ from motcomp.record.session import DEFAULT_KEYS, session_parts
 from motcomp.runtime.clock import (
     TIMER_SLACK_NS,
     SleepLead,
-    freeze_heap,
+    frozen_heap,
     set_timer_slack,
     sleep_until,
 )
@@ -186,7 +185,7 @@ def _republish(path: str | Path, endpoints: ZenohEndpoints, key: str | None, tim
     late: list[int] = []
     sent = 0
     t_start = time.monotonic()
-    with open_session(endpoints) as session:
+    with open_session(endpoints) as session, frozen_heap():
         if wait_peer_s > 0 and not wait_for_subscriber(session, key, wait_peer_s, stop):
             if not stop.is_set():
                 raise NoPeerError(f"no subscriber of {key} reachable within {wait_peer_s:g} s "
@@ -199,7 +198,6 @@ def _republish(path: str | Path, endpoints: ZenohEndpoints, key: str | None, tim
         try:
             stop.wait(lead_in_s)
             set_timer_slack(TIMER_SLACK_NS)
-            freeze_heap()
             lead = SleepLead(SPIN_NS)
             start = time.perf_counter_ns()
             t0: int | None = None
@@ -220,7 +218,6 @@ def _republish(path: str | Path, endpoints: ZenohEndpoints, key: str | None, tim
                 if progress is not None and sent % 250 == 0:
                     progress((ref - t0) / 1e9)
         finally:
-            gc.unfreeze()
             sys.setswitchinterval(switch)
             frames.close()
             sink.close()

@@ -34,10 +34,11 @@ import os
 import threading
 import time
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 __all__ = ["DEGRADED_MISSED_SHARE", "INPUT_GRACE", "LEAD_QUANTILE", "TIMER_SLACK_NS",
-           "WATCH_STEP_NS", "DeadlineClock", "SleepLead", "freeze_heap", "run_delay_reader",
+           "WATCH_STEP_NS", "DeadlineClock", "SleepLead", "frozen_heap", "run_delay_reader",
            "set_timer_slack", "sleep_until"]
 
 TIMER_SLACK_NS = 1000
@@ -60,13 +61,19 @@ INPUT_GRACE = 25
 period beyond the period for the next input before it ticks without one."""
 
 
-def freeze_heap() -> None:
-    """Before a deadline loop: collect once, then move every object alive out of the cyclic
-    collector's reach (``gc.freeze``), so that its full collections scan only what the loop
-    allocates since -- one full collection of a process' imports holds the interpreter for tens
-    of milliseconds on a loaded host, whichever thread runs it (docs/REPLAY.md, "Real time")."""
+@contextmanager
+def frozen_heap() -> Iterator[None]:
+    """While a deadline loop runs: collect once, then keep every object alive at the start out
+    of the cyclic collector's reach (``gc.freeze``; ``gc.unfreeze`` at the end), so that its
+    full collections scan only what the loop allocates -- one full collection of a process'
+    imports holds the interpreter for tens of milliseconds on a loaded host, whichever thread
+    runs it (docs/REPLAY.md, "Real time").  The freeze is the process'."""
     gc.collect()
     gc.freeze()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
 
 
 def set_timer_slack(ns: int) -> bool:

@@ -7,9 +7,10 @@ Lifecycle::
              configured -> build the compensator at neutral
     loop     a thread at a fixed rate on absolute deadlines (a short scheduler slice, or
              optionally SCHED_FIFO; optionally pinned),
-             gc.freeze() at its start; each tick: apply queued commands, take the newest input
-             frame (never blocks), run :func:`motcomp.core.tick.step` on it (validation,
-             reference, catch-up, compensator, verdict: the whole per-tick policy), send the
+             the heap frozen while it runs (frozen_heap); each tick: apply queued commands,
+             take the newest input frame (never blocks), run :func:`motcomp.core.tick.step` on
+             it (validation, reference, catch-up, compensator, verdict: the whole per-tick
+             policy), send the
              output on every port; count, never log
     main     the main thread: signals, status at 1 Hz (and on query, from a copy at most
              STATUS_MAX_AGE_S old), the systemd watchdog (only while the loop ticks), the
@@ -76,7 +77,7 @@ from motcomp.core.tick import (
 from motcomp.errors import ConfigError, MotcompError, ServiceError
 from motcomp.io.ports import InputPort, OutputPort
 from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, ZenohSource, open_session
-from motcomp.runtime.clock import DEGRADED_MISSED_SHARE, DeadlineClock, freeze_heap
+from motcomp.runtime.clock import DEGRADED_MISSED_SHARE, DeadlineClock, frozen_heap
 from motcomp.runtime.confine import Confinement
 from motcomp.runtime.monitor import (
     BIN_S,
@@ -350,11 +351,14 @@ class Service:
         self.io_ns = io + perf() - t_io
 
     def _loop(self) -> None:
+        with frozen_heap():
+            self._run_loop()
+
+    def _run_loop(self) -> None:
         latency_fd: int | None = None
         try:
             loop = self.cfg.loop
             self.rt_report, latency_fd = schedule_loop(loop)
-            freeze_heap()
             clock = DeadlineClock(loop.rate_hz, loop.spin_us, sleep_max_us=loop.sleep_max_us)
             self._clock = clock
             self._clocked = True

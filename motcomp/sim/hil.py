@@ -33,7 +33,7 @@ from motcomp.errors import ConfigError, FrameError
 from motcomp.io.wire import decode_output, encode_feedback
 from motcomp.io.zenoh_io import ZenohEndpoints, ZenohSink, open_session
 from motcomp.presets import load_preset
-from motcomp.runtime.clock import DeadlineClock, freeze_heap
+from motcomp.runtime.clock import DeadlineClock, frozen_heap
 from motcomp.sim.platform import Accelerometer, PlatformSimulator
 
 __all__ = ["Drift", "HilConfig", "HilPlatform", "default_truth", "parse_drift", "run_hil",
@@ -318,14 +318,13 @@ def run_hil(cfg: HilConfig, endpoints: ZenohEndpoints,
 
         receiver = CanSetpointReceiver(open_bus(cfg.can_interface, cfg.can_channel),
                                        cfg.dbc or config_file("motcomp.dbc"))
-    with open_session(endpoints) as session, subnormals_flushed() as flushed:
+    with open_session(endpoints) as session, subnormals_flushed() as flushed, frozen_heap():
         _log_startup(cfg, endpoints, plat, flushed)
         # every frame, in order (a ring: never blocks zenoh, keeps the newest 4096)
         source = (session.declare_subscriber(cfg.setpoint_key, zenoh.handlers.RingChannel(4096))
                   if cfg.transport == "zenoh" else None)
         feedback = ZenohSink(session, cfg.feedback_key)
         status_pub = session.declare_publisher(cfg.status_key)
-        freeze_heap()
         clock = DeadlineClock(cfg.rate_hz, cfg.spin_us)
         t_wall0, t_mono0 = time.time(), time.perf_counter_ns()
         t_end = time.monotonic() + cfg.duration_s

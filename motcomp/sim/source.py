@@ -57,7 +57,7 @@ from motcomp.io.zenoh_io import (
 from motcomp.runtime.clock import (
     TIMER_SLACK_NS,
     SleepLead,
-    freeze_heap,
+    frozen_heap,
     set_timer_slack,
     sleep_until,
 )
@@ -548,7 +548,7 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
                             time.monotonic() - t_start, traj.rate_hz, t0, with_t,
                             timing.describe(), seed, stalls, held, unheard)
 
-    with open_session(endpoints) as session:
+    with open_session(endpoints) as session, frozen_heap():
         left = max(0.1, wait_peer_s - (time.monotonic() - t_start))
         if wait_peer_s > 0 and not wait_for_subscriber(session, key, left, stop):
             if not stop.is_set():
@@ -561,7 +561,6 @@ def publish(traj: Trajectory, endpoints: ZenohEndpoints, key: str = "sim/motion/
             stop.wait(lead_in_s)
         schedule = send_schedule(traj.rate_hz, timing)
         set_timer_slack(TIMER_SLACK_NS)  # as the service's loop: sleeps end on time
-        freeze_heap()
         perf = time.perf_counter_ns
         t_wall0, t_mono0 = time.time(), perf()
         start_ns = t_mono0 + period_ns  # sample 0 is due one period from now
