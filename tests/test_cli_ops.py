@@ -173,6 +173,17 @@ def test_status_waits_the_full_timeout_and_names_the_endpoint() -> None:
         assert "Traceback" not in p.stderr
 
 
+def test_a_change_waits_for_the_answer_as_long_as_the_service_may_prepare_it() -> None:
+    """A reload or profile switch the service is still preparing is not reported as no
+    answer: the commands' default wait exceeds the service's own limit for preparing one."""
+    from motcomp.runtime.reload import PREPARE_TIMEOUT_S
+
+    parser = build_parser()
+    for argv in (["reload"], ["profile", "fast"]):
+        assert parser.parse_args(argv).timeout >= PREPARE_TIMEOUT_S + 1.0, argv
+    assert parser.parse_args(["status"]).timeout == 3.0
+
+
 def test_bad_endpoints_are_named() -> None:
     p = cli("status", "-e", "nonsense", "--timeout", "1")
     assert p.returncode == 2, p.stderr

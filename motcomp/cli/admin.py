@@ -27,6 +27,11 @@ from motcomp.io.zenoh_io import (
 
 ORDER = 2
 
+CHANGE_TIMEOUT_S = 12.0
+"""How long a reload or profile switch waits for the service's answer by default: longer than
+the service may take to prepare one (``motcomp.runtime.reload.PREPARE_TIMEOUT_S``, 10 s, not
+imported here: a command loads its own module only) and swap it in."""
+
 
 def _service_args(p: argparse.ArgumentParser, key: str, timeout: float) -> None:
     """The key of the service endpoint, a timeout and zenoh's flags."""
@@ -70,7 +75,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                     "profile its config does not define), 1 if it could not "
                                     "serve the request (busy, stopping).")
     pr.add_argument("name", help="profile name, or 'none' for the config's base tuning")
-    _service_args(pr, "motcomp/admin", 5.0)
+    _service_args(pr, "motcomp/admin", CHANGE_TIMEOUT_S)
     pr.set_defaults(func=run_profile)
 
     r = sub.add_parser("reload", help="reload a running service's config",
@@ -84,7 +89,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "service's config directory (the directory of the file it was started "
                         "with), and once accepted it is the config in force (SIGHUP and "
                         "`reload` re-read it)")
-    _service_args(r, "motcomp/admin", 5.0)
+    _service_args(r, "motcomp/admin", CHANGE_TIMEOUT_S)
     r.set_defaults(func=run_reload)
 
 
