@@ -20,6 +20,7 @@ from motcomp.io.zenoh_io import (
     NoPeerError,
     ZenohEndpoints,
     add_zenoh_args,
+    connected_peers,
     endpoints_from_args,
     open_session,
     query,
@@ -126,7 +127,7 @@ def _ask(session: Any, ep: ZenohEndpoints, key: str, payload: bytes | None,
                 raise ServiceError(f"unexpected reply from {key}")
             return out
         time.sleep(min(0.1, max(0.0, t_end - time.monotonic())))
-    peers = len(list(session.info.peers_zid())) + len(list(session.info.routers_zid()))
+    peers = connected_peers(session)
     within = f"within {timeout_s if asked_s is None else asked_s:g} s"
     if late:
         raise NoPeerError(

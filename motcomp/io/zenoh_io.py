@@ -330,6 +330,12 @@ def wait_for_subscriber(session: Any, key: str, timeout_s: float,
         pub.undeclare()
 
 
+def connected_peers(session: Any) -> int:
+    """How many zenoh peers and routers ``session`` is connected to now."""
+    info = session.info
+    return len(list(info.peers_zid())) + len(list(info.routers_zid()))
+
+
 def free_tcp_port() -> int:
     """A free TCP port on the loopback (for tests and the demo)."""
     import socket

@@ -33,7 +33,7 @@ from typing import IO, Any
 
 from motcomp import __version__
 from motcomp.errors import ConfigError, MotcompError, TransportError
-from motcomp.io.zenoh_io import ZenohEndpoints, first_reply, open_session
+from motcomp.io.zenoh_io import ZenohEndpoints, connected_peers, first_reply, open_session
 from motcomp.record.frames import frame_time_and_seq
 from motcomp.record.session import DEFAULT_KEYS
 
@@ -407,12 +407,12 @@ def record(opts: RecordOptions, endpoints: ZenohEndpoints,
                         watch = not (st is not None and settle(st))
                         next_ask = time.monotonic() + opts.status_retry_s
                     if not peer_seen and now >= next_peers:
-                        peer_seen = _connected(session)
+                        peer_seen = connected_peers(session) > 0
                         next_peers = now + 0.5
                     writer.tick()
                     stop.wait(opts.poll_s)
             finally:
-                peer_seen = peer_seen or _connected(session)
+                peer_seen = peer_seen or connected_peers(session) > 0
                 for s in subs:
                     s.undeclare()
                 subs = []
@@ -436,12 +436,6 @@ def record(opts: RecordOptions, endpoints: ZenohEndpoints,
     return RecordSummary(writer.parts, dict(writer.counts), dropped[0], time.monotonic() - t0,
                          status, missing, tuple(opts.keys),
                          None if peer_seen else endpoints.describe())
-
-
-def _connected(session: Any) -> bool:
-    """Whether a zenoh peer or router is connected to ``session`` now."""
-    info = session.info
-    return any(True for _ in info.peers_zid()) or any(True for _ in info.routers_zid())
 
 
 def _status_of(payload: bytes) -> dict[str, Any]:
