@@ -184,6 +184,13 @@ def test_a_change_waits_for_the_answer_as_long_as_the_service_may_prepare_it() -
     assert parser.parse_args(["status"]).timeout == 3.0
 
 
+def test_a_bad_truth_is_named_with_its_option() -> None:
+    p = cli("hil", "--truth", "rails_x=p1d:bad", "--duration", "1")
+    assert p.returncode == 2, p.stderr
+    assert ("--truth 'rails_x=p1d:bad': model spec 'p1d:bad': 'bad' is not KEY=VALUE"
+            in p.stderr), p.stderr
+
+
 def test_bad_endpoints_are_named() -> None:
     p = cli("status", "-e", "nonsense", "--timeout", "1")
     assert p.returncode == 2, p.stderr

@@ -263,7 +263,9 @@ def test_parse_drift() -> None:
     for bad, what in (("rails_q=p1d:K=1,Td=0,Tp1=0.1@5", "AXIS=SPEC"),
                       ("rails_y=p1d:K=1,Td=0,Tp1=0.1", "AXIS=SPEC"),
                       ("rails_y=p1d:K=1,Td=0,Tp1=0.1@soon", "seconds"),
-                      ("rails_y=p1d:K=1,Td=0,Tp1=0.1@-1", ">= 0")):
+                      ("rails_y=p1d:K=1,Td=0,Tp1=0.1@-1", ">= 0"),
+                      ("rails_y=p1d:bad@5",
+                       r"^--drift 'rails_y=p1d:bad@5': model spec .*KEY=VALUE")):
         with pytest.raises(ConfigError, match=what):
             parse_drift(bad)
 

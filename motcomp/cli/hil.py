@@ -67,7 +67,10 @@ def run(args: argparse.Namespace) -> int:
         axis, sep, spec = item.partition("=")
         if not sep or axis not in AXES:
             raise ConfigError(f"--truth {item!r}: expected AXIS=SPEC with AXIS in {AXES}")
-        models[AXES.index(axis)] = parse_model(spec)
+        try:
+            models[AXES.index(axis)] = parse_model(spec)
+        except ConfigError as e:
+            raise ConfigError(f"--truth {item!r}: {e}") from None
     if not 0 <= args.margin <= 10:
         raise ConfigError(f"--margin must be in [0, 10], got {args.margin}")
     span = p_max - p_min

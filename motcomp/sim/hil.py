@@ -101,7 +101,11 @@ def parse_drift(text: str) -> Drift:
         raise ConfigError(f"--drift {text!r}: T and RAMP must be seconds, got {when!r}") from None
     if not (math.isfinite(at_s) and at_s >= 0 and math.isfinite(ramp_s) and ramp_s >= 0):
         raise ConfigError(f"--drift {text!r}: T and RAMP must be finite and >= 0")
-    return Drift(axis, parse_model(spec), at_s, ramp_s)
+    try:
+        model = parse_model(spec)
+    except ConfigError as e:
+        raise ConfigError(f"--drift {text!r}: {e}") from None
+    return Drift(axis, model, at_s, ramp_s)
 
 
 def _between(a: ProcessModel, b: ProcessModel, f: float) -> ProcessModel:
