@@ -22,6 +22,7 @@ import msgpack
 import numpy as np
 import pytest
 
+from motcomp.cli.admin import CHANGE_TIMEOUT_S
 from motcomp.config import load_config
 from motcomp.core.axes import AXES
 from motcomp.core.saturation import AxisLimits
@@ -305,16 +306,33 @@ def test_reload_valid_and_invalid_and_sighup(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_reload_refused_when_admin_is_off(tmp_path: Path) -> None:
+def test_admin_requests_refused_at_once_when_admin_is_off(tmp_path: Path) -> None:
+    """Each admin command, and the live identification's bypass, told ``admin off`` at once;
+    nothing changes."""
     cfg = tmp_path / "motcomp.toml"
     cfg.write_text(f'include = ["{config_file("motcomp.toml")}"]\n')
     p_svc = free_tcp_port()
     with process(["run", "--config", str(cfg), "-l", loopback(p_svc)], tmp_path / "svc.log"), \
             open_session(ZenohEndpoints(connect=(loopback(p_svc),))) as session:
         wait_status(session)
+        t0 = time.monotonic()
         r = reload_cmd(p_svc)
-        assert r.returncode == 3  # nobody answers on the admin key
-        assert "no reply" in r.stderr and "admin off" in r.stderr
+        took = time.monotonic() - t0
+        # answered at once, not the command's whole wait for a reply (12 s) as if unreachable
+        assert r.returncode == 1, r.stderr
+        assert "failed: admin off (the service's config has [admin] enabled = false" in r.stderr
+        assert took < CHANGE_TIMEOUT_S, took
+        ep = ["-e", loopback(p_svc)]
+        for argv in (["bypass", "on", "--axes", "rails_y"], ["profile", "fast"],
+                     ["identify", "--live", "--axis", "rails_y", str(tmp_path / "id.mcap"),
+                      "--out", str(tmp_path / "ident"), "--no-figures", "--force"]):
+            r = subprocess.run(motcomp_cmd(*argv, *ep), capture_output=True, text=True,
+                               env=subprocess_env(), timeout=60)
+            assert r.returncode == 1, (argv, r.stderr)
+            assert "admin off (the service's config has [admin] enabled = false" in r.stderr, \
+                (argv, r.stderr)
+        st = status(session)
+        assert st["bypass"] == [a for a in AXES if a.startswith("hex")] and st["reloads"] == []
 
 
 def test_bypass_off_without_axes_keeps_the_config_bypass(tmp_path: Path) -> None:

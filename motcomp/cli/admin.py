@@ -136,8 +136,8 @@ def _ask(session: Any, ep: ZenohEndpoints, key: str, payload: bytes | None,
             "served: check `motcomp status`")
     raise NoPeerError(
         f"no reply from the service at {ep.describe()} (key {key}) {within}; "
-        + (f"{peers} zenoh peer(s) connected, but none answers on this key (another service, "
-           "admin off, or an access-control rule that drops the query?)" if peers
+        + (f"{peers} zenoh peer(s) connected, but none answers on this key (another service's "
+           "key, or an access-control rule that drops the query?)" if peers
            else "no zenoh peer was reachable"))
 
 
@@ -153,6 +153,8 @@ def _request(args: argparse.Namespace, key: str, body: dict[str, Any] | None) ->
 NOT_NOW = {
     "busy": "busy (the service is serving other admin requests: try again shortly)",
     "stopping": "stopping (the service is parking the platform before it exits)",
+    "admin off": ("admin off (the service's config has [admin] enabled = false, read at its "
+                  "start: set it to true and restart the service; docs/DEPLOYMENT.md)"),
 }
 """Rejections that say nothing of the request (exit 1, a failure): the service could not
 serve it now.  Any other rejection names what is wrong with the request (exit 2, bad input)."""

@@ -185,8 +185,11 @@ def run_live(opts: LiveOptions, endpoints: ZenohEndpoints) -> LiveRun:
             reply = _ask(session, f"{opts.admin_key}/bypass", {"on": True, "axes": [opts.axis]},
                          opts.timeout_s)
             if not reply.get("ok"):
+                from motcomp.cli.admin import NOT_NOW
+
+                error = str(reply.get("error"))
                 raise ServiceError(f"the service refused to bypass {opts.axis}: "
-                                   f"{reply.get('error')} (is [admin] enabled?)")
+                                   f"{NOT_NOW.get(error, error)}")
             log.info("%s bypassed for the identification run", opts.axis)
         say(f"{opts.axis} bypassed (compensation off); recording to {opts.out}, then a "
             f"{opts.duration_s:g} s {opts.kind} at {opts.usage:g} of its limits")

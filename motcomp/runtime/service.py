@@ -210,6 +210,7 @@ SWITCH_INTERVAL_S = 0.0002
 RELOADS_KEPT = 10
 """Reload attempts kept for the status."""
 BUSY = msgpack.packb({"ok": False, "error": "busy"})
+ADMIN_OFF = msgpack.packb({"ok": False, "error": "admin off"})
 
 def _answer(query: Any, key: str, result: dict[str, Any] | bytes) -> None:
     """Reply to an admin query and release it (never raises: the session may be closing)."""
@@ -830,9 +831,10 @@ class Service:
             status_pub = session.declare_publisher(cfg.status.key)
             status_q = session.declare_queryable(cfg.status.key,
                                                  zenoh.handlers.RingChannel(QUERY_CHANNEL))
-            admin_q = (session.declare_queryable(f"{cfg.admin.key}/**",
-                                                 zenoh.handlers.RingChannel(QUERY_CHANNEL))
-                       if cfg.admin.enabled else None)
+            # declared with admin off too, to answer ``admin off`` at once (not a silence
+            # that reads as an unreachable service after the command's whole timeout)
+            admin_q = session.declare_queryable(f"{cfg.admin.key}/**",
+                                                zenoh.handlers.RingChannel(QUERY_CHANNEL))
             thread = threading.Thread(target=self._loop, name="motcomp-loop", daemon=True)
             worker = threading.Thread(target=self._admin_worker, name="motcomp-admin",
                                       daemon=True)
@@ -978,6 +980,7 @@ class Service:
     def _main(self, thread: threading.Thread, status_pub: Any, status_q: Any,
               admin_q: Any) -> int:
         cfg = self.cfg
+        admin_on = cfg.admin.enabled
         next_status = time.monotonic() + cfg.status.period_s
         next_dog = 0.0
         dog_every = (self.notifier.watchdog_usec / 2e6) if self.notifier.watchdog_usec else 1.0
@@ -1022,10 +1025,12 @@ class Service:
                     break
                 q.reply(cfg.status.key, self._status_bytes(time.monotonic()))
                 q.drop()
-            for _ in range(QUERIES_PER_POLL if admin_q is not None else 0):
+            for _ in range(QUERIES_PER_POLL):
                 if (q := admin_q.try_recv()) is None:
                     break
-                if not self.submit("query", q):
+                if not admin_on:  # [restart]: the config the service started with
+                    _answer(q, str(q.key_expr), ADMIN_OFF)
+                elif not self.submit("query", q):
                     _answer(q, str(q.key_expr), BUSY)
             if now >= next_status:
                 status_pub.put(self._status_bytes(time.monotonic(), 0.0))
