@@ -288,6 +288,7 @@ def test_a_service_whose_install_is_replaced_keeps_running_and_says_so(tmp_path:
         open_session,
     )
     from motcomp.resources import config_dir, config_file
+    from motcomp.runtime.service import BUILD_CHECK_S
 
     root = Path(__file__).resolve().parent.parent
     site = tmp_path / "site"
@@ -342,12 +343,12 @@ def test_a_service_whose_install_is_replaced_keeps_running_and_says_so(tmp_path:
                 f"what it loaded; a restart would run the plain Python ("
                 + ("source changed since the build: shaper (reinstall to compile again))"
                    if compiled else native.ACTIVE.removeprefix("plain Python (")))
-            # the status is cached for 0.1 s: one computed while the record was being written
-            # rightly says so ("no record of the compiled sources (JSONDecodeError)")
+            # the build is looked at every BUILD_CHECK_S: once while the record was being
+            # written, it rightly says so ("no record of the compiled sources
+            # (JSONDecodeError)"), and the next look says what settled
             after = status(session)
-            for _ in range(20):
-                if after["tick"] == settled:
-                    break
+            t_end = time.monotonic() + 3 * BUILD_CHECK_S
+            while after["tick"] != settled and time.monotonic() < t_end:
                 time.sleep(0.2)
                 after = status(session)
         assert after["tick"] == settled

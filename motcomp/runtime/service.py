@@ -205,6 +205,9 @@ ADMIN_RATE_HZ = 10.0
 """The admin worker starts at most this many requests a second."""
 STATUS_MAX_AGE_S = 0.1
 """A status query is answered with a status at most this old (rebuilt after an admin change)."""
+BUILD_CHECK_S = 5.0
+"""The installed build is looked at (:func:`motcomp.core.native.status`: a few dozen ``stat``
+calls, each a hand-over of the interpreter lock) this often, not at each status."""
 SWITCH_INTERVAL_S = 0.0002
 """The interpreter's switch interval while the service runs (``sys.setswitchinterval``)."""
 RELOADS_KEPT = 10
@@ -288,6 +291,8 @@ class Service:
         # newest admin change is stale whatever its age
         self._status_cache: tuple[int, float, bytes] | None = None
         self._admin_gen = 0
+        self._build = native.status()
+        """What runs, and a reinstall since: the status' ``tick`` (every BUILD_CHECK_S)."""
 
     @staticmethod
     def _confine(path: Path | None) -> Confinement | None:
@@ -542,7 +547,7 @@ class Service:
                     if self._can is not None else None),
             "reloads": self.reloads[-RELOADS_KEPT:],
             "realtime": self.rt_report,
-            "tick": native.status(),  # what runs, and a reinstall since
+            "tick": self._build,
             "clock": self.tick_clock(),
             "platform": self._platform,
             "model_mismatch": self.supervisor.status(),
@@ -982,6 +987,7 @@ class Service:
         cfg = self.cfg
         admin_on = cfg.admin.enabled
         next_status = time.monotonic() + cfg.status.period_s
+        next_build = time.monotonic() + BUILD_CHECK_S
         next_dog = 0.0
         dog_every = (self.notifier.watchdog_usec / 2e6) if self.notifier.watchdog_usec else 1.0
         ready = False
@@ -1032,6 +1038,8 @@ class Service:
                     _answer(q, str(q.key_expr), ADMIN_OFF)
                 elif not self.submit("query", q):
                     _answer(q, str(q.key_expr), BUSY)
+            if now >= next_build:
+                self._build, next_build = native.status(), now + BUILD_CHECK_S
             if now >= next_status:
                 status_pub.put(self._status_bytes(time.monotonic(), 0.0))
                 next_status = now + cfg.status.period_s

@@ -418,6 +418,9 @@ class Supervisor:
         the compensator's business no more than before, the model it is judged against is."""
         old = getattr(self, "models", {})
         self.models = {a: axes.plants[i] for i, a in enumerate(AXES) if axes.driven[i]}
+        # the specs an estimate may name (the model's own, or its P1D reduction's), computed
+        # once here: not at each judgement, on the service's main thread
+        self._specs = {a: {m.spec(), _p1d_spec(m)} - {None} for a, m in self.models.items()}
         for axis, model in self.models.items():
             before = old.get(axis)
             if before is None or before.spec() == model.spec():
@@ -547,8 +550,7 @@ class Supervisor:
         limited, missed = self._window_conditions(now)
         out = []
         for axis, fig in results.items():
-            model = self.models.get(axis)
-            if model is None or fig.get("model") not in (model.spec(), _p1d_spec(model)):
+            if fig.get("model") not in self._specs.get(axis, ()):
                 continue  # estimated against a model a reload has replaced meanwhile
             fig["missed_share"] = missed  # the loop's stalls are cut out of the estimate
             own = str(fig.get("reason") or "")
