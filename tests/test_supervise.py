@@ -642,6 +642,27 @@ def test_stalls_that_leave_too_little_to_judge_are_said() -> None:
     assert "left to judge (needs 6.1 s)" in fig["reason"], fig["reason"]
 
 
+def test_a_window_all_cut_out_by_stalls_is_said_without_a_warning() -> None:
+    """Stalls less than ``settle_s`` apart from the first sample to the last: nothing is left
+    to judge, and nothing is computed over the empty rest (the estimator's warnings go to the
+    service's log)."""
+    import warnings
+
+    u = driving(20.0)
+    t = np.arange(u.size) / RATE
+    keep = np.ones(u.size, bool)
+    for at in np.arange(0.0, 20.0, 0.3):
+        keep[round(at * RATE):round((at + 0.03) * RATE)] = False
+    keep[0] = keep[-1] = True
+    _, acc = drive(MODEL, u)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fig = estimate_axis(t[keep], u[keep], t, acc, MODEL, EstimateSettings(window_s=20.0))
+    assert not fig["informative"]
+    assert fig["cut_s"] == pytest.approx(20.0, abs=0.01), fig
+    assert "0.0 s left to judge" in fig["reason"], fig["reason"]
+
+
 def test_the_residual_is_judged_where_the_driving_determines_it_best() -> None:
     # a platform whose lag differs from the model's: the residual delay depends on the
     # frequency; it is reported at the driven frequency of least standard error, and equals

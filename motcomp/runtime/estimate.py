@@ -203,7 +203,7 @@ def _signals(cmd: np.ndarray, acc: np.ndarray, rate: float, keep: np.ndarray,
 
     v = second_difference(cmd, rate)
     v[0], v[-1] = v[1], v[-2]  # the command moves on at the window's ends: it is not held
-    y = acc - float(np.mean(acc[keep]))
+    y = acc - float(np.mean(acc[keep] if keep.any() else acc))  # all cut: judged by no sample
     cutoff = settings.fit_max_hz
     # one causal filter on both (it commutes with the platform's model), started in the
     # steady state of each signal's first value: its transient lies in the lead-in
