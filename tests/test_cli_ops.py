@@ -189,6 +189,10 @@ def test_a_bad_truth_is_named_with_its_option() -> None:
     assert p.returncode == 2, p.stderr
     assert ("--truth 'rails_x=p1d:bad': model spec 'p1d:bad': 'bad' is not KEY=VALUE"
             in p.stderr), p.stderr
+    p = cli("hil", "--truth", "rails_y=p1d:K=1,Td=21.5,Tp1=293", "--duration", "1")
+    assert p.returncode == 2, p.stderr
+    assert ("--truth 'rails_y=p1d:K=1,Td=21.5,Tp1=293': delay 21.5 s beyond 0.25 s" in p.stderr
+            ), p.stderr
 
 
 def test_bad_endpoints_are_named() -> None:

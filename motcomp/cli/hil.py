@@ -59,7 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from motcomp.sim.hil import HilConfig, default_truth, parse_drift, run_hil
-    from motcomp.sim.platform import Accelerometer
+    from motcomp.sim.platform import MAX_DELAY_S, Accelerometer
 
     setup_logging(args.log_level)
     models, p_min, p_max, v_max = default_truth()
@@ -68,9 +68,14 @@ def run(args: argparse.Namespace) -> int:
         if not sep or axis not in AXES:
             raise ConfigError(f"--truth {item!r}: expected AXIS=SPEC with AXIS in {AXES}")
         try:
-            models[AXES.index(axis)] = parse_model(spec)
+            model = parse_model(spec)
         except ConfigError as e:
             raise ConfigError(f"--truth {item!r}: {e}") from None
+        if model.dead_time_s > MAX_DELAY_S:  # a delay typed in ms, most likely
+            raise ConfigError(f"--truth {item!r}: delay {model.dead_time_s:g} s beyond "
+                              f"{MAX_DELAY_S:g} s (the range identify searches; times are in "
+                              "seconds)")
+        models[AXES.index(axis)] = model
     if not 0 <= args.margin <= 10:
         raise ConfigError(f"--margin must be in [0, 10], got {args.margin}")
     span = p_max - p_min
