@@ -358,6 +358,10 @@ def test_status_table_from_a_status_map() -> None:
     st["platform"]["missed_waiting_cpu"] = 0
     text = format_status(st)
     assert "1000 Hz  ticks 1234  missed 2 (1 waiting for a CPU)" in text
+    assert "\nmode        running\n" in f"\n{text}\n"
+    waiting = {**st, "mode": "stale", "frames": {**st["frames"], "received": 0}}
+    assert ("mode        stale (no frame received yet: holding the start position)"
+            in format_status(waiting))
     assert "deadlines   missed 512 (500 waiting for a CPU) of 10000 over the last 10 s" in text
     # the reference's band limits, each with the axes it holds where they differ
     narrow, wide = {"band_hz": 48.0, "delay_ms": 7.01}, {"band_hz": 64.0, "delay_ms": 5.26}

@@ -266,8 +266,10 @@ def waiting_text(counts: dict[str, Any], missed: str = "missed_ticks") -> str:
 def format_status(st: dict[str, Any]) -> str:
     """The service's status map (``motcomp/status``) as a table for people."""
     cfg = st.get("config") or {}
+    first = st.get("mode") == "stale" and (st.get("frames") or {}).get("received", 1) == 0
     lines = [
-        f"mode        {st.get('mode', '?')}",
+        f"mode        {st.get('mode', '?')}"
+        + (" (no frame received yet: holding the start position)" if first else ""),
         *([f"ERROR       {st['error']} (the service's status is incomplete)"]
           if st.get("error") else []),
         f"config      hash {cfg.get('hash', '?')}  version {cfg.get('version', '?')}  profile "
