@@ -622,6 +622,17 @@ def test_info_tells_a_stalled_recorder_from_a_gap_in_the_frames(tmp_path: Path) 
     assert "recorder: received nothing for 0.11" in text and "at 1.20 s" in text, text
 
 
+def test_info_names_a_rejoin_after_a_stale_input_no_output_shows() -> None:
+    """A loop stalled for longer than ``stale_after_s``: the input is stale and back within the
+    one late tick, no output carries ``stale``, the next ones ``rejoin``."""
+    from motcomp.cli.info import rejoins_unseen
+
+    modes = {"stale": [[0.0, 4.53], [64.54, None]], "rejoin": [[4.53, 5.59], [19.59, 22.54]]}
+    assert rejoins_unseen(modes) == 1
+    assert rejoins_unseen({**modes, "rejoin": [[4.53, 5.59]]}) == 0
+    assert rejoins_unseen({"stale": [], "rejoin": []}) == 0
+
+
 def test_info_warns_about_an_unfinished_recording(tmp_path: Path) -> None:
     path = tmp_path / "s.mcap"
     synthesize(path, load_config(config_file("motcomp.toml")), SynthOptions(duration_s=2.0))

@@ -280,6 +280,14 @@ def _span(run: list[float | None]) -> str:
     return f"{start:.2f}-{end:.2f} s" if end is not None else f"{start:.2f} s-end"
 
 
+def rejoins_unseen(modes: dict[str, Any], tol_s: float = 0.05) -> int:
+    """The rejoins no recorded stale output ends: the input went stale and came back while the
+    loop stalled, between two outputs (the service's log says "stale ... briefly"), or the
+    outputs that showed it were lost."""
+    ends = [r[1] for r in modes["stale"] if r[1] is not None]
+    return sum(1 for r in modes["rejoin"] if not any(abs(e - r[0]) <= tol_s for e in ends))
+
+
 def format_info(info: dict[str, Any]) -> str:
     """:func:`summarise`'s dict as text."""
     meta = info["metadata"]
@@ -330,11 +338,15 @@ def format_info(info: dict[str, Any]) -> str:
             lines.append(f"  bypass     {', '.join(axes)}: {text}")
         if not groups:
             lines.append("  bypass     none")
+        unseen = rejoins_unseen(modes)
         for mode in ("stale", "rejoin", "parking"):
             runs = modes[mode]
             lines.append(f"  {mode:<10} " + (
                 f"{len(runs)}: " + ", ".join(_span(r) for r in runs[:8])
-                + (", ..." if len(runs) > 8 else "") if runs else "none"))
+                + (", ..." if len(runs) > 8 else "") if runs else "none")
+                + (f" ({unseen} after a stale input no recorded output shows: the loop stalled "
+                   "through it, between two outputs, or those that showed it were lost)"
+                   if mode == "rejoin" and unseen else ""))
     else:  # nothing to tell the modes from: not "none"
         lines.append("mode switches: unknown, no output frames recorded (a service whose output "
                      "goes over CAN alone sends none on zenoh: output.transport = \"both\")")
