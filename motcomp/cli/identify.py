@@ -220,6 +220,9 @@ def run_identify(args: argparse.Namespace) -> int:
     poor = {axis: why for axis, why in poor.items() if why}
     held = frozenset(poor) if not args.force else frozenset()
     forced = poor if args.force else {}
+    if not args.quiet:  # the figures take seconds of their own on a slow host
+        print(f"identify: writing the report{'' if args.no_figures else ' and figures'} to "
+              f"{out}", file=sys.stderr)
     try:
         if len(idents) == 1:
             (axis, ident), = idents.items()
