@@ -631,6 +631,8 @@ def test_info_names_a_rejoin_after_a_stale_input_no_output_shows() -> None:
     assert rejoins_unseen(modes) == 1
     assert rejoins_unseen({**modes, "rejoin": [[4.53, 5.59]]}) == 0
     assert rejoins_unseen({"stale": [], "rejoin": []}) == 0
+    # recorded from within a rejoin: not one the recording saw begin
+    assert rejoins_unseen({"stale": [], "rejoin": [[0.2, 1.0]], "first_output_s": 0.2}) == 0
 
 
 def test_info_warns_about_an_unfinished_recording(tmp_path: Path) -> None:

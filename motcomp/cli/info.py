@@ -189,6 +189,7 @@ def summarise(path: Path, gap_s: float | None = None) -> dict[str, Any]:
                 modes["saturated_outputs"][axis] = n_sat
         for mode in ("stale", "rejoin", "parking"):
             modes[mode] = _intervals((flags & FLAG_BITS[mode]) != 0, t_s)
+        modes["first_output_s"] = float(t_s[0])
     meta = s.metadata
     return {
         "file": s.name,
@@ -283,9 +284,11 @@ def _span(run: list[float | None]) -> str:
 def rejoins_unseen(modes: dict[str, Any], tol_s: float = 0.05) -> int:
     """The rejoins no recorded stale output ends: the input went stale and came back while the
     loop stalled, between two outputs (the service's log says "stale ... briefly"), or the
-    outputs that showed it were lost."""
+    outputs that showed it were lost.  A rejoin going on when the recording began is not one."""
     ends = [r[1] for r in modes["stale"] if r[1] is not None]
-    return sum(1 for r in modes["rejoin"] if not any(abs(e - r[0]) <= tol_s for e in ends))
+    first = modes.get("first_output_s", -math.inf)
+    return sum(1 for r in modes["rejoin"]
+               if r[0] > first + tol_s and not any(abs(e - r[0]) <= tol_s for e in ends))
 
 
 def format_info(info: dict[str, Any]) -> str:
