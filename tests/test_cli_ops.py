@@ -460,6 +460,7 @@ def test_a_starved_loop_says_so_and_the_platform_s_stack_delay_is_shown(tmp_path
         wait_for_text(tmp_path / "svc.log", "running:", svc)
         starve = threading.Thread(target=thief, args=(svc.pid,), daemon=True)
         starve.start()
+        t_thief = time.monotonic()
         try:
             time.sleep(2.0)
             first = cli("status", "-e", loopback(p_svc), "--json", "--timeout", "5")
@@ -470,6 +471,7 @@ def test_a_starved_loop_says_so_and_the_platform_s_stack_delay_is_shown(tmp_path
             stop.set()
             starve.join()
             os.kill(svc.pid, signal.SIGCONT)
+            stopped_s = 0.3 * (time.monotonic() - t_thief)  # 30 ms of every 100
         p = cli("status", "-e", loopback(p_svc), "--json")
         assert p.returncode == 0, p.stderr
         st = json.loads(p.stdout)
@@ -487,7 +489,10 @@ def test_a_starved_loop_says_so_and_the_platform_s_stack_delay_is_shown(tmp_path
     assert st["platform"]["setpoint_age_ms"] > 0, st["platform"]
     assert "platform    setpoints applied" in table, table
     if st["missed_waiting_cpu"] is not None:  # a stopped loop was not waiting for a CPU
-        assert st["missed_waiting_cpu"] <= 0.5 * st["missed_ticks"], st
+        # at least half the deadlines of the stops are not counted as waits, whatever the
+        # host's own load adds to both (a busy CI host made half of all the misses waits)
+        not_waiting = st["missed_ticks"] - st["missed_waiting_cpu"]
+        assert not_waiting >= 0.5 * stopped_s * st["rate_hz"], (stopped_s, st)
         # the platform (motcomp hil) says the same of its own loop
         assert 0 <= st["platform"]["missed_waiting_cpu"] <= st["platform"]["missed_ticks"], st
 

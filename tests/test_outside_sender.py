@@ -498,12 +498,13 @@ def test_a_forged_t_is_rejected_and_moves_nothing(tmp_path: Path) -> None:
             pub.put(msgpack.packb({"seq": last["seq"] + 50, "t": t, "pos": {"rails_y": 2.0}}))
             sent += 1
             time.sleep(0.2)
-        status = query_status(session) or {}
+        status = query_status(session, 15.0)  # a starved host's service took more than 2 s
         live = sender.poll() is None
         sender.terminate()
         sender.communicate(timeout=30)
         pub.undeclare()
     assert live, "the live sender ended before the status was read"
+    assert status is not None, "the service did not answer its status query within 15 s"
     frames = status["frames"]
     by = frames["rejected_by_reason"]
     seen = json.dumps({**frames, "stale_episodes": status.get("stale_episodes")})  # in full

@@ -9,8 +9,6 @@ import threading
 import time
 from pathlib import Path
 
-import zenoh
-
 from motcomp.core.axes import AXES
 from motcomp.io.wire import encode_input, encode_output
 from motcomp.io.zenoh_io import ZenohEndpoints, free_tcp_port, loopback, open_session
@@ -66,12 +64,11 @@ def test_a_stopped_republish_ends_its_reading_thread(tmp_path: Path) -> None:
     port = free_tcp_port()
     stop = threading.Event()
     with open_session(ZenohEndpoints(listen=(loopback(port),))) as session:
-        sub = session.declare_subscriber(KEYS[0], zenoh.handlers.RingChannel(1))
-        timer = threading.Timer(1.0, stop.set)
-        timer.start()
+        # stopped once its first frame arrives (a timer of 1 s fired before a starved host's
+        # first frame was sent); the recording lasts 3 s
+        sub = session.declare_subscriber(KEYS[0], lambda _sample: stop.set())
         stats = republish(path, ZenohEndpoints(connect=(loopback(port),)), stop=stop,
                           lead_in_s=0.1, wait_peer_s=10)
-        timer.cancel()
         sub.undeclare()
     assert stats.stopped and 0 < stats.sent < len(frames)
     assert not [t for t in threading.enumerate() if t.name == "replay-read"]
