@@ -36,10 +36,18 @@ import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from motcomp.core.axes import AXES
 from motcomp.core.bandlimit import BAND_HZ_DEFAULT, band_limit_params
@@ -79,7 +87,17 @@ __all__ = [
     "source_report",
 ]
 
-_STRICT = ConfigDict(extra="forbid", frozen=True)
+_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True)
+"""Every table: no unknown key, and each value of its key's type as TOML writes it (a boolean is
+not a number, a string not a boolean: no coercion)."""
+
+
+def _array(v: Any) -> Any:
+    return tuple(v) if isinstance(v, list) else v
+
+
+_Band = Annotated[tuple[float, float], BeforeValidator(_array)]
+"""A TOML array of two numbers (strict validation takes a tuple only)."""
 
 
 def _finite(v: float) -> float:
@@ -115,7 +133,7 @@ class PredictionTable(BaseModel):
     model_config = _STRICT
     pole_hz: float
     rate_hz: float
-    band_hz: tuple[float, float] = (0.1, 2.0)
+    band_hz: _Band = (0.1, 2.0)
     coeffs: list[float]
 
     @model_validator(mode="after")
@@ -352,7 +370,7 @@ class SupervisionConfig(BaseModel):
     """Each estimate reads the last this long of outputs and feedback."""
     period_s: float = Field(2.0, ge=0.5, le=SUPERVISION_PERIOD_MAX_S)
     """An estimate every this long."""
-    band_hz: tuple[float, float] = (0.1, 2.0)
+    band_hz: _Band = (0.1, 2.0)
     """The driver's band: the mismatch is judged at the motion's centre frequency in it."""
     delay_bound_ms: float = Field(2.5, gt=0.0, le=100.0)
     """An alarm when the residual delay in the band exceeds this..."""
@@ -636,7 +654,18 @@ def validation_message(exc: ValidationError, root: type[BaseModel], index: int =
     if err["type"] == "extra_forbidden" and err["loc"]:
         msg = f"unknown key {err['loc'][-1]!r}" + _did_you_mean(err["loc"], root)
     value = err.get("input")
-    return loc, msg + ("" if isinstance(value, dict) else f" (got {value!r})")
+    return loc, msg + ("" if isinstance(value, dict) else f" (got {_toml_text(value)})")
+
+
+def _toml_text(value: Any) -> str:
+    """A value as TOML writes it (``true``, ``"yes"``, ``[1, 2]``), for messages."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_toml_text(v) for v in value) + "]"
+    return repr(value)
 
 
 def _did_you_mean(loc: tuple[Any, ...], root: type[BaseModel]) -> str:

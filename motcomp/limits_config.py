@@ -48,7 +48,7 @@ def limit_keys(axis: str) -> tuple[str, str, str, str]:
 class LimitsConfig(BaseModel):
     """Limits of one axis; exactly the four keys of the axis' unit family must be given."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
     pos_min_m: float | None = None
     pos_max_m: float | None = None

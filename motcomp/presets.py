@@ -36,7 +36,7 @@ DEFAULT_AXIS = "rails_y"
 
 
 class _PresetFile(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
     description: str
     model: str
     axes: list[str]

@@ -368,3 +368,31 @@ def test_an_error_names_the_included_file_that_holds_the_value(tmp_path: Path, t
     site.write_text(f'include = ["{EXAMPLE}", "frag/none.toml"]\n')
     with pytest.raises(ConfigError, match=r"none\.toml: cannot read: .* \(included by .*site"):
         load_config(site)
+
+
+@pytest.mark.parametrize(("text", "msg"), [
+    ("[loop]\nrate_hz = true\n", "loop.rate_hz: Input should be a valid number (got true)"),
+    ('[admin]\nenabled = "yes"\n', 'admin.enabled: Input should be a valid boolean (got "yes")'),
+    ("[axes.rails_y.gains]\nkp = true\n",
+     "axes.rails_y.gains.kp: Input should be a valid number (got true)"),
+    ('[supervision]\nband_hz = ["0.1", 2.0]\n',
+     'supervision.band_hz.0: Input should be a valid number (got "0.1")'),
+])
+def test_a_value_of_another_type_is_refused_not_coerced(tmp_path: Path, text: str,
+                                                        msg: str) -> None:
+    """TOML has its types: a boolean where a number goes (``true`` would read as 1), a string
+    where a boolean or a number goes, is an error naming the key and the value as written."""
+    site = tmp_path / "site.toml"
+    site.write_text(f'include = ["{EXAMPLE}"]\n{text}')
+    with pytest.raises(ConfigError) as err:
+        load_config(site)
+    assert msg in str(err.value), err.value
+
+
+def test_integers_where_numbers_go_and_arrays_where_pairs_go_are_taken(tmp_path: Path) -> None:
+    site = tmp_path / "site.toml"
+    site.write_text(f'include = ["{EXAMPLE}"]\n[axes.rails_y]\nacc_max_m_s2 = 5\n'
+                    "[supervision]\nband_hz = [1, 2]\n")
+    cfg = load_config(site)
+    assert cfg.axes["rails_y"].acc_max_m_s2 == 5.0
+    assert cfg.supervision.band_hz == (1.0, 2.0)
