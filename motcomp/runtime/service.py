@@ -146,7 +146,8 @@ class DegradedLog:
 
 def _hand_over() -> None:
     """Between two axes of the motion-quality figures: sleep briefly, so that a loop thread
-    waiting for the interpreter lock takes it now rather than after the switch interval (5 ms)."""
+    waiting for the interpreter lock takes it now rather than at the end of the switch interval
+    (:data:`SWITCH_INTERVAL_S` while the service runs)."""
     time.sleep(0.0002)
 
 
