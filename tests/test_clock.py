@@ -278,42 +278,82 @@ def test_the_thread_s_run_delay_is_read_where_the_kernel_keeps_it() -> None:
     assert DeadlineClock(1000.0).missed_waiting == 0
 
 
-def _paced(work_us: int, hog: bool, seconds: float = 2.0) -> DeadlineClock:
-    """A 1 kHz loop doing ``work_us`` of busy work a tick in a thread of its own on one CPU,
-    beside a busy process on the same CPU if ``hog``."""
+def _cpu_busy_s() -> dict[int, float]:
+    """Per CPU, the seconds it has spent busy (``/proc/stat``: user, nice, system, irq and
+    softirq; not idle, iowait or the hypervisor's steal); empty where it cannot be read."""
+    import os
+
+    tick = os.sysconf("SC_CLK_TCK")
+    out: dict[int, float] = {}
+    try:
+        with open("/proc/stat") as f:
+            for line in f:
+                name, *fields = line.split()
+                if name.startswith("cpu") and name[3:].isdigit():
+                    user, nice, system, _idle, _iowait, irq, softirq = map(int, fields[:7])
+                    out[int(name[3:])] = (user + nice + system + irq + softirq) / tick
+    except OSError:
+        return {}
+    return out
+
+
+def _idlest_cpu() -> int:
+    """Of the CPUs this process may use, the one busy least over a fifth of a second."""
+    import os
+    import time
+
+    cpus = sorted(os.sched_getaffinity(0))
+    a = _cpu_busy_s()
+    time.sleep(0.2)
+    b = _cpu_busy_s()
+    return min(cpus, key=lambda c: (b.get(c, 0.0) - a.get(c, 0.0), c))
+
+
+def _paced(work_us: int, hog: bool, seconds: float = 2.0) -> tuple[DeadlineClock, float | None]:
+    """A 1 kHz loop doing ``work_us`` of busy work a tick in a thread of its own on one CPU (the
+    idlest), beside a busy process on the same CPU if ``hog``; with the share of that CPU the
+    rest of the host took meanwhile (None: not known), besides the loop and its hog."""
     import os
     import subprocess
     import sys
     import threading
     import time
 
-    cpu = min(os.sched_getaffinity(0))
+    cpu = _idlest_cpu()
     busy = None
     if hog:
         busy = subprocess.Popen([sys.executable, "-c", "while True: pass"],
                                 preexec_fn=lambda: os.sched_setaffinity(0, {cpu}))
         time.sleep(0.3)
     clocks: list[DeadlineClock] = []
+    used: list[float] = []
 
     def loop() -> None:
         os.sched_setaffinity(0, {cpu})  # this thread only
         c = DeadlineClock(1000.0, 50.0)
         clocks.append(c)
+        t0 = time.thread_time()
         t_end = time.perf_counter_ns() + int(seconds * 1e9)
         while c.wait()[1] < t_end:
             t = time.perf_counter_ns() + work_us * 1000
             while time.perf_counter_ns() < t:
                 pass
+        used.append(time.thread_time() - t0)
 
+    before, t_start = _cpu_busy_s(), time.monotonic()
     try:
         th = threading.Thread(target=loop)
         th.start()
         th.join()
     finally:
+        after, wall = _cpu_busy_s(), time.monotonic() - t_start
         if busy is not None:
             busy.kill()
             busy.wait()
-    return clocks[0]
+    others = None
+    if cpu in before and cpu in after and not hog:
+        others = max(0.0, after[cpu] - before[cpu] - used[0]) / wall
+    return clocks[0], others
 
 
 @pytest.mark.alone  # its loops' waits for the CPU are theirs and the hog's only
@@ -325,15 +365,27 @@ def test_on_a_real_cpu_a_hog_s_misses_are_the_host_s_and_an_overrun_s_the_loop_s
         pytest.skip("this kernel does not account a thread's run delay")
     # 0.7 ms of work a period beside a busy process on the same CPU: a fair share of half the
     # CPU cannot hold it; the loop waits for the CPU
-    shared = _paced(700, hog=True)
+    shared, _ = _paced(700, hog=True)
     assert shared.missed >= 100, shared.missed
     assert shared.missed_waiting is not None
     assert shared.missed_waiting >= 0.75 * shared.missed, (shared.missed, shared.missed_waiting)
     # 2.3 ms of work a period: every tick overruns by itself
-    alone = _paced(2300, hog=False)
+    alone, others = _paced(2300, hog=False)
     assert alone.missed >= 500, alone.missed
     assert alone.missed_waiting is not None
-    assert alone.missed_waiting <= 0.25 * alone.missed, (alone.missed, alone.missed_waiting)
+    if alone.missed_waiting > 0.25 * alone.missed and others is not None \
+            and others > OTHERS_ON_CPU:
+        # the host's own processes shared the CPU: their waits are rightly counted as such
+        pytest.skip(f"not judged (the overrun's waits): other processes took {100 * others:.0f} "
+                    f"% of the loop's CPU meanwhile (judged up to {100 * OTHERS_ON_CPU:.0f} %), "
+                    f"and {alone.missed_waiting} of its {alone.missed} misses were waits for it")
+    assert alone.missed_waiting <= 0.25 * alone.missed, (alone.missed, alone.missed_waiting,
+                                                         others)
+
+
+OTHERS_ON_CPU = 0.1
+"""The share of the overrunning loop's CPU other processes may take for its misses to be
+judged as its own."""
 
 
 def test_frozen_heap_keeps_what_lives_out_of_the_collector_s_reach_while_it_runs() -> None:

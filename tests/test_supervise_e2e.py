@@ -206,9 +206,15 @@ def test_an_outside_platform_off_its_model_is_seen_retuned_and_its_drift_seen(
                     p = cli("identify", str(saved), "--from-status", "--axis", "rails_y",
                             "--out", str(tmp_path / "retune"))
                     settled = f["informative"] and f["residual_delay_se_ms"] <= SETTLED_SE_MS
-                    if not settled:  # the product refuses what it cannot tell: said, judged
-                        late.append(("a settled estimate to retune from in 30 s", False, f))
-                        assert p.returncode == 2 and "not informative" in p.stderr, p.stderr
+                    if not settled:  # judged with the host (below); no retune from it
+                        host = loop_kept_from_cpu(watch.last or {}, at_src)
+                        late.append(("a settled estimate to retune from in 30 s",
+                                     held(False, host), (f, host)))
+                        if f["informative"]:  # taken, but too uncertain for this test's retune
+                            assert p.returncode == 0, p.stdout + p.stderr
+                        else:  # the product refuses what it cannot tell, and says so
+                            assert p.returncode == 2 and "not informative" in p.stderr, \
+                                p.stderr
                     else:
                         assert p.returncode == 0, p.stdout + p.stderr
                         fragment = tmp_path / "retune" / "rails_y.toml"
