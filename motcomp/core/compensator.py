@@ -334,7 +334,7 @@ class Compensator:
         return [None if w is None else (w[2], w[3]) for w in self._window]
 
     def open_window(self, axes: Sequence[bool], reference: Sequence[float],
-                    speed: Sequence[float]) -> None:
+                    speed: Sequence[float], previous: Sequence[float] | None = None) -> None:
         """The input is lost: hold each of ``axes`` within the hull of its command ``u``, its
         braking point ``u + v |v| / (2 a_max)`` (``v`` the command's velocity) and
         ``reference``, at no more than ``speed`` (the ramp's peak speed) once it has braked to
@@ -346,11 +346,17 @@ class Compensator:
         braked at ``a_max`` (the acceleration limit wins).  Kept until :meth:`close_window`;
         :meth:`widen_window` lets the reference through.  The PID starts over at rest at
         ``reference`` (:meth:`_pid_at_rest`): its path is the compensated path of the reference
-        from the loss on, not of the step the hold made of it."""
+        from the loss on, not of the step the hold made of it.  ``previous`` is that reference
+        at the last step (default: the last one this compensator was given; a caller whose
+        reference changes path at the loss, as the tick's prediction held off, gives the new
+        path's): the target's last value restated on its new path, so that its velocity at a
+        switch back (:meth:`_blend_to`, the window closed at the next step) is the reference's,
+        not the jump between the two paths."""
         for i, on in enumerate(axes):
             if not on:
                 continue
             self._weight_at(i, 0.0)
+            self._tgt[i] = self._r[i] if previous is None else previous[i]
             self._pid_at_rest(i, reference[i])
             u, v, lim = self._u[i], self._v[i], self._lim[i]
             stop = u + v * abs(v) * lim[8]  # lim[8] = 1 / (2 a_max)

@@ -404,7 +404,8 @@ def _window(state: TickState, sp: ShaperParams, ref: list[float], mode: str) -> 
         if state._windowed:
             comp.widen_window(ref)
         else:
-            comp.open_window(state._driven, ref, sp.ramp_speed)
+            # the last plain reference: the prediction is held off at once (_predicted)
+            comp.open_window(state._driven, ref, sp.ramp_speed, state._ref)
             state.pred.hold_off()  # as the window takes the plain reference: at once
             state._windowed = True
     elif state._windowed:
