@@ -109,7 +109,10 @@ Rules for edge cases
   compensation back on as a switch out of bypass does, but with no ``fade_s`` floor: within the
   hold the two paths meet at rest and the switch is immediate; during the ramp to neutral the
   weight moves as fast as their gap and its rate allow (docs/TUNING.md, "Switching compensation on
-  and off").
+  and off").  The target's rate at a switch is the difference of its last two values, so both are
+  always of the path the target follows: at the loss the target changes path at once, and its
+  last value is restated on the new one (``previous``), else a window closed at the next step
+  read the jump between the paths as a velocity.
 """
 
 from __future__ import annotations
