@@ -167,6 +167,7 @@ def test_tables_read_back_as_the_recording(session: Path, tmp_path: Path) -> Non
         assert _same(np.array([_float(r[f"pos.{axis}"]) for r in rows]), s.outputs.pos[:, a])
     assert [int(r["log_time_ns"]) for r in rows] == s.outputs.log_ns.tolist()
     assert _same(np.array([float(r["t"]) for r in rows]), s.outputs.t)
+    assert [int(r["rx"]) for r in rows] == s.outputs.rx.tolist()  # every field of the frame
     assert any("bypass:hex_z" in r["flags"].split() for r in rows)
     with (tmp_path / "csv" / "input.csv").open() as fh:
         rows = list(csv.DictReader(fh))

@@ -392,6 +392,8 @@ def test_a_motion_file_s_columns_are_axes_or_said_to_be_ignored(tmp_path: Path) 
     traj = load_trajectory(csv("ident.csv", "t,cmd,acc"), 1000.0, "rails_y")
     assert list(traj.pos) == ["rails_y"]
     assert traj.description.endswith("(rails_y; columns ignored: acc)")
+    with pytest.raises(DataError, match=r"^--axis: unknown axis 'rails_z'; axes: rails_x, "):
+        load_trajectory(csv("ident.csv", "t,cmd,acc"), 1000.0, "rails_z")  # not the file's
     assert load_trajectory(csv("two.csv", "t,rails_x,hex_z"), 1000.0).description.endswith(
         "(rails_x, hex_z)")
 

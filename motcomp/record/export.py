@@ -372,7 +372,7 @@ def _tables(source: Path) -> Iterator[tuple[str, dict[str, np.ndarray]]]:
                                       zip(st.seq.tolist(), st.decoded.tolist(), strict=True)],
                                      dtype=object), t=st.t, decoded=st.decoded)
         elif isinstance(st, OutputStream):
-            cols.update(seq=st.seq, t=st.t, src_seq=st.src_seq, valid=st.valid)
+            cols.update(seq=st.seq, t=st.t, src_seq=st.src_seq, rx=st.rx, valid=st.valid)
         elif isinstance(st, FeedbackStream):
             cols.update(t=st.t, valid=st.valid)
         for a, axis in enumerate(AXES):

@@ -22,6 +22,7 @@ Truncated files
 from __future__ import annotations
 
 import json
+import os
 import struct
 import zlib
 from collections.abc import Iterator
@@ -325,8 +326,11 @@ def scan(path: str | Path, topics: set[str] | None = None, batch_bytes: int = 48
             pos = f.tell()
             rec = _read_record(f)
             if rec is None or rec[0] == -1:
-                res.truncated = (f"file ends at byte {pos} inside a record" if rec is not None
-                                 else f"file ends at byte {pos} without a footer")
+                size = os.fstat(f.fileno()).st_size
+                res.truncated = (f"the file ({size} bytes) ends inside the record that starts "
+                                 f"at byte {pos}" if rec is not None
+                                 else f"the file ({size} bytes) ends at byte {pos} without a "
+                                      "footer")
                 break
             op, body = rec
             if op == OP_MESSAGE_INDEX and pending is not None:

@@ -229,8 +229,10 @@ def load_trajectory(path: Path, rate_hz: float, axis: str | None = None) -> Traj
     Raises
     ------
     DataError
-        Naming the file, row and column.
+        Naming the file, row and column (or ``--axis``, an unknown axis).
     """
+    if axis is not None and axis not in AXIS_INDEX:
+        raise DataError(f"--axis: unknown axis {axis!r}; axes: {', '.join(AXES)}")
     if path.suffix in (".msgpack", ".mp"):
         times: list[float] = []
         rows: dict[str, list[float]] = {}
