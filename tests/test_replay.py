@@ -240,3 +240,26 @@ def test_the_replay_computes_in_the_recorded_loop_s_floating_point_mode(rich: Pa
     assert not recorded_flushed([{"realtime": f"{loop}; {FLUSHED}"}, {"realtime": loop}])
     assert recorded_flushed([{"realtime": f"{loop}; {FLUSHED}"}])
     assert recorded_flushed([{"t": 1.0}])
+
+
+def test_a_compared_config_s_bypass_the_recording_overrides_is_said(rich: Path,
+                                                                     tmp_path: Path) -> None:
+    """With ``--bypass recorded`` (the default) the recording's bypass switches apply to every
+    config: a compared config that bypasses an axis the recording compensated is replayed
+    compensated, and the replay says so; ``--bypass config`` replays the config's."""
+    from motcomp.replay.offline import config_for, read_for_replay, replay_offline
+
+    session = read_for_replay(rich)
+    other = tmp_path / "bypass.toml"
+    base_cfg = config_file("motcomp.toml")
+    other.write_text(f'include = ["{base_cfg}"]\n[axes.rails_y]\nbypass = true\n')
+    base, byp = replay_offline(session, [config_for(session, None), config_for(session, other)])
+    said = "the recording's bypass switches apply"
+    assert not any(said in n for n in base.plan.notes)
+    (note,) = [n for n in byp.plan.notes if said in n]
+    assert note.startswith("bypass of rails_y (compensated in the recording, bypassed in this "
+                           "config): "), note
+    y = AXES.index("rails_y")
+    assert np.array_equal(byp.result.u[:, y], base.result.u[:, y], equal_nan=True)
+    (own,) = replay_offline(session, [config_for(session, other)], bypass="config")
+    assert not any(said in n for n in own.plan.notes) and own.result.bypass[:, y].all()

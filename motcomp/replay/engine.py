@@ -104,7 +104,7 @@ def run_ticks(plan: TickPlan, inp: InputStream, cfg: ServiceConfig,
     if plan.warm:
         warm_start(state, params, initial_position(plan, inp, axes, params).tolist())
         current = replace(params, shaper=replace(params.shaper, startup_s=0.0))
-    known = _recorded_bypass_axes(plan, axes)
+    known = recorded_bypass_axes(plan, axes)
     if plan.bypass0 is not None:
         _set_recorded_bypass(state, plan.bypass0, known)
     n = plan.rows
@@ -219,7 +219,7 @@ def _skipped(plan: TickPlan, ticks: np.ndarray) -> np.ndarray:
     return np.diff(before, prepend=0)
 
 
-def _recorded_bypass_axes(plan: TickPlan, axes: ResolvedAxes) -> tuple[bool, ...]:
+def recorded_bypass_axes(plan: TickPlan, axes: ResolvedAxes) -> tuple[bool, ...]:
     """Axes the recorded bypass applies to: driven here, and driven by the recorded service."""
     known = plan.bypass_axes if plan.bypass_axes is not None else [True] * len(AXES)
     return tuple(bool(d and k) for d, k in zip(axes.driven, known, strict=True))

@@ -28,15 +28,16 @@ from typing import Any
 import numpy as np
 
 from motcomp.config import ResolvedAxes, ServiceConfig, config_hash, load_config, resolve_axes
+from motcomp.core.axes import AXES
 from motcomp.errors import ConfigError
 from motcomp.record.session import Session, read_session
 from motcomp.replay.analysis import ReplayReport, analyse, flush_subnormal
-from motcomp.replay.engine import EngineResult, run_ticks
+from motcomp.replay.engine import EngineResult, recorded_bypass_axes, run_ticks
 from motcomp.replay.plan import TickPlan, build_plan
 
-__all__ = ["FEEDBACK_WINDOWS", "Absent", "FileReplay", "ReplayRun", "comparable", "config_for",
-           "departure_note", "find_absent", "plan_for", "read_for_replay", "replay_files",
-           "replay_offline"]
+__all__ = ["FEEDBACK_WINDOWS", "Absent", "FileReplay", "ReplayRun", "bypass_overridden",
+           "comparable", "config_for", "departure_note", "find_absent", "plan_for",
+           "read_for_replay", "replay_files", "replay_offline"]
 
 FEEDBACK_WINDOWS = (12, 40.0)
 """Feedback is read in this many windows of this length (s) on long recordings: the recorded
@@ -297,6 +298,8 @@ def replay_offline(session: Session, configs: list[tuple[ServiceConfig, str, boo
             note = departure_note(session, plan, axes, res, run)
             if note is not None:
                 plan.notes.append(note)
+        elif bypass == "recorded" and (note := bypass_overridden(plan, axes)) is not None:
+            plan.notes.append(note)
         t2 = time.perf_counter()
         rep = analyse(session, plan, res, cfg, axes, label, recorded)
         t3 = time.perf_counter()
@@ -306,6 +309,22 @@ def replay_offline(session: Session, configs: list[tuple[ServiceConfig, str, boo
                                    "us_per_tick": res.timings.get("us_per_tick", 0.0)}
         runs.append(ReplayRun(label, cfg, axes, plan, res, rep, recorded, timings))
     return runs
+
+
+def bypass_overridden(plan: TickPlan, axes: ResolvedAxes) -> str | None:
+    """A note naming the axes whose ``bypass`` in the config the recording's bypass switches
+    override at the replay's start (``--bypass recorded``), or None."""
+    if plan.bypass0 is None:
+        return None
+    known = recorded_bypass_axes(plan, axes)
+    pid = plan.bypass0[:len(AXES)]
+    differ = [f"{a} ({'bypassed' if pid[i] else 'compensated'} in the recording, "
+              f"{'bypassed' if axes.bypass[i] else 'compensated'} in this config)"
+              for i, a in enumerate(AXES) if known[i] and bool(pid[i]) != axes.bypass[i]]
+    if not differ:
+        return None
+    return (f"bypass of {', '.join(differ)}: the recording's bypass switches apply, as they "
+            "did live; `--bypass config` replays this config's")
 
 
 def read_for_replay(path: str | Path) -> Session:
