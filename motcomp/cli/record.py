@@ -39,7 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="close the open chunk and fsync at least this often (default 1 s): what "
                         "a crash can lose")
     p.add_argument("--status-timeout", type=non_negative_float, default=0.5, metavar="S",
-                   help="wait this long for the service's status at start (0: do not ask)")
+                   help="wait this long for the service's status at start (default 0.5 s; "
+                        "0: do not ask)")
     add_zenoh_args(p)
     add_log_arg(p)
     p.set_defaults(func=run)
