@@ -246,3 +246,33 @@ def test_a_topic_s_span_from_the_indexes_is_its_first_and_last_message(tmp_path:
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(path.read_bytes()[:-40])  # no summary: no index to read
     assert topic_span(cut, KEYS[0]) is None
+
+
+def test_a_corrupt_chunk_is_said_and_nothing_after_it_is_read(tmp_path: Path) -> None:
+    """A chunk whose bytes changed on disk (its size intact, so that it decompresses or, stored
+    plain, reads as records) fails its CRC: the session holds the chunks before it and says
+    where it stopped, rather than frames no recorder wrote."""
+    from mcap.reader import make_reader
+
+    path = tmp_path / "full.mcap"
+    write_mixed(path, chunk_bytes=48 << 10, compression="none")
+    with path.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    bad = chunks[len(chunks) // 2]
+    data = bytearray(path.read_bytes())
+    at = bad.chunk_start_offset + bad.chunk_length - 100  # in its last records' data
+    data[at:at + 8] = bytes(255 - b for b in data[at:at + 8])
+    corrupt = tmp_path / "corrupt.mcap"
+    corrupt.write_bytes(bytes(data))
+    s = read_session(corrupt)
+    before = mcap_messages(_write(tmp_path / "before.mcap", bytes(data[:bad.chunk_start_offset])))
+    assert s.truncated and s.messages == len(before) > 0
+    want = f"damaged recording (chunk at byte {bad.chunk_start_offset} is corrupt"
+    assert len(s.warnings) == 1 and want in s.warnings[0], s.warnings
+
+
+def _write(path: Path, data: bytes) -> Path:
+    path.write_bytes(data)
+    return path

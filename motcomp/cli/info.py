@@ -359,6 +359,7 @@ def format_info(info: dict[str, Any]) -> str:
     lines.append("saturated outputs: " + (", ".join(f"{a} {n}" for a, n in sat.items())
                                           if sat else "none"))
     if info["truncated"]:
-        lines.append("warning: unfinished recording (read up to its last complete chunk)")
+        lines.append("warning: unfinished or damaged recording (read up to its last sound "
+                     "chunk)")
     lines += [f"warning: {w}" for w in info["warnings"]]
     return "\n".join(lines)

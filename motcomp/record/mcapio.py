@@ -111,6 +111,8 @@ class ScanResult:
     complete: bool = False
     truncated: str = ""
     """Empty for a complete file, else what was cut and where."""
+    damaged: bool = False
+    """The read stopped at a chunk that is corrupt (not where the file ends)."""
 
 
 def _u16(b: bytes | memoryview, o: int) -> int:
@@ -358,9 +360,11 @@ def scan(path: str | Path, topics: set[str] | None = None, batch_bytes: int = 48
                     raise
                 except Exception as exc:  # a corrupt chunk: report, keep what came before
                     res.truncated = f"chunk at byte {pos} cannot be decompressed ({exc})"
+                    res.damaged = True
                     break
                 if got != size or (check_crc and crc and zlib.crc32(data) != crc):
                     res.truncated = f"chunk at byte {pos} is corrupt (size or CRC mismatch)"
+                    res.damaged = True
                     break
                 pending = _Chunk(data)
             elif op == OP_CHANNEL:

@@ -547,7 +547,7 @@ def read_session(path: str | Path | Sequence[str | Path], keys: dict[str, str] |
     for p in paths:
         res = ScanResult(p)
         results.append(res)
-        for batch in _prefetch(scan(p, None, result=res, publish=publish)):
+        for batch in _prefetch(scan(p, None, result=res, publish=publish, check_crc=True)):
             if not metadata:
                 metadata = metadata_dict(res)
             if config_json is None:
@@ -596,8 +596,9 @@ def read_session(path: str | Path | Sequence[str | Path], keys: dict[str, str] |
                     + (f" (started {meta['started']}: the recorder stopped before it wrote "
                        "its first chunk, at most --flush-s after the start)"
                        if meta.get("started") else ""))
-            msg = (f"{p}: unfinished recording ({res.truncated}); recovered {res.messages} "
-                   f"messages from {res.chunks} complete chunks")
+            what = "damaged recording" if res.damaged else "unfinished recording"
+            msg = (f"{p}: {what} ({res.truncated}); recovered {res.messages} messages from "
+                   f"{res.chunks} complete chunks before it")
             warnings.append(msg)
             log.warning("%s", msg)
     streams: dict[str, Any] = {}
