@@ -271,6 +271,7 @@ def test_a_corrupt_chunk_is_said_and_nothing_after_it_is_read(tmp_path: Path) ->
     assert s.truncated and s.messages == len(before) > 0
     want = f"damaged recording (chunk at byte {bad.chunk_start_offset} is corrupt"
     assert len(s.warnings) == 1 and want in s.warnings[0], s.warnings
+    assert s.damaged and not read_session(path).damaged
 
 
 def _write(path: Path, data: bytes) -> Path:

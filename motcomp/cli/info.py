@@ -205,6 +205,7 @@ def summarise(path: Path, gap_s: float | None = None) -> dict[str, Any]:
         "recorder_stall": stall,
         "modes": modes,
         "truncated": s.truncated,
+        "damaged": s.damaged,
         "warnings": list(s.warnings),
     }
 
@@ -359,7 +360,8 @@ def format_info(info: dict[str, Any]) -> str:
     lines.append("saturated outputs: " + (", ".join(f"{a} {n}" for a, n in sat.items())
                                           if sat else "none"))
     if info["truncated"]:
-        lines.append("warning: unfinished or damaged recording (read up to its last sound "
-                     "chunk)")
+        lines.append("warning: damaged recording (read up to the chunk before the damage)"
+                     if info["damaged"] else
+                     "warning: unfinished recording (read up to its last complete chunk)")
     lines += [f"warning: {w}" for w in info["warnings"]]
     return "\n".join(lines)

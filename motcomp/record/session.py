@@ -159,6 +159,8 @@ class Session:
     warnings: list[str]
     truncated: bool
     messages: int
+    damaged: bool = False
+    """A read stopped at a corrupt chunk (:attr:`truncated` too), not where a file ends."""
 
     @property
     def name(self) -> str:
@@ -614,7 +616,8 @@ def read_session(path: str | Path | Sequence[str | Path], keys: dict[str, str] |
                    feedback=streams.get("feedback"), status=status, other=other,
                    warnings=warnings, truncated=any(r.truncated and not r.complete
                                                     for r in results),
-                   messages=sum(r.messages for r in results))
+                   messages=sum(r.messages for r in results),
+                   damaged=any(r.damaged for r in results))
 
 
 def _config_attachment(res: ScanResult, warnings: list[str]) -> dict[str, Any] | None:
