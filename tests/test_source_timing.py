@@ -361,12 +361,13 @@ def test_motion_benchmark_runs_one_case(tmp_path: Path) -> None:
     assert ideal["rate_hz"] == 60 and -50 < ideal["delay_ms"] < 250
     text = (tmp_path / "motion.md").read_text()
     assert "| 60 Hz, jitter 300 us | no |" in text and "| ideal, 60 Hz | - |" in text
+    ok = -50 < run["delay_ms"] < 250  # (uncompensated: 190 ms)
     due = frames["recorded"] + frames["lost"] + frames["missed_deadlines"]
-    if frames["missed_deadlines"] > MAX_MISSED_SHARE * due:  # the delay carries the stalls
+    if not ok and frames["missed_deadlines"] > MAX_MISSED_SHARE * due:  # it carries the stalls
         pytest.skip(f"not judged (the compensated delay, {run['delay_ms']:.1f} ms): the service "
                     f"missed {frames['missed_deadlines']} of {due} deadlines (a host that "
                     f"holds the rate: <= {100 * MAX_MISSED_SHARE:g} %)")
-    assert -50 < run["delay_ms"] < 250  # (uncompensated: 190 ms)
+    assert ok, run["delay_ms"]
 
 
 def test_a_motion_file_s_columns_are_axes_or_said_to_be_ignored(tmp_path: Path) -> None:
