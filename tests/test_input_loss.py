@@ -268,6 +268,29 @@ def test_the_input_back_mid_hold_or_mid_ramp_is_taken_up_within_the_limits(gap_s
     assert np.max(np.abs(u[-500:] - np.array(ref_outs[-500:]))) < 2e-3
 
 
+PAUSE_PHASES = np.arange(6.0, 9.3, 0.25)
+"""Instants (s) of a sender's pause in mid-slalom: 14 phases of the 0.3 Hz slalom."""
+
+
+def sender_pause(start: float, pause_s: float) -> tuple[list[float], list[str]]:
+    """The example config's tick fed a 0.4 m, 0.3 Hz rails_y slalom at 1 kHz (amplitude rising
+    over 2 s) whose sender pauses ``pause_s`` from ``start``, for 3 s after it: rails_y's
+    command and the tick's mode, per tick."""
+    params, state = new_tick(parse_config(read_toml(EXAMPLE)))
+    y = AXES.index("rails_y")
+    u, modes = [], []
+    for k in range(round((start + 3.0) * 1000)):
+        t = k / 1000.0
+        frame = None
+        if not start <= t < start + pause_s:
+            value = 0.4 * math.sin(2 * math.pi * 0.3 * t) * min(t / 2.0, 1.0)
+            frame = encode_input(k, t, {"rails_y": value})
+        out = step(state, params, 10**9 + k * MS, frame)
+        u.append(out.u[y])
+        modes.append(out.mode)
+    return u, modes
+
+
 def test_a_short_loss_never_carries_the_command_beyond_the_compensated_motion() -> None:
     """A sender stalling 62 ms in mid-slalom (the input stale for 12 ms), at 14 phases, the
     example config: the command's difference to its target when the window closes is blended
@@ -281,26 +304,13 @@ def test_a_short_loss_never_carries_the_command_beyond_the_compensated_motion() 
     acceleration limit after the rejoin (before, 110-401 ticks at every phase: the PID's
     response to the hold leaked through the weight; with the PID restarted but the blend sized
     for its acceleration alone, 136 and 242 ticks at two phases near a crest or a trough)."""
-    cfg = parse_config(read_toml(EXAMPLE))
-    y = AXES.index("rails_y")
     at_limit = []
-    for start in np.arange(6.0, 9.3, 0.25):
-        params, state = new_tick(cfg)
-        u = []
-        back, lost = 0, False
-        for k in range(round((start + 3.0) * 1000)):
-            t = k / 1000.0
-            frame = None
-            if not start <= t < start + 0.062:
-                value = 0.4 * math.sin(2 * math.pi * 0.3 * t) * min(t / 2.0, 1.0)
-                frame = encode_input(k, t, {"rails_y": value})
-            out = step(state, params, 10**9 + k * MS, frame)
-            u.append(out.u[y])
-            lost = lost or out.mode == "stale"
-            if lost and out.mode != "stale" and not back:
-                back = k
+    for start in PAUSE_PHASES:
+        u, modes = sender_pause(start, 0.062)
         assert max(abs(x) for x in u[round(start * 1000):]) < 0.425 + 0.02, start
-        assert back, start
+        stale = [k for k, m in enumerate(modes) if m == "stale"]
+        assert stale, start
+        back = stale[0] + next(j for j, m in enumerate(modes[stale[0]:]) if m != "stale")
         acc = np.abs(np.diff(u[back - 2:], 2)) * 1e6
         at_limit.append(int(np.sum(acc >= 0.9999 * 6.0)))
     assert at_limit == [0] * len(at_limit), at_limit
@@ -315,22 +325,10 @@ def test_a_loss_of_one_deadline_keeps_the_command_on_the_compensated_motion() ->
     at the rejoin (1.5 m/s), and the difference blended out from it carried the rails to their
     end stop, 2.6 m, from a 0.4 m slalom.  The command stays within 20 mm of the compensated
     slalom's range (0.425 m; 0.425-0.440 measured)."""
-    cfg = parse_config(read_toml(EXAMPLE))
-    y = AXES.index("rails_y")
     one = 0
-    for start in np.arange(6.0, 9.3, 0.25):
-        params, state = new_tick(cfg)
-        u = []
-        stale = 0
-        for k in range(round((start + 3.0) * 1000)):
-            t = k / 1000.0
-            frame = None
-            if not start <= t < start + 0.0505:
-                value = 0.4 * math.sin(2 * math.pi * 0.3 * t) * min(t / 2.0, 1.0)
-                frame = encode_input(k, t, {"rails_y": value})
-            out = step(state, params, 10**9 + k * MS, frame)
-            u.append(out.u[y])
-            stale += out.mode == "stale"
+    for start in PAUSE_PHASES:
+        u, modes = sender_pause(start, 0.0505)
+        stale = modes.count("stale")
         assert 1 <= stale <= 2, (start, stale)
         one += stale == 1
         assert max(abs(x) for x in u[round(start * 1000):]) < 0.425 + 0.02, start
