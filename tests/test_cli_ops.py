@@ -565,12 +565,31 @@ def test_info_summarises_a_recording(tmp_path: Path) -> None:
     assert "rails_y" not in info["modes"]["bypass"]
     stale = info["modes"]["stale"]
     assert any(abs(s - 1.75) < 0.01 for s, _ in stale)  # 50 ms into the gap
+    # the wait for the first frame is told apart from an input lost (the status counts no
+    # stale episode there), and its rejoin is not one "no recorded output shows"
+    (start, end), first_input = info["modes"]["first_input_wait"], keys["sim/motion/setpoint"]
+    assert start == pytest.approx(info["modes"]["first_output_s"] + cfg.loop.stale_after_s,
+                                  abs=0.002)
+    assert end == pytest.approx(first_input["first_s"], abs=0.002)
+    assert stale[0][0] == pytest.approx(1.75, abs=0.01) and stale[-1][1] is None  # the end
     assert not info["truncated"] and info["modes"]["parking"] == []
     p = cli("info", str(path))
     assert p.returncode == 0
+    assert f"  no input   {start:.2f}-{end:.2f} s (the service waiting for its first frame)" \
+        in p.stdout, p.stdout
+    assert "  stale      2: 1.75-" in p.stdout and "after a stale input" not in p.stdout
     assert "bypass     rails_x: on at 1.20 s, off at 2.20 s" in p.stdout, p.stdout
     assert "sim/motion/setpoint" in p.stdout and "0.301 s at 1.70 s" in p.stdout
-    assert "(lost: the seq numbers missing; rates and gaps on the frames' own t)" in p.stdout
+    assert ("(lost: the seq numbers missing; rate: the median over runs of 10 intervals, gaps "
+            "left out; rates and gaps on the frames' own t)") in p.stdout
+    # recorded from inside an input loss: that stale run is an episode, not the first wait
+    late = tmp_path / "late.mcap"
+    synthesize(late, cfg, SynthOptions(duration_s=3.0, gaps=[(1.5, 0.3)], record_from_s=1.6))
+    p = cli("info", str(late), "--json")
+    assert p.returncode == 0, p.stderr
+    modes = json.loads(p.stdout)["modes"]
+    assert modes["first_input_wait"] is None
+    assert modes["stale"][0] == [0.0, pytest.approx(0.2, abs=0.01)]  # the gap's end, kept
     assert keys["platform/setpoint"]["lost"] == 100  # the recorder lost them
     assert keys["sim/motion/setpoint"]["lost"] == 300  # (the synthetic source numbers its
     # samples, sent or not: its 0.3 s of silence skips 300)

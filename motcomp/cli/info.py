@@ -190,6 +190,9 @@ def summarise(path: Path, gap_s: float | None = None) -> dict[str, Any]:
         for mode in ("stale", "rejoin", "parking"):
             modes[mode] = _intervals((flags & FLAG_BITS[mode]) != 0, t_s)
         modes["first_output_s"] = float(t_s[0])
+        modes["first_input_wait"] = _first_input_wait(modes["stale"], s.status, t0)
+        if modes["first_input_wait"] is not None:
+            modes["stale"] = modes["stale"][1:]
     meta = s.metadata
     return {
         "file": s.name,
@@ -208,6 +211,28 @@ def summarise(path: Path, gap_s: float | None = None) -> dict[str, Any]:
         "damaged": s.damaged,
         "warnings": list(s.warnings),
     }
+
+
+def _first_input_wait(stale: list[list[float | None]], status: list[tuple[int, dict[str, Any]]],
+                      t0: int) -> list[float | None] | None:
+    """The first stale run if it was the service's wait for its first input frame, not an
+    input lost: the service's status counts no episode there (``stale_episodes`` leaves that
+    wait out, docs/WIRE.md).  Judged on the first status frame recorded after the run ends (or
+    during it, if it never ends) and before the next run starts; None without one."""
+    if not stale:
+        return None
+    start, end = stale[0]
+    assert start is not None
+    upto = stale[1][0] if len(stale) > 1 else None
+    for ns, st in status:
+        t = (ns - t0) / 1e9
+        if t < (start if end is None else end):
+            continue
+        if upto is not None and t >= upto:
+            return None
+        n = st.get("stale_episodes")
+        return stale[0] if isinstance(n, int) and not isinstance(n, bool) and n == 0 else None
+    return None
 
 
 def _last_platform(status: list[tuple[int, dict[str, Any]]]) -> dict[str, Any] | None:
@@ -286,7 +311,8 @@ def rejoins_unseen(modes: dict[str, Any], tol_s: float = 0.05) -> int:
     """The rejoins no recorded stale output ends: the input went stale and came back while the
     loop stalled, between two outputs (the service's log says "stale ... briefly"), or the
     outputs that showed it were lost.  A rejoin going on when the recording began is not one."""
-    ends = [r[1] for r in modes["stale"] if r[1] is not None]
+    ends = [r[1] for r in [*modes["stale"], modes.get("first_input_wait") or [None, None]]
+            if r[1] is not None]
     first = modes.get("first_output_s", -math.inf)
     return sum(1 for r in modes["rejoin"]
                if r[0] > first + tol_s and not any(abs(e - r[0]) <= tol_s for e in ends))
@@ -312,7 +338,6 @@ def format_info(info: dict[str, Any]) -> str:
         lines.append(platform_line(plat, float(plat.get("status_t", 0.0))))
     lines.append(f"{'key':<28}{'role':<10}{'messages':>9}{'lost':>7}{'rate Hz':>10}{'gaps':>6}"
                  "  longest gap")
-    # (rate: _rate_hz, a median; mean_rate_hz in the JSON counts the gaps in)
     for k in info["keys"]:
         g = k["gaps"]
         longest = (f"{g['longest_s']:.3f} s at {g['longest_at_s']:.2f} s" if g["count"] else "-")
@@ -322,7 +347,9 @@ def format_info(info: dict[str, Any]) -> str:
                      f"{rate:>10}{g['count']:>6}  {longest}")
     clocks = {k["clock"] for k in info["keys"] if k["role"] in ("input", "output", "feedback")}
     if clocks:
-        lines.append("(lost: the seq numbers missing; rates and gaps on the frames' own t" + (
+        lines.append("(lost: the seq numbers missing; rate: the median over runs of "
+                     f"{RATE_SPAN} intervals, gaps left out; rates and gaps on the frames' own t"
+                     + (
             "; a key whose frames carry none on the receive times)" if "receive" in clocks
             else ")"))
     stall = info.get("recorder_stall")
@@ -343,6 +370,9 @@ def format_info(info: dict[str, Any]) -> str:
         if not groups:
             lines.append("  bypass     none")
         unseen = rejoins_unseen(modes)
+        wait = modes.get("first_input_wait")
+        if wait is not None:
+            lines.append(f"  no input   {_span(wait)} (the service waiting for its first frame)")
         for mode in ("stale", "rejoin", "parking"):
             runs = modes[mode]
             lines.append(f"  {mode:<10} " + (

@@ -152,6 +152,7 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
     parked_from = None
     out_msgs: list[tuple[int, bytes]] = []
     superseded: list[int] = []  # the service's count after each tick
+    episodes: list[int] = []  # the shaper's stale episodes after each tick
     with subnormals_flushed() as flushed:  # the loop's mode
         for j, dl in enumerate(deadlines.tolist()):
             t_rel = (dl - MONO0_NS) / 1e9 - 0.2
@@ -167,6 +168,7 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
             skipped = int((dl - deadlines[j - 1]) // period - 1) if j else 0
             out = step(state, params, dl, payloads, skipped)
             superseded.append(state.superseded)
+            episodes.append(state.shaper.stale_episodes)
             out_msgs.append((dl, encode_output(out.seq, WALL0 + (dl - MONO0_NS) / 1e9, out.src_seq,
                                                out.u, out.flags)))
             if opts.park_at_s is not None and parked_from is None and t_rel >= opts.park_at_s:
@@ -208,6 +210,7 @@ def synthesize(path: str | Path, cfg: ServiceConfig, opts: SynthOptions) -> dict
             st["t"] = WALL0 + s + 0.5
             j = min(int((s + 0.5) * cfg.loop.rate_hz), len(superseded) - 1)  # its tick
             st["frames"] = {**counts, "superseded": superseded[j] if j >= 0 else 0}
+            st["stale_episodes"] = episodes[j] if j >= 0 else 0
             msgs.append((round((WALL0 + s + 0.5) * 1e9), DEFAULT_KEYS["status"],
                          msgpack.packb(st)))
     for start, length in opts.recorder_stalls:
