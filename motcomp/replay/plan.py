@@ -416,7 +416,8 @@ def _holes_note(holes: int, superseded: int | None) -> str:
                 "were lost before both): nothing it used is missing, the replay reads what it "
                 "read")
     if superseded is not None and superseded > holes:
-        return (f"{head}, but the service missed {superseded} (its status' superseded count): "
+        return (f"{head}, but the service's status counted {superseded} input frames it never "
+                "received (superseded): "
                 f"{superseded - holes} frames the recorder received never reached the service "
                 "(dropped on its link, under load) or were rejected by it: where the replay can "
                 "be held to the recorded outputs, it looks for them (docs/REPLAY.md)")
