@@ -50,6 +50,7 @@ class Progress:
         self._last = 0.0
         self._t0 = time.monotonic()
         self._said = False
+        self._interrupted = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -64,15 +65,20 @@ class Progress:
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
-        if exc_type is None:
+        if exc_type is None and not self._interrupted:
             self.done = self.total
         if self._thread is not None:
             self._stop.set()
             self._thread.join()
             if self._said:
-                how = "done" if exc_type is None else "stopped"
+                how = "done" if exc_type is None and not self._interrupted else "stopped"
                 self._write(f"{self.label}: {how} after {time.monotonic() - self._t0:.1f} s")
         self._draw(force=True, final=True)
+
+    def interrupted(self) -> None:
+        """The job ended before its end without raising (a signal it handled): the last line
+        says "stopped", and the bar stays where it was."""
+        self._interrupted = True
 
     def advance(self, amount: float = 1.0, note: str = "") -> None:
         self.done = min(self.done + amount, self.total)

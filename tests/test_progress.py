@@ -38,6 +38,13 @@ def test_short_jobs_and_quiet_print_nothing_and_a_failure_says_stopped() -> None
     except ValueError:
         pass
     assert out.getvalue().splitlines()[-1].startswith("y: stopped after ")
+    # a job that handled a signal and returned: stopped too, not done, and not at 100 %
+    with Progress("z", total=10.0, stream=out, every_s=0.02) as bar:
+        bar.update(4.0)
+        time.sleep(0.1)
+        bar.interrupted()
+    assert out.getvalue().splitlines()[-1].startswith("z: stopped after ")
+    assert bar.done == 4.0
 
 
 def test_a_long_command_is_not_silent_when_stderr_is_a_file() -> None:

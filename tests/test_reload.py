@@ -62,7 +62,7 @@ INVALID = {
                         "pos_min_m=1.0 must be < pos_max_m=-1.0"),
     "non-finite": (BASE + "[axes.rails_x]\nvel_max_m_s = nan\n", "finite"),
     "unstable gains": (BASE + "[axes.rails_y]\ngains = { kp = 500.0, ki_per_s = 10.0 }\n",
-                       "unstable"),
+                       "bad-unstable_gains.toml: gains of rails_y", "unstable"),
     "restart key": (BASE + "[loop]\nrate_hz = 500\n", "loop.rate_hz cannot change live"),
     # a restart key changed and a limit beyond the hardware envelope: both said, the envelope
     # (which no restart cures) first
@@ -152,14 +152,16 @@ def assert_within_limits(run: Run, svc: Service) -> None:
                    1e-3)
 
 
-def assert_raw_continuous(run: Run) -> None:
-    """No step in the raw PID output at a swap: over the first tick of a new config it changes
-    by no more than three times its change over the tick before, plus 0.1 mm (the motion is
-    smooth: that change is a fraction of a millimetre)."""
-    raw = run.raw
+def assert_command_smooth(run: Run) -> None:
+    """No kick in the command at a swap: over the 0.6 s from each swap on, its acceleration
+    changes by less than 0.1 m/s^2 a tick (the tick's own period: the loop of :func:`running`
+    never skips one).  The new gains' path, which the command blends onto, may lie a few
+    millimetres from the old one's: the raw PID output moves to it at once (re-seeding the
+    integrator alone, the command rode the acceleration limit after a switch to ZN gains)."""
+    u = np.array(run.u)
     for k in run.swaps():
-        step, before = abs(raw[k] - raw[k - 1]), abs(raw[k - 1] - raw[k - 2])
-        assert step <= 3 * before + 1e-4, (k, step, before)
+        acc = np.diff(u[k - 3:k + 600], 2) * 1e6
+        assert np.abs(np.diff(acc)).max() < 0.1, (k, np.abs(np.diff(acc)).max())
 
 
 def test_reload_in_process_keeps_the_old_config_on_failure(tmp_path: Path) -> None:
@@ -178,9 +180,11 @@ def test_reload_in_process_keeps_the_old_config_on_failure(tmp_path: Path) -> No
         assert all(m is not None for m in marked), marked
         again = svc.reload()  # the same file again: said (an operator meant another file?)
         assert again["ok"] and again["unchanged"] is True and svc.config_version == 3, again
-        ticked(svc)  # ...but not after the same config again (rails_y may still blend)
-        assert [m for i, m in enumerate(svc.monitor._changed_ns) if i != Y] == [
-            m for i, m in enumerate(marked) if i != Y]
+        ticked(svc)  # ...but not after the same config again (the rails, whose gains the
+        # profile changed, may still blend onto their new path)
+        rails = {AXES.index("rails_x"), Y}
+        assert [m for i, m in enumerate(svc.monitor._changed_ns) if i not in rails] == [
+            m for i, m in enumerate(marked) if i not in rails]
         assert svc.axes.gains[Y] == tune("amigo", RAILS).gains
         kept = (svc.cfg, svc.axes, svc.params, svc.config_id)
         for name, (text, *reasons) in INVALID.items():
@@ -218,7 +222,7 @@ def test_reload_in_process_is_bumpless(tmp_path: Path) -> None:
             run.wait(300)
     assert len(run.swaps()) == 2
     assert_within_limits(run, svc)
-    assert_raw_continuous(run)
+    assert_command_smooth(run)
 
 
 # --- against the running service --------------------------------------------------------------

@@ -131,6 +131,8 @@ def run(args: argparse.Namespace) -> int:
                             progress=bar.update, timing=timing, with_t=not args.no_t,
                             warn=lambda text: print(f"motcomp source: {text}", file=sys.stderr,
                                                     flush=True))
+            if stats.stopped:
+                bar.interrupted()
     except NoPeerError as exc:
         print(f"motcomp source: {exc}; is the service running and its endpoint right?",
               file=sys.stderr)

@@ -79,9 +79,17 @@ Rules for edge cases
 * Gains: every gain/model pair is checked for stability of the discrete internal loop (from its
   poles, :mod:`motcomp.core.loop`) when set; an unstable pair raises
   :class:`~motcomp.errors.ConfigError` and changes nothing.
-* Gain or model change (:meth:`set_gains`, :meth:`set_models`, :meth:`reconfigure`): the
-  integrator is re-seeded so that the raw output at the last sample is unchanged under the new
-  parameters (bumpless).
+* Gain or model change (:meth:`set_gains`, :meth:`set_models`, :meth:`reconfigure`): each
+  axis whose PID or internal model changed takes the state its new internal loop would have
+  reached on the references it was given (the last ``history_s`` of them, re-run from the loop's
+  steady state on their ramp at the start), so that its path goes on as if the new parameters
+  had always run; the command blends out its difference to that path in position, velocity and
+  acceleration over ``fade_s`` or longer (within :data:`DIFFERENCE_ACC_SHARE` of the limit), as
+  a switch does.  Re-seeding the integrator alone kept the raw output's level but started the
+  new loop's transient from the old one's state: switching the rails to ZN gains in mid-slalom
+  rode the acceleration limit for 200-230 ticks (docs/TUNING.md, "Changing gains while
+  moving").  An axis in an input-loss window keeps its raw output instead (the integrator
+  re-seeded): its target is the reference and its PID started over at rest there.
 * Bypass (compensation off) per axis (:meth:`set_bypass`): the PID always runs on, closed around its
   internal model as when compensating (its output ``v`` depends on the reference alone: the
   compensated path, whatever is sent), and the command's target is the blend ``r + w (v - r)`` of
@@ -287,6 +295,7 @@ class Compensator:
         self._track: list[Track] = [at_rest(0.0)] * n  # the limiter's view of its target
         self._hist_c = zeros * length  # axis i at [i * length, (i + 1) * length)
         self._hist_m = zeros * length
+        self._hist_r = zeros * length  # the references stepped with (a gain change re-runs them)
         self._bypass = [False] * n
         self._lim: list[tuple[float, ...]] = []
         self._window: list[tuple[float, ...] | None] = [None] * n
@@ -458,22 +467,96 @@ class Compensator:
         self._gains = tuple(gains)
 
     def set_gains(self, gains: Sequence[PIDGains]) -> None:
-        """Change gains between two steps, bumplessly.
-
-        The derivative state is carried over to the new ``kd`` and ``c``
-        (:meth:`_carry_derivative`) and the integrator re-seeded so that the raw output at the
-        last sample is what it was.
-        """
+        """Change gains between two steps, bumplessly (:meth:`_retune`)."""
+        before = (list(self._gain_p), list(self._model_p))
         old_raw = self._virtual_raw()
         self._set_gains(gains)
-        self._carry_derivative()
-        self._reseed(old_raw)
+        self._retune(before, old_raw)
 
-    def _carry_derivative(self) -> None:
-        """After a gain change: the derivative term from the filtered derivatives of ``r`` and
-        ``y_c`` under the new ``kd`` and ``c``."""
-        for i, g in enumerate(self._gains):
-            self._deriv[i] = g.kd * (g.c * self._dr[i] - self._dy[i])
+    def _retune(self, before: tuple[list[tuple[float, ...]], list[tuple[float, float, float,
+                                                                            int, int]]],
+                old_raw: list[float]) -> None:
+        """After new gains or models (``before``: the old ones): each axis whose PID or internal
+        model changed takes the state its new internal loop would have reached on the
+        references it was given (:meth:`_rerun`), and the command blends out its difference to
+        that path, in position and velocity (:meth:`_blend_difference`), as at a switch out of
+        bypass.  An axis in an input-loss window, whose target is the reference and whose PID
+        started over at rest there, keeps its raw output instead: the derivative carried over
+        to the new ``kd`` and ``c``, the integrator re-seeded (module docstring)."""
+        gain_p, model_p = before
+        for i in range(self.n):
+            if self._gain_p[i] == gain_p[i] and self._model_p[i] == model_p[i]:
+                continue
+            if self._window[i] is not None:
+                g = self._gains[i]
+                self._deriv[i] = g.kd * (g.c * self._dr[i] - self._dy[i])
+                gp = self._gain_p[i]
+                self._integral[i] = (old_raw[i] - gp[0] * (gp[5] * self._r[i] - self._y_last[i])
+                                     - self._deriv[i])
+                continue
+            self._blend_difference(i, self._rerun(i), self.fade_s)
+
+    def _rerun(self, i: int) -> float:
+        """Axis ``i``'s PID and internal loop (not the platform mirror) as if the present gains
+        and model had run since the oldest reference still held (the delay line's length: 0.5 s
+        at least), from their steady state on that reference's ramp there (at rest without an
+        integrator); its target's last two values on that path.  Returns the command's
+        acceleration less that path's target's at the last step (second differences).  What is
+        left of the start's transient (the reference's curvature there) is in the difference
+        :meth:`_blend_difference` blends out."""
+        k = self._k
+        length, mask = self._hist_len, self._mask
+        base = i * length
+        hr, hc = self._hist_r, self._hist_c
+        j0 = k - (length - 1)  # before the first step: at rest where reset put it
+        r0 = hr[base + (j0 & mask)]
+        slope = hr[base + ((j0 + 1) & mask)] - r0  # a step's
+        kp, kih, ad, q, kd, b, c = self._gain_p[i]
+        phi, g0, g1, off0, off1 = self._model_p[i]
+        # the loop's steady state on the ramp r0 + slope (j - j0) (docs/TUNING.md): its model
+        # output lags the reference by a constant ``lag``, its output and integrator are affine
+        gain = g0 + g1
+        if kih > 0.0 and gain != 0.0:
+            beta = slope * (1.0 - phi) / gain  # the output's step: its DC gain times it is slope
+            lag = (beta - kp * (b - 1.0) * slope) / kih
+            alpha = ((1.0 - phi) * (r0 - lag) + slope - beta * (g0 * off0 + g1 * off1)) / gain
+        else:  # no steady state on a ramp without an integrator: at rest
+            slope = beta = 0.0
+            lag = r0 - self._models[i].K * r0
+            alpha = r0
+        for j in range(j0 - length + 1, j0 + 1):
+            hc[base + (j & mask)] = alpha + beta * (j - j0)
+        xc = r0 - lag
+        y_last = xc - slope
+        dr = dy = slope * self.rate_hz
+        d = kd * (c * dr - dy)
+        integral = alpha - kp * (b * r0 - xc) - d
+        r_prev = r0 - slope
+        v = alpha
+        w = self._w[i]
+        tgt = tgt_prev = tgt_prev2 = r0
+        for j in range(j0, k):
+            r = hr[base + (j & mask)]
+            y = xc
+            dr = ad * dr + q * (r - r_prev)
+            dy = ad * dy + q * (y - y_last)
+            y_last = y
+            d = kd * (c * dr - dy)
+            v = kp * (b * r - y) + integral + d
+            integral += kih * (r - y)
+            hc[base + (j & mask)] = v
+            xc = phi * y + g0 * hc[base + ((j + off0) & mask)] + g1 * hc[base + ((j + off1) & mask)]
+            tgt_prev2, tgt_prev = tgt_prev, tgt
+            tgt = v if w >= 1.0 else r if w <= 0.0 else r + w * (v - r)
+            r_prev = r
+        self._xc[i], self._y_last[i] = xc, y_last
+        self._dr[i], self._dy[i], self._deriv[i] = dr, dy, d
+        self._integral[i], self._raw[i] = integral, v
+        self._tgt_prev[i], self._tgt[i] = tgt_prev, tgt
+        hm = self._hist_m
+        u_acc = (hm[base + ((k - 1) & mask)] - 2.0 * hm[base + ((k - 2) & mask)]
+                 + hm[base + ((k - 3) & mask)])
+        return (u_acc - (tgt - 2.0 * tgt_prev + tgt_prev2)) * self.rate_hz * self.rate_hz
 
     def set_models(self, models: Sequence[P1D]) -> None:
         """Change internal models between two steps, bumplessly.
@@ -482,9 +565,10 @@ class Compensator:
         the integrator is re-seeded as for a gain change.
         """
         self._check_stable(models, self._gains)
+        before = (list(self._gain_p), list(self._model_p))
         old_raw = self._virtual_raw()
         self._set_models(models)
-        self._reseed(old_raw)
+        self._retune(before, old_raw)
 
     def reconfigure(self, models: Sequence[P1D], gains: Sequence[PIDGains],
                     limits: AxisLimits | None = None) -> None:
@@ -498,11 +582,11 @@ class Compensator:
         self._check_stable(models, gains)
         if limits is not None and limits.size != self.n:
             raise ConfigError(f"limits for {limits.size} axes, compensator has {self.n}")
+        before = (list(self._gain_p), list(self._model_p))
         old_raw = self._virtual_raw()
         self._set_models(models)
         self._set_gains(gains)
-        self._carry_derivative()
-        self._reseed(old_raw)
+        self._retune(before, old_raw)
         if limits is not None:
             self.set_limits(limits)
 
@@ -550,12 +634,22 @@ class Compensator:
             self._w_to[i] = end
             self._w_progress[i] = step  # s = 0 at the last step
             self._w_step[i] = step
+        self._blend_difference(i)
+
+    def _blend_difference(self, i: int, acc: float = 0.0, shortest: float = 0.0) -> None:
+        """Start blending out axis ``i``'s command's difference to its target at the last step,
+        in position and velocity (the target's velocity from its last two values) and
+        acceleration ``acc`` (carried within twice the budget), over ``shortest`` or the
+        shortest time within :data:`DIFFERENCE_ACC_SHARE` of its acceleration limit if longer
+        (module docstring)."""
+        share = DIFFERENCE_ACC_SHARE * float(self._limits.a_max[i])
         g = self._u[i] - self._tgt[i]
         rate = self._v[i] - (self._tgt[i] - self._tgt_prev[i]) * self.rate_hz
-        length = blend_duration(g, rate, DIFFERENCE_ACC_SHARE * a_max, 0.0)
-        step = self.dt_s / length if length > 0.0 else 1.0
+        length = blend_duration(g, rate, share, shortest)
+        moves = g != 0.0 or rate != 0.0 or acc != 0.0
+        step = self.dt_s / length if length > 0.0 and moves else 1.0
         if step < 1.0:
-            self._e[i] = blend_coefficients(g, rate, 0.0, 0.0, length)
+            self._e[i] = blend_coefficients(g, rate, acc, 0.0, length, share)
             self._e_progress[i] = step  # s = 0 at the last step, where g and rate were read
             self._e_step[i] = step
 
@@ -585,6 +679,7 @@ class Compensator:
         self._track[:] = [at_rest(pi) for pi in p]
         self._window[:] = [None] * n
         self._hist_m[:] = [x for pi in p for x in [pi] * self._hist_len]
+        self._hist_r[:] = self._hist_m
         self.flags = [0] * n
 
     def _pid_at_rest(self, i: int, r: float) -> None:
@@ -603,15 +698,10 @@ class Compensator:
         self._integral[i] = r - gp[0] * (gp[5] * r - y)
 
     def _virtual_raw(self) -> list[float]:
-        """``kp (b r - y) + I + D`` with the latest state (what :meth:`_reseed` preserves)."""
+        """``kp (b r - y) + I + D`` with the latest state (what a gain change keeps of an axis
+        in an input-loss window, :meth:`_retune`)."""
         return [gp[0] * (gp[5] * r - y) + i + d for gp, r, y, i, d in
                 zip(self._gain_p, self._r, self._y_last, self._integral, self._deriv, strict=True)]
-
-    def _reseed(self, target: Sequence[float]) -> None:
-        """Choose the integrator so that :meth:`_virtual_raw` equals ``target``."""
-        self._integral[:] = [t - gp[0] * (gp[5] * r - y) - d for t, gp, r, y, d in
-                             zip(target, self._gain_p, self._r, self._y_last, self._deriv,
-                                 strict=True)]
 
     def state(self) -> CompensatorState:
         """A copy of the complete state."""
@@ -666,7 +756,7 @@ class Compensator:
                                                 self._integral, self._deriv, self._dr, self._dy)
         rps = self._r_prev
         us, vs, trk, raws = self._u, self._v, self._track, self._raw
-        hcs, hms, hist_len = self._hist_c, self._hist_m, self._hist_len
+        hcs, hms, hrs, hist_len = self._hist_c, self._hist_m, self._hist_r, self._hist_len
         ws, wf, wt, wp, wstep = (self._w, self._w_from, self._w_to, self._w_progress,
                                  self._w_step)
         tgs, tps, es, eps, estep = (self._tgt, self._tgt_prev, self._e, self._e_progress,
@@ -733,6 +823,7 @@ class Compensator:
             hcs[slot] = v
             xcs[i] = phi * y + g0 * hcs[slot0] + g1 * hcs[slot1]
             hms[slot] = u
+            hrs[slot] = r
             xms[i] = phi * xms[i] + g0 * hms[slot0] + g1 * hms[slot1]
             out[i] = u
             flags[i] = fl | sat

@@ -86,7 +86,10 @@ def _prepare(old: ServiceConfig, old_axes: ResolvedAxes, new: ServiceConfig, whe
     axes = resolve_axes(new)
     if axes.driven != old_axes.driven:
         raise ConfigError(f"{where}: the set of driven axes cannot change live")
-    params, _ = new_tick(new, axes)  # builds a compensator: checks every new gain/model pair
+    try:  # builds a compensator: checks every new gain/model pair
+        params, _ = new_tick(new, axes)
+    except ConfigError as exc:  # said with the file, as every other refusal
+        raise ConfigError(f"{where}: {exc}") from None
     return Prepared(new, axes, params, config_hash(new))
 
 
