@@ -343,15 +343,23 @@ def test_identify_from_a_saved_status_writes_the_fragment(tmp_path: Path) -> Non
     alarmed = st["model_mismatch"]["axes"]["rails_y"]  # type: ignore[index]
     st["model_mismatch"]["axes"]["rails_y"] = {  # type: ignore[index]
         **_fig(0.0, informative=False), "alarm": True, "last_informative": alarmed,
-        "reason": "5 stalls of the host cut out 13.8 s of the window"}
+        "reason": "5 stalls of the host cut out 13.8 s of the window", "state": "unsupervised",
+        "blind_s": 655.0}
     del st["model_mismatch"]["axes"]["rails_y"]["estimate"]  # type: ignore[index]
+    st["t"] = 800.0  # 680 s after that window ended
     saved.write_text(json.dumps(st))
     p = from_status("--out", str(tmp_path / "earlier"))
     assert p.returncode == 0, p.stderr
     text = (tmp_path / "earlier" / "rails_y.toml").read_text()
     assert 'model = "p1d:K=1.001,Td=0.0276,Tp1=0.186"' in text
-    assert "the last informative window (the latest is not: 5 stalls" in " ".join(
-        ln.lstrip("# ") for ln in text.splitlines()), text
+    flat = " ".join(ln.lstrip("# ") for ln in text.splitlines())
+    assert "the last informative window (the latest is not: 5 stalls" in flat, text
+    # ...and how old it is, and what the axis is now, in the fragment and on stderr
+    note = ("rails_y: the estimate is from a window that ended 680 s before the status; the "
+            "axis is unsupervised now (no window judged for 655 s): the platform may have "
+            "changed since")
+    assert f"warning: {note}" in p.stderr, p.stderr
+    assert f"Note: {note}." in flat, text
     saved.write_text(json.dumps({"t": 1.0}))
     p = from_status()
     assert p.returncode != 0 and "no model_mismatch block" in p.stderr, p.stderr

@@ -306,12 +306,21 @@ def _run_from_status(args: argparse.Namespace) -> int:
         raise DataError(f"{where}: {axis} is not supervised (supervised: "
                         f"{', '.join(axes) or 'none'})")
     taken = "the latest window"
+    stale_note = None
     earlier = fig.get("last_informative")
     if isinstance(earlier, dict) and not (fig.get("informative")
                                           and isinstance(fig.get("estimate"), dict)):
         # the latest window told nothing (stalls, no motion): the last one that did
         taken = (f"the last informative window (the latest is not: "
                  f"{fig.get('reason') or 'no estimate'})")
+        now_t, end_t = st.get("t"), earlier.get("to_t")
+        if isinstance(now_t, int | float) and isinstance(end_t, int | float):
+            age = float(now_t) - float(end_t)
+            stale_note = (f"{axis}: the estimate is from a window that ended {age:.0f} s before "
+                          f"the status; the axis is {fig.get('state') or 'not judged'} now"
+                          + (f" (no window judged for {float(fig['blind_s']):.0f} s)"
+                             if isinstance(fig.get("blind_s"), int | float) else "")
+                          + ": the platform may have changed since")
         fig = earlier
     est = fig.get("estimate")
     if not isinstance(est, dict):
@@ -333,6 +342,7 @@ def _run_from_status(args: argparse.Namespace) -> int:
         f"{fig['residual_delay_ms']:+.2f} +- {fig['residual_delay_se_ms']:.2f} ms, gain error "
         f"{100 * fig['gain_error']:+.2f} % in the band.",
         *input_lag_comment(fig.get("pairing_phase_ms")),
+        *([f"# Note: {stale_note}."] if stale_note else []),
     ]
     out = args.out or Path(f"retune_{axis}")
     refusals = ([] if informative else [f"not informative ({fig.get('reason')})"]) + [
@@ -355,6 +365,8 @@ def _run_from_status(args: argparse.Namespace) -> int:
     else:
         print("\n".join(comments))
         print(f"wrote {path}")
+    if stale_note:
+        print(f"warning: {stale_note}", file=sys.stderr)
     return 0
 
 
