@@ -37,7 +37,7 @@ PLAUSIBLE: dict[str, tuple[float, float, str]] = {
     "vel_max_rad_s": (0.0, 10.0, "rad/s"), "acc_max_rad_s2": (0.0, 200.0, "rad/s^2"),
 }
 """Per limit key, ``(lowest, highest, unit)`` a motion platform can have (a velocity or an
-acceleration must moreover be > 0, which :meth:`LimitsConfig.resolve` checks)."""
+acceleration above its lowest, 0)."""
 
 
 def limit_keys(axis: str) -> tuple[str, str, str, str]:
@@ -66,8 +66,13 @@ class LimitsConfig(BaseModel):
             return v
         if not math.isfinite(v):
             raise ValueError(f"must be a finite number, got {v!r}")
-        lo, hi, unit = PLAUSIBLE[str(info.field_name)]
-        if not lo <= v <= hi:
+        name = str(info.field_name)
+        lo, hi, unit = PLAUSIBLE[name]
+        if name.startswith(("vel", "acc")):  # a speed or an acceleration: > 0
+            if not lo < v <= hi:
+                raise ValueError(f"lies outside ({lo:g}, {hi:g}] {unit}, the plausible range "
+                                 "of a motion platform")
+        elif not lo <= v <= hi:
             raise ValueError(f"lies outside [{lo:g}, {hi:g}] {unit}, the plausible range of a "
                              "motion platform")
         return v
@@ -89,10 +94,7 @@ class LimitsConfig(BaseModel):
         if not p_max > 0 or not p_min < 0:
             raise ConfigError(f"limits of {axis}: neutral (0) must lie strictly inside "
                               f"[{p_min}, {p_max}]")
-        for key, val in ((want[2], v_max), (want[3], a_max)):
-            if not val > 0:
-                raise ConfigError(f"limits of {axis}: {key} must be > 0, got {val}")
-        return p_min, p_max, v_max, a_max
+        return p_min, p_max, v_max, a_max  # a speed and an acceleration are > 0 (_plausible)
 
 
 def axis_limits(per_axis: dict[str, LimitsConfig]) -> AxisLimits:

@@ -333,8 +333,8 @@ def test_a_config_refused_names_each_of_its_errors(tmp_path: Path) -> None:
                     '[axes.rails_y]\nvel_max_m_s = 30.0\n')
     p = run("config", "check", str(site))
     assert p.returncode == 2, p.stderr
-    assert "axes.rails_x.vel_max_m_s: lies outside [0, 10]" in p.stderr
-    assert (f"; also {site}: axes.rails_y.vel_max_m_s: lies outside [0, 10] m/s, the plausible "
+    assert "axes.rails_x.vel_max_m_s: lies outside (0, 10]" in p.stderr
+    assert (f"; also {site}: axes.rails_y.vel_max_m_s: lies outside (0, 10] m/s, the plausible "
             "range of a motion platform (got 30.0)") in p.stderr, p.stderr
     many = "".join(f"[loop]\nzz{i} = {i}\n" if i == 0 else f"zz{i} = {i}\n"
                    for i in range(MORE_ERRORS + 3))
@@ -347,7 +347,10 @@ def test_a_config_refused_names_each_of_its_errors(tmp_path: Path) -> None:
 @pytest.mark.parametrize(("text", "msg"), [
     ("[axes.rails_y]\nvel_max_m_ss = 2.0\n",
      "axes.rails_y.vel_max_m_ss: unknown key 'vel_max_m_ss'; did you mean 'vel_max_m_s'"),
-    ("[axes.rails_y]\nvel_max_m_s = 20.0\n", "axes.rails_y.vel_max_m_s: lies outside [0, 10]"),
+    ("[axes.rails_y]\nvel_max_m_s = 20.0\n", "axes.rails_y.vel_max_m_s: lies outside (0, 10]"),
+    # 0 is outside the range the message gives, not refused by another rule after it
+    ("[axes.rails_y]\nacc_max_m_s2 = 0.0\n",
+     "axes.rails_y.acc_max_m_s2: lies outside (0, 100] m/s^2"),
     ("[axes.rails_z]\nbypass = true\n", "axes.rails_z: unknown axis; axes: rails_x"),
 ])
 def test_an_error_names_the_included_file_that_holds_the_value(tmp_path: Path, text: str,
