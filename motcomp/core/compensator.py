@@ -479,8 +479,8 @@ class Compensator:
         """After new gains or models (``before``: the old ones): each axis whose PID or internal
         model changed takes the state its new internal loop would have reached on the
         references it was given (:meth:`_rerun`), and the command blends out its difference to
-        that path, in position and velocity (:meth:`_blend_difference`), as at a switch out of
-        bypass.  An axis in an input-loss window, whose target is the reference and whose PID
+        that path in position, velocity and acceleration over ``fade_s`` or longer
+        (:meth:`_blend_difference`), as at a switch out of bypass.  An axis in an input-loss window, whose target is the reference and whose PID
         started over at rest there, keeps its raw output instead: the derivative carried over
         to the new ``kd`` and ``c``, the integrator re-seeded (module docstring)."""
         gain_p, model_p = before
@@ -559,11 +559,9 @@ class Compensator:
         return (u_acc - (tgt - 2.0 * tgt_prev + tgt_prev2)) * self.rate_hz * self.rate_hz
 
     def set_models(self, models: Sequence[P1D]) -> None:
-        """Change internal models between two steps, bumplessly.
-
-        The model output (state) and the command history are kept, only the coefficients change;
-        the integrator is re-seeded as for a gain change.
-        """
+        """Change internal models between two steps, bumplessly: the platform mirror keeps its
+        state and command history, only its coefficients change; the internal loop of each
+        changed axis as for a gain change (:meth:`_retune`)."""
         self._check_stable(models, self._gains)
         before = (list(self._gain_p), list(self._model_p))
         old_raw = self._virtual_raw()
