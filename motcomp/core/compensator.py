@@ -480,9 +480,10 @@ class Compensator:
         model changed takes the state its new internal loop would have reached on the
         references it was given (:meth:`_rerun`), and the command blends out its difference to
         that path in position, velocity and acceleration over ``fade_s`` or longer
-        (:meth:`_blend_difference`), as at a switch out of bypass.  An axis in an input-loss window, whose target is the reference and whose PID
-        started over at rest there, keeps its raw output instead: the derivative carried over
-        to the new ``kd`` and ``c``, the integrator re-seeded (module docstring)."""
+        (:meth:`_blend_difference`), as at a switch out of bypass.  An axis in an input-loss
+        window, whose target is the reference and whose PID started over at rest there, keeps
+        its raw output instead: the derivative carried over to the new ``kd`` and ``c``, the
+        integrator re-seeded (module docstring)."""
         gain_p, model_p = before
         for i in range(self.n):
             if self._gain_p[i] == gain_p[i] and self._model_p[i] == model_p[i]:
