@@ -92,8 +92,8 @@ def assert_within_envelope(outs: list[TickOutput], dts: list[float],
 # --- plausibility and the envelope in the config -------------------------------------------------
 @pytest.mark.parametrize(("key", "value", "bound"), [
     ("pos_min_m", -1e308, "[-10, 10] m"), ("pos_max_m", 1e308, "[-10, 10] m"),
-    ("pos_max_m", 1000.0, "[-10, 10] m"), ("vel_max_m_s", 1e308, "[0, 10] m/s"),
-    ("acc_max_m_s2", 1e308, "[0, 100] m/s^2"),
+    ("pos_max_m", 1000.0, "[-10, 10] m"), ("vel_max_m_s", 1e308, "(0, 10] m/s"),
+    ("acc_max_m_s2", 1e308, "(0, 100] m/s^2"),
 ])
 def test_implausible_limit_is_refused_naming_key_value_and_bound(key: str, value: float,
                                                                  bound: str) -> None:
