@@ -233,6 +233,11 @@ def test_short_history_and_other_axes() -> None:
     now = run_sine(m, 2.5, 0.3, 0.02)
     fig = report(m, now)["axes"]["rails_y"]
     assert fig["delay_reason"] == "1.8 s of feedback and reference so far (needs 2 s)"
+    # a span just short of the need is said short of it, not rounded up to it
+    m = MotionMonitor(rate_hz=1000.0, window_s=10.0)
+    now = run_sine(m, 2.70, 0.3, 0.02)
+    fig = report(m, now)["axes"]["rails_y"]
+    assert fig["delay_reason"] == "1.9 s of feedback and reference so far (needs 2 s)", fig
     # an axis the feedback lacks: too few samples; an axis that does not move: too small
     m = MotionMonitor(rate_hz=1000.0, window_s=10.0)
     now = run_sine(m, 12.0, 0.3, 0.02, fb_axis="rails_x")

@@ -338,6 +338,14 @@ def test_identify_from_a_saved_status_writes_the_fragment(tmp_path: Path) -> Non
     p = from_status("--axis", "rails_y", "--out", str(tmp_path / "again"))
     assert p.returncode == 2 and "not informative (no motion)" in p.stderr, p.stderr
     assert not (tmp_path / "again").exists()
+    # no axis in alarm and none given: the axes supervision watches, each with its state
+    st = _status(False)
+    st["model_mismatch"]["axes"]["rails_y"]["state"] = "unsupervised"  # type: ignore[index]
+    saved.write_text(json.dumps(st))
+    p = from_status("--out", str(tmp_path / "again"))
+    assert p.returncode == 2 and ("none is in alarm; the axes supervision watches, with their "
+                                  "state: rails_y (unsupervised), rails_x (state unknown)"
+                                  ) in p.stderr, p.stderr
     # the latest window told nothing, an earlier one did: that one is taken, and said
     st = _status(True)
     alarmed = st["model_mismatch"]["axes"]["rails_y"]  # type: ignore[index]

@@ -298,12 +298,14 @@ def _run_from_status(args: argparse.Namespace) -> int:
         alarmed = [a for a, f in axes.items() if isinstance(f, dict) and f.get("alarm")]
         if len(alarmed) != 1:
             how = "none is" if not alarmed else "several are"
-            raise ConfigError(f"--axis: give the axis ({how} in alarm; supervised: "
-                              f"{', '.join(axes) or 'none'})")
+            states = ", ".join(f"{a} ({f.get('state') or 'state unknown'})" if isinstance(f, dict)
+                               else a for a, f in axes.items())
+            raise ConfigError(f"--axis: give the axis ({how} in alarm; the axes supervision "
+                              f"watches, with their state: {states or 'none'})")
         axis = alarmed[0]
     fig = axes.get(axis)
     if not isinstance(fig, dict):
-        raise DataError(f"{where}: {axis} is not supervised (supervised: "
+        raise DataError(f"{where}: {axis} is not supervised (the axes supervision watches: "
                         f"{', '.join(axes) or 'none'})")
     taken = "the latest window"
     stale_note = None

@@ -210,6 +210,14 @@ def starved_out(axes: dict[str, dict[str, Any]], missed_share: float) -> None:
                                    "the figure carries its stalls")
 
 
+
+def _short_of(seconds: float, need: float) -> str:
+    """``seconds`` (>= 0) to a tenth, rounded down where rounding would reach ``need``: a span
+    short of a need never reads as it ("2.0 s (needs 2 s)" for 1.96 s)."""
+    x = max(0.0, seconds)
+    text = f"{x:.1f}"
+    return f"{math.floor(x * 10.0) / 10.0:.1f}" if x < need <= float(text) else text
+
 class MotionMonitor:
     """The figures of the module docstring, from per-tick samples and feedback frames.
 
@@ -538,19 +546,22 @@ class MotionMonitor:
         if changed is not None and changed // b + 1 + self._hi > start:
             start = changed // b + 1 + self._hi
             if (end - start) * b < MIN_SPAN_S * 1e9:
-                return (f"{max(0, end - start) * b / 1e9:.1f} s of feedback since the axis' "
+                return (f"{_short_of((end - start) * b / 1e9, MIN_SPAN_S)} s of feedback "
+                        "since the axis' "
                         f"compensation changed (needs {MIN_SPAN_S:g} s; left out: a bypass "
                         "switch or a reload, the blends they start, a prediction's fade (in after "
                         "a stale input returned, or out and in after its band monitor fell "
                         "back) and "
                         f"the next {LAG_RANGE_S[1]:g} s)")
         if clipped and (end - start) * b < MIN_SPAN_S * 1e9:
-            return (f"{max(0, end - start) * b / 1e9:.1f} s of feedback on live input in the "
+            return (f"{_short_of((end - start) * b / 1e9, MIN_SPAN_S)} s of feedback on live "
+                    "input in the "
                     f"last {self.window_s:g} s (needs {MIN_SPAN_S:g} s; left out: the input's "
                     "start-up or resume blend and the next "
                     f"{LAG_RANGE_S[1]:g} s, a stale input, parking)")
         if (end - start) * b < MIN_SPAN_S * 1e9:
-            return (f"{max(0, end - start) * b / 1e9:.1f} s of feedback and reference so far "
+            return (f"{_short_of((end - start) * b / 1e9, MIN_SPAN_S)} s of feedback and "
+                    "reference so far "
                     f"(needs {MIN_SPAN_S:g} s)")
         return start, end
 
