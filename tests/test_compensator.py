@@ -280,7 +280,7 @@ def test_a_gain_change_blends_the_command_onto_the_new_gains_path(
     before = Compensator([RAILS], old, _rails_limits(), 1000.0)
     after = Compensator([RAILS], new, _rails_limits(), 1000.0)
     at = round(switch_s * 1000)
-    out, u_old, u_new = [], [], []
+    out, u_old, u_new, raw_gap = [], [], [], []
     for k, x in enumerate(r):
         if k == at:
             c.set_gains(new)
@@ -288,7 +288,12 @@ def test_a_gain_change_blends_the_command_onto_the_new_gains_path(
         out.append(c.step([x])[0])
         u_old.append(before.step([x])[0])
         u_new.append(after.step([x])[0])
+        raw_gap.append(abs(c.raw_output[0] - after.raw_output[0]))
     u, u0, u1 = np.array(out), np.array(u_old), np.array(u_new)
+    # from the first step after the change the PID's output is that of the gains that ran all
+    # along, but for what is left of the re-run's start on a curved reference (0.1 mm at most
+    # here), which dies out
+    assert max(raw_gap[at:]) < 2e-4 and max(raw_gap[at + 2000:]) < 1e-10
     np.testing.assert_array_equal(u[:at], u0[:at])
     acc = np.diff(u[at - 5:], 2) * 1e6
     assert np.abs(acc).max() < 0.9 * 6.0
@@ -296,6 +301,27 @@ def test_a_gain_change_blends_the_command_onto_the_new_gains_path(
     # on the new gains' path once the blend is over (what is left of the re-run's start)
     assert np.abs(u[at + 2000:] - u1[at + 2000:]).max() < 1e-9
     assert np.abs(u0[at:] - u1[at:]).max() > 1e-3  # two paths apart: the blend did something
+
+
+@pytest.mark.parametrize(("rule_from", "rule_to"), [("amigo", "zn"), ("zn", "simc")])
+def test_a_gain_change_on_a_ramp_takes_the_new_gains_steady_state_exactly(
+        rule_from: str, rule_to: str) -> None:
+    """On a ramp the re-run starts from the new loop's steady state, in closed form, and
+    steps the tick's own recurrence: the PID's output after the change is, to rounding, that of
+    a compensator that ran the new gains all along (a wrong closed form or a recurrence that
+    departs from the step's would leave a transient of the loop's own)."""
+    wide = AxisLimits.uniform(1, 1e6, 1e9, 1e12)
+    old, new = [tune(rule_from, RAILS).gains], [tune(rule_to, RAILS).gains]
+    c = Compensator([RAILS], old, wide, 1000.0, history_s=0.5)
+    ref = Compensator([RAILS], new, wide, 1000.0, history_s=0.5)
+    ramp = 0.01 + 0.3e-3 * np.arange(6000)  # 0.3 m/s
+    for k, x in enumerate(ramp):
+        if k == 5000:
+            c.set_gains(new)
+        c.step([x])
+        ref.step([x])
+        if k >= 5000:
+            assert c.raw_output[0] == pytest.approx(ref.raw_output[0], abs=1e-12), k
 
 
 def test_a_model_change_in_an_input_loss_window_keeps_the_held_raw_output() -> None:
